@@ -1,0 +1,216 @@
+"""Cross-section of the river bed: station (m, left bank -> right bank) and bed elevation (m).
+
+Wetted geometry at a water level (elevation in the same datum, m): water edges, wetted width (m),
+wetted area (m²), wetted perimeter (m), and the area between two stations (trapezoidal rule with
+the water-edge crossings inserted, so it is exact for the piecewise-linear survey).
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import GeometryError, InputFileError, ParameterError
+
+SHAPES = ("rectangular", "trapezoidal", "parabolic", "free")
+
+
+@dataclass(frozen=True)
+class CrossSection:
+    """Surveyed bed. ``station`` strictly increasing (m), ``elevation`` (m), same length >= 2."""
+
+    station: np.ndarray
+    elevation: np.ndarray
+
+    def __post_init__(self) -> None:
+        s = np.asarray(self.station, dtype=float)
+        z = np.asarray(self.elevation, dtype=float)
+        if s.ndim != 1 or s.shape != z.shape:
+            raise GeometryError("cross-section: station and elevation must be two columns of the same length")
+        if len(s) < 2:
+            raise GeometryError(f"cross-section: {len(s)} point(s); give at least 2 rows of 'station, elevation'")
+        if not np.all(np.isfinite(s)) or not np.all(np.isfinite(z)):
+            raise GeometryError("cross-section: a station or elevation is not a number")
+        bad = np.nonzero(np.diff(s) <= 0)[0]
+        if len(bad):
+            i = int(bad[0])
+            raise GeometryError(
+                f"cross-section: station must increase from the left bank to the right bank, "
+                f"but row {i + 2} ({s[i + 1]:g} m) does not exceed row {i + 1} ({s[i]:g} m)"
+            )
+        object.__setattr__(self, "station", s)
+        object.__setattr__(self, "elevation", z)
+
+    # -- levels -----------------------------------------------------------------------------
+    @property
+    def bed_min(self) -> float:
+        """Lowest bed elevation (m)."""
+        return float(self.elevation.min())
+
+    def check_level(self, level: float) -> None:
+        """Raise GeometryError unless ``level`` wets the section without spilling over a bank end."""
+        if not np.isfinite(level):
+            raise GeometryError("water level: not a number")
+        if level <= self.bed_min:
+            raise GeometryError(
+                f"water level {level:.3f} m is at or below the lowest bed point ({self.bed_min:.3f} m): "
+                "give an elevation in the cross-section's datum, not a depth"
+            )
+        left, right = self.elevation[0], self.elevation[-1]
+        if level > left or level > right:
+            side = "both banks" if (level > left and level > right) else ("the left bank" if level > left else "the right bank")
+            raise GeometryError(
+                f"water level {level:.3f} m is above {side} (left top {left:.3f} m, right top {right:.3f} m): "
+                "the water would spill beyond the surveyed section; check the level or extend the survey"
+            )
+
+    def wet_polyline(self, level: float, s_from: float | None = None, s_to: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Stations (m) and water depths (m, >= 0) between ``s_from`` and ``s_to``, with every
+        water-edge crossing and both limits inserted, so depth is linear between nodes."""
+        s, z = self.station, self.elevation
+        d = level - z
+        pts_s = [s]
+        # crossings where depth changes sign inside a segment
+        sign_change = np.nonzero((d[:-1] * d[1:]) < 0)[0]
+        if len(sign_change):
+            t = d[sign_change] / (d[sign_change] - d[sign_change + 1])
+            pts_s.append(s[sign_change] + t * (s[sign_change + 1] - s[sign_change]))
+        lo = s[0] if s_from is None else float(s_from)
+        hi = s[-1] if s_to is None else float(s_to)
+        pts_s.append(np.array([lo, hi]))
+        ss = np.unique(np.concatenate(pts_s))
+        ss = ss[(ss >= lo) & (ss <= hi)]
+        depth = np.clip(level - np.interp(ss, s, z), 0.0, None)
+        return ss, depth
+
+    def water_edges(self, level: float) -> tuple[float, float]:
+        """Stations (m) of the left and right water edges: the outermost dry-to-wet crossings."""
+        self.check_level(level)
+        ss, depth = self.wet_polyline(level)
+        wet = np.nonzero(depth > 0)[0]
+        i0, i1 = wet[0], wet[-1]
+        return float(ss[max(i0 - 1, 0)]), float(ss[min(i1 + 1, len(ss) - 1)])
+
+    def wetted_width(self, level: float) -> float:
+        """Total width of water surface (m), islands excluded."""
+        self.check_level(level)
+        ss, depth = self.wet_polyline(level)
+        seg_wet = (depth[:-1] > 0) | (depth[1:] > 0)
+        return float(np.sum(np.diff(ss)[seg_wet]))
+
+    def wetted_area(self, level: float, s_from: float | None = None, s_to: float | None = None) -> float:
+        """Wetted area (m²) between two stations (default: the whole section)."""
+        ss, depth = self.wet_polyline(level, s_from, s_to)
+        return float(np.trapezoid(depth, ss)) if len(ss) > 1 else 0.0
+
+    def wetted_perimeter(self, level: float) -> float:
+        """Length of wetted bed (m)."""
+        self.check_level(level)
+        ss, depth = self.wet_polyline(level)
+        zz = np.interp(ss, self.station, self.elevation)
+        seg_wet = (depth[:-1] > 0) | (depth[1:] > 0)
+        return float(np.sum(np.hypot(np.diff(ss), np.diff(zz))[seg_wet]))
+
+    def depth_at(self, level: float, stations: np.ndarray) -> np.ndarray:
+        """Water depth (m, >= 0) at the given stations."""
+        return np.clip(level - np.interp(stations, self.station, self.elevation), 0.0, None)
+
+
+# ---------------------------------------------------------------------------------------------
+# creation
+
+
+def from_shape(
+    shape: str,
+    *,
+    top_width_m: float | None = None,
+    bottom_width_m: float | None = None,
+    depth_m: float | None = None,
+    left_station_m: float = 0.0,
+    bank_elevation_m: float = 0.0,
+    points: list | None = None,
+    n_parabola: int = 41,
+) -> CrossSection:
+    """Build a cross-section from a shape. The reference point is the left bank top
+    (``left_station_m``, ``bank_elevation_m``); widths and depth in metres."""
+    shape = shape.lower()
+    if shape == "free":
+        pts = np.asarray(points or [], dtype=float)
+        if pts.ndim != 2 or pts.shape[1] != 2:
+            raise GeometryError("cross_section.points: give [[station_m, elevation_m], ...] for a free shape")
+        return CrossSection(pts[:, 0], pts[:, 1])
+    if shape not in SHAPES:
+        raise ParameterError(f"cross_section.shape: {shape!r} is not one of {', '.join(SHAPES)}")
+    for name, v in (("top_width_m", top_width_m), ("depth_m", depth_m)):
+        if v is None or not v > 0:
+            raise ParameterError(f"cross_section.{name}: a positive number is needed for a {shape} section")
+    s0, zt, W, D = left_station_m, bank_elevation_m, float(top_width_m), float(depth_m)
+    if shape == "rectangular":
+        eps = 1e-6 * W
+        st = [s0, s0 + eps, s0 + W - eps, s0 + W]
+        el = [zt, zt - D, zt - D, zt]
+    elif shape == "trapezoidal":
+        if bottom_width_m is None or not (0 < bottom_width_m < W):
+            raise ParameterError("cross_section.bottom_width_m: give a bed width between 0 and top_width_m")
+        slope_w = (W - bottom_width_m) / 2
+        st = [s0, s0 + slope_w, s0 + slope_w + bottom_width_m, s0 + W]
+        el = [zt, zt - D, zt - D, zt]
+    else:  # parabolic: z = zt - D * (1 - (2u/W - 1)^2)
+        u = np.linspace(0.0, W, n_parabola)
+        st = s0 + u
+        el = zt - D * (1.0 - (2.0 * u / W - 1.0) ** 2)
+    return CrossSection(np.asarray(st, float), np.asarray(el, float))
+
+
+# ---------------------------------------------------------------------------------------------
+# files
+
+_SPLIT = re.compile(r"[,;\s]+")
+
+
+def parse_xy_text(text: str, source: str = "cross-section") -> CrossSection:
+    """Parse rows of "station, elevation" (comma, semicolon or whitespace; header optional;
+    '#' comments ignored)."""
+    rows = []
+    for lineno, raw in enumerate(text.splitlines(), 1):
+        line = raw.split("#", 1)[0].strip()
+        if not line:
+            continue
+        parts = [p for p in _SPLIT.split(line) if p]
+        try:
+            vals = [float(p) for p in parts]
+        except ValueError:
+            if not rows:  # a header line
+                continue
+            raise InputFileError(f"{source}, line {lineno}: {raw.strip()!r} is not two numbers 'station, elevation'") from None
+        if len(vals) < 2:
+            raise InputFileError(f"{source}, line {lineno}: expected two numbers 'station, elevation', got {raw.strip()!r}")
+        rows.append(vals[:2])
+    if len(rows) < 2:
+        raise InputFileError(f"{source}: {len(rows)} data row(s); a cross-section needs at least 2 rows of 'station, elevation' in metres")
+    arr = np.asarray(rows)
+    try:
+        return CrossSection(arr[:, 0], arr[:, 1])
+    except GeometryError as e:
+        raise InputFileError(f"{source}: {e}") from e
+
+
+def load_cross_section(path: Path | str) -> CrossSection:
+    """Read a cross-section text/CSV file."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputFileError(f"{path}: cross-section file not found; give a CSV of 'station, elevation' rows in metres")
+    try:
+        text = path.read_text(encoding="utf-8", errors="replace")
+    except OSError as e:
+        raise InputFileError(f"{path}: cannot be read ({e.strerror})") from e
+    return parse_xy_text(text, str(path))
+
+
+def to_csv_text(cs: CrossSection) -> str:
+    """CSV text of a cross-section, with a header, that :func:`parse_xy_text` reads back."""
+    lines = ["station_m,elevation_m"] + [f"{s:.4f},{z:.4f}" for s, z in zip(cs.station, cs.elevation)]
+    return "\n".join(lines) + "\n"
