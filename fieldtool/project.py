@@ -166,7 +166,7 @@ class RerunCfg:
 class Project:
     """One measurement. ``root`` is the folder relative paths are resolved from (not saved)."""
 
-    name: str = "measurement"
+    name: str = "measurement"  # a name for this measurement (station, date)
     step: str = "cross_section"  # last TUI step visited
     video: VideoCfg = field(default_factory=VideoCfg)
     cross_section: CrossSectionCfg = field(default_factory=CrossSectionCfg)

@@ -83,7 +83,8 @@ class CrossSection:
         pts_s.append(np.array([lo, hi]))
         ss = np.unique(np.concatenate(pts_s))
         ss = ss[(ss >= lo) & (ss <= hi)]
-        depth = np.clip(level - np.interp(ss, s, z), 0.0, None)
+        depth = level - np.interp(ss, s, z)
+        depth[depth < 1e-9] = 0.0  # crossings are exactly dry, despite rounding
         return ss, depth
 
     def water_edges(self, level: float) -> tuple[float, float]:

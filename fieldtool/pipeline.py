@@ -1,0 +1,434 @@
+"""Run the steps of a Project in order (thesis figure 9.1) and write the results.
+
+Stages: inputs (cross-section, clip, lens) -> water level -> orthorectification -> ROI/masks ->
+frames (undistort, stabilise, filters) streamed into PIV -> rectified field -> discharge -> files.
+
+``run_project`` takes ``progress(stage, done, total)``, ``cancel() -> bool`` and an ``Observer``
+(the rerun logger is one) and never prints. Each stage is also a public function so the TUI can run
+a step on its own.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Callable, Iterator
+
+import numpy as np
+
+from . import __version__
+from .errors import Cancelled, FieldToolError, GeometryError, InputFileError, ParameterError
+from .processing import cross_section as xs
+from .processing import discharge as dq
+from .processing import ortho
+from .processing.frames import FrameSource, read_color_frame
+from .project import Project, atomic_write_bytes, project_to_dict
+
+Progress = Callable[[str, int, int], None]
+
+
+class Observer:
+    """Receives what the pipeline computes, as it computes it. Every method is optional; an
+    observer must never raise (the pipeline guards it anyway and reports a warning)."""
+
+    def stage(self, name: str) -> None: ...
+
+    def frame(self, index: int, t_s: float, raw: np.ndarray, filtered: np.ndarray) -> None: ...
+
+    def pair(self, i: int, t_s: float, x: np.ndarray, y: np.ndarray, u_px_s: np.ndarray, v_px_s: np.ndarray,
+             valid: np.ndarray) -> None: ...
+
+    def result(self, result: "RunResult") -> None: ...
+
+    def warning(self, message: str) -> None: ...
+
+
+class _Guarded:
+    """Calls an observer, turning its failures into warnings: logging never fails a run."""
+
+    def __init__(self, obs: Observer | None, warnings: list[str]):
+        self.obs, self.warnings, self.failed = obs, warnings, False
+
+    def __call__(self, method: str, *args) -> None:
+        if self.obs is None or self.failed:
+            return
+        try:
+            getattr(self.obs, method)(*args)
+        except Exception as e:  # noqa: BLE001 - a logger must not break a measurement
+            self.failed = True
+            self.warnings.append(f"live logging stopped: {type(e).__name__}: {e}")
+
+
+@dataclass
+class Inputs:
+    """Loaded inputs: cross-section, clip, optional lens model, and the working first frame."""
+
+    cross_section: xs.CrossSection
+    source: FrameSource
+    lens: object | None  # calibration.LensModel
+    first_color: np.ndarray  # BGR raw first frame of the range
+
+    def to_working(self, pts) -> np.ndarray:
+        """Raw-frame pixels -> working-image pixels (undistorted when a lens model is given)."""
+        p = np.asarray(pts, float).reshape(-1, 2)
+        return self.lens.undistort_points(p) if self.lens is not None and len(p) else p
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.source.shape
+
+
+@dataclass
+class RunResult:
+    """Everything one run produced. ``summary()`` is what ``result.json`` holds."""
+
+    discharge: dq.DischargeResult
+    q_pairs: np.ndarray
+    level: object  # water_level.LevelResult
+    mapping: ortho.OrthoMapping
+    piv: object  # piv.PivResult
+    section: dq.SectionGeometry
+    world_u: np.ndarray
+    world_v: np.ndarray
+    out_dir: Path | None
+    files: dict[str, str] = field(default_factory=dict)
+    timings_s: dict[str, float] = field(default_factory=dict)
+    warnings: list[str] = field(default_factory=list)
+    stabilization: dict | None = None
+    project: dict = field(default_factory=dict)
+
+    def summary(self) -> dict:
+        d = self.discharge
+        qp = self.q_pairs[np.isfinite(self.q_pairs)]
+        lv = self.level
+        return {
+            "discharge_m3s": d.discharge_m3s,
+            "discharge_p05_m3s": float(np.percentile(qp, 5)) if len(qp) else None,
+            "discharge_p95_m3s": float(np.percentile(qp, 95)) if len(qp) else None,
+            "discharge_pairs_median_m3s": float(np.median(qp)) if len(qp) else None,
+            "water_level_m": d.water_level_m,
+            "water_level_method": lv.method,
+            "water_level_uncertainty_m": lv.uncertainty_m,
+            "wetted_area_m2": d.wetted_area_m2,
+            "wetted_width_m": d.wetted_width_m,
+            "mean_velocity_ms": d.mean_velocity_ms,
+            "alpha": d.alpha,
+            "alpha_default": d.alpha_default,
+            "section_length_m": d.section_length_m,
+            "n_pairs": int(len(self.q_pairs)),
+            "valid_fraction_mean": float(np.nanmean(self.piv.valid_fraction)),
+            "subsections_filled": int(d.velocity_filled.sum()),
+            "ortho_method": self.mapping.method,
+            "ortho_residual_m": self.mapping.residual_m,
+            "stabilization": self.stabilization,
+            "warnings": self.warnings + d.warnings,
+            "timings_s": self.timings_s,
+            "files": self.files,
+            "fieldtool_version": __version__,
+            "inputs": self.project,
+        }
+
+
+# ---------------------------------------------------------------------------------------------
+# stages
+
+
+def load_inputs(project: Project) -> Inputs:
+    """Cross-section, clip and lens model of a project, checked."""
+    cs_cfg = project.cross_section
+    if cs_cfg.shape:
+        cs = xs.from_shape(cs_cfg.shape, top_width_m=cs_cfg.top_width_m, bottom_width_m=cs_cfg.bottom_width_m,
+                           depth_m=cs_cfg.depth_m, left_station_m=cs_cfg.left_station_m,
+                           bank_elevation_m=cs_cfg.bank_elevation_m, points=cs_cfg.points)
+    else:
+        if not cs_cfg.path:
+            raise ParameterError("cross_section.path: no cross-section given; set a CSV file or a shape")
+        cs = xs.load_cross_section(project.resolve(cs_cfg.path))
+    v = project.video
+    if not v.path:
+        raise ParameterError("video.path: no video given; set the clip to analyse")
+    src = FrameSource(project.resolve(v.path), v.start_s, v.end_s, v.step, v.frame_interval_s)
+    lens = None
+    if project.calibration.path:
+        from .processing.calibration import load_calibration
+
+        lens = load_calibration(project.resolve(project.calibration.path))
+    first = read_color_frame(project.resolve(v.path), v.start_s, v.frame_interval_s)
+    return Inputs(cs, src, lens, first)
+
+
+def compute_level(project: Project, inputs: Inputs, mapping: ortho.OrthoMapping | None):
+    """Water level by the project's method (see processing.water_level)."""
+    from .processing.water_level import compute_level as _compute
+
+    fov = inputs.lens.fov_deg() if inputs.lens is not None else None
+    return _compute(project.water_level, inputs.cross_section, root=project.root, mapping=mapping, fov_deg=fov,
+                    points_transform=inputs.to_working if inputs.lens is not None else None)
+
+
+def build_mapping(project: Project, inputs: Inputs, level_m: float | None) -> ortho.OrthoMapping:
+    """Image -> water-plane mapping by the project's ortho method. ``level_m`` is needed for
+    method 'none' (scale from the wetted width) and 'pose' (plane at the level)."""
+    o = project.ortho
+    shape = inputs.shape
+    if o.method == "distances":
+        raw = np.asarray(o.gcp_px, float)
+        if raw.shape != (4, 2):
+            raise ParameterError("ortho.gcp_px: give exactly four [x, y] pixel points P1..P4 for method = distances")
+        ortho._check_px(raw, shape, "ortho.gcp_px")
+        return ortho.from_distances(inputs.to_working(raw), o.distances_m)
+    if o.method == "world":
+        raw = np.asarray(o.gcp_px, float)
+        ortho._check_px(raw.reshape(-1, 2), shape, "ortho.gcp_px")
+        return ortho.from_world_points(inputs.to_working(raw), o.gcp_world_m)
+    if o.method == "pose":
+        from .processing import pose
+
+        if inputs.lens is None:
+            raise ParameterError("ortho.method = pose needs the camera intrinsics: set calibration.path")
+        if level_m is None:
+            raise ParameterError("ortho.method = pose needs the water level first")
+        p = pose.solve_pose(np.asarray(o.gcp_px, float), np.asarray(o.gcp_world_m, float),
+                            inputs.lens.camera_matrix, inputs.lens.dist_coeffs)
+        H = pose.plane_homography(p, level_m)
+        return ortho.from_homography(H, "pose", p.rms_px, None, {"reprojection_rms_px": p.rms_px})
+    if o.method == "none":
+        if level_m is None:
+            raise ParameterError("ortho.method = none takes the image scale from the wetted width: the water level is needed first")
+        pts = inputs.to_working(project.section.points_px)
+        if pts.shape != (2, 2):
+            raise ParameterError("section.points_px: give the two water edges; without GCPs they set the image scale")
+        length_px = float(np.hypot(*(pts[1] - pts[0])))
+        width = inputs.cross_section.wetted_width(level_m)
+        return ortho.from_scale(width / length_px)
+    raise ParameterError(f"ortho.method: {o.method!r} is not one of distances, world, pose, none")
+
+
+def roi_and_mask(project: Project, inputs: Inputs) -> tuple[tuple[int, int, int, int] | None, np.ndarray | None]:
+    """ROI (x0, y0, x1, y1) and invalid-area mask in working-image pixels."""
+    h, w = inputs.shape
+    roi = None
+    if project.roi.rect_px:
+        r = project.roi.rect_px
+        if len(r) != 4:
+            raise ParameterError("roi.rect_px: give [x0, y0, x1, y1] in pixels")
+        corners = inputs.to_working([[r[0], r[1]], [r[2], r[1]], [r[2], r[3]], [r[0], r[3]]])
+        x0, y0 = np.floor(corners.min(axis=0)).astype(int)
+        x1, y1 = np.ceil(corners.max(axis=0)).astype(int)
+        x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, w), min(y1, h)
+        if x1 - x0 < 8 or y1 - y0 < 8:
+            raise GeometryError(f"roi.rect_px: {r} leaves no usable area inside the {w}x{h} frame")
+        roi = (int(x0), int(y0), int(x1), int(y1))
+    mask = None
+    if project.roi.masks_px:
+        from .processing.masks import rasterize
+
+        polys = [inputs.to_working(p).tolist() if len(p) >= 3 else p for p in project.roi.masks_px]
+        mask = rasterize((h, w), polys)
+    return roi, mask
+
+
+def working_frames(project: Project, inputs: Inputs, cancel: Callable[[], bool] | None = None,
+                   observer: _Guarded | None = None, stab_report: dict | None = None,
+                   progress: Progress | None = None, stage: str = "frames") -> Iterator[tuple[float, np.ndarray]]:
+    """Stream (t_s, float32 working frame): undistorted, stabilised, filtered."""
+    from .processing.filters import FilterStack
+
+    stack = FilterStack.from_config(project.filters) if project.filters else None
+    stabilizer = None
+    total = inputs.source.estimated_count()
+
+    def corrected() -> Iterator[tuple[int, float, np.ndarray]]:
+        nonlocal stabilizer
+        for fr in inputs.source:
+            img = fr.image
+            if inputs.lens is not None:
+                img = inputs.lens.undistort(img)
+            if project.stabilize.enabled:
+                if stabilizer is None:
+                    from .processing.stabilize import Stabilizer
+
+                    st = project.stabilize
+                    regions = [inputs.to_working([[r[0], r[1]], [r[2], r[3]]]).ravel().tolist() for r in st.regions_px]
+                    poly = inputs.to_working(st.water_polygon_px).tolist() if st.water_polygon_px else None
+                    stabilizer = Stabilizer(img, regions_px=regions or None, water_polygon_px=poly, model=st.model)
+                else:
+                    img = stabilizer.register(img)
+            yield fr.index, fr.t_s, img
+
+    if stack is not None and stack.needs_prepass:
+        stack.prepass(img for _, _, img in corrected())
+        stabilizer = None  # registered again on the second pass, identically
+    log_every = max(1, total // 20) if total else 10
+    for k, (idx, t, img) in enumerate(corrected()):
+        if cancel is not None and cancel():
+            raise Cancelled("cancelled by the user")
+        out = stack.apply(img) if stack is not None else img.astype(np.float32)
+        if observer is not None and k % log_every == 0:
+            observer("frame", idx, t, img, out)
+        if progress is not None:
+            progress(stage, k + 1, total)
+        yield t, out
+    if stab_report is not None and stabilizer is not None:
+        stab_report.update(stabilizer.report())
+
+
+def piv_params(project: Project):
+    from .processing.piv import PivParams
+
+    p = project.piv
+    return PivParams(window_px=p.window_px, overlap_px=p.overlap_px, search_px=p.search_px, passes=p.passes,
+                     snr_min=p.snr_min, averaging=p.averaging, median_threshold=p.median_threshold,
+                     std_threshold=p.std_threshold, min_valid_fraction=p.min_valid_fraction, engine=p.engine)
+
+
+# ---------------------------------------------------------------------------------------------
+# the whole run
+
+
+def run_project(project: Project, out_dir: Path | str | None = None, *, progress: Progress | None = None,
+                cancel: Callable[[], bool] | None = None, observer: Observer | None = None) -> RunResult:
+    """Run every step of ``project``; write the results to ``out_dir`` when given."""
+    from .processing import piv as piv_mod
+
+    warnings: list[str] = []
+    obs = _Guarded(observer, warnings)
+    timings: dict[str, float] = {}
+    t0 = time.perf_counter()
+
+    def lap(name: str) -> None:
+        nonlocal t0
+        now = time.perf_counter()
+        timings[name] = round(now - t0, 3)
+        t0 = now
+
+    obs("stage", "inputs")
+    inputs = load_inputs(project)
+    lap("inputs")
+
+    obs("stage", "water_level")
+    if project.water_level.method == "image":
+        mapping = build_mapping(project, inputs, None)
+        level = compute_level(project, inputs, mapping)
+    else:
+        level = compute_level(project, inputs, None)
+        mapping = build_mapping(project, inputs, level.level_m)
+    cs = inputs.cross_section
+    cs.check_level(level.level_m)
+    lap("level_and_ortho")
+
+    sec = project.section
+    geom = dq.section_geometry(inputs.to_working(sec.points_px) if sec.points_px else sec.points_px, mapping, cs,
+                               level.level_m, sec.n_sub, sec.station_offset_m)
+    if np.asarray(sec.points_px).shape == (2, 2):
+        ortho._check_px(np.asarray(sec.points_px, float), inputs.shape, "section.points_px")
+    roi, mask = roi_and_mask(project, inputs)
+
+    params = piv_params(project)
+    x, y = piv_mod.grid(inputs.shape, params, roi)
+    max_speed = None
+    if project.piv.max_velocity_ms is not None:
+        max_speed = project.piv.max_velocity_ms / mapping.scale_m_per_px(x, y)
+
+    obs("stage", "piv")
+    stab: dict = {}
+
+    def on_pair(i, t, xx, yy, u, v, valid):
+        obs("pair", i, t, xx, yy, u, v, valid)
+
+    frames = working_frames(project, inputs, cancel, obs, stab if project.stabilize.enabled else None, progress)
+    res = piv_mod.analyze(frames, params, roi=roi, mask=mask, max_speed_px_s=max_speed,
+                          progress=None, cancel=cancel, on_pair=on_pair)
+    lap("frames_and_piv")
+
+    obs("stage", "discharge")
+    U, V = mapping.rectify_velocity(res.x, res.y, res.u, res.v)
+    v_sub = dq.subsection_velocity(geom, res.x, res.y, U, V)
+    dres = dq.compute_discharge(geom, cs, level.level_m, v_sub, sec.alpha)
+    if dres.discharge_m3s < 0:
+        # P1/P2 picked right-to-left: swap them so P1 is the left edge, as the stations assume
+        warnings.append("section.points_px were given right edge first; they were swapped (P1 must be the left "
+                        "water edge looking downstream)")
+        pts = np.asarray(sec.points_px, float)[::-1]
+        geom = dq.section_geometry(inputs.to_working(pts), mapping, cs, level.level_m, sec.n_sub, sec.station_offset_m)
+        geom.swapped = True
+        v_sub = dq.subsection_velocity(geom, res.x, res.y, U, V)
+        dres = dq.compute_discharge(geom, cs, level.level_m, v_sub, sec.alpha)
+    Up, Vp = mapping.rectify_velocity(res.x, res.y, res.u_pairs, res.v_pairs)
+    q_pairs = np.array([_pair_q(geom, res.x, res.y, Up[k], Vp[k], dres) for k in range(len(Up))])
+    lap("discharge")
+
+    result = RunResult(dres, q_pairs, level, mapping, res, geom, U, V, None, timings_s=timings, warnings=warnings,
+                       stabilization=stab or None, project=project_to_dict(project))
+    if out_dir is not None:
+        write_outputs(result, project, inputs, Path(out_dir))
+        lap("outputs")
+    obs("result", result)
+    return result
+
+
+def _pair_q(geom, x, y, U, V, ref: dq.DischargeResult) -> float:
+    v = dq.subsection_velocity(geom, x, y, U, V)
+    if not np.any(np.isfinite(v)):
+        return float("nan")
+    v, _ = dq.fill_velocity(v, ref.mean_depth_m)
+    return float(np.sum(ref.alpha * ref.area_m2 * v))
+
+
+# ---------------------------------------------------------------------------------------------
+# outputs
+
+
+def write_outputs(result: RunResult, project: Project, inputs: Inputs, out: Path) -> None:
+    """result.json, subsections.csv, mean_field.npz/.npy and the PNG plots, each written atomically."""
+    out.mkdir(parents=True, exist_ok=True)
+    result.out_dir = out
+    d, p = result.discharge, result.piv
+    files = result.files
+    lines = ["subsection,station_from_m,station_to_m,area_m2,mean_depth_m,surface_velocity_ms,velocity_filled,discharge_m3s"]
+    for i in range(len(d.area_m2)):
+        lines.append(f"{i + 1},{d.station_from[i]:.4f},{d.station_to[i]:.4f},{d.area_m2[i]:.5f},{d.mean_depth_m[i]:.4f},"
+                     f"{d.surface_velocity_ms[i]:.5f},{int(d.velocity_filled[i])},{d.sub_discharge_m3s[i]:.5f}")
+    atomic_write_bytes(out / "subsections.csv", ("\n".join(lines) + "\n").encode())
+    files["subsections"] = "subsections.csv"
+
+    XY = result.mapping.image_to_world(np.c_[p.x.ravel(), p.y.ravel()]).reshape(p.x.shape + (2,))
+    arrays = dict(x_px=p.x, y_px=p.y, u_px_s=p.u, v_px_s=p.v, X_m=XY[..., 0], Y_m=XY[..., 1], U_ms=result.world_u,
+                  V_ms=result.world_v, valid=p.valid, valid_fraction=p.valid_fraction, H=result.mapping.H,
+                  water_level_m=np.float64(d.water_level_m), discharge_m3s=np.float64(d.discharge_m3s))
+    import io
+
+    buf = io.BytesIO()
+    np.savez_compressed(buf, **arrays)
+    atomic_write_bytes(out / "mean_field.npz", buf.getvalue())
+    buf = io.BytesIO()
+    np.save(buf, np.stack([p.x, p.y, XY[..., 0], XY[..., 1], result.world_u, result.world_v], axis=-1))
+    atomic_write_bytes(out / "mean_field.npy", buf.getvalue())
+    files["mean_field"] = "mean_field.npz"
+    files["mean_field_npy"] = "mean_field.npy"
+
+    from .plots import discharge as plots
+
+    files["vectors_png"] = plots.plot_vectors(out / "vectors.png", inputs.first_color, result, inputs).name
+    files["rectified_png"] = plots.plot_rectified(out / "rectified.png", inputs.first_color, result, inputs).name
+    files["section_png"] = plots.plot_section(out / "section.png", inputs.cross_section, result).name
+    try:
+        from .plots.water_level import plot_level
+
+        files["water_level_png"] = plot_level(out / "water_level.png", inputs.cross_section, result.level).name
+    except FieldToolError as e:
+        result.warnings.append(f"water-level plot not written: {e}")
+    files["result"] = "result.json"
+    atomic_write_bytes(out / "result.json", json.dumps(result.summary(), indent=2, default=_json_default).encode())
+
+
+def _json_default(o):
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"not JSON serialisable: {type(o).__name__}")

@@ -1,0 +1,1 @@
+"""Matplotlib figures (Agg backend) written as PNG files; no display needed."""

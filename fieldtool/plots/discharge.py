@@ -1,0 +1,109 @@
+"""PNG plots of a run: vectors over the first frame, the rectified image with vectors, and the
+section profile with subsection velocities. Axes: image pixels (x right, y down) or world metres."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from ..project import atomic_write_bytes  # noqa: E402
+
+
+def _save(fig, path: Path) -> Path:
+    import io
+
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
+    plt.close(fig)
+    atomic_write_bytes(path, buf.getvalue())
+    return path
+
+
+def _working_rgb(first_bgr: np.ndarray, inputs) -> np.ndarray:
+    img = first_bgr
+    if inputs.lens is not None:
+        img = inputs.lens.undistort(img)
+    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+
+
+def plot_vectors(path: Path, first_bgr: np.ndarray, result, inputs) -> Path:
+    """Mean velocity (m/s, colour) as arrows in image pixels over the first working frame."""
+    p = result.piv
+    rgb = _working_rgb(first_bgr, inputs)
+    speed = np.hypot(result.world_u, result.world_v)
+    fig, ax = plt.subplots(figsize=(10, 10 * rgb.shape[0] / rgb.shape[1]))
+    ax.imshow(rgb)
+    ok = p.valid & np.isfinite(p.u)
+    step = max(1, int(np.ceil(max(p.x.shape) / 60)))
+    sl = (slice(None, None, step), slice(None, None, step))
+    q = ax.quiver(p.x[sl][ok[sl]], p.y[sl][ok[sl]], p.u[sl][ok[sl]], p.v[sl][ok[sl]], speed[sl][ok[sl]],
+                  cmap="viridis", angles="xy", scale_units="xy", scale=None)
+    fig.colorbar(q, ax=ax, shrink=0.7, label="surface speed (m/s)")
+    sp = result.section.p_img
+    ax.plot(sp[:, 0], sp[:, 1], "r-", lw=2)
+    ax.text(sp[0, 0], sp[0, 1], " P1 (left edge)", color="r")
+    ax.set_title(f"Q = {result.discharge.discharge_m3s:.3f} m³/s, mean velocity field (image pixels)")
+    ax.set_xlabel("x (px)")
+    ax.set_ylabel("y (px)")
+    return _save(fig, path)
+
+
+def plot_rectified(path: Path, first_bgr: np.ndarray, result, inputs) -> Path:
+    """Orthorectified first frame with the world velocity vectors (m/s) and the section."""
+    rgb = _working_rgb(first_bgr, inputs)
+    m = result.mapping
+    section_w = result.section.p_world
+    gw = m.gcp_world if m.gcp_world is not None else section_w
+    pts = np.vstack([gw, section_w])
+    c = pts.mean(axis=0)
+    half = np.ptp(pts, axis=0).max() * 0.8 + 1.0
+    bounds = (c[0] - half, c[0] + half, c[1] - half, c[1] + half)
+    img, A = m.rectified_image(rgb, bounds_m=bounds, max_side_px=1200)
+    p = result.piv
+    XY = m.image_to_world(np.c_[p.x.ravel(), p.y.ravel()]).reshape(p.x.shape + (2,))
+    ok = p.valid & np.isfinite(result.world_u)
+    fig, ax = plt.subplots(figsize=(9, 9))
+    ax.imshow(img, extent=(bounds[0], bounds[1], bounds[2], bounds[3]), origin="upper")
+    step = max(1, int(np.ceil(max(p.x.shape) / 50)))
+    sl = (slice(None, None, step), slice(None, None, step))
+    ax.quiver(XY[..., 0][sl][ok[sl]], XY[..., 1][sl][ok[sl]], result.world_u[sl][ok[sl]], result.world_v[sl][ok[sl]],
+              color="yellow", angles="xy")
+    ax.plot(section_w[:, 0], section_w[:, 1], "r-", lw=2)
+    if m.gcp_world is not None:
+        ax.plot(m.gcp_world[:, 0], m.gcp_world[:, 1], "c+", ms=12)
+        for i, (gx, gy) in enumerate(m.gcp_world):
+            ax.text(gx, gy, f" P{i + 1}", color="c")
+    ax.set_xlim(bounds[0], bounds[1])
+    ax.set_ylim(bounds[2], bounds[3])
+    ax.set_xlabel("X (m)")
+    ax.set_ylabel("Y (m)")
+    ax.set_title("Orthorectified first frame, surface velocity (m/s)")
+    return _save(fig, path)
+
+
+def plot_section(path: Path, cs, result) -> Path:
+    """Cross-section with the water level, subsections and their surface velocities."""
+    d = result.discharge
+    level = d.water_level_m
+    fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(9, 7), sharex=True, gridspec_kw={"height_ratios": [1, 1.3]})
+    mid = 0.5 * (d.station_from + d.station_to)
+    colors = np.where(d.velocity_filled, "tab:orange", "tab:blue")
+    ax1.bar(mid, d.surface_velocity_ms, width=np.diff(np.r_[d.station_from, d.station_to[-1]]) * 0.9, color=colors)
+    ax1.set_ylabel("surface velocity (m/s)")
+    ax1.set_title(f"Q = {d.discharge_m3s:.3f} m³/s   alpha = {d.alpha:.2f}   (orange: filled from a neighbour)")
+    ax2.plot(cs.station, cs.elevation, "k-", lw=1.5, label="bed")
+    ss, depth = cs.wet_polyline(level)
+    ax2.fill_between(ss, level - depth, level, where=depth > 0, color="tab:blue", alpha=0.3, label="wetted area")
+    ax2.axhline(level, color="tab:blue", lw=1, label=f"water level {level:.3f} m")
+    for s in np.r_[d.station_from, d.station_to[-1]]:
+        ax2.axvline(s, color="gray", lw=0.5)
+    ax2.set_xlabel("station (m, left bank -> right bank)")
+    ax2.set_ylabel("elevation (m)")
+    ax2.legend(loc="lower right")
+    return _save(fig, path)

@@ -1,0 +1,212 @@
+"""Frames of a clip: any video OpenCV/ffmpeg reads, or an image sequence (folder or glob).
+
+Frames are streamed one at a time as :class:`Frame` (index in the clip, time in seconds, gray
+uint8 image). Times come from the container's timestamps; image sequences use the frame interval
+the user gives. Nothing here keeps more than one frame in memory.
+"""
+
+from __future__ import annotations
+
+import glob
+import re
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterator, NamedTuple
+
+import cv2
+import numpy as np
+
+from ..errors import InputFileError, ParameterError
+
+IMAGE_EXTS = {".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp"}
+
+
+class Frame(NamedTuple):
+    index: int  # position in the clip (0-based, before the step is applied)
+    t_s: float  # time from the start of the clip (s)
+    image: np.ndarray  # gray uint8, H x W
+
+
+@dataclass(frozen=True)
+class ClipInfo:
+    """What the file says about itself. ``duration_s`` is the container's estimate."""
+
+    path: str
+    width: int
+    height: int
+    fps: float  # nominal frames per second (s⁻¹); for sequences 1 / frame_interval_s
+    n_frames: int  # as claimed by the container (may exceed what decodes)
+    duration_s: float
+    is_sequence: bool
+
+
+def _natural_key(p: Path):
+    return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", p.name)]
+
+
+def _sequence_files(path: Path) -> list[Path] | None:
+    """Image files of a sequence given as a folder or a glob; None when ``path`` is a video."""
+    if path.is_dir():
+        files = [p for p in path.iterdir() if p.suffix.lower() in IMAGE_EXTS]
+    elif any(ch in str(path) for ch in "*?["):
+        files = [Path(p) for p in glob.glob(str(path)) if Path(p).suffix.lower() in IMAGE_EXTS]
+    else:
+        return None
+    return sorted(files, key=_natural_key)
+
+
+class FrameSource:
+    """A clip with a time range and a step, iterable as :class:`Frame` objects.
+
+    Parameters
+    ----------
+    path : video file, folder of images, or glob pattern.
+    start_s, end_s : time range in seconds (``end_s`` None = to the end).
+    step : keep every ``step``-th frame (>= 1).
+    frame_interval_s : image sequences only, time between two images (s).
+    """
+
+    def __init__(self, path: Path | str, start_s: float = 0.0, end_s: float | None = None, step: int = 1,
+                 frame_interval_s: float | None = None) -> None:
+        self.path = Path(path)
+        self.files = _sequence_files(self.path)
+        if step < 1:
+            raise ParameterError(f"video.step: {step} is not allowed; use 1 (every frame) or more")
+        if self.files is None:
+            self.info = self._probe_video()
+        else:
+            if not self.files:
+                raise InputFileError(f"{self.path}: no images ({', '.join(sorted(IMAGE_EXTS))}) found")
+            if frame_interval_s is None or not frame_interval_s > 0:
+                raise ParameterError(
+                    "video.frame_interval_s: an image sequence carries no timestamps; give the time between two images in seconds"
+                )
+            first = cv2.imread(str(self.files[0]), cv2.IMREAD_GRAYSCALE)
+            if first is None:
+                raise InputFileError(f"{self.files[0]}: cannot be read as an image")
+            n = len(self.files)
+            self.info = ClipInfo(str(self.path), first.shape[1], first.shape[0], 1.0 / frame_interval_s, n,
+                                 n * frame_interval_s, True)
+        self.frame_interval_s = frame_interval_s
+        dur = self.info.duration_s
+        if start_s < 0 or (dur > 0 and start_s >= dur):
+            raise ParameterError(f"video.start_s: {start_s:g} s is outside the clip (0 to {dur:.2f} s)")
+        if end_s is not None:
+            if end_s <= start_s:
+                raise ParameterError(f"video.end_s: {end_s:g} s must be after video.start_s ({start_s:g} s)")
+            if dur > 0 and end_s > dur + 1.0 / max(self.info.fps, 1e-9):
+                raise ParameterError(f"video.end_s: {end_s:g} s is beyond the end of the clip ({dur:.2f} s)")
+        self.start_s, self.end_s, self.step = float(start_s), end_s, int(step)
+
+    def _probe_video(self) -> ClipInfo:
+        if not self.path.exists():
+            raise InputFileError(f"{self.path}: video not found; check video.path in the project file")
+        cap = cv2.VideoCapture(str(self.path))
+        try:
+            ok, frame = cap.read() if cap.isOpened() else (False, None)
+            if not ok:
+                raise InputFileError(f"{self.path}: cannot be read as a video (unknown format or corrupt file)")
+            fps = cap.get(cv2.CAP_PROP_FPS) or 0.0
+            n = int(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
+        finally:
+            cap.release()
+        h, w = frame.shape[:2]
+        dur = n / fps if fps > 0 and n > 0 else 0.0
+        return ClipInfo(str(self.path), w, h, float(fps), n, dur, False)
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """(height, width) of a frame in pixels."""
+        return self.info.height, self.info.width
+
+    def estimated_count(self) -> int:
+        """Number of frames the iteration should yield (from the container's claims)."""
+        dur = self.info.duration_s
+        end = dur if self.end_s is None else min(self.end_s, dur) if dur > 0 else self.end_s
+        if end is None or self.info.fps <= 0:
+            return 0
+        n = int(round((end - self.start_s) * self.info.fps))
+        return max(0, (n + self.step - 1) // self.step)
+
+    def __iter__(self) -> Iterator[Frame]:
+        return self._iter_sequence() if self.files is not None else self._iter_video()
+
+    def _in_range(self, t: float) -> int:
+        """-1 before the range, 0 inside, 1 after."""
+        eps = 1e-6
+        if t < self.start_s - eps:
+            return -1
+        if self.end_s is not None and t > self.end_s + eps:
+            return 1
+        return 0
+
+    def _iter_sequence(self) -> Iterator[Frame]:
+        kept = 0
+        for i, f in enumerate(self.files):
+            t = i * self.frame_interval_s
+            where = self._in_range(t)
+            if where < 0:
+                continue
+            if where > 0:
+                break
+            if kept % self.step == 0:
+                img = cv2.imread(str(f), cv2.IMREAD_GRAYSCALE)
+                if img is None:
+                    raise InputFileError(f"{f}: cannot be read as an image")
+                if img.shape != self.shape:
+                    raise InputFileError(f"{f}: size {img.shape[1]}x{img.shape[0]} differs from the first image")
+                yield Frame(i, t, img)
+            kept += 1
+
+    def _iter_video(self) -> Iterator[Frame]:
+        cap = cv2.VideoCapture(str(self.path))
+        try:
+            i, kept = -1, 0
+            while True:
+                if not cap.grab():
+                    return
+                i += 1
+                t = cap.get(cv2.CAP_PROP_POS_MSEC) / 1000.0
+                where = self._in_range(t)
+                if where < 0:
+                    continue
+                if where > 0:
+                    return
+                if kept % self.step == 0:
+                    ok, img = cap.retrieve()
+                    if not ok:
+                        return
+                    yield Frame(i, t, cv2.cvtColor(img, cv2.COLOR_BGR2GRAY) if img.ndim == 3 else img)
+                kept += 1
+        finally:
+            cap.release()
+
+
+def read_color_frame(path: Path | str, t_s: float = 0.0, frame_interval_s: float | None = None) -> np.ndarray:
+    """The BGR frame at (or just after) ``t_s`` seconds, for display and plots."""
+    path = Path(path)
+    files = _sequence_files(path)
+    if files is not None:
+        if not files:
+            raise InputFileError(f"{path}: no images found")
+        idx = int(round(t_s / frame_interval_s)) if frame_interval_s else 0
+        img = cv2.imread(str(files[min(idx, len(files) - 1)]), cv2.IMREAD_COLOR)
+        if img is None:
+            raise InputFileError(f"{files[idx]}: cannot be read as an image")
+        return img
+    if not path.exists():
+        raise InputFileError(f"{path}: video not found; check video.path in the project file")
+    cap = cv2.VideoCapture(str(path))
+    try:
+        last = None
+        while cap.grab():
+            ok, img = cap.retrieve()
+            if ok:
+                last = img
+            if cap.get(cv2.CAP_PROP_POS_MSEC) / 1000.0 >= t_s - 1e-6:
+                break
+    finally:
+        cap.release()
+    if last is None:
+        raise InputFileError(f"{path}: cannot be read as a video (unknown format or corrupt file)")
+    return last

@@ -1,0 +1,230 @@
+"""Orthorectification: a homography from working-image pixels to the water plane (metres).
+
+World plane axes: right-handed X, Y (m) seen from above (Z up). The working image is the raw
+frame, undistorted when a lens model is given; x right, y down (px).
+
+GCP order (thesis figure 7.13): P1, P2, P3, P4 go round the quadrilateral, and
+``distances = [L1..L6] = |P1P2|, |P2P3|, |P3P4|, |P4P1|, |P1P3|, |P2P4|``. As in the thesis, P4 is
+put at (0, 0) and P1 on the +Y axis; the mirror ambiguity is resolved by keeping the orientation of
+the image quadrilateral, and all six distances are then fitted by least squares, so the residual of
+the redundant distance is reported.
+
+Velocity vectors are rectified (not the frames): a pixel velocity at a node is mapped to m/s with
+the Jacobian of the homography at that node.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+from scipy.optimize import least_squares
+
+from ..errors import GeometryError, ParameterError
+
+PAIRS = ((0, 1), (1, 2), (2, 3), (3, 0), (0, 2), (1, 3))  # L1..L6 as index pairs of P1..P4
+NAMES = ("L1=|P1P2|", "L2=|P2P3|", "L3=|P3P4|", "L4=|P4P1|", "L5=|P1P3|", "L6=|P2P4|")
+
+
+@dataclass
+class OrthoMapping:
+    """Image pixels <-> water-plane metres.
+
+    ``H`` maps homogeneous working-image pixels to world metres. ``residual_m`` is the RMS misfit of
+    the GCP distances (or world points) the mapping was built from; ``method`` how it was built.
+    """
+
+    H: np.ndarray
+    method: str
+    residual_m: float = 0.0
+    gcp_world: np.ndarray | None = None  # (N, 2) world positions of the GCPs (m)
+    details: dict = field(default_factory=dict)
+
+    @property
+    def H_inv(self) -> np.ndarray:
+        return np.linalg.inv(self.H)
+
+    def image_to_world(self, pts: np.ndarray) -> np.ndarray:
+        """(N, 2) pixels -> (N, 2) metres."""
+        return _apply(self.H, pts)
+
+    def world_to_image(self, pts: np.ndarray) -> np.ndarray:
+        """(N, 2) metres -> (N, 2) pixels."""
+        return _apply(self.H_inv, pts)
+
+    def jacobian(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """d(X, Y)/d(x, y) at pixel positions, shape (..., 2, 2), in m/px."""
+        H = self.H
+        w = H[2, 0] * x + H[2, 1] * y + H[2, 2]
+        X = (H[0, 0] * x + H[0, 1] * y + H[0, 2]) / w
+        Y = (H[1, 0] * x + H[1, 1] * y + H[1, 2]) / w
+        J = np.empty(np.shape(x) + (2, 2))
+        J[..., 0, 0] = (H[0, 0] - X * H[2, 0]) / w
+        J[..., 0, 1] = (H[0, 1] - X * H[2, 1]) / w
+        J[..., 1, 0] = (H[1, 0] - Y * H[2, 0]) / w
+        J[..., 1, 1] = (H[1, 1] - Y * H[2, 1]) / w
+        return J
+
+    def rectify_velocity(self, x: np.ndarray, y: np.ndarray, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Pixel velocities (px/s) at pixel positions -> world velocities (m/s), same shapes."""
+        J = self.jacobian(np.asarray(x, float), np.asarray(y, float))
+        U = J[..., 0, 0] * u + J[..., 0, 1] * v
+        V = J[..., 1, 0] * u + J[..., 1, 1] * v
+        return U, V
+
+    def scale_m_per_px(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Local ground size of one pixel (m/px): sqrt of the Jacobian's determinant."""
+        J = self.jacobian(np.asarray(x, float), np.asarray(y, float))
+        return np.sqrt(np.abs(np.linalg.det(J)))
+
+    def rectified_image(self, image: np.ndarray, bounds_m: tuple[float, float, float, float] | None = None,
+                        resolution_m: float | None = None, max_side_px: int = 2000) -> tuple[np.ndarray, np.ndarray]:
+        """Warp ``image`` to a north-up map of the water plane.
+
+        Returns the map image and the 3x3 affine ``A`` taking world metres to map pixels
+        (column = (X - Xmin) / r, row = (Ymax - Y) / r). ``bounds_m`` = (Xmin, Xmax, Ymin, Ymax);
+        default: the image footprint clipped to 3x the GCP extent.
+        """
+        h, w = image.shape[:2]
+        if bounds_m is None:
+            corners = self.image_to_world(np.array([[0, 0], [w - 1, 0], [w - 1, h - 1], [0, h - 1]], float))
+            ref = self.gcp_world if self.gcp_world is not None and len(self.gcp_world) else corners
+            c, span = ref.mean(axis=0), np.ptp(ref, axis=0).max() * 1.5 + 1e-9
+            lo = np.maximum(corners.min(axis=0), c - span)
+            hi = np.minimum(corners.max(axis=0), c + span)
+            bounds_m = (lo[0], hi[0], lo[1], hi[1])
+        x0, x1, y0, y1 = bounds_m
+        if resolution_m is None:
+            resolution_m = max(x1 - x0, y1 - y0) / max_side_px
+        if not resolution_m > 0:
+            raise ParameterError("ortho.resolution_m: must be a positive pixel size in metres")
+        A = np.array([[1 / resolution_m, 0, -x0 / resolution_m], [0, -1 / resolution_m, y1 / resolution_m], [0, 0, 1]])
+        size = (int(np.ceil((x1 - x0) / resolution_m)) + 1, int(np.ceil((y1 - y0) / resolution_m)) + 1)
+        out = cv2.warpPerspective(image, A @ self.H, size, flags=cv2.INTER_LINEAR, borderValue=0)
+        return out, A
+
+
+def _apply(H: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    p = np.asarray(pts, float).reshape(-1, 2)
+    q = np.c_[p, np.ones(len(p))] @ H.T
+    return q[:, :2] / q[:, 2:3]
+
+
+def _signed_area(p: np.ndarray) -> float:
+    x, y = p[:, 0], p[:, 1]
+    return 0.5 * float(np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y))
+
+
+def _circle_point(c: np.ndarray, rc: float, d: np.ndarray, rd: float, names: str) -> tuple[np.ndarray, np.ndarray]:
+    """Both intersections of the circles (c, rc) and (d, rd)."""
+    dist = float(np.hypot(*(d - c)))
+    if rc + rd < dist or abs(rc - rd) > dist:
+        raise GeometryError(
+            f"ortho.distances_m: {names} cannot form a triangle (each side must be shorter than the sum of the "
+            "other two); check the taped distances and their order L1..L6"
+        )
+    a = (rc**2 - rd**2 + dist**2) / (2 * dist)
+    h = np.sqrt(max(rc**2 - a**2, 0.0))
+    e = (d - c) / dist
+    base = c + a * e
+    perp = np.array([-e[1], e[0]])
+    return base + h * perp, base - h * perp
+
+
+def gcp_world_from_distances(gcp_px: np.ndarray, distances: np.ndarray) -> tuple[np.ndarray, float, float]:
+    """World coordinates (m) of P1..P4 from the six distances.
+
+    Returns ``(world (4, 2), rms_residual_m, max_residual_m)``; P4 = (0, 0), P1 on +Y.
+    """
+    L = np.asarray(distances, float)
+    if L.shape != (6,):
+        raise ParameterError(f"ortho.distances_m: give the six distances L1..L6 in metres, got {len(L)}")
+    if np.any(~np.isfinite(L)) or np.any(L <= 0):
+        raise ParameterError("ortho.distances_m: every distance must be a positive number of metres")
+    px = np.asarray(gcp_px, float)
+    if px.shape != (4, 2):
+        raise ParameterError(f"ortho.gcp_px: give four [x, y] pixel points P1..P4, got {px.shape[0] if px.ndim else 0}")
+    L1, L2, L3, L4, L5, L6 = L
+    p4 = np.array([0.0, 0.0])
+    p1 = np.array([0.0, L4])
+    # P3 from |P3P4| = L3 and |P1P3| = L5 ; P2 from |P1P2| = L1 and |P2P4| = L6
+    p3_opts = _circle_point(p4, L3, p1, L5, "L3=|P3P4|, L4=|P4P1|, L5=|P1P3|")
+    p2_opts = _circle_point(p1, L1, p4, L6, "L1=|P1P2|, L4=|P4P1|, L6=|P2P4|")
+    img_area = _signed_area(px * [1, -1])  # image seen with y up, like the world from above
+    best = None
+    for p3 in p3_opts:
+        for p2 in p2_opts:
+            quad = np.array([p1, p2, p3, p4])
+            if np.sign(_signed_area(quad)) != np.sign(img_area):
+                continue
+            err = abs(np.hypot(*(p3 - p2)) - L2)
+            if best is None or err < best[0]:
+                best = (err, quad)
+    if best is None:
+        raise GeometryError("ortho.gcp_px: the GCPs do not form a quadrilateral going round P1, P2, P3, P4; check their order")
+    quad = best[1]
+
+    def resid(params: np.ndarray) -> np.ndarray:
+        q = np.array([[0.0, params[0]], params[1:3], params[3:5], [0.0, 0.0]])
+        return np.array([np.hypot(*(q[j] - q[i])) for i, j in PAIRS]) - L
+
+    sol = least_squares(resid, np.r_[quad[0, 1], quad[1], quad[2]])
+    q = np.array([[0.0, sol.x[0]], sol.x[1:3], sol.x[3:5], [0.0, 0.0]])
+    if np.sign(_signed_area(q)) != np.sign(img_area):
+        raise GeometryError("ortho.distances_m: the distances are inconsistent with the picked GCP order (the fit flips the quadrilateral)")
+    r = resid(sol.x)
+    return q, float(np.sqrt(np.mean(r**2))), float(np.max(np.abs(r)))
+
+
+def _check_px(pts: np.ndarray, shape: tuple[int, int] | None, key: str) -> None:
+    if shape is None:
+        return
+    h, w = shape
+    bad = [i for i, (x, y) in enumerate(pts) if not (-0.5 <= x <= w - 0.5 and -0.5 <= y <= h - 0.5)]
+    if bad:
+        i = bad[0]
+        raise GeometryError(f"{key}[{i}] = ({pts[i][0]:g}, {pts[i][1]:g}) px is outside the {w}x{h} frame")
+
+
+def from_distances(gcp_px, distances, image_shape: tuple[int, int] | None = None) -> OrthoMapping:
+    """Mapping from 4 GCP pixels and the six distances L1..L6 (m)."""
+    px = np.asarray(gcp_px, float)
+    if px.shape != (4, 2):
+        raise ParameterError("ortho.gcp_px: give exactly four [x, y] pixel points P1..P4 for method = distances")
+    _check_px(px, image_shape, "ortho.gcp_px")
+    world, rms, worst = gcp_world_from_distances(px, distances)
+    H, _ = cv2.findHomography(px, world, 0)
+    if H is None:
+        raise GeometryError("ortho.gcp_px: no homography fits these points (are three of them on one line?)")
+    return OrthoMapping(H, "distances", rms, world, {"max_distance_residual_m": worst})
+
+
+def from_world_points(gcp_px, gcp_world, image_shape: tuple[int, int] | None = None) -> OrthoMapping:
+    """Mapping from N >= 4 GCP pixels and their plane coordinates [X, Y] (m)."""
+    px = np.asarray(gcp_px, float)
+    wd = np.asarray(gcp_world, float)
+    if px.ndim != 2 or px.shape[1] != 2 or len(px) < 4:
+        raise ParameterError("ortho.gcp_px: give at least four [x, y] pixel points")
+    if wd.ndim != 2 or wd.shape[1] < 2 or len(wd) != len(px):
+        raise ParameterError(f"ortho.gcp_world_m: give one [X, Y] per GCP ({len(px)} GCPs)")
+    _check_px(px, image_shape, "ortho.gcp_px")
+    wd = wd[:, :2]
+    H, _ = cv2.findHomography(px, wd, 0)
+    if H is None:
+        raise GeometryError("ortho.gcp_px: no homography fits these points (are three of them on one line?)")
+    res = _apply(H, px) - wd
+    return OrthoMapping(H, "world", float(np.sqrt(np.mean(np.sum(res**2, axis=1)))), wd)
+
+
+def from_scale(m_per_px: float) -> OrthoMapping:
+    """Uniform scale for a nadir view without GCPs (thesis 8.2): world = scale * (x, -y)."""
+    if not m_per_px > 0:
+        raise GeometryError("image scale: the section length in pixels must be positive")
+    H = np.diag([m_per_px, -m_per_px, 1.0])
+    return OrthoMapping(H, "none", 0.0, None, {"m_per_px": m_per_px})
+
+
+def from_homography(H: np.ndarray, method: str, residual_m: float = 0.0, gcp_world=None, details=None) -> OrthoMapping:
+    """Wrap a homography computed elsewhere (e.g. from a full camera pose)."""
+    return OrthoMapping(np.asarray(H, float), method, residual_m, gcp_world, details or {})

@@ -1,0 +1,78 @@
+"""Orthorectification from GCP distances / world points against a known homography."""
+
+import numpy as np
+import pytest
+
+from fieldtool.errors import GeometryError, ParameterError
+from fieldtool.processing import ortho
+
+WORLD = np.array([[0.0, 10.0], [12.0, 11.0], [13.0, -1.0], [0.0, 0.0]])
+H_WI = np.array([[40.0, -5.0, 300.0], [3.0, -30.0, 500.0], [0.001, -0.01, 1.0]])  # world -> image, seen from above
+
+
+def _setup(world=WORLD):
+    px = ortho._apply(H_WI, world)
+    dist = [np.hypot(*(world[j] - world[i])) for i, j in ortho.PAIRS]
+    return px, dist
+
+
+def test_distances_recover_world_and_lengths():
+    px, dist = _setup()
+    m = ortho.from_distances(px, dist)
+    np.testing.assert_allclose(m.gcp_world, WORLD, atol=1e-6)
+    assert m.residual_m < 1e-6
+    test = np.array([[350.0, 420.0], [500.0, 300.0]])
+    a, b = m.image_to_world(test)
+    ta, tb = ortho._apply(np.linalg.inv(H_WI), test)
+    assert np.hypot(*(b - a)) == pytest.approx(np.hypot(*(tb - ta)), rel=1e-6)
+
+
+def test_mirror_resolved_by_image_orientation():
+    mirrored = WORLD * [-1, 1]
+    px, dist = _setup(mirrored)
+    m = ortho.from_distances(px, dist)
+    # same distances as the unmirrored case, but the image quadrilateral's orientation decides
+    assert np.sign(ortho._signed_area(m.gcp_world)) == np.sign(ortho._signed_area(mirrored))
+
+
+def test_redundant_distance_residual_reported():
+    px, dist = _setup()
+    dist[1] += 0.30  # L2 taped 30 cm too long
+    m = ortho.from_distances(px, dist)
+    assert 0.02 < m.details["max_distance_residual_m"] < 0.3
+    assert m.residual_m > 0.01
+
+
+def test_triangle_inequality_violation_is_clear():
+    px, dist = _setup()
+    dist[4] = dist[2] + dist[3] + 5  # L5 > L3 + L4
+    with pytest.raises(GeometryError, match=r"L3=\|P3P4\|, L4=\|P4P1\|, L5=\|P1P3\| cannot form a triangle"):
+        ortho.from_distances(px, dist)
+    with pytest.raises(ParameterError, match="six distances"):
+        ortho.from_distances(px, dist[:5])
+
+
+def test_world_points_and_velocity_rectification():
+    px, _ = _setup()
+    m = ortho.from_world_points(px, WORLD)
+    # a displacement of 1 px along x at a node maps to the finite difference of the mapping
+    x, y = np.array([400.0]), np.array([350.0])
+    U, V = m.rectify_velocity(x, y, np.array([1.0]), np.array([0.0]))
+    a = m.image_to_world(np.array([[399.999, 350.0], [400.001, 350.0]]))
+    np.testing.assert_allclose([U[0], V[0]], (a[1] - a[0]) / 0.002, rtol=1e-5)
+
+
+def test_points_outside_frame():
+    px, dist = _setup()
+    with pytest.raises(GeometryError, match=r"ortho.gcp_px\[0\]"):
+        ortho.from_distances(px, dist, image_shape=(10, 10))
+
+
+def test_rectified_image_axes():
+    m = ortho.from_scale(0.01)  # 1 cm per pixel, nadir
+    img = np.zeros((100, 200), np.uint8)
+    img[10, 20] = 255
+    out, A = m.rectified_image(img, bounds_m=(0.0, 2.0, -1.0, 0.0), resolution_m=0.01)
+    X, Y = m.image_to_world(np.array([[20.0, 10.0]]))[0]
+    col, row = (A @ [X, Y, 1])[:2]
+    assert out[int(round(row)), int(round(col))] == 255
