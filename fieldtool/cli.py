@@ -20,7 +20,7 @@ EXTENSIONS = (
     "fieldtool.tui.commands",
     "fieldtool.viewer.commands",
     "fieldtool.records.commands",
-    "fieldtool.processing_commands",
+    "fieldtool.commands",
 )
 
 
@@ -79,7 +79,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     print(f"running the pipeline on {scene_dir / 'project.toml'} ...", flush=True)
     result = run_project(project, out / "results")
     t2 = time.perf_counter()
-    q, q_true = result.discharge.discharge_m3s, truth.q_m3s
+    q, q_true = result.discharge.discharge_m3s, truth.discharge_m3s
     err = 100.0 * (q - q_true) / q_true
     report = {"scene": args.scene, "discharge_m3s": q, "true_discharge_m3s": q_true, "error_percent": err,
               "render_s": round(t1 - t0, 2), "pipeline_s": round(t2 - t1, 2)}

@@ -91,30 +91,32 @@ class OrthoCfg:
 
 @dataclass
 class WaterLevelCfg:
-    """[water_level] elevation of the water surface, in the cross-section's datum."""
+    """[water_level] elevation of the water surface, in the cross-section's datum (thesis ch. 5)."""
 
     method: str = "value"  # value | width | dem | angle_height | image
-    value_m: float | None = None  # method = value: typed level (m, datum of the cross-section)
-    width_m: float | None = None  # method = width: measured wetted width (m)
-    uncertainty_m: float | None = None  # method = value: how sure the typed level is (m)
-    # adapted Hellebaut (DEM of one bank)
-    dem_path: str = ""
-    dem_x_m: list[float] = field(default_factory=list)  # [x_min, x_max] of the DEM domain (m)
+    value_m: float | None = None  # method = value: typed level (m, datum of the cross-section, not a depth)
+    uncertainty_m: float | None = None  # method = value: 1-sigma of the typed level (m); None = 0.01 m
+    width_m: float | None = None  # method = width: measured wetted width, water edge to water edge (m)
+    width_uncertainty_m: float | None = None  # method = width: 1-sigma of that width (m); None = 0.02 m
+    # adapted Hellebaut (DEM of one bank, x across the river = cross-section station, y along the shore)
+    dem_path: str = ""  # TIFF of elevations (m, datum of the cross-section); row 0 = y_max
+    dem_x_m: list[float] = field(default_factory=list)  # [x_min, x_max] of the DEM domain (m, = station)
     dem_y_m: list[float] = field(default_factory=list)  # [y_min, y_max] of the DEM domain (m)
-    dem_precision_mm: float | None = None  # DEM pixel size (mm/pixel)
-    dem_compare_m: float | None = None  # length of bank compared with the DEM (m)
-    divergence_station_m: float | None = None  # user override of the detected divergence point
-    # angle and height (two nadir images)
-    image1: str = ""
-    image2: str = ""
-    height_m: float | None = None  # height of the first image above the water (m)
-    dh_m: float | None = None  # extra height of the second image (m)
-    dh_uncertainty_m: float = 0.05
-    pixel_uncertainty_px: float = 2.0
-    fov_uncertainty_deg: float = 0.5
-    edges1_px: list[Point] = field(default_factory=list)  # water edges on image 1
-    edges2_px: list[Point] = field(default_factory=list)  # water edges on image 2
-    # image method: water edges on the raw frame, rectified with the ortho mapping
+    dem_precision_mm: float | None = None  # DEM pixel size (mm/pixel); checked against domain / size
+    dem_compare_m: float | None = None  # length of bank, from the bank end, compared with the section (m); None = all
+    dem_section_y_m: float | None = None  # y of the cross-section in the DEM (m); None = median of all rows
+    divergence_station_m: float | None = None  # user override of the detected divergence point (station, m)
+    # angle and height (two nadir images on one vertical; their heights are solved, not given)
+    image1: str = ""  # image taken at the lower height H
+    image2: str = ""  # image taken at the higher height H + dh_m
+    dh_m: float | None = None  # height difference between the two images (m), e.g. from the drone GPS
+    dh_uncertainty_m: float = 0.05  # 1-sigma of dh_m (m)
+    pixel_uncertainty_px: float = 2.0  # 1-sigma of one picked water edge (px); also for method = image
+    fov_deg: list[float] = field(default_factory=list)  # [x, y, diagonal] FOV (deg) if no calibration; [x] = square pixels
+    fov_uncertainty_deg: float = 0.5  # 1-sigma of the FOV (deg)
+    edges1_px: list[Point] = field(default_factory=list)  # left and right water edges on image 1 [[x, y], [x, y]]
+    edges2_px: list[Point] = field(default_factory=list)  # left and right water edges on image 2
+    # image method: left and right water edges on the raw frame, mapped with the ortho mapping
     edges_px: list[Point] = field(default_factory=list)
 
 
@@ -134,7 +136,7 @@ class PivCfg:
     window_px: int = 32  # interrogation window side (px)
     overlap_px: int = 16  # overlap between windows (px)
     search_px: int | None = None  # search area side (px); None = window_px
-    passes: int = 1  # multi-pass with window deformation: window halves each pass
+    passes: int = 2  # multi-pass with window deformation: first window = window_px * 2**(passes-1); 2 removes the loss-of-pairs bias
     snr_min: float = 1.3  # minimum peak-to-second-peak ratio
     averaging: str = "ensemble"  # ensemble | mean | median
     max_velocity_ms: float | None = None  # vectors faster than this are invalid (m/s)

@@ -1,0 +1,686 @@
+"""Synthetic seeded river with a KNOWN discharge, rendered as a video with its project file.
+
+World: right-handed X, Y, Z (metres), Z up; flow along +X; the water surface is the plane
+Z = ``River.level_m`` (the cross-section datum). Looking downstream the left bank is at larger Y;
+station s runs from the left bank top to the right bank top, ``Y = y_left_top - s``; the surveyed
+section lies at X = ``River.x_section_m``. Everything, banks included, is drawn in the plane
+Z = level, so a plane homography maps it exactly to the (undistorted) image.
+
+Bed: d(s) = depth_m * f(u), u = (s - s_left) / width_m, f(u) = u^a (1-u)^b / max (a = b = 0 is a
+rectangular channel). Surface velocity along +X: u_s(s) = u_max_ms * (d(s) / depth_m)^(2/3).
+True discharge Q = alpha * integral(u_s * d ds), by ``scipy.integrate.quad`` on those functions,
+independent of any pipeline code.
+
+Frames: particles on the water advected exactly by u_s(Y) * t (periodic in X), splatted into a
+world-space raster, blurred to their diameter, warped to the image with the exact homography,
+optionally distorted (remap), shaken, glinted, with sensor noise. Frame i is at t = i / fps.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+from typing import Callable
+
+import cv2
+import numpy as np
+from scipy import integrate
+
+from ..errors import Cancelled, ParameterError
+from ..processing.cross_section import CrossSection, to_csv_text
+from ..project import (
+    CalibrationCfg,
+    CrossSectionCfg,
+    OrthoCfg,
+    PivCfg,
+    Project,
+    RoiCfg,
+    SectionCfg,
+    StabilizeCfg,
+    VideoCfg,
+    WaterLevelCfg,
+    atomic_write_bytes,
+    save_project,
+)
+from .camera import Camera, distortion_maps
+
+
+@dataclass(frozen=True)
+class River:
+    """Geometry and flow of a synthetic river (metres, m/s)."""
+
+    width_m: float = 12.0  # wetted width at the level
+    depth_m: float = 1.5  # deepest point below the level
+    shape_a: float = 1.2  # exponent at the left water edge
+    shape_b: float = 0.7  # exponent at the right water edge (smaller = steeper bank)
+    u_max_ms: float = 1.2  # surface velocity at the deepest point
+    alpha: float = 0.85  # velocity index: depth-averaged / surface velocity
+    level_m: float = 10.0  # water level in the cross-section datum
+    left_bank_m: float = 5.0  # plan width of the dry left bank (edge -> bank top)
+    right_bank_m: float = 5.0
+    left_bank_height_m: float = 0.6  # bank top above the level
+    right_bank_height_m: float = 0.8
+    x_section_m: float = 0.0  # X of the surveyed section
+
+    # -- geometry ---------------------------------------------------------------------------
+    @property
+    def s_left(self) -> float:
+        """Station of the left water edge (m)."""
+        return self.left_bank_m
+
+    @property
+    def s_right(self) -> float:
+        """Station of the right water edge (m)."""
+        return self.left_bank_m + self.width_m
+
+    @property
+    def s_total(self) -> float:
+        """Station of the right bank top (m)."""
+        return self.s_right + self.right_bank_m
+
+    @property
+    def y_left_top(self) -> float:
+        """World Y of station 0 (m)."""
+        return self.s_left + self.width_m / 2.0
+
+    @property
+    def y_left_edge(self) -> float:
+        return self.width_m / 2.0
+
+    @property
+    def y_right_edge(self) -> float:
+        return -self.width_m / 2.0
+
+    def station_of_y(self, y: np.ndarray | float) -> np.ndarray | float:
+        return self.y_left_top - y
+
+    def y_of_station(self, s: np.ndarray | float) -> np.ndarray | float:
+        return self.y_left_top - s
+
+    def _fmax(self) -> float:
+        a, b = self.shape_a, self.shape_b
+        if a == 0 and b == 0:
+            return 1.0
+        u = a / (a + b)
+        return u**a * (1 - u) ** b
+
+    def depth(self, s: np.ndarray | float) -> np.ndarray:
+        """Water depth (m) at station s; 0 outside the water."""
+        s = np.asarray(s, float)
+        u = (s - self.s_left) / self.width_m
+        inside = (u > 0) & (u < 1)
+        uc = np.clip(u, 1e-300, 1 - 1e-16)
+        f = uc**self.shape_a * (1 - uc) ** self.shape_b / self._fmax()
+        return np.where(inside, self.depth_m * f, 0.0)
+
+    def surface_velocity(self, s: np.ndarray | float) -> np.ndarray:
+        """Surface velocity along +X (m/s) at station s."""
+        return self.u_max_ms * (self.depth(s) / self.depth_m) ** (2.0 / 3.0)
+
+    def surface_velocity_y(self, y: np.ndarray) -> np.ndarray:
+        """Surface velocity along +X (m/s) at world Y."""
+        return self.surface_velocity(self.station_of_y(y))
+
+    def bed_elevation(self, s: np.ndarray | float) -> np.ndarray:
+        """Bed elevation (m, datum of the level): the channel in the water, straight banks outside."""
+        s = np.asarray(s, float)
+        z = self.level_m - self.depth(s)
+        left = s <= self.s_left
+        right = s >= self.s_right
+        z = np.where(left, self.level_m + self.left_bank_height_m * (self.s_left - s) / self.left_bank_m, z)
+        z = np.where(right, self.level_m + self.right_bank_height_m * (s - self.s_right) / self.right_bank_m, z)
+        return z
+
+    def survey(self, spacing_m: float = 0.25) -> CrossSection:
+        """Surveyed points of the bed every ``spacing_m`` (m), the water edges included."""
+        n = int(np.ceil(self.s_total / spacing_m))
+        s = np.linspace(0.0, self.s_total, n + 1)
+        s = np.unique(np.concatenate([s, [self.s_left, self.s_right]]))
+        if self.shape_a == 0 or self.shape_b == 0:  # vertical wall: a point just inside the water
+            eps = 1e-4
+            s = np.unique(np.concatenate([s, [self.s_left + eps, self.s_right - eps]]))
+        return CrossSection(s, self.bed_elevation(s))
+
+    # -- truth --------------------------------------------------------------------------------
+    def truth(self) -> dict:
+        """True discharge (m³/s), wetted width (m), area (m²) and mean velocity (m/s), integrated
+        with ``scipy.integrate.quad`` on the analytic functions."""
+        lo, hi = self.s_left, self.s_right
+        opts = dict(limit=200, epsabs=1e-12, epsrel=1e-10)
+        area, _ = integrate.quad(lambda s: float(self.depth(s)), lo, hi, **opts)
+        q_surf, _ = integrate.quad(lambda s: float(self.surface_velocity(s) * self.depth(s)), lo, hi, **opts)
+        q = self.alpha * q_surf
+        return {
+            "discharge_m3s": q,
+            "wetted_width_m": self.width_m,
+            "wetted_area_m2": area,
+            "mean_velocity_ms": q / area,
+            "surface_discharge_m3s": q_surf,
+            "water_level_m": self.level_m,
+            "alpha": self.alpha,
+        }
+
+
+# ---------------------------------------------------------------------------------------------
+# scene description
+
+
+@dataclass(frozen=True)
+class SceneSpec:
+    """Everything that defines a synthetic scene; the same spec and seed give the same video.
+
+    Lengths in metres, intensities on a 0..1 scale (noise in 8-bit grey levels), angles in degrees.
+    """
+
+    name: str
+    river: River
+    camera: Camera
+    seed: int = 0
+    fps: float = 30.0
+    duration_s: float = 5.0
+    # tracers
+    particle_density_m2: float = 25.0  # particles per m² of water surface
+    particle_diameters_m: tuple[float, ...] = (0.06,)  # one class per diameter, equal shares
+    particle_brightness: float = 0.7  # peak brightness above the water (0..1), varied +-30 %
+    texture_res_m: float = 0.015  # world raster pixel size (m)
+    max_extent_m: float = 40.0  # the raster covers the visible plane, at most this far from the section
+    # appearance
+    water_gray: float = 0.18
+    bank_gray: float = 0.55
+    bank_contrast: float = 0.18
+    noise_sigma: float = 2.0  # sensor noise, grey levels (0..255)
+    # variants
+    shake_px: float = 0.0  # sd of the random image translation per frame (px); frame 0 unshaken
+    shake_deg: float = 0.0  # sd of the random image rotation per frame (deg)
+    glints: int = 0  # number of static sun glints on the water (fixed in the image, flickering)
+    checkerboard_frames: int = 40  # distorted cameras: frames of the calibration video
+    checkerboard_square_m: float = 0.05
+    # what the hydrologist enters
+    gcp_offset_m: float = 0.8  # GCPs this far beyond the water edges, on the banks
+    gcp_half_dx_m: float = 4.0  # GCPs at x_section +- this
+    gcp_size_m: float = 0.4  # side of the checker target
+    click_error_px: float = 0.3  # sd of the seeded click error on GCP pixels
+    survey_spacing_m: float = 0.25
+    roi_half_length_m: float = 3.0  # ROI covers the water within x_section +- this
+    n_sub: int = 15
+    piv_window_px: int = 32
+    piv_overlap_px: int = 16
+    video_name: str = "river.mp4"
+    fourcc: str = "mp4v"
+
+    @property
+    def n_frames(self) -> int:
+        return int(round(self.duration_s * self.fps))
+
+    def with_(self, **changes) -> "SceneSpec":
+        """A copy with fields replaced; ``river__x`` / ``camera__x`` change a field of those parts."""
+        river = {k[7:]: v for k, v in changes.items() if k.startswith("river__")}
+        cam = {k[8:]: v for k, v in changes.items() if k.startswith("camera__")}
+        own = {k: v for k, v in changes.items() if "__" not in k}
+        if river:
+            own["river"] = replace(self.river, **river)
+        if cam:
+            own["camera"] = replace(self.camera, **cam)
+        return replace(self, **own)
+
+
+@dataclass
+class SceneTruth:
+    """What was rendered and the truth the pipeline must find (also written as truth.json)."""
+
+    discharge_m3s: float
+    water_level_m: float
+    alpha: float
+    wetted_width_m: float
+    wetted_area_m2: float
+    mean_velocity_ms: float
+    K: np.ndarray
+    R: np.ndarray
+    t: np.ndarray
+    dist: np.ndarray
+    gcp_world_m: np.ndarray  # (4, 3) P1..P4
+    gcp_px: np.ndarray  # (4, 2) exact projections (frame 0)
+    section_px: np.ndarray  # (2, 2) left, right water edge at x_section (frame 0)
+    video_path: Path
+    project_path: Path
+    cross_section_path: Path
+    truth_path: Path
+    n_frames: int
+    fps: float
+    seconds_per_frame: float
+    section_motion_px: list[float]  # image displacement per frame at 10 %, 50 %, 90 % of the width
+    checkerboard_path: Path | None = None
+    spec: SceneSpec | None = field(default=None, repr=False)
+
+
+# ---------------------------------------------------------------------------------------------
+# geometry helpers
+
+
+def gcp_world(spec: SceneSpec) -> np.ndarray:
+    """World points (4, 3) of the GCP targets, P1, P2 on the left bank (upstream, downstream),
+    P3, P4 on the right bank (downstream, upstream): going round the quadrilateral."""
+    r = spec.river
+    xs, dx = r.x_section_m, spec.gcp_half_dx_m
+    yl = r.y_left_edge + spec.gcp_offset_m
+    yr = r.y_right_edge - spec.gcp_offset_m
+    return np.array([[xs - dx, yl, r.level_m], [xs + dx, yl, r.level_m], [xs + dx, yr, r.level_m], [xs - dx, yr, r.level_m]])
+
+
+def gcp_distances(p: np.ndarray) -> list[float]:
+    """L1..L6 = |P1P2|, |P2P3|, |P3P4|, |P4P1|, |P1P3|, |P2P4| (m)."""
+    pairs = [(0, 1), (1, 2), (2, 3), (3, 0), (0, 2), (1, 3)]
+    return [float(np.linalg.norm(p[i] - p[j])) for i, j in pairs]
+
+
+def _world_of_pixels(cam: Camera, level: float, px_ideal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Plane points (N, 2) hit by the rays of ideal pixels, and a mask of rays that hit in front."""
+    Kinv = np.linalg.inv(cam.K)
+    rays = (cam.R.T @ (Kinv @ np.column_stack([px_ideal, np.ones(len(px_ideal))]).T)).T
+    c = np.asarray(cam.position_m, float)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lam = (level - c[2]) / rays[:, 2]
+    ok = np.isfinite(lam) & (lam > 0)
+    pts = c[:2] + rays[:, :2] * np.where(ok, lam, 0.0)[:, None]
+    return pts, ok
+
+
+@dataclass(frozen=True)
+class _Raster:
+    x0: float  # world X of texel column 0 (m)
+    y_top: float  # world Y of texel row 0 (m); rows go towards -Y
+    res: float
+    nx: int
+    ny: int
+
+    @property
+    def to_world(self) -> np.ndarray:
+        """3x3: texel (col, row, 1) -> world (X, Y, 1)."""
+        return np.array([[self.res, 0.0, self.x0], [0.0, -self.res, self.y_top], [0.0, 0.0, 1.0]])
+
+    def xy(self) -> tuple[np.ndarray, np.ndarray]:
+        return self.x0 + np.arange(self.nx) * self.res, self.y_top - np.arange(self.ny) * self.res
+
+
+def _raster_for_view(spec: SceneSpec, canvas_offset: tuple[int, int], canvas_size: tuple[int, int]) -> _Raster:
+    """World raster covering what the (enlarged) canvas sees of the plane, clipped to the extent."""
+    cam, r = spec.camera, spec.river
+    cw, ch = canvas_size
+    gx, gy = np.meshgrid(np.linspace(0, cw - 1, 97), np.linspace(0, ch - 1, 55))
+    ideal = np.column_stack([gx.ravel() - canvas_offset[0], gy.ravel() - canvas_offset[1]])
+    pts, ok = _world_of_pixels(cam, r.level_m, ideal)
+    if not ok.any():
+        raise ParameterError(f"scene {spec.name}: the camera does not see the water plane")
+    ext = spec.max_extent_m
+    lim_x = (r.x_section_m - ext, r.x_section_m + ext)
+    lim_y = (-ext, ext)
+    far = np.where(ok[:, None], pts, np.nan)
+    # rays above the horizon: the view reaches the extent limit in their direction
+    xmin, xmax = np.nanmin(far[:, 0]), np.nanmax(far[:, 0])
+    ymin, ymax = np.nanmin(far[:, 1]), np.nanmax(far[:, 1])
+    if not ok.all():
+        xmin, xmax, ymin, ymax = lim_x[0], lim_x[1], lim_y[0], lim_y[1]
+    pad = 1.0
+    xmin, xmax = max(xmin - pad, lim_x[0]), min(xmax + pad, lim_x[1])
+    ymin, ymax = max(ymin - pad, lim_y[0]), min(ymax + pad, lim_y[1])
+    # the water near the section must be inside the raster
+    xmin = min(xmin, r.x_section_m - spec.gcp_half_dx_m - 1)
+    xmax = max(xmax, r.x_section_m + spec.gcp_half_dx_m + 1)
+    ymin = min(ymin, r.y_right_edge - spec.gcp_offset_m - 1)
+    ymax = max(ymax, r.y_left_edge + spec.gcp_offset_m + 1)
+    res = max(spec.texture_res_m, np.sqrt((xmax - xmin) * (ymax - ymin) / 16e6))
+    nx = int(np.ceil((xmax - xmin) / res)) + 1
+    ny = int(np.ceil((ymax - ymin) / res)) + 1
+    return _Raster(float(xmin), float(ymax), float(res), nx, ny)
+
+
+def _multiscale_noise(rng: np.random.Generator, ny: int, nx: int, scales_px: tuple[float, ...]) -> np.ndarray:
+    """Static texture with features at several scales, zero mean, unit sd (float32)."""
+    out = np.zeros((ny, nx), np.float32)
+    for s in scales_px:
+        sy, sx = max(int(ny / s), 2), max(int(nx / s), 2)
+        n = rng.standard_normal((sy, sx)).astype(np.float32)
+        out += cv2.resize(n, (nx, ny), interpolation=cv2.INTER_CUBIC)
+    out -= out.mean()
+    out /= out.std() + 1e-9
+    return out
+
+
+def _static_texture(spec: SceneSpec, ras: _Raster, rng: np.random.Generator) -> np.ndarray:
+    """Banks with multi-scale noise, uniform water, GCP checker targets (0..1, float32)."""
+    r = spec.river
+    scales_m = (0.05, 0.2, 0.8, 3.0)
+    scales_px = tuple(max(s / ras.res, 2.0) for s in scales_m)
+    tex = spec.bank_gray + spec.bank_contrast * _multiscale_noise(rng, ras.ny, ras.nx, scales_px)
+    X, Y = ras.xy()
+    wet_rows = (Y > r.y_right_edge) & (Y < r.y_left_edge)
+    tex[wet_rows, :] = spec.water_gray
+    half = spec.gcp_size_m / 2.0
+    for gx, gy, _ in gcp_world(spec):
+        cols = np.nonzero(np.abs(X - gx) <= half)[0]
+        rows = np.nonzero(np.abs(Y - gy) <= half)[0]
+        # box-filtered coverage of each texel, so the target's centre is at the GCP to sub-texel accuracy
+        fx = np.clip((X[cols] - gx) / ras.res + 0.5, 0.0, 1.0)[None, :]
+        fy = np.clip((Y[rows] - gy) / ras.res + 0.5, 0.0, 1.0)[:, None]
+        checker = (0.05 + 0.9 * (fx * fy + (1 - fx) * (1 - fy))).astype(np.float32)
+        tex[rows[0] : rows[-1] + 1, cols[0] : cols[-1] + 1] = checker
+    return np.clip(tex, 0.0, 1.0).astype(np.float32)
+
+
+def _shake_matrices(spec: SceneSpec, rng: np.random.Generator) -> np.ndarray:
+    """(n, 3, 3) image-space rigid motions (rotation about the centre + translation); frame 0 = I."""
+    n = spec.n_frames
+    M = np.tile(np.eye(3), (n, 1, 1))
+    if spec.shake_px <= 0 and spec.shake_deg <= 0:
+        return M
+    cx, cy = (spec.camera.width_px - 1) / 2.0, (spec.camera.height_px - 1) / 2.0
+    for i in range(1, n):
+        a = np.radians(rng.normal(0.0, spec.shake_deg))
+        tx, ty = rng.normal(0.0, spec.shake_px, 2)
+        c, s = np.cos(a), np.sin(a)
+        M[i] = [[c, -s, cx - c * cx + s * cy + tx], [s, c, cy - s * cx - c * cy + ty], [0, 0, 1]]
+    return M
+
+
+def _bank_regions(spec: SceneSpec, bank_mask: np.ndarray) -> list[list[float]]:
+    """Up to four rectangles [x0, y0, x1, y1] (px) lying wholly on the banks: for each bank, the
+    tallest band of rows that is bank across each half of the image width."""
+    h, w = bank_mask.shape
+    rects = []
+    margin = w // 20
+    halves = [(margin, w // 2 - 8), (w // 2 + 8, w - margin)]
+    for label in (1, 2):  # 1 = left bank, 2 = right bank
+        for x0, x1 in halves:
+            full = np.all(bank_mask[:, x0:x1] == label, axis=1)
+            best, start, best_rng = 0, None, None
+            for y, f in enumerate(np.append(full, False)):
+                if f and start is None:
+                    start = y
+                elif not f and start is not None:
+                    if y - start > best:
+                        best, best_rng = y - start, (start, y - 1)
+                    start = None
+            if best_rng and best >= 24:
+                y0, y1 = best_rng[0] + 4, best_rng[1] - 4
+                rects.append([float(x0), float(y0), float(x1), float(y1)])
+    return rects
+
+
+def _glint_layers(spec: SceneSpec, rng: np.random.Generator, water_quad_px: np.ndarray) -> np.ndarray:
+    """Static sun glints fixed in the image inside ``water_quad_px``: two layers (2, h, w) of
+    saturating, horizontally elongated blobs (sigma 2-6 px), each layer flickering on its own."""
+    h, w = spec.camera.height_px, spec.camera.width_px
+    lo = np.maximum(water_quad_px.min(axis=0), 0)
+    hi = np.minimum(water_quad_px.max(axis=0), [w - 1, h - 1])
+    poly = water_quad_px.astype(np.float32).reshape(-1, 1, 2)
+    layers = np.zeros((2, h, w), np.float32)
+    yy, xx = np.mgrid[-20:21, -20:21].astype(np.float32)
+    placed = 0
+    while placed < spec.glints:
+        x, y = rng.uniform(lo, hi)
+        if cv2.pointPolygonTest(poly, (float(x), float(y)), False) < 0:
+            continue
+        sy = rng.uniform(1.5, 3.5)
+        sx = sy * rng.uniform(1.5, 3.0)
+        blob = rng.uniform(0.9, 1.3) * np.exp(-0.5 * ((xx / sx) ** 2 + (yy / sy) ** 2))
+        xi, yi = int(round(x)), int(round(y))
+        x0, x1, y0, y1 = max(xi - 20, 0), min(xi + 21, w), max(yi - 20, 0), min(yi + 21, h)
+        layers[placed % 2, y0:y1, x0:x1] += blob[y0 - yi + 20 : y1 - yi + 20, x0 - xi + 20 : x1 - xi + 20]
+        placed += 1
+    return layers
+
+
+# ---------------------------------------------------------------------------------------------
+# rendering
+
+
+def _open_writer(path: Path, fourcc: str, fps: float, size: tuple[int, int]) -> cv2.VideoWriter:
+    wr = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*fourcc), fps, size, True)
+    if not wr.isOpened():
+        raise ParameterError(f"video writer: this OpenCV build cannot write {fourcc!r} to {path.name}")
+    return wr
+
+
+def render_scene(
+    spec: SceneSpec,
+    out_dir: Path | str,
+    progress: Callable[[int, int], None] | None = None,
+    cancel: Callable[[], bool] | None = None,
+) -> SceneTruth:
+    """Render ``spec`` into ``out_dir``: the video, ``cross_section.csv``, ``project.toml`` (what a
+    hydrologist would enter) and ``truth.json`` (never read by the pipeline). Distorted cameras
+    also get ``checkerboard.mp4``. Frames are streamed to the writer.
+
+    Returns the :class:`SceneTruth`; ``seconds_per_frame`` is the measured render+encode time.
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    cam, river = spec.camera, spec.river
+    w, h = cam.width_px, cam.height_px
+    rng = np.random.default_rng(spec.seed)
+    truth = river.truth()
+
+    # ---- image geometry: ideal canvas (enlarged when the lens distorts) ----
+    if cam.has_distortion:
+        map_x, map_y, offset, canvas = distortion_maps(cam)
+    else:
+        map_x = map_y = None
+        offset, canvas = (0, 0), (w, h)
+    T = np.array([[1.0, 0, offset[0]], [0, 1.0, offset[1]], [0, 0, 1.0]])
+    H_world = T @ cam.plane_homography(river.level_m)  # world (X, Y) -> canvas px
+    ras = _raster_for_view(spec, offset, canvas)
+    H_static = H_world @ ras.to_world
+    static_tex = _static_texture(spec, ras, rng)
+
+    # particle layer: the water rows of the raster plus a blur margin
+    Xr, Yr = ras.xy()
+    max_d = max(spec.particle_diameters_m)
+    pad = int(np.ceil(2 * max_d / ras.res)) + 2
+    wet = np.nonzero((Yr > river.y_right_edge) & (Yr < river.y_left_edge))[0]
+    r0, r1 = max(wet[0] - pad, 0), min(wet[-1] + pad, ras.ny - 1)
+    ly, lx = r1 - r0 + 1, ras.nx
+    H_layer = H_static @ np.array([[1.0, 0, 0], [0, 1.0, r0], [0, 0, 1.0]])
+    y_layer_top = ras.y_top - r0 * ras.res
+
+    # particles: uniform on the water over the raster's X range (periodic)
+    x_lo, x_len = ras.x0, (ras.nx - 1) * ras.res
+    n_part = int(round(spec.particle_density_m2 * x_len * river.width_m))
+    px0 = rng.uniform(x_lo, x_lo + x_len, n_part)
+    py = rng.uniform(river.y_right_edge, river.y_left_edge, n_part)
+    pu = river.surface_velocity_y(py)
+    n_cls = len(spec.particle_diameters_m)
+    cls = rng.integers(0, n_cls, n_part)
+    amp = spec.particle_brightness * rng.uniform(0.7, 1.3, n_part)
+    sig_t = [d / 2.355 / ras.res for d in spec.particle_diameters_m]
+    weight = amp * np.array([2 * np.pi * s * s for s in sig_t])[cls]
+    v_rows = (y_layer_top - py) / ras.res  # fixed: particles move along X only
+    vi = np.floor(v_rows).astype(np.int64)
+    fv = v_rows - vi
+
+    shake = _shake_matrices(spec, rng)
+    shaken = spec.shake_px > 0 or spec.shake_deg > 0
+    static_img = None
+    if not shaken:
+        static_img = cv2.warpPerspective(static_tex, H_static, canvas, flags=cv2.INTER_LINEAR,
+                                         borderMode=cv2.BORDER_CONSTANT, borderValue=0.5)
+
+    # section geometry on frame 0 (through the lens)
+    xs = river.x_section_m
+    sec_world = np.array([[xs, river.y_left_edge, river.level_m], [xs, river.y_right_edge, river.level_m]])
+    sec_px = cam.project(sec_world)
+    gw = gcp_world(spec)
+    g_px = cam.project(gw)
+
+    glint_layers = None
+    if spec.glints > 0:
+        L = spec.roi_half_length_m
+        quad_w = np.array([[xs - L, river.y_left_edge - 0.3, river.level_m], [xs + L, river.y_left_edge - 0.3, river.level_m],
+                           [xs + L, river.y_right_edge + 0.3, river.level_m], [xs - L, river.y_right_edge + 0.3, river.level_m]])
+        glint_layers = _glint_layers(spec, rng, cam.project(quad_w))
+
+    video_path = out / spec.video_name
+    writer = _open_writer(video_path, spec.fourcc, spec.fps, (w, h))
+    n = spec.n_frames
+    layer_size = ly * lx
+    noise = np.empty((h, w), np.float32)
+    t_start = time.perf_counter()
+    try:
+        for i in range(n):
+            if cancel is not None and cancel():
+                raise Cancelled("scene rendering cancelled")
+            t = i / spec.fps
+            x = x_lo + np.mod(px0 - x_lo + pu * t, x_len)
+            u_cols = (x - ras.x0) / ras.res
+            ui = np.floor(u_cols).astype(np.int64)
+            fu = u_cols - ui
+            img = np.zeros((canvas[1], canvas[0]), np.float32)
+            Hs = shake[i] if (shaken and not cam.has_distortion) else np.eye(3)
+            for c in range(n_cls):
+                sel = cls == c
+                acc = np.zeros(layer_size, np.float64)
+                for du, dv, wt in ((0, 0, (1 - fu) * (1 - fv)), (1, 0, fu * (1 - fv)), (0, 1, (1 - fu) * fv), (1, 1, fu * fv)):
+                    cc = np.clip(ui[sel] + du, 0, lx - 1)
+                    rr = np.clip(vi[sel] + dv, 0, ly - 1)
+                    acc += np.bincount(rr * lx + cc, weights=(wt[sel] * weight[sel]), minlength=layer_size)
+                layer = cv2.GaussianBlur(acc.reshape(ly, lx).astype(np.float32), (0, 0), sig_t[c])
+                img += cv2.warpPerspective(layer, Hs @ H_layer, canvas, flags=cv2.INTER_LINEAR,
+                                           borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+            if static_img is None:
+                img += cv2.warpPerspective(static_tex, Hs @ H_static, canvas, flags=cv2.INTER_LINEAR,
+                                           borderMode=cv2.BORDER_CONSTANT, borderValue=0.5)
+            else:
+                img += static_img
+            if cam.has_distortion:
+                img = cv2.remap(img, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0.5)
+                if shaken:
+                    img = cv2.warpAffine(img, shake[i][:2], (w, h), flags=cv2.INTER_LINEAR,
+                                         borderMode=cv2.BORDER_REFLECT)
+            if glint_layers is not None:
+                flick = 0.7 + 0.3 * rng.uniform(size=2)
+                img += flick[0] * glint_layers[0] + flick[1] * glint_layers[1]
+            img *= 255.0
+            if spec.noise_sigma > 0:
+                noise[:] = rng.standard_normal((h, w), dtype=np.float32)
+                img += spec.noise_sigma * noise
+            frame = np.clip(img + 0.5, 0, 255).astype(np.uint8)
+            writer.write(cv2.cvtColor(frame, cv2.COLOR_GRAY2BGR))
+            if progress is not None:
+                progress(i + 1, n)
+    finally:
+        writer.release()
+    spf = (time.perf_counter() - t_start) / max(n, 1)
+
+    # ---- what the hydrologist enters ----
+    cs = river.survey(spec.survey_spacing_m)
+    cs_path = out / "cross_section.csv"
+    atomic_write_bytes(cs_path, to_csv_text(cs).encode("utf-8"))
+    click = rng.normal(0.0, spec.click_error_px, g_px.shape)
+    gcp_clicked = g_px + click
+
+    # ROI: bounding box of the water within x_section +- roi_half_length (sampled edges, lens included)
+    L = spec.roi_half_length_m
+    tt = np.linspace(-L, L, 41)
+    ee = np.linspace(river.y_right_edge, river.y_left_edge, 41)
+    border = np.vstack([
+        np.column_stack([xs + tt, np.full_like(tt, river.y_left_edge), np.full_like(tt, river.level_m)]),
+        np.column_stack([xs + tt, np.full_like(tt, river.y_right_edge), np.full_like(tt, river.level_m)]),
+        np.column_stack([np.full_like(ee, xs - L), ee, np.full_like(ee, river.level_m)]),
+        np.column_stack([np.full_like(ee, xs + L), ee, np.full_like(ee, river.level_m)]),
+    ])
+    bpx = cam.project(border)
+    rx0, ry0 = np.clip(bpx.min(axis=0), 0, [w - 1, h - 1])
+    rx1, ry1 = np.clip(bpx.max(axis=0), 0, [w - 1, h - 1])
+
+    proj = Project(name=f"synthetic {spec.name}")
+    proj.video = VideoCfg(path=spec.video_name)
+    proj.cross_section = CrossSectionCfg(path=cs_path.name)
+    proj.ortho = OrthoCfg(method="distances", gcp_px=_r(gcp_clicked), distances_m=[round(d, 4) for d in gcp_distances(gw)])
+    proj.water_level = WaterLevelCfg(method="value", value_m=float(river.level_m))
+    proj.section = SectionCfg(points_px=_r(sec_px), n_sub=spec.n_sub, alpha=float(river.alpha))
+    proj.roi = RoiCfg(rect_px=[float(np.floor(rx0)), float(np.floor(ry0)), float(np.ceil(rx1)), float(np.ceil(ry1))])
+    proj.piv = PivCfg(window_px=spec.piv_window_px, overlap_px=spec.piv_overlap_px)
+    if shaken:
+        proj.stabilize = StabilizeCfg(enabled=True, regions_px=_bank_regions(spec, _bank_mask(spec, ras)))
+    cb_path = None
+    if cam.has_distortion:
+        from .checkerboard import render_checkerboard
+
+        cb_path = out / "checkerboard.mp4"
+        render_checkerboard(cam, cb_path, n_frames=spec.checkerboard_frames, square_m=spec.checkerboard_square_m,
+                            seed=spec.seed + 1, fps=spec.fps, fourcc=spec.fourcc)
+        proj.calibration = CalibrationCfg(checkerboard_video=cb_path.name, corners=[9, 6],
+                                          square_mm=spec.checkerboard_square_m * 1000.0, n_frames=20)
+    proj_path = out / "project.toml"
+    save_project(proj, proj_path)
+
+    motion = []
+    for frac in (0.1, 0.5, 0.9):
+        s = river.s_left + frac * river.width_m
+        y = float(river.y_of_station(s))
+        u = float(river.surface_velocity(s))
+        a = cam.project(np.array([[xs, y, river.level_m], [xs + u / spec.fps, y, river.level_m]]))
+        motion.append(float(np.linalg.norm(a[1] - a[0])))
+
+    res = SceneTruth(
+        discharge_m3s=truth["discharge_m3s"], water_level_m=river.level_m, alpha=river.alpha,
+        wetted_width_m=truth["wetted_width_m"], wetted_area_m2=truth["wetted_area_m2"],
+        mean_velocity_ms=truth["mean_velocity_ms"], K=cam.K.copy(), R=cam.R.copy(), t=cam.t.copy(),
+        dist=cam.dist_array.copy(), gcp_world_m=gw, gcp_px=g_px, section_px=sec_px, video_path=video_path,
+        project_path=proj_path, cross_section_path=cs_path, truth_path=out / "truth.json", n_frames=n,
+        fps=spec.fps, seconds_per_frame=spf, section_motion_px=motion, checkerboard_path=cb_path, spec=spec,
+    )
+    truth_doc = {
+        **truth,
+        "scene": spec.name,
+        "n_frames": n,
+        "fps": spec.fps,
+        "timestamps": "frame i at i / fps seconds",
+        "camera": {"K": cam.K.tolist(), "R": cam.R.tolist(), "t": cam.t.tolist(), "rvec": cam.rvec.tolist(),
+                   "dist": cam.dist_array.tolist(), "position_m": list(cam.position_m), "target_m": list(cam.target_m)},
+        "gcp_world_m": gw.tolist(),
+        "gcp_px_exact": g_px.tolist(),
+        "gcp_px_clicked": gcp_clicked.tolist(),
+        "section_px": sec_px.tolist(),
+        "section_motion_px_per_frame_at_10_50_90pct": motion,
+        "raster_res_m": ras.res,
+        "n_particles": n_part,
+        "seconds_per_frame": spf,
+        "codec": spec.fourcc,
+        "checkerboard_video": cb_path.name if cb_path else None,
+        "spec": _jsonable(asdict(spec)),
+    }
+    atomic_write_bytes(res.truth_path, json.dumps(truth_doc, indent=2).encode("utf-8"))
+    return res
+
+
+def _bank_mask(spec: SceneSpec, ras: _Raster) -> np.ndarray:
+    """Frame-0 image labels: 1 left bank, 2 right bank, 0 water / outside the raster / near GCPs."""
+    cam, r = spec.camera, spec.river
+    h, w = cam.height_px, cam.width_px
+    xs, ys = np.meshgrid(np.arange(w, dtype=float), np.arange(h, dtype=float))
+    ideal = cam.undistorted_of_distorted(np.column_stack([xs.ravel(), ys.ravel()]))
+    pts, ok = _world_of_pixels(cam, r.level_m, ideal)
+    X, Y = pts[:, 0], pts[:, 1]
+    inside = ok & (X > ras.x0 + 1) & (X < ras.x0 + ras.res * ras.nx - 1) & (Y < ras.y_top - 1) & (Y > ras.y_top - ras.res * ras.ny + 1)
+    lab = np.zeros(len(X), np.uint8)
+    lab[inside & (Y > r.y_left_edge + 0.5)] = 1
+    lab[inside & (Y < r.y_right_edge - 0.5)] = 2
+    return lab.reshape(h, w)
+
+
+def _r(a: np.ndarray) -> list[list[float]]:
+    return [[round(float(v), 3) for v in row] for row in np.asarray(a)]
+
+
+def _jsonable(o):
+    if isinstance(o, dict):
+        return {k: _jsonable(v) for k, v in o.items()}
+    if isinstance(o, (list, tuple)):
+        return [_jsonable(v) for v in o]
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, (np.floating, np.integer)):
+        return o.item()
+    return o
