@@ -2,27 +2,30 @@
 PY ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
-STAMP := $(VENV)/.installed
+BASE := $(VENV)/.installed-base
+DEV := $(VENV)/.installed-dev
 
-.PHONY: demo test venv clean bench
+.PHONY: demo test bench clean
 
 $(BIN)/python:
 	$(PY) -m venv $(VENV)
 	$(BIN)/pip install -q --upgrade pip
 
-$(STAMP): $(BIN)/python pyproject.toml
+$(BASE): $(BIN)/python pyproject.toml
+	$(BIN)/pip install -q -e .
+	touch $(BASE)
+
+$(DEV): $(BASE)
 	$(BIN)/pip install -q -e '.[dev]'
-	touch $(STAMP)
+	touch $(DEV)
 
-venv: $(STAMP)
-
-demo: $(STAMP)
+demo: $(BASE)
 	$(BIN)/fieldtool demo --out demo_out
 
-test: $(STAMP)
+test: $(DEV)
 	$(BIN)/python -m pytest -q
 
-bench: $(STAMP)
+bench: $(DEV)
 	$(BIN)/python benchmarks/piv_vs_openpiv.py
 
 clean:

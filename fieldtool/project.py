@@ -71,6 +71,7 @@ class StabilizeCfg:
     regions_px: list[list[float]] = field(default_factory=list)  # rectangles [x0, y0, x1, y1]
     water_polygon_px: list[Point] = field(default_factory=list)  # or: polygon around the water to exclude
     model: str = "homography"  # homography | affine
+    max_drift_px: float | None = None  # steady drift of the stable features taken as water (px); None = region side
 
 
 @dataclass

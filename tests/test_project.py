@@ -66,3 +66,13 @@ def test_template_loads_and_documents_every_key(tmp_path):
         if isinstance(keys, dict):
             for k in keys:
                 assert f"`{section}.{k}`" in table
+
+
+def test_readme_documents_every_key():
+    from pathlib import Path
+
+    from fieldtool.template import README_BEGIN, README_END
+
+    text = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    table = text.split(README_BEGIN, 1)[1].split(README_END, 1)[0].strip()
+    assert table == key_table_markdown(), "run `python -m fieldtool.template --readme`"

@@ -72,8 +72,12 @@ def plot_rectified(path: Path, first_bgr: np.ndarray, result, inputs) -> Path:
     ax.imshow(img, extent=(bounds[0], bounds[1], bounds[2], bounds[3]), origin="upper")
     step = max(1, int(np.ceil(max(p.x.shape) / 50)))
     sl = (slice(None, None, step), slice(None, None, step))
-    ax.quiver(XY[..., 0][sl][ok[sl]], XY[..., 1][sl][ok[sl]], result.world_u[sl][ok[sl]], result.world_v[sl][ok[sl]],
-              color="yellow", angles="xy")
+    X, Y = XY[..., 0][sl][ok[sl]], XY[..., 1][sl][ok[sl]]
+    U, V = result.world_u[sl][ok[sl]], result.world_v[sl][ok[sl]]
+    if len(X) > 1:
+        spacing = np.median(np.hypot(np.diff(XY[..., 0][sl], axis=1), np.diff(XY[..., 1][sl], axis=1)))
+        vmax = max(float(np.nanmax(np.hypot(U, V))), 1e-6)
+        ax.quiver(X, Y, U, V, color="yellow", angles="xy", scale_units="xy", scale=vmax / (0.9 * spacing))
     ax.plot(section_w[:, 0], section_w[:, 1], "r-", lw=2)
     if m.gcp_world is not None:
         ax.plot(m.gcp_world[:, 0], m.gcp_world[:, 1], "c+", ms=12)
