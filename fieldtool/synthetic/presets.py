@@ -8,7 +8,7 @@ Base scenes (a river 12 m wide, up to 1.5 m deep, ~1.2 m/s at the surface, 5 s a
 - ``far_bank``: low camera (3 m above the water, 8 m back from the right edge); the far (left) side of
   the river is seen at a grazing angle (~8.5 degrees at the far edge); steeper far bank, 1.4 m/s.
 
-Variant flags, combinable: ``shake=True`` (random translation ~3 px + rotation ~0.3 deg per frame,
+Variant flags, combinable: ``shake=True`` (random translation ~3 px + rotation ~0.3 deg per frame on a drift of 20 px/s,
 frame 0 unshaken; the project enables stabilisation on bank regions), ``distortion=True``
 (barrel k1 = -0.25, k2 = 0.03 with a rendered 9x6 checkerboard video of the same camera),
 ``glints=True`` (40 static, flickering sun glints on the water near the section).
@@ -63,7 +63,7 @@ def get(name: str, *, shake: bool = False, distortion: bool = False, glints: boo
     spec = _BASE[name]()
     suffix = []
     if shake:
-        spec = replace(spec, shake_px=3.0, shake_deg=0.3)
+        spec = replace(spec, shake_px=3.0, shake_deg=0.3, shake_drift_px_s=20.0)
         suffix.append("shake")
     if distortion:
         # a longer focal length keeps the barrel-distorted view close to the pinhole one

@@ -194,6 +194,7 @@ class SceneSpec:
     # variants
     shake_px: float = 0.0  # sd of the random image translation per frame (px); frame 0 unshaken
     shake_deg: float = 0.0  # sd of the random image rotation per frame (deg)
+    shake_drift_px_s: float = 0.0  # slow drift of the view (px/s), as a hovering drone or a tired hand
     glints: int = 0  # number of static sun glints on the water (fixed in the image, flickering)
     checkerboard_frames: int = 40  # distorted cameras: frames of the calibration video
     checkerboard_square_m: float = 0.05
@@ -373,12 +374,15 @@ def _shake_matrices(spec: SceneSpec, rng: np.random.Generator) -> np.ndarray:
     """(n, 3, 3) image-space rigid motions (rotation about the centre + translation); frame 0 = I."""
     n = spec.n_frames
     M = np.tile(np.eye(3), (n, 1, 1))
-    if spec.shake_px <= 0 and spec.shake_deg <= 0:
+    if spec.shake_px <= 0 and spec.shake_deg <= 0 and spec.shake_drift_px_s <= 0:
         return M
     cx, cy = (spec.camera.width_px - 1) / 2.0, (spec.camera.height_px - 1) / 2.0
+    heading = rng.uniform(0.0, 2 * np.pi)
+    drift = spec.shake_drift_px_s * np.array([np.cos(heading), np.sin(heading)])
     for i in range(1, n):
-        a = np.radians(rng.normal(0.0, spec.shake_deg))
-        tx, ty = rng.normal(0.0, spec.shake_px, 2)
+        t = i / spec.fps
+        a = np.radians(rng.normal(0.0, spec.shake_deg) + 0.2 * spec.shake_deg * t)
+        tx, ty = rng.normal(0.0, spec.shake_px, 2) + drift * t
         c, s = np.cos(a), np.sin(a)
         M[i] = [[c, -s, cx - c * cx + s * cy + tx], [s, c, cy - s * cx - c * cy + ty], [0, 0, 1]]
     return M
