@@ -12,14 +12,14 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Iterator
 
 import numpy as np
 
 from . import __version__
-from .errors import Cancelled, FieldToolError, GeometryError, InputFileError, ParameterError
+from .errors import Cancelled, FieldToolError, GeometryError, ParameterError
 from .processing import cross_section as xs
 from .processing import discharge as dq
 from .processing import ortho
@@ -253,7 +253,8 @@ def working_frames(project: Project, inputs: Inputs, cancel: Callable[[], bool] 
                     st = project.stabilize
                     regions = [inputs.to_working([[r[0], r[1]], [r[2], r[3]]]).ravel().tolist() for r in st.regions_px]
                     poly = inputs.to_working(st.water_polygon_px).tolist() if st.water_polygon_px else None
-                    stabilizer = Stabilizer(img, regions_px=regions or None, water_polygon_px=poly, model=st.model)
+                    stabilizer = Stabilizer(img, regions_px=regions or None, water_polygon_px=poly, model=st.model,
+                                            max_drift_px=st.max_drift_px)
                 else:
                     img = stabilizer.register(img)
             yield fr.index, fr.t_s, img

@@ -71,7 +71,7 @@ class StabilizeCfg:
     regions_px: list[list[float]] = field(default_factory=list)  # rectangles [x0, y0, x1, y1]
     water_polygon_px: list[Point] = field(default_factory=list)  # or: polygon around the water to exclude
     model: str = "homography"  # homography | affine
-    max_drift_px: float | None = None  # steady drift of the stable features taken as water (px); None = region side
+    max_drift_px: float | None = None  # steady drift (px) past which the picture is checked for water; None = half a region side
 
 
 @dataclass
@@ -138,12 +138,12 @@ class PivCfg:
     overlap_px: int = 16  # overlap between windows (px)
     search_px: int | None = None  # search area side (px); None = window_px
     passes: int = 2  # multi-pass with window deformation: first window = window_px * 2**(passes-1); 2 removes the loss-of-pairs bias
-    snr_min: float = 1.3  # minimum peak-to-second-peak ratio
+    snr_min: float = 1.3  # minimum ratio of the correlation peak to the highest other local maximum
     averaging: str = "ensemble"  # ensemble | mean | median
     max_velocity_ms: float | None = None  # vectors faster than this are invalid (m/s)
     median_threshold: float = 2.0  # normalised local median test threshold
     std_threshold: float = 4.0  # global standard-deviation test (n sigma)
-    min_valid_fraction: float = 0.3  # a node valid in fewer pairs than this is dropped
+    min_valid_fraction: float = 0.3  # mean/median: a node valid in fewer pairs than this is dropped
 
 
 @dataclass

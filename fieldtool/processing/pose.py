@@ -1,0 +1,170 @@
+"""Full camera pose from 6 or more ground control points with X, Y, Z (beyond the thesis).
+
+As RIVeR and pyorc do for fixed cameras: with known intrinsics (calibrated, or given), the pose
+(rotation, translation) is solved from GCP pixels and their surveyed world coordinates with
+``cv2.solvePnP`` and refined by Levenberg-Marquardt. The water surface is then the plane Z = level,
+and :func:`plane_homography` maps undistorted image pixels onto it.
+
+World coordinates may be large projected coordinates (e.g. EPSG:28992, 10⁵ m): a local origin
+(the mean of the GCPs) is subtracted internally for numerical conditioning and kept in the Pose.
+World axes: X, Y horizontal, Z up (m). Image axes: x right, y down (px).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from ..errors import GeometryError, ParameterError
+
+MIN_GCPS = 6
+
+
+@dataclass(eq=False)  # holds arrays: compare fields explicitly
+class Pose:
+    """Camera pose in a local world frame.
+
+    A world point P (m) projects as ``K · dist(R · (P - origin) + tvec)``.
+
+    Attributes
+    ----------
+    rvec, tvec : (3,) Rodrigues rotation and translation (m) from local world to camera frame.
+    camera_matrix : (3, 3) K (px).
+    dist_coeffs : (n,) distortion coefficients, OpenCV order.
+    reprojection_px : (N,) distance between each GCP's pixel and its reprojected world position (px).
+    rms_px : RMS of ``reprojection_px`` (px).
+    origin : (3,) world coordinates of the local origin (m).
+    """
+
+    rvec: np.ndarray
+    tvec: np.ndarray
+    camera_matrix: np.ndarray
+    dist_coeffs: np.ndarray
+    reprojection_px: np.ndarray
+    rms_px: float
+    origin: np.ndarray
+
+    @property
+    def rotation(self) -> np.ndarray:
+        """(3, 3) rotation matrix world -> camera."""
+        return cv2.Rodrigues(np.asarray(self.rvec, float))[0]
+
+    def camera_position(self) -> np.ndarray:
+        """(3,) camera centre in world coordinates (m)."""
+        R = self.rotation
+        return self.origin - R.T @ np.asarray(self.tvec, float).ravel()
+
+    def project(self, world: np.ndarray) -> np.ndarray:
+        """(N, 3) world points (m) -> (N, 2) raw (distorted) pixels."""
+        local = np.asarray(world, float).reshape(-1, 3) - self.origin
+        px, _ = cv2.projectPoints(local.reshape(-1, 1, 3), self.rvec, self.tvec, self.camera_matrix, self.dist_coeffs)
+        return px.reshape(-1, 2)
+
+
+def _as_points(a, cols: int, key: str) -> np.ndarray:
+    arr = np.asarray(a, dtype=np.float64)
+    if arr.ndim != 2 or arr.shape[1] != cols:
+        what = "[x, y] pixels" if cols == 2 else "[X, Y, Z] metres"
+        raise ParameterError(f"{key}: expected a list of {what}, got shape {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise ParameterError(f"{key}: contains a value that is not a number")
+    return arr
+
+
+def solve_pose(gcp_px: np.ndarray, gcp_world: np.ndarray, camera_matrix: np.ndarray,
+               dist_coeffs: np.ndarray | None = None) -> Pose:
+    """Solve the camera pose from 6+ GCPs.
+
+    Parameters
+    ----------
+    gcp_px : (N, 2) GCP positions in the raw frame (px); distortion is handled by ``dist_coeffs``.
+    gcp_world : (N, 3) their surveyed X, Y, Z (m), any projected datum.
+    camera_matrix : (3, 3) K (px).
+    dist_coeffs : distortion coefficients (OpenCV order) or None for none.
+
+    Returns
+    -------
+    Pose, with per-point reprojection errors (px) and their RMS.
+
+    Raises
+    ------
+    ParameterError : fewer than 6 GCPs, mismatched counts, bad shapes.
+    GeometryError : GCPs on one line, no solution, or GCPs behind the camera.
+    """
+    px = _as_points(gcp_px, 2, "ortho.gcp_px")
+    world = _as_points(gcp_world, 3, "ortho.gcp_world_m")
+    if len(px) != len(world):
+        raise ParameterError(f"ortho.gcp_px has {len(px)} points but ortho.gcp_world_m has {len(world)}; give one X, Y, Z per pixel")
+    if len(px) < MIN_GCPS:
+        raise ParameterError(
+            f"ortho.gcp_world_m: the camera pose needs at least {MIN_GCPS} GCPs with X, Y, Z, got {len(px)}; "
+            "with 4 GCPs use ortho.method = 'world' or 'distances'"
+        )
+    K = np.asarray(camera_matrix, dtype=np.float64).reshape(3, 3)
+    dist = np.zeros(5) if dist_coeffs is None else np.asarray(dist_coeffs, dtype=np.float64).ravel()
+    origin = world.mean(axis=0)
+    local = world - origin
+    sv = np.linalg.svd(local - local.mean(axis=0), compute_uv=False)
+    if sv[1] < 1e-6 * max(sv[0], 1e-12):
+        raise GeometryError("ortho.gcp_world_m: the GCPs lie on one line; spread them over both banks")
+
+    obj = local.reshape(-1, 1, 3)
+    img = px.reshape(-1, 1, 2)
+    best = None
+    for flag in (cv2.SOLVEPNP_SQPNP, cv2.SOLVEPNP_ITERATIVE, cv2.SOLVEPNP_EPNP):
+        try:
+            ok, rvec, tvec = cv2.solvePnP(obj, img, K, dist, flags=flag)
+        except cv2.error:
+            continue
+        if not ok:
+            continue
+        rvec, tvec = cv2.solvePnPRefineLM(obj, img, K, dist, rvec, tvec)
+        err = _reprojection(obj, px, rvec, tvec, K, dist)
+        depth = (cv2.Rodrigues(rvec)[0] @ local.T + tvec.reshape(3, 1))[2]
+        if np.any(depth <= 0):
+            continue
+        rms = float(np.sqrt(np.mean(err**2)))
+        if best is None or rms < best[0]:
+            best = (rms, rvec.ravel(), tvec.ravel(), err)
+    if best is None:
+        raise GeometryError(
+            "ortho.gcp_px / ortho.gcp_world_m: no camera pose puts all GCPs in front of the camera; check that "
+            "each pixel is paired with the right X, Y, Z and that the camera matrix belongs to this video"
+        )
+    rms, rvec, tvec, err = best
+    return Pose(rvec, tvec, K, dist, err, rms, origin)
+
+
+def _reprojection(obj, px, rvec, tvec, K, dist) -> np.ndarray:
+    proj, _ = cv2.projectPoints(obj, rvec, tvec, K, dist)
+    return np.linalg.norm(proj.reshape(-1, 2) - px, axis=1)
+
+
+def plane_homography(pose: Pose, level_z: float) -> np.ndarray:
+    """3x3 homography from UNDISTORTED image pixels to world (X, Y) (m) on the plane Z = level_z.
+
+    Undistorted pixels are those of :meth:`LensModel.undistort_points` / ``cv2.undistortPoints``
+    with ``P = K`` (same camera matrix). World X, Y are in the frame of ``gcp_world``.
+
+    Raises
+    ------
+    GeometryError : the camera is not above the plane, or the plane is seen edge-on.
+    """
+    R = pose.rotation
+    t = np.asarray(pose.tvec, float).ravel()
+    z0 = float(level_z) - float(pose.origin[2])
+    cam = pose.camera_position()
+    if cam[2] <= level_z:
+        raise GeometryError(
+            f"water_level: the level {level_z:.3f} m is not below the camera ({cam[2]:.3f} m by the GCP pose); "
+            "check the level's datum against the GCPs' Z"
+        )
+    # local plane (X, Y, 1) -> pixels
+    G = pose.camera_matrix @ np.column_stack([R[:, 0], R[:, 1], R[:, 2] * z0 + t])
+    if abs(np.linalg.det(G)) < 1e-12 * np.abs(G).max() ** 3:
+        raise GeometryError("water_level: the water plane is seen edge-on from the camera; no mapping exists")
+    T = np.array([[1.0, 0.0, pose.origin[0]], [0.0, 1.0, pose.origin[1]], [0.0, 0.0, 1.0]])
+    H = T @ np.linalg.inv(G)
+    return H / H[2, 2]
