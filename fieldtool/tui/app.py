@@ -1,0 +1,202 @@
+"""`fieldtool tui`: the whole measurement, keyboard only, one screen per step (thesis fig. 9.1).
+
+The app is small on purpose: it opens the session (project file), switches between the step
+screens, runs long work in one worker thread at a time (progress, elapsed/remaining, escape
+cancels) and relays picks from the viewer. Everything else lives in screens/ and widgets/.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any, Callable, Iterable
+
+from textual.app import App, SystemCommand
+from textual.screen import Screen
+from textual.worker import Worker, WorkerState
+
+from . import keys
+from .jobs import Job, describe_error
+from .screens.base import StepScreen
+from .screens.calibration import CalibrationScreen
+from .screens.cross_section import CrossSectionScreen
+from .screens.filters import FiltersScreen
+from .screens.ortho import OrthoScreen
+from .screens.piv import PivScreen
+from .screens.results import ResultsScreen
+from .screens.roi import RoiScreen
+from .screens.section import SectionScreen
+from .screens.video import VideoScreen
+from .screens.water_level import WaterLevelScreen
+from .session import Session, open_session
+from .steps import STEP_IDS, STEPS
+
+SCREENS_BY_STEP: dict[str, type[StepScreen]] = {
+    s.STEP: s for s in (CrossSectionScreen, VideoScreen, CalibrationScreen, OrthoScreen, WaterLevelScreen, RoiScreen,
+                        FiltersScreen, PivScreen, SectionScreen, ResultsScreen)
+}
+assert tuple(SCREENS_BY_STEP) == STEP_IDS
+
+
+class FieldToolApp(App):
+    """The TUI on one project file (created when missing)."""
+
+    CSS_PATH = "app.tcss"
+    TITLE = "fieldtool"
+    BINDINGS = keys.APP
+
+    def __init__(self, project_path: Path | str | Session) -> None:
+        super().__init__()
+        self.session = project_path if isinstance(project_path, Session) else open_session(project_path)
+        self.job: Job | None = None
+        self.viewer = None
+        self.viewer_url: str | None = None
+        self.last_job: dict[str, Any] = {}  # name -> (result or error text), for tests and the panel
+
+    # -- screens ---------------------------------------------------------------------------------
+    def on_mount(self) -> None:
+        self.push_screen(SCREENS_BY_STEP[self.session.project.step]())
+        self.set_interval(0.25, self._tick)
+
+    def goto(self, step: str) -> None:
+        """Show the screen of ``step`` (any step, any time: revisiting is always allowed)."""
+        self.switch_screen(SCREENS_BY_STEP[step]())
+
+    def get_system_commands(self, screen: Screen) -> Iterable[SystemCommand]:
+        for i, s in enumerate(STEPS):
+            yield SystemCommand(f"Step {i + 1}: {s.title}", f"go to the {s.title.lower()} step",
+                                lambda step=s.id: self.goto(step))
+        yield from super().get_system_commands(screen)
+
+    # -- long work -------------------------------------------------------------------------------
+    def job_running(self) -> bool:
+        return self.job is not None
+
+    def start_job(self, name: str, title: str, fn: Callable[[Job], Any]) -> bool:
+        """Run ``fn(job)`` in a worker thread; one run at a time."""
+        if self.job is not None:
+            self.notify(f"{self.job.title} is still running; wait or press escape to cancel it", severity="warning")
+            return False
+        job = Job(name, title)
+        self.job = job
+        self.last_job.pop(name, None)
+        self.run_worker(lambda: fn(job), name=name, group="jobs", thread=True, exit_on_error=False)
+        self.refresh_bindings()
+        self._tick()
+        return True
+
+    def _tick(self) -> None:
+        if self.job is not None and isinstance(self.screen, StepScreen):
+            self.screen.job_panel().show_job(self.job)
+
+    def on_worker_state_changed(self, event: Worker.StateChanged) -> None:
+        if event.worker.group != "jobs" or self.job is None:
+            return
+        state = event.state
+        if state not in (WorkerState.SUCCESS, WorkerState.ERROR, WorkerState.CANCELLED):
+            return
+        job, self.job = self.job, None
+        took = time.monotonic() - job.t0
+        error = event.worker.error if state == WorkerState.ERROR else None
+        if state == WorkerState.SUCCESS:
+            result = event.worker.result
+            self._store_result(job.name, result)
+            self.last_job[job.name] = result
+            text, is_error = self._done_text(job, result, took), False
+        else:
+            text, is_error = describe_error(job.title, error, took)
+            self.last_job[job.name] = text
+        self.refresh_bindings()
+        screen = self.screen
+        if isinstance(screen, StepScreen):
+            screen.job_panel().show_message(text, error=is_error)
+            screen.on_job_finished(job.name, self.last_job[job.name])
+        self.notify(text, severity="error" if is_error else "information", timeout=6)
+
+    def _store_result(self, name: str, result: Any) -> None:
+        s = self.session
+        if name == "piv" and "stats" in result:
+            s.piv_preview = result
+        elif name == "calibration":
+            s.calibration_run = result
+        elif name == "stabilize":
+            s.ui["stabilization"] = result
+
+    @staticmethod
+    def _done_text(job: Job, result: Any, took: float) -> str:
+        if isinstance(result, dict) and "discharge_m3s" in result:
+            return f"{job.title} done in {took:.1f} s: discharge {result['discharge_m3s']:.4f} m³/s"
+        return f"{job.title} done in {took:.1f} s"
+
+    def action_cancel_job(self) -> None:
+        if self.job is not None:
+            self.job.cancel()
+            self.job.stage = "cancelling"
+
+    def check_action(self, action: str, parameters: tuple) -> bool | None:
+        if action == "cancel_job":
+            return self.job is not None
+        return True
+
+    async def action_quit(self) -> None:
+        """Quit; a run in progress is cancelled (everything entered is already saved)."""
+        if self.job is not None:
+            self.job.cancel()
+        if self.viewer is not None:
+            self.viewer.stop()
+            self.viewer = None
+        self.exit()
+
+    # -- viewer (clicks in a browser) ----------------------------------------------------------------
+    def action_viewer(self) -> None:
+        if self.viewer is not None:
+            self.notify(f"viewer at {self.viewer_url} (127.0.0.1 only; over SSH forward the port: ssh -L)")
+            return
+        try:
+            from ..viewer.server import start_viewer
+        except ImportError as e:
+            self.notify(f"the viewer is not available ({e}); type pixel points as 'x, y'", severity="warning")
+            return
+        try:
+            self.viewer = start_viewer(self.session.path, host="127.0.0.1", port=0, on_pick=self._pick_from_viewer)
+        except Exception as e:  # noqa: BLE001 - no viewer must not stop the measurement
+            self.notify(f"the viewer did not start: {e}; type pixel points as 'x, y'", severity="error")
+            return
+        self.viewer_url = self.viewer.url
+        if isinstance(self.screen, StepScreen):
+            self.screen.update_title()
+        self.notify(f"viewer at {self.viewer_url}: focus a pixel field here, click in the browser", timeout=10)
+
+    def _pick_from_viewer(self, key: str, value: Any) -> None:
+        """Called from the viewer's thread after it saved a pick."""
+        self.call_from_thread(self.viewer_picked, key, value)
+
+    def viewer_picked(self, key: str, value: Any) -> None:
+        obj: Any = self.session.project
+        *head, last = key.split(".")
+        for part in head:
+            obj = getattr(obj, part)
+        setattr(obj, last, value)
+        self.session.save()
+        if isinstance(self.screen, StepScreen):
+            self.screen.show_value(key)
+
+    def viewer_focus(self, key: str) -> None:
+        """Switch the viewer to the pick mode that fills ``key`` (a pixel field got the focus)."""
+        if self.viewer is None:
+            return
+        from ..viewer.picks import MODES
+
+        base = key.split("[")[0]
+        for name, spec in MODES.items():
+            if spec.field == base:
+                self.viewer.set_mode(name)
+                return
+
+    def viewer_reload(self) -> None:
+        """Tell the viewer the project file changed (after a TUI edit)."""
+        if self.viewer is not None:
+            try:
+                self.viewer.reload()
+            except Exception as e:  # noqa: BLE001
+                self.notify(f"viewer not updated: {e}", severity="warning")

@@ -1,0 +1,157 @@
+"""Long work of the TUI, run in a worker thread: calibration, stabilisation check, PIV, the full run.
+
+Each function takes a copy of the project (so edits made while it runs do not leak into it) and a
+``Job`` that carries progress, the cancel flag and timing. They call the pipeline's stage functions
+and never touch the UI.
+"""
+
+from __future__ import annotations
+
+import copy
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import GeometryError, ParameterError
+from ..project import Project, project_to_dict
+
+
+class Job:
+    """Progress and cancel flag of one run; read by the UI timer, written by the worker."""
+
+    def __init__(self, name: str, title: str) -> None:
+        self.name, self.title = name, title
+        self.stage = ""
+        self.done = 0
+        self.total = 0
+        self.t0 = time.monotonic()
+        self._cancel = threading.Event()
+
+    def progress(self, stage: str, done: int, total: int) -> None:
+        self.stage, self.done, self.total = stage, done, total
+
+    def progress2(self, stage: str):
+        """A ``progress(done, total)`` callback for the given stage name."""
+        return lambda done, total: self.progress(stage, done, total)
+
+    def cancel(self) -> None:
+        self._cancel.set()
+
+    def cancelled(self) -> bool:
+        return self._cancel.is_set()
+
+
+def snapshot(project: Project) -> Project:
+    """Deep copy of a project (``root`` kept)."""
+    p = copy.deepcopy(project)
+    p.root = Path(project.root)
+    return p
+
+
+def has_section(project: Project) -> bool:
+    return np.asarray(project.section.points_px).shape == (2, 2)
+
+
+# ---------------------------------------------------------------------------------------------
+
+
+def run_full(project: Project, out_dir: Path, job: Job) -> dict:
+    """Every step (pipeline.run_project), results written to ``out_dir``; returns the summary."""
+    from ..pipeline import run_project
+
+    res = run_project(project, out_dir, progress=job.progress, cancel=job.cancelled)
+    return res.summary()
+
+
+def level_and_mapping(project: Project, inputs):
+    """Water level and image -> world mapping, in the pipeline's order."""
+    from ..pipeline import build_mapping, compute_level
+
+    if project.water_level.method == "image":
+        mapping = build_mapping(project, inputs, None)
+        level = compute_level(project, inputs, mapping)
+    else:
+        level = compute_level(project, inputs, None)
+        mapping = build_mapping(project, inputs, level.level_m)
+    inputs.cross_section.check_level(level.level_m)
+    return level, mapping
+
+
+def run_piv_only(project: Project, job: Job) -> dict:
+    """PIV on the project's clip (before a section of interest exists): field statistics.
+
+    The level and mapping are used when they can be computed (speed limit, m/s statistics)."""
+    from ..errors import FieldToolError
+    from ..pipeline import load_inputs, piv_params, roi_and_mask, working_frames
+    from ..processing import piv as piv_mod
+
+    job.progress("inputs", 0, 0)
+    inputs = load_inputs(project)
+    try:
+        _, mapping = level_and_mapping(project, inputs)
+    except FieldToolError:
+        mapping = None
+    roi, mask = roi_and_mask(project, inputs)
+    params = piv_params(project)
+    x, y = piv_mod.grid(inputs.shape, params, roi)
+    max_speed = None
+    if project.piv.max_velocity_ms is not None and mapping is not None:
+        max_speed = project.piv.max_velocity_ms / mapping.scale_m_per_px(x, y)
+    frames = working_frames(project, inputs, job.cancelled, None, None, job.progress)
+    res = piv_mod.analyze(frames, params, roi=roi, mask=mask, max_speed_px_s=max_speed, cancel=job.cancelled)
+    speed = np.hypot(res.u, res.v)
+    stats = {
+        "nodes": int(res.u.size),
+        "pairs": int(len(res.u_pairs)),
+        "valid_fraction": float(np.nanmean(res.valid_fraction)),
+        "median_speed_px_s": float(np.nanmedian(speed)) if np.isfinite(speed).any() else None,
+    }
+    if mapping is not None:
+        U, V = mapping.rectify_velocity(res.x, res.y, res.u, res.v)
+        sp = np.hypot(U, V)
+        stats["median_speed_ms"] = float(np.nanmedian(sp)) if np.isfinite(sp).any() else None
+    stats["field"] = (res.x, res.y, res.u, res.v)
+    return {"inputs": project_to_dict(project), "stats": stats}
+
+
+def run_calibration(project: Project, job: Job) -> dict:
+    """Calibrate from the checkerboard video and write the lens file named by calibration.path."""
+    from ..processing.calibration import calibrate_video, save_calibration
+
+    c = project.calibration
+    if not c.path:
+        raise ParameterError("calibration.path: give the file name the calibration is saved as")
+    model = calibrate_video(project.resolve(c.checkerboard_video), tuple(int(v) for v in c.corners),
+                            c.square_mm, c.n_frames, progress=job.progress2("checkerboard frames"),
+                            cancel=job.cancelled)
+    save_calibration(model, project.resolve(c.path))
+    return {"inputs": project_to_dict(project)["calibration"], "rms_px": model.rms_px,
+            "fov_deg": model.fov_deg, "views": len(model.frames_used)}
+
+
+def run_stabilization(project: Project, job: Job) -> dict:
+    """Register the clip on its first frame (filters off) and report the residual motion."""
+    from ..pipeline import load_inputs, working_frames
+
+    p = snapshot(project)
+    p.filters = []
+    inputs = load_inputs(p)
+    report: dict = {}
+    for _ in working_frames(p, inputs, job.cancelled, None, report, job.progress, stage="stabilising"):
+        pass
+    if not report:
+        raise GeometryError("stabilize: the clip gave no frame to register")
+    return report
+
+
+def describe_error(title: str, error: BaseException | None, took: float) -> tuple[str, bool]:
+    """Text for a run that did not finish, and whether it is an error (a cancel is not)."""
+    from ..errors import Cancelled, FieldToolError
+
+    if isinstance(error, Cancelled) or error is None:
+        return f"{title} cancelled after {took:.1f} s; nothing was changed", False
+    if isinstance(error, FieldToolError):
+        return f"{title} stopped: {error}", True
+    return f"{title} failed (internal error, please report): {type(error).__name__}: {error}", True

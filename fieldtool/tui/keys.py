@@ -1,0 +1,37 @@
+"""Every key binding of the TUI, declared in one place.
+
+Only control keys, function keys and escape are bound, never a bare printable key: an input may
+have the focus on any screen, and typing there must never trigger an action. Keys that the Input
+widget uses (ctrl+a/e/d/w/u/k/x/c/v) and keys terminals send for others (ctrl+h/i/j/m) are
+avoided. Tab / shift+tab move between fields; enter opens a choice list.
+"""
+
+from __future__ import annotations
+
+from textual.binding import Binding
+
+APP = [
+    Binding("ctrl+q", "quit", "Quit", priority=True),
+    Binding("escape", "cancel_job", "Cancel"),
+    Binding("ctrl+o", "viewer", "Viewer"),
+]
+
+STEP = [
+    Binding("ctrl+b", "back", "Back"),
+    Binding("ctrl+n", "next", "Next"),
+]
+
+
+def run(label: str) -> Binding:
+    """The step's main action (run / compute / preview), on ctrl+r."""
+    return Binding("ctrl+r", "run", label)
+
+
+FILTERS = [
+    Binding("ctrl+t", "add_filter", "Add"),
+    Binding("ctrl+y", "remove_filter", "Remove"),
+]
+
+CROSS_SECTION = [
+    Binding("ctrl+s", "write_csv", "Save as CSV"),
+]

@@ -1,0 +1,1 @@
+"""One screen per step of the measurement (thesis figure 9.1)."""

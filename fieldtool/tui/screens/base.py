@@ -1,0 +1,213 @@
+"""What every step screen shares: the frame, the parameter rows, saving, next/back and errors."""
+
+from __future__ import annotations
+
+from rich.text import Text
+from textual.app import ComposeResult
+from textual.containers import Horizontal, VerticalScroll
+from textual.screen import Screen
+from textual.widgets import Footer, OptionList, Static
+
+from .. import keys
+from ...errors import FieldToolError
+from ..fields import Field
+from ..steps import STEP_BY_ID, STEP_IDS, fields_for
+from ..widgets.chrome import HelpLine, JobPanel, StepList, TitleBar
+from ..widgets.field_row import FieldRow, field_id
+
+GENERAL_HELP = "tab / shift+tab: next / previous field · enter: open a list · ctrl+p: jump to a step"
+
+
+class StepScreen(Screen):
+    """A step of the measurement: its parameters, an optional action (ctrl+r) and next/back."""
+
+    STEP = ""
+    INTRO = ""  # one line: what this step is for
+    BINDINGS = keys.STEP
+    AUTO_FOCUS = None
+
+    def __init__(self) -> None:
+        super().__init__(name=self.STEP)
+        self.rows: list[FieldRow] = []
+
+    # -- helpers ---------------------------------------------------------------------------------
+    @property
+    def session(self):
+        return self.app.session  # type: ignore[attr-defined]
+
+    @property
+    def project(self):
+        return self.session.project
+
+    def fields(self) -> list[Field]:
+        return fields_for(self.STEP, self.session.ui)
+
+    # -- layout ------------------------------------------------------------------------------------
+    def compose(self) -> ComposeResult:
+        yield TitleBar(id="titlebar")
+        with Horizontal(id="body"):
+            yield StepList(self.STEP, self.session.step_marks())
+            with VerticalScroll(id="main"):
+                n = STEP_IDS.index(self.STEP) + 1
+                yield Static(f"[b]{n}. {STEP_BY_ID[self.STEP].title}[/b]  [dim]{self.INTRO}[/dim]", id="heading")
+                yield Static("", id="step-errors")
+                yield from self.compose_top()
+                seen: set[str] = set()
+                for f in self.fields():
+                    fid = field_id(f)
+                    if fid in seen:
+                        fid += "-2"
+                    seen.add(fid)
+                    row = FieldRow(f, id=fid)
+                    self.rows.append(row)
+                    yield row
+                yield from self.compose_extra()
+                yield JobPanel(id="job")
+        yield HelpLine(GENERAL_HELP, id="help")
+        yield Footer()
+
+    def compose_top(self) -> ComposeResult:
+        """Widgets above the parameter rows."""
+        yield from ()
+
+    def compose_extra(self) -> ComposeResult:
+        """Widgets below the parameter rows (plots, tables, results)."""
+        yield from ()
+
+    def on_mount(self) -> None:
+        if self.project.step != self.STEP:
+            self.project.step = self.STEP
+            self.session.save()
+        self.query_one("#step-errors", Static).display = False
+        self.update_title()
+        self.update_visibility()
+        self.refresh_view()
+        self.focus_first()
+
+    def focus_first(self) -> None:
+        for w in self.query("#main Input, #main Select, #main OptionList, #main DataTable"):
+            if w.display and w.parent is not None and all(a.display for a in w.ancestors_with_self if hasattr(a, "display")):
+                w.focus()
+                return
+
+    def update_title(self, note: str = "") -> None:
+        viewer = getattr(self.app, "viewer_url", None)
+        if viewer and not note:
+            note = f"viewer {viewer}"
+        self.query_one(TitleBar).show(self.project.name, self.session.path.name, note or "saved")
+
+    def update_visibility(self) -> None:
+        for row in self.rows:
+            row.display = row.field.visible(self.project)
+
+    def refresh_view(self) -> None:
+        """Redraw what depends on the project (plots, info lines). Called after every edit."""
+
+    def refresh_marks(self) -> None:
+        self.query_one(StepList).set_marks(self.session.step_marks())
+
+    # -- events ------------------------------------------------------------------------------------
+    def on_field_row_edited(self, event: FieldRow.Edited) -> None:
+        self.session.save()
+        self.app.viewer_reload()  # type: ignore[attr-defined]
+        self.after_edit(event.row.field)
+        self.update_visibility()
+        for row in self.rows:
+            if row is not event.row:
+                row.refresh_error()
+        self.refresh_view()
+        self.refresh_marks()
+        self.update_title()
+        self.query_one("#step-errors", Static).display = False
+
+    def after_edit(self, field: Field) -> None:
+        """Hook after a parameter changed (already saved)."""
+
+    def on_descendant_focus(self, event) -> None:
+        help_line = self.query_one(HelpLine)
+        node = event.widget
+        while node is not None and not isinstance(node, FieldRow):
+            node = node.parent
+        if isinstance(node, FieldRow):
+            help_line.update(Text(node.field.help_line(self.project)))
+            if node.field.pickable:
+                self.app.viewer_focus(node.field.key)  # type: ignore[attr-defined]
+        else:
+            help_line.update(Text(self.focus_help(event.widget)))
+
+    def focus_help(self, widget) -> str:
+        if isinstance(widget, OptionList) and widget.id == "steps":
+            return "up / down and enter: go to that step (✓ done, · to do, ! changed since the last result)"
+        return GENERAL_HELP
+
+    def on_option_list_option_selected(self, event: OptionList.OptionSelected) -> None:
+        if event.option_list.id == "steps":
+            event.stop()
+            self.app.goto(event.option.id)  # type: ignore[attr-defined]
+
+    # -- checks ----------------------------------------------------------------------------------
+    def errors(self) -> list[str]:
+        """Everything that blocks "next": the rows' messages, then the step's own check."""
+        msgs = [row.current_error() for row in self.rows if row.display]
+        msgs = [m for m in msgs if m]
+        if msgs:
+            return msgs
+        try:
+            self.step_check()
+        except FieldToolError as e:
+            return [str(e)]
+        return []
+
+    def step_check(self) -> None:
+        """Check the step with the core functions; raise FieldToolError with the user's message."""
+
+    def show_errors(self, msgs: list[str]) -> None:
+        box = self.query_one("#step-errors", Static)
+        box.update(Text("\n".join(f"✗ {m}" for m in msgs)))
+        box.display = bool(msgs)
+        if msgs:
+            for row in self.rows:
+                if row.display and row.current_error():
+                    row.control.focus()
+                    break
+            self.query_one("#main", VerticalScroll).scroll_home(animate=False)
+
+    # -- actions ---------------------------------------------------------------------------------
+    def action_next(self) -> None:
+        msgs = self.errors()
+        if msgs:
+            self.show_errors(msgs)
+            self.app.bell()
+            return
+        i = STEP_IDS.index(self.STEP)
+        if i + 1 < len(STEP_IDS):
+            self.app.goto(STEP_IDS[i + 1])  # type: ignore[attr-defined]
+
+    def action_back(self) -> None:
+        i = STEP_IDS.index(self.STEP)
+        if i > 0:
+            self.app.goto(STEP_IDS[i - 1])  # type: ignore[attr-defined]
+
+    # -- runs (the app owns the worker; the screen shows it) ----------------------------------------
+    def job_panel(self) -> JobPanel:
+        return self.query_one(JobPanel)
+
+    def on_job_finished(self, name: str, result) -> None:
+        """A run of this session finished while this screen is shown (result already stored)."""
+        self.refresh_view()
+        self.refresh_marks()
+
+    # -- viewer picks -------------------------------------------------------------------------------
+    def show_value(self, key: str) -> bool:
+        """Show the project's value of ``key`` (set elsewhere, e.g. by a viewer pick) in its rows."""
+        shown = False
+        for row in self.rows:
+            if row.field.key == key or row.field.key.startswith(key + "["):
+                row.set_text(row.field.format(row.field.get(self.project)))
+                row.refresh_error()
+                shown = True
+        if shown:
+            self.update_visibility()
+            self.refresh_view()
+            self.refresh_marks()
+        return shown

@@ -1,0 +1,65 @@
+"""Step 1: the cross-section, loaded from a file or created from a shape, with a plot of it."""
+
+from __future__ import annotations
+
+from textual.app import ComposeResult
+
+from ...errors import FieldToolError
+from ...processing import cross_section as xs
+from .. import keys
+from ..widgets.plots import SectionPlot
+from .base import StepScreen
+
+
+def build_cross_section(project) -> xs.CrossSection:
+    """The project's cross-section (shape or file); FieldToolError with the user's message."""
+    c = project.cross_section
+    if c.shape:
+        return xs.from_shape(c.shape, top_width_m=c.top_width_m, bottom_width_m=c.bottom_width_m, depth_m=c.depth_m,
+                             left_station_m=c.left_station_m, bank_elevation_m=c.bank_elevation_m, points=c.points)
+    return xs.load_cross_section(project.resolve(c.path))
+
+
+def typed_level(project) -> float | None:
+    w = project.water_level
+    return w.value_m if w.method == "value" else None
+
+
+class CrossSectionScreen(StepScreen):
+    STEP = "cross_section"
+    INTRO = "the surveyed bed, left bank to right bank"
+    BINDINGS = keys.CROSS_SECTION
+
+    def compose_extra(self) -> ComposeResult:
+        yield SectionPlot(id="plot")
+
+    def refresh_view(self) -> None:
+        plot = self.query_one(SectionPlot)
+        try:
+            cs = build_cross_section(self.project)
+        except FieldToolError as e:
+            plot.set_data(message=str(e))
+            return
+        level = typed_level(self.project)
+        try:
+            if level is not None:
+                cs.check_level(level)
+        except FieldToolError:
+            level = None
+        plot.set_data(cs.station, cs.elevation, level)
+
+    def step_check(self) -> None:
+        build_cross_section(self.project)
+
+    def action_write_csv(self) -> None:
+        """Write the created shape's points to a CSV beside the project (reusable with 'load a file')."""
+        from ...project import atomic_write_bytes
+
+        try:
+            cs = build_cross_section(self.project)
+        except FieldToolError as e:
+            self.notify(str(e), severity="error")
+            return
+        name = f"cross_section_{self.project.cross_section.shape or 'copy'}.csv"
+        atomic_write_bytes(self.project.root / name, xs.to_csv_text(cs).encode("utf-8"))
+        self.notify(f"wrote {name} ({len(cs.station)} points) beside the project file")

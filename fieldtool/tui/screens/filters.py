@@ -1,0 +1,168 @@
+"""Step 7: the filter stack (add / remove, in order) with a before/after preview of the first frame."""
+
+from __future__ import annotations
+
+from rich.text import Text
+from textual.app import ComposeResult
+from textual.containers import Horizontal
+from textual.widgets import Input, Label, OptionList, Select, Static
+
+from ...errors import FieldToolError, ParameterError
+from ...processing.filters import FILTERS, FilterStack
+from .. import keys
+from ..fields import fmt_num
+from ..widgets.plots import GrayImage
+from .base import StepScreen
+
+
+def parse_params(text: str, name: str) -> dict:
+    """ "clip_limit=2, tile_grid=8" -> {"name": name, "clip_limit": 2, "tile_grid": 8}."""
+    item: dict = {"name": name}
+    for part in (p.strip() for p in text.replace(";", ",").split(",")):
+        if not part:
+            continue
+        if "=" not in part:
+            raise ParameterError(f"filter parameters: {part!r} is not 'name=value' (e.g. clip_limit=2.0)")
+        k, v = (s.strip() for s in part.split("=", 1))
+        try:
+            val: object = int(v)
+        except ValueError:
+            try:
+                val = float(v)
+            except ValueError:
+                val = v
+        item[k] = val
+    return item
+
+
+def describe(item: dict) -> str:
+    args = ", ".join(f"{k}={fmt_num(v) if isinstance(v, (int, float)) else v}" for k, v in item.items() if k != "name")
+    return f"{item['name']}" + (f"  {args}" if args else "  (defaults)")
+
+
+class FiltersScreen(StepScreen):
+    STEP = "filters"
+    INTRO = "image enhancement before PIV (optional)"
+    BINDINGS = [*keys.FILTERS, keys.run("Preview")]
+
+    def compose_top(self) -> ComposeResult:
+        yield OptionList(id="stack")
+        with Horizontal(classes="field-line"):
+            yield Label("Filter", classes="field-label")
+            yield Select([(n, n) for n in FILTERS], value="clahe", allow_blank=False, compact=True, id="filter-name",
+                         type_to_search=False)
+        with Horizontal(classes="field-line"):
+            yield Label("Parameters", classes="field-label")
+            yield Input(placeholder="defaults; e.g. clip_limit=2.0", compact=True, id="filter-params")
+        yield Static("", id="filter-doc")
+
+    def compose_extra(self) -> ComposeResult:
+        with Horizontal(id="preview"):
+            yield GrayImage(id="before")
+            yield GrayImage(id="after")
+
+    def on_mount(self) -> None:
+        super().on_mount()
+        self.show_doc()
+
+    def focus_first(self) -> None:
+        self.query_one("#filter-name", Select).focus()
+
+    def refresh_view(self) -> None:
+        lst = self.query_one("#stack", OptionList)
+        lst.clear_options()
+        items = self.project.filters
+        if items:
+            lst.add_options([Text(f"{i + 1}. {describe(it)}") for i, it in enumerate(items)])
+        else:
+            lst.add_option("no filter: frames go to PIV as they are")
+
+    def show_doc(self) -> None:
+        name = self.query_one("#filter-name", Select).value
+        cls = FILTERS[name]
+        doc = (cls.__doc__ or "").strip().splitlines()[0]
+        parts = []
+        for p in cls.params:
+            d = "from the image" if p.default is None else fmt_num(p.default) if not isinstance(p.default, str) else p.default
+            parts.append(f"{p.name} ({p.doc or p.kind.__name__}; default {d})")
+        self.query_one("#filter-doc", Static).update(Text(f"{doc}\n" + "; ".join(parts), style="dim"))
+        self.query_one("#help", Static).update(Text(
+            "ctrl+t adds the chosen filter with these parameters (empty = defaults); ctrl+y removes the last; "
+            "ctrl+r previews"))
+
+    def on_select_changed(self, event: Select.Changed) -> None:
+        if event.select.id == "filter-name":
+            event.stop()
+            self.show_doc()
+
+    # -- stack editing -------------------------------------------------------------------------
+    def action_add_filter(self) -> None:
+        name = self.query_one("#filter-name", Select).value
+        text = self.query_one("#filter-params", Input).value
+        try:
+            item = parse_params(text, name)
+            new = [*self.project.filters, item]
+            FilterStack.from_config(new)
+        except FieldToolError as e:
+            self.show_errors([str(e)])
+            return
+        self.project.filters = new
+        self.changed()
+        self.query_one("#filter-params", Input).value = ""
+
+    def action_remove_filter(self) -> None:
+        if not self.project.filters:
+            self.notify("the stack is empty")
+            return
+        self.project.filters = self.project.filters[:-1]
+        self.changed()
+
+    def changed(self) -> None:
+        self.session.save()
+        self.show_errors([])
+        self.refresh_view()
+        self.refresh_marks()
+
+    def step_check(self) -> None:
+        FilterStack.from_config(self.project.filters)
+
+    # -- preview ---------------------------------------------------------------------------------
+    def action_run(self) -> None:
+        from ...processing.filters import preview
+
+        try:
+            inputs = self.session.inputs()
+            gray = self.first_gray(inputs)
+            roi = self.roi(inputs)
+            frames = None
+            if FilterStack.from_config(self.project.filters).needs_prepass:
+                frames = (self.lens(inputs, f.image) for f in inputs.source)
+            # the pipeline filters whole frames (image-based defaults come from the whole frame)
+            after = self.crop(preview(self.project.filters, gray, frames), roi)
+        except FieldToolError as e:
+            self.show_errors([str(e)])
+            return
+        before = self.crop(gray, roi)
+        self.query_one("#before", GrayImage).set_image(before, f"first frame, std {before.std():.1f}")
+        self.query_one("#after", GrayImage).set_image(after, f"filtered, std {after.std():.1f}")
+
+    @staticmethod
+    def lens(inputs, img):
+        return inputs.lens.undistort(img) if inputs.lens is not None else img
+
+    def first_gray(self, inputs):
+        for fr in inputs.source:
+            return self.lens(inputs, fr.image)
+        raise ParameterError("video: the range holds no frame")
+
+    def roi(self, inputs):
+        from ...pipeline import roi_and_mask
+
+        return roi_and_mask(self.project, inputs)[0]
+
+    @staticmethod
+    def crop(img, roi):
+        if roi is None:
+            return img
+        x0, y0, x1, y1 = roi
+        return img[y0:y1, x0:x1]

@@ -1,0 +1,78 @@
+"""Step 8: PIV parameters and the run (worker with progress, elapsed/remaining time, cancel)."""
+
+from __future__ import annotations
+
+import numpy as np
+from textual.app import ComposeResult
+from textual.widgets import Static
+
+from .. import keys
+from ..widgets.plots import VectorGrid
+from .base import StepScreen
+
+
+class PivScreen(StepScreen):
+    STEP = "piv"
+    INTRO = "surface velocities by cross-correlation"
+    BINDINGS = [keys.run("Run PIV")]
+
+    def compose_extra(self) -> ComposeResult:
+        yield Static("", id="piv-info")
+        yield VectorGrid(id="vectors")
+
+    def step_check(self) -> None:
+        from ...pipeline import piv_params, roi_and_mask
+        from ...processing import piv as piv_mod
+
+        inputs = self.session.inputs()
+        roi, _ = roi_and_mask(self.project, inputs)
+        piv_mod.check_params(inputs.shape, piv_params(self.project), roi)
+
+    def refresh_view(self) -> None:
+        info = self.query_one("#piv-info", Static)
+        grid = self.query_one(VectorGrid)
+        s = self.session
+        state = s.piv_state()
+        if state == "none":
+            info.update("ctrl+r runs PIV on the clip (every step before this one is used); esc cancels")
+            grid.set_field(None, None)
+            return
+        if state == "stale":
+            info.update("[red]! the inputs changed since the last PIV run[/red]: ctrl+r runs it again "
+                        "(the discharge step also recomputes it when needed)")
+            grid.set_field(None, None)
+            return
+        res = s.last_result()
+        if res is not None and not (s.changed_tables(res.summary.get("inputs")) & set(("video", "calibration",
+                                    "stabilize", "roi", "filters", "piv"))):
+            sm = res.summary
+            info.update(f"{sm['n_pairs']} pairs · valid vectors {100 * sm['valid_fraction_mean']:.0f} % · "
+                        f"mean velocity in the section {sm['mean_velocity_ms']:.3f} m/s (depth-averaged)")
+            try:
+                with np.load(s.out_dir / "mean_field.npz") as z:
+                    grid.set_field(z["u_px_s"], z["v_px_s"])
+            except (OSError, KeyError, ValueError):
+                grid.set_field(None, None)
+            return
+        st = s.piv_preview["stats"]
+        ms = st.get("median_speed_ms")
+        speed = f"median speed {ms:.3f} m/s" if ms is not None else f"median speed {st['median_speed_px_s']:.1f} px/s"
+        info.update(f"{st['pairs']} pairs · {st['nodes']} nodes · valid {100 * st['valid_fraction']:.0f} % · {speed}")
+        _, _, u, v = st["field"]
+        grid.set_field(u, v)
+
+    def action_run(self) -> None:
+        from .. import jobs
+
+        msgs = self.errors()
+        if msgs:
+            self.show_errors(msgs)
+            return
+        p = jobs.snapshot(self.project)
+        full = jobs.has_section(p) and not any(self.session.step_errors(st) for st in ("section",))
+        if full:
+            out = self.session.out_dir
+            self.app.start_job("piv", "PIV and discharge",  # type: ignore[attr-defined]
+                               lambda job: jobs.run_full(p, out, job))
+        else:
+            self.app.start_job("piv", "PIV", lambda job: jobs.run_piv_only(p, job))  # type: ignore[attr-defined]

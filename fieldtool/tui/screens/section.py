@@ -1,0 +1,57 @@
+"""Step 9: section of interest (two water edges), number of subsections and velocity index."""
+
+from __future__ import annotations
+
+import numpy as np
+from textual.app import ComposeResult
+from textual.markup import escape
+from textual.widgets import Static
+
+from ...errors import FieldToolError
+from .. import keys
+from .base import StepScreen
+
+
+class SectionScreen(StepScreen):
+    STEP = "section"
+    INTRO = "where the discharge is computed"
+    BINDINGS = [keys.run("Check section")]
+
+    def compose_extra(self) -> ComposeResult:
+        yield Static("", id="section-info")
+
+    def geometry(self):
+        from ...processing import discharge as dq
+        from .. import jobs
+
+        inputs = self.session.inputs()
+        level, mapping = jobs.level_and_mapping(self.project, inputs)
+        sec = self.project.section
+        geom = dq.section_geometry(inputs.to_working(sec.points_px), mapping, inputs.cross_section, level.level_m,
+                                   sec.n_sub, sec.station_offset_m, inputs.shape)
+        return geom, level, inputs.cross_section
+
+    def step_check(self) -> None:
+        self.geometry()
+
+    def refresh_view(self, checked: bool = False) -> None:
+        info = self.query_one("#section-info", Static)
+        if not checked:
+            info.update("P1 is the LEFT water edge looking downstream; ctrl+r checks the section on the cross-section")
+            return
+        try:
+            geom, level, cs = self.geometry()
+        except FieldToolError as e:
+            info.update(f"[red]{escape(str(e))}[/red]")
+            return
+        from ...processing.discharge import default_alpha
+
+        e = geom.station_edges
+        depth = cs.wetted_area(level.level_m, e[0], e[-1]) / max(e[-1] - e[0], 1e-9)
+        alpha = self.project.section.alpha
+        a = f"{alpha:g} (typed)" if alpha is not None else f"{default_alpha(depth):g} (default for mean depth {depth:.2f} m)"
+        info.update(f"section {geom.length_m:.2f} m long, stations {e[0]:.2f} .. {e[-1]:.2f} m, "
+                    f"{len(e) - 1} subsections of {np.diff(e).mean():.2f} m · velocity index {a}")
+
+    def action_run(self) -> None:
+        self.refresh_view(checked=True)

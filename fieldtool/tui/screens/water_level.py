@@ -1,0 +1,63 @@
+"""Step 5: water level: typed, from a wetted width, adapted Hellebaut, angle and height, image."""
+
+from __future__ import annotations
+
+from textual.app import ComposeResult
+from textual.markup import escape
+from textual.widgets import Static
+
+from ...errors import FieldToolError
+from .. import keys
+from ..widgets.plots import SectionPlot
+from .base import StepScreen
+from .cross_section import build_cross_section
+
+
+class WaterLevelScreen(StepScreen):
+    STEP = "water_level"
+    INTRO = "elevation of the surface, datum of the section"
+    BINDINGS = [keys.run("Compute level")]
+
+    def compose_extra(self) -> ComposeResult:
+        yield Static("", id="level-info")
+        yield SectionPlot(id="plot")
+
+    def compute(self):
+        from .. import jobs
+
+        inputs = self.session.inputs()
+        level, _ = jobs.level_and_mapping(self.project, inputs)
+        return level, inputs.cross_section
+
+    def refresh_view(self, computed: bool = False) -> None:
+        plot = self.query_one(SectionPlot)
+        info = self.query_one("#level-info", Static)
+        cheap = self.project.water_level.method in ("value", "width")
+        if computed or cheap:
+            try:
+                level, cs = self.compute()
+            except FieldToolError as e:
+                info.update(f"[red]{escape(str(e))}[/red]")
+                try:
+                    cs = build_cross_section(self.project)
+                    plot.set_data(cs.station, cs.elevation, None)
+                except FieldToolError as e2:
+                    plot.set_data(message=str(e2))
+                return
+            unc = f" ± {level.uncertainty_m:.3f}" if level.uncertainty_m else ""
+            info.update(f"water level {level.level_m:.3f}{unc} m · wetted width {cs.wetted_width(level.level_m):.2f} m"
+                        f" · wetted area {cs.wetted_area(level.level_m):.3f} m²")
+            plot.set_data(cs.station, cs.elevation, level.level_m)
+            return
+        info.update("ctrl+r computes the level with this method")
+        try:
+            cs = build_cross_section(self.project)
+            plot.set_data(cs.station, cs.elevation, None)
+        except FieldToolError as e:
+            plot.set_data(message=str(e))
+
+    def step_check(self) -> None:
+        self.compute()
+
+    def action_run(self) -> None:
+        self.refresh_view(computed=True)

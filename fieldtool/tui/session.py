@@ -1,0 +1,179 @@
+"""The measurement being edited: the Project, its file, and what was computed from it.
+
+Every change is written to the project file at once (atomically, by ``save_project``). Results are
+the files of the last run in ``out/`` beside the project file; ``result.json`` carries the inputs
+that made it, so a result whose inputs have changed since is known to be stale, even after the
+project is closed and opened again.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from ..errors import FieldToolError, InputFileError
+from ..project import Project, load_project, project_to_dict, save_project
+from .fields import field_errors
+from .steps import PIV_TABLES, STEP_IDS, STEPS, calibration_mode, fields_for
+
+IGNORED_KEYS = ("name", "step", "rerun")
+
+
+@dataclass
+class LastResult:
+    """What the last run wrote: result.json's summary and subsections.csv's rows."""
+
+    summary: dict
+    subsections: list[dict] = field(default_factory=list)
+
+
+class Session:
+    """One project file open in the TUI."""
+
+    def __init__(self, path: Path | str) -> None:
+        self.path = Path(path).resolve()
+        if self.path.exists():
+            self.project = load_project(self.path)
+        else:
+            self.project = Project(name=self.path.parent.name or "measurement", root=self.path.parent)
+            self.save()
+        if self.project.step not in STEP_IDS:
+            self.project.step = STEP_IDS[0]
+        self.ui: dict[str, Any] = {"calibration_mode": calibration_mode(self.project)}
+        self._inputs_key: str | None = None
+        self._inputs = None
+        self.piv_preview: dict | None = None  # PIV-only run: {"inputs": tables, "stats": {...}}
+        self.calibration_run: dict | None = None  # {"inputs": calibration table, "rms_px":, "fov_deg":}
+
+    # -- file --------------------------------------------------------------------------------
+    def save(self) -> None:
+        save_project(self.project, self.path)
+
+    @property
+    def out_dir(self) -> Path:
+        return self.project.root / "out"
+
+    # -- inputs (cross-section, clip, lens), cached on their tables ------------------------------
+    def inputs(self):
+        """pipeline.Inputs for the current project; loaded again only when their tables change."""
+        from ..pipeline import load_inputs
+
+        d = project_to_dict(self.project)
+        key = json.dumps([d.get(t) for t in ("video", "cross_section", "calibration")], sort_keys=True)
+        if key != self._inputs_key:
+            self._inputs = None
+            self._inputs = load_inputs(self.project)
+            self._inputs_key = key
+        return self._inputs
+
+    # -- results and staleness ----------------------------------------------------------------
+    def last_result(self) -> LastResult | None:
+        """The last run's result files, or None when there are none (or they cannot be read)."""
+        rj = self.out_dir / "result.json"
+        if not rj.is_file():
+            return None
+        try:
+            summary = json.loads(rj.read_text(encoding="utf-8"))
+        except (OSError, ValueError):
+            return None
+        rows: list[dict] = []
+        sc = self.out_dir / "subsections.csv"
+        if sc.is_file():
+            with sc.open(newline="", encoding="utf-8") as fh:
+                rows = list(csv.DictReader(fh))
+        return LastResult(summary, rows)
+
+    def changed_tables(self, inputs: dict | None) -> set[str]:
+        """Tables whose values differ from ``inputs`` (a project dict saved with a result)."""
+        if inputs is None:
+            return set()
+        now = project_to_dict(self.project)
+        keys = (set(now) | set(inputs)) - set(IGNORED_KEYS)
+        return {k for k in keys if now.get(k) != inputs.get(k)}
+
+    def result_state(self) -> tuple[str, set[str]]:
+        """("none" | "current" | "stale", changed tables) of the last run's results."""
+        res = self.last_result()
+        if res is None:
+            return "none", set()
+        changed = self.changed_tables(res.summary.get("inputs"))
+        return ("stale" if changed else "current"), changed
+
+    def piv_state(self) -> str:
+        """"none" | "current" | "stale" for the velocity field (last full run or PIV-only run)."""
+        candidates = []
+        res = self.last_result()
+        if res is not None:
+            candidates.append(res.summary.get("inputs"))
+        if self.piv_preview is not None:
+            candidates.append(self.piv_preview["inputs"])
+        if not candidates:
+            return "none"
+        for inputs in candidates:
+            if not (self.changed_tables(inputs) & set(PIV_TABLES)):
+                return "current"
+        return "stale"
+
+    def calibration_state(self) -> str:
+        if self.ui.get("calibration_mode") != "run":
+            return "none"
+        if self.calibration_run is None:
+            return "stale" if not self.project.calibration.path or not self.project.resolve(
+                self.project.calibration.path).is_file() else "current"
+        now = project_to_dict(self.project).get("calibration")
+        return "current" if now == self.calibration_run["inputs"] else "stale"
+
+    def step_errors(self, step: str) -> list[str]:
+        """Messages of the step's fields on the current project values (no file reading beyond
+        checking that named files exist)."""
+        if step == "filters":
+            from ..processing.filters import FilterStack
+
+            try:
+                FilterStack.from_config(self.project.filters)
+            except FieldToolError as e:
+                return [str(e)]
+            return []
+        if step == "calibration" and self.ui.get("calibration_mode") == "run":
+            errs = field_errors(fields_for(step, self.ui), self.project)
+            if not errs and self.calibration_state() != "current":
+                errs.append("calibration: run the calibration (ctrl+r) so the lens file exists and matches the settings")
+            return errs
+        return field_errors(fields_for(step, self.ui), self.project)
+
+    def step_marks(self) -> dict[str, str]:
+        """Sidebar mark per step: "ok", "todo" (something to fix/enter), "stale" (changed since
+        the last result, which needs recomputing)."""
+        state, changed = self.result_state()
+        marks = {}
+        for s in STEPS:
+            if s.id == "results":
+                marks[s.id] = {"none": "todo", "current": "ok", "stale": "stale"}[state]
+                continue
+            if s.id == "piv":
+                ps = self.piv_state()
+                if self.step_errors("piv"):
+                    marks[s.id] = "todo"
+                else:
+                    marks[s.id] = {"none": "todo", "current": "ok", "stale": "stale"}[ps]
+                continue
+            if self.step_errors(s.id):
+                marks[s.id] = "todo"
+            elif state == "stale" and set(s.tables) & changed:
+                marks[s.id] = "stale"
+            else:
+                marks[s.id] = "ok"
+        return marks
+
+
+def open_session(path: Path | str) -> Session:
+    """Open (or create) a project; a directory means ``DIR/project.toml``."""
+    p = Path(path)
+    if p.is_dir():
+        p = p / "project.toml"
+    if p.suffix.lower() != ".toml":
+        raise InputFileError(f"{p}: a project file ends in .toml (or give its folder)")
+    return Session(p)

@@ -1,0 +1,125 @@
+"""One parameter: label with unit, an input (or a choice list), and its error message.
+
+Typing is parsed and checked at once. A value that parses is written to the project (and the
+project file saved by the screen) even when a cross-check fails, so nothing typed is lost; the
+message stays under the field and "next" is refused until it is fixed.
+"""
+
+from __future__ import annotations
+
+from rich.text import Text
+from textual.app import ComposeResult
+from textual.containers import Horizontal, Vertical
+from textual.message import Message
+from textual.widgets import Input, Label, Select, Static
+
+from ..fields import Field
+
+
+def field_id(field: Field) -> str:
+    """A widget id for a field key (``ortho.gcp_px[0]`` -> ``f-ortho-gcp_px-0``)."""
+    return "f-" + field.key.replace(".", "-").replace("[", "-").replace("]", "")
+
+
+class FieldRow(Vertical):
+    """A labelled input bound to one project key."""
+
+    class Edited(Message):
+        """The project value of ``row.field`` changed."""
+
+        def __init__(self, row: "FieldRow") -> None:
+            super().__init__()
+            self.row = row
+
+    def __init__(self, field: Field, *, id: str | None = None) -> None:
+        super().__init__(id=id or field_id(field), classes="field-row")
+        self.field = field
+        self.error: str | None = None
+        self._text_error: str | None = None
+
+    @property
+    def project(self):
+        return self.app.session.project  # type: ignore[attr-defined]
+
+    def compose(self) -> ComposeResult:
+        f = self.field
+        unit = f" [{f.unit}]" if f.unit else ""
+        with Horizontal(classes="field-line"):
+            yield Label(Text(f"{f.label}{unit}"), classes="field-label")
+            value = f.get(self.project)
+            if f.kind == "choice":
+                options = [(label, v) for label, v in f.choices]
+                known = [v for _, v in options]
+                yield Select(options, value=value if value in known else known[0], allow_blank=False, compact=True,
+                             id="input", type_to_search=False)
+            else:
+                ph = f.placeholder(self.project) if callable(f.placeholder) else f.placeholder
+                yield Input(f.format(value), placeholder=ph, compact=True, id="input", select_on_focus=False)
+        yield Static("", classes="field-error")
+
+    def on_mount(self) -> None:
+        self.refresh_error()
+
+    @property
+    def control(self) -> Input | Select:
+        return self.query_one("#input")  # type: ignore[return-value]
+
+    # -- typing --------------------------------------------------------------------------------
+    def on_input_changed(self, event: Input.Changed) -> None:
+        event.stop()
+        f = self.field
+        try:
+            value = f.parse(event.value)
+        except ValueError as e:
+            # the text does not parse: the project keeps its last good value
+            self._text_error = f"{f.key}: {e}" + (f" ({f.unit})" if f.unit else "")
+            self._show(self._text_error)
+            return
+        self._text_error = None
+        self._store(value)
+
+    def on_select_changed(self, event: Select.Changed) -> None:
+        event.stop()
+        self._text_error = None
+        self._store(event.value)
+
+    def _store(self, value) -> None:
+        f = self.field
+        if f.get(self.project) != value:
+            try:
+                f.set(self.project, value)
+            except IndexError:
+                pass  # an item beyond the end of its list: only the message is shown
+            else:
+                self.post_message(self.Edited(self))
+        self.refresh_error()
+
+    def set_text(self, text: str) -> None:
+        """Put ``text`` in the input as if typed (viewer picks)."""
+        ctl = self.control
+        if isinstance(ctl, Input):
+            ctl.value = text
+            ctl.cursor_position = len(text)
+
+    def text(self) -> str:
+        ctl = self.control
+        return ctl.value if isinstance(ctl, Input) else ""
+
+    # -- messages ------------------------------------------------------------------------------
+    def current_error(self) -> str | None:
+        """The message to show for this field now (text that does not parse, or a failed check)."""
+        if not self.field.visible(self.project):
+            return None
+        if self._text_error:
+            return self._text_error
+        return self.field.validate(self.field.get(self.project), self.project)
+
+    def refresh_error(self) -> None:
+        self._show(self.current_error())
+
+    def _show(self, msg: str | None) -> None:
+        self.error = msg
+        box = self.query_one(".field-error", Static)
+        box.update(Text(msg or ""))
+        box.display = bool(msg)
+        self.set_class(bool(msg), "-invalid")

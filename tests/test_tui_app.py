@@ -1,0 +1,260 @@
+"""The TUI driven by keys only (Textual Pilot) on the demo scene, cut to a short clip.
+
+Truth: the discharge of the walk-through must equal pipeline.run_project on the same project
+file; the project file on disk must hold what was typed, survive a kill mid-run, and reopen on
+the step that was left.
+"""
+
+import asyncio
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import pytest
+
+from fieldtool.pipeline import run_project
+from fieldtool.project import load_project, save_project
+from fieldtool.tui.app import FieldToolApp
+from fieldtool.tui.screens.piv import PivScreen
+from fieldtool.tui.screens.results import ResultsScreen
+from fieldtool.tui.screens.section import SectionScreen
+from fieldtool.tui.screens.video import VideoScreen
+from fieldtool.tui.steps import STEP_IDS
+
+SIZE = (80, 24)
+
+
+@pytest.fixture(scope="module")
+def demo_scene(tmp_path_factory):
+    """The demo ('oblique') scene rendered for 1 s (30 frames) instead of 5 s."""
+    from fieldtool.synthetic import presets, render_scene
+
+    out = tmp_path_factory.mktemp("demo") / "scene"
+    render_scene(presets.get("oblique", duration_s=1.0), out)
+    return out
+
+
+@pytest.fixture
+def project_path(demo_scene, tmp_path):
+    """A fresh copy of the demo project; PIV on the first 0.5 s to keep the run short."""
+    dst = tmp_path / "scene"
+    shutil.copytree(demo_scene, dst)
+    path = dst / "project.toml"
+    p = load_project(path)
+    p.video.end_s = 0.5
+    save_project(p, path)
+    return path
+
+
+async def wait_job(app, pilot, timeout=180.0):
+    t0 = time.monotonic()
+    while app.job is not None:
+        assert time.monotonic() - t0 < timeout, "run did not finish"
+        await pilot.pause(0.1)
+    await pilot.pause()
+
+
+async def type_into_focused(pilot, text: str):
+    await pilot.press("end", "ctrl+u", *text)
+    await pilot.pause()
+
+
+def test_walkthrough_by_keys_gives_the_pipeline_discharge(project_path, tmp_path):
+    timings = {}
+
+    async def walk():
+        app = FieldToolApp(project_path)
+        async with app.run_test(size=SIZE) as pilot:
+            t0 = time.monotonic()
+            await pilot.pause()
+            for step in STEP_IDS[:STEP_IDS.index("piv")]:
+                assert app.screen.STEP == step
+                await pilot.press("ctrl+n")
+                await pilot.pause()
+            assert isinstance(app.screen, PivScreen)
+            await pilot.press("ctrl+r")
+            await pilot.pause()
+            assert app.job is not None, (app.last_job, str(app.screen.query_one("#step-errors").render()))
+            assert app.screen.query_one("#job").display
+            await wait_job(app, pilot)
+            await pilot.press("ctrl+n")
+            await pilot.pause()
+            assert isinstance(app.screen, SectionScreen)
+            await pilot.press("ctrl+n")
+            await pilot.pause()
+            assert isinstance(app.screen, ResultsScreen)
+            await wait_job(app, pilot)
+            timings["walk"] = time.monotonic() - t0
+            summary = app.session.last_result().summary
+            shown = str(app.screen.query_one("#summary").render())
+            assert f"{summary['discharge_m3s']:.4f} m³/s" in shown
+            assert len(app.screen.query_one("#subsections").rows) == app.session.project.section.n_sub
+            marks = app.session.step_marks()
+            assert set(marks.values()) == {"ok"}
+            # the reference: the headless pipeline on the project file the walk-through left
+            ref = run_project(load_project(project_path), tmp_path / "ref").summary()
+            assert summary["discharge_m3s"] == pytest.approx(ref["discharge_m3s"], rel=1e-12)
+            assert summary["wetted_area_m2"] == pytest.approx(ref["wetted_area_m2"], rel=1e-12)
+            drop_step = lambda d: {k: v for k, v in d.items() if k != "step"}  # noqa: E731
+            assert drop_step(summary["inputs"]) == drop_step(ref["inputs"])
+
+            # jump back with the command palette, change a PIV parameter: PIV and discharge go stale
+            await pilot.press("ctrl+p", *"PIV")
+            await pilot.pause(0.3)
+            await pilot.press("enter")
+            await pilot.pause()
+            assert isinstance(app.screen, PivScreen)
+            await pilot.press("tab")  # window -> overlap
+            await type_into_focused(pilot, "8")
+            assert app.session.project.piv.overlap_px == 8
+            marks = app.session.step_marks()
+            assert marks["piv"] == "stale" and marks["results"] == "stale" and marks["section"] == "ok"
+
+    asyncio.run(walk())
+    print(f"\nPilot walk-through (demo scene, first 0.5 s = 15 frames): {timings['walk']:.1f} s")
+
+
+def test_invalid_entries_show_messages_and_block_next(project_path):
+    async def run():
+        p = load_project(project_path)
+        p.step = "video"
+        save_project(p, project_path)
+        app = FieldToolApp(project_path)
+        async with app.run_test(size=SIZE) as pilot:
+            await pilot.pause()
+            assert isinstance(app.screen, VideoScreen)
+            await pilot.press("tab")  # video.path -> video.start_s
+            await type_into_focused(pilot, "abc")
+            row = app.screen.query_one("#f-video-start_s")
+            assert "video.start_s: 'abc' is not a number" in row.error
+            assert row.query_one(".field-error").display
+            await pilot.press("ctrl+n")
+            await pilot.pause()
+            assert isinstance(app.screen, VideoScreen)  # blocked
+            assert "is not a number" in str(app.screen.query_one("#step-errors").render())
+            assert load_project(project_path).video.start_s == 0.0  # the bad text never reaches the file
+
+            await type_into_focused(pilot, "0.6")  # parses, but after video.end_s = 0.5
+            assert load_project(project_path).video.start_s == 0.6  # kept: nothing typed is lost
+            assert "must be after the start" in app.screen.query_one("#f-video-end_s").error
+            await pilot.press("ctrl+n")
+            await pilot.pause()
+            assert isinstance(app.screen, VideoScreen)
+
+            # the refused "next" put the cursor in the field at fault
+            assert app.focused is app.screen.query_one("#f-video-end_s Input")
+            await type_into_focused(pilot, "0.9")
+            assert app.screen.query_one("#f-video-end_s").error is None
+            await pilot.press("ctrl+n")
+            await pilot.pause()
+            assert app.screen.STEP == "calibration"
+
+    asyncio.run(run())
+
+
+def test_cancel_during_piv_keeps_the_ui_and_writes_no_result(project_path):
+    async def run():
+        p = load_project(project_path)
+        p.step = "piv"
+        p.video.end_s = None  # the whole 1 s clip
+        save_project(p, project_path)
+        app = FieldToolApp(project_path)
+        async with app.run_test(size=SIZE) as pilot:
+            await pilot.pause()
+            await pilot.press("ctrl+r")
+            t0 = time.monotonic()
+            while app.job is not None and app.job.done < 1:
+                assert time.monotonic() - t0 < 60
+                await pilot.pause(0.02)
+            assert app.job is not None, "the run ended before it could be cancelled"
+            await pilot.press("escape")
+            await wait_job(app, pilot)
+            assert "cancelled" in app.last_job["piv"]
+            label = str(app.screen.query_one("#job-label").render())
+            assert "cancelled" in label
+            await pilot.press("ctrl+n")  # still responsive
+            await pilot.pause()
+            assert isinstance(app.screen, SectionScreen)
+        assert not (project_path.parent / "out" / "result.json").exists()
+        assert load_project(project_path).step == "section"
+
+    asyncio.run(run())
+
+
+def test_reopening_restores_the_step_and_values(project_path):
+    async def first():
+        app = FieldToolApp(project_path)
+        async with app.run_test(size=SIZE) as pilot:
+            await pilot.pause()
+            for _ in range(STEP_IDS.index("piv")):
+                await pilot.press("ctrl+n")
+                await pilot.pause()
+            assert isinstance(app.screen, PivScreen)
+            await type_into_focused(pilot, "24")  # piv.window_px
+            await pilot.press("ctrl+q")
+            await pilot.pause()
+
+    async def second():
+        app = FieldToolApp(project_path)
+        async with app.run_test(size=SIZE) as pilot:
+            await pilot.pause()
+            assert isinstance(app.screen, PivScreen)
+            assert app.screen.query_one("#f-piv-window_px Input").value == "24"
+            assert app.screen.query_one("#f-piv-overlap_px Input").value == "16"
+
+    asyncio.run(first())
+    p = load_project(project_path)
+    assert p.step == "piv" and p.piv.window_px == 24
+    asyncio.run(second())
+
+
+CRASH_SCRIPT = textwrap.dedent("""
+    import asyncio, sys
+    from fieldtool.tui.app import FieldToolApp
+
+    async def main():
+        app = FieldToolApp(sys.argv[1])
+        async with app.run_test(size=(80, 24)) as pilot:
+            await pilot.pause()
+            await pilot.press("end", "ctrl+u", "2", "4")  # piv.window_px = 24
+            await pilot.pause()
+            await pilot.press("ctrl+r")
+            while app.job is None or app.job.done < 1:
+                await pilot.pause(0.02)
+            open(sys.argv[2], "w").write("running")
+            while True:
+                await pilot.pause(0.05)
+
+    asyncio.run(main())
+""")
+
+
+def test_kill_mid_piv_leaves_a_valid_project_file(project_path, tmp_path):
+    p = load_project(project_path)
+    p.step = "piv"
+    p.video.end_s = None
+    save_project(p, project_path)
+    script = tmp_path / "crash.py"
+    script.write_text(CRASH_SCRIPT)
+    marker = tmp_path / "running"
+    proc = subprocess.Popen([sys.executable, str(script), str(project_path), str(marker)],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    try:
+        t0 = time.monotonic()
+        while not marker.exists():
+            assert proc.poll() is None, proc.stderr.read().decode()[-2000:]
+            assert time.monotonic() - t0 < 90
+            time.sleep(0.05)
+    finally:
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait()
+    q = load_project(project_path)  # parses: the file was never half-written
+    assert q.piv.window_px == 24 and q.step == "piv"
+    assert q.video.path == p.video.path and q.ortho.gcp_px == p.ortho.gcp_px
+    leftovers = [f.name for f in Path(project_path).parent.iterdir() if f.name.endswith(".tmp")]
+    assert leftovers == []
