@@ -10,6 +10,7 @@ import argparse
 import importlib
 import json
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -36,12 +37,16 @@ def cmd_run(args: argparse.Namespace) -> int:
     project = load_project(args.project)
     out = Path(args.out) if args.out else Path(args.project).resolve().parent / "out"
     observer = None
-    if args.rerun:
+    if args.rerun or project.rerun.mode != "off":
         from .viewer.rerun_log import observer_from_args
 
         observer = observer_from_args(project, args, out)
     t0 = time.perf_counter()
-    result = run_project(project, out, progress=None if args.quiet else _print_progress, observer=observer)
+    try:
+        result = run_project(project, out, progress=None if args.quiet else _print_progress, observer=observer)
+    finally:
+        if observer is not None:
+            observer.close()
     if not args.quiet:
         print(file=sys.stderr)
     s = result.summary()
@@ -52,6 +57,9 @@ def cmd_run(args: argparse.Namespace) -> int:
     for w in s["warnings"]:
         print(f"warning: {w}")
     print(f"results in    {out}  ({time.perf_counter() - t0:.1f} s)")
+    if observer is not None and observer.mode == "serve":
+        print("rerun: still serving the run (listening on all interfaces); press Ctrl-C to stop", file=sys.stderr)
+        threading.Event().wait()  # Ctrl-C ends it: main() catches KeyboardInterrupt
     return 0
 
 

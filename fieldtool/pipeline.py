@@ -135,17 +135,20 @@ class RunResult:
 # stages
 
 
+def load_cross_section(project: Project) -> xs.CrossSection:
+    """The project's cross-section, from its shape or its file."""
+    c = project.cross_section
+    if c.shape:
+        return xs.from_shape(c.shape, top_width_m=c.top_width_m, bottom_width_m=c.bottom_width_m, depth_m=c.depth_m,
+                             left_station_m=c.left_station_m, bank_elevation_m=c.bank_elevation_m, points=c.points)
+    if not c.path:
+        raise ParameterError("cross_section.path: no cross-section given; set a CSV file or a shape")
+    return xs.load_cross_section(project.resolve(c.path))
+
+
 def load_inputs(project: Project) -> Inputs:
     """Cross-section, clip and lens model of a project, checked."""
-    cs_cfg = project.cross_section
-    if cs_cfg.shape:
-        cs = xs.from_shape(cs_cfg.shape, top_width_m=cs_cfg.top_width_m, bottom_width_m=cs_cfg.bottom_width_m,
-                           depth_m=cs_cfg.depth_m, left_station_m=cs_cfg.left_station_m,
-                           bank_elevation_m=cs_cfg.bank_elevation_m, points=cs_cfg.points)
-    else:
-        if not cs_cfg.path:
-            raise ParameterError("cross_section.path: no cross-section given; set a CSV file or a shape")
-        cs = xs.load_cross_section(project.resolve(cs_cfg.path))
+    cs = load_cross_section(project)
     v = project.video
     if not v.path:
         raise ParameterError("video.path: no video given; set the clip to analyse")

@@ -1,0 +1,55 @@
+"""`fieldtool view PROJECT`: the picking viewer on its own (the TUI starts the same server)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import threading
+
+
+def cmd_view(args: argparse.Namespace) -> int:
+    from .images import KINDS
+    from .picks import MODES
+    from .server import start_viewer
+
+    if args.mode and args.mode not in MODES:
+        print(f"fieldtool: error: --mode {args.mode!r}: one of {', '.join(MODES)}", file=sys.stderr)
+        return 2
+    if args.image and args.image not in KINDS:
+        print(f"fieldtool: error: --image {args.image!r}: one of {', '.join(KINDS)}", file=sys.stderr)
+        return 2
+
+    def on_pick(field: str, value) -> None:
+        print(f"saved {field} = {value}", flush=True)
+
+    handle = start_viewer(args.project, host=args.host, port=args.port, on_pick=on_pick)
+    if handle.warning:
+        print(f"warning: {handle.warning}", file=sys.stderr)
+    if args.image:
+        handle.show_image(args.image)
+    if args.mode:
+        handle.set_mode(args.mode)
+    print(f"picking viewer at {handle.url}  (Ctrl-C to stop)", flush=True)
+    if handle.host in ("127.0.0.1", "localhost", "::1"):
+        print(f"  over SSH: ssh -L {handle.port}:127.0.0.1:{handle.port} USER@THIS-MACHINE, then open "
+              f"http://127.0.0.1:{handle.port}/ on your computer", flush=True)
+    try:
+        threading.Event().wait()
+    except KeyboardInterrupt:
+        pass
+    finally:
+        handle.stop()
+    return 0
+
+
+def register(sub) -> None:
+    """Add `fieldtool view` to the CLI's subparsers."""
+    p = sub.add_parser("view", help="open the picking viewer (web page) for a project file")
+    p.add_argument("project", help="project file (TOML); picks are saved into it")
+    p.add_argument("--host", default="127.0.0.1",
+                   help="address to listen on (default 127.0.0.1; anything else exposes the page to the network)")
+    p.add_argument("--port", type=int, default=0, help="TCP port (default 0: a free port)")
+    p.add_argument("--mode", help="pick mode to start in: gcp, section, roi, masks, stable, edges, edges1, "
+                                  "edges2, divergence")
+    p.add_argument("--image", help="image to show: frame, working, ortho, image1, image2, dem_plot")
+    p.set_defaults(func=cmd_view)

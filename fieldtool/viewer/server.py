@@ -1,0 +1,490 @@
+"""The picking viewer: a viser web page where the operator clicks points on the images.
+
+``start_viewer(project_path)`` serves the page on 127.0.0.1 with a free port and returns a
+:class:`ViewerHandle` (``.url``, ``.port``, ``.set_mode``, ``.show_image``, ``.stop``). Every pick
+is written to the project file at once (read, set the field, atomic save, under a lock) and
+reported to ``on_pick(field, value)`` so the TUI can update, then drawn back as an overlay.
+
+The page and its scripts come from viser's bundled client (one self-contained HTML file): no
+internet access is needed. Binding an address other than the loopback makes the page, and the
+power to edit the project, reachable from the network: it is an explicit option and warns.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import threading
+import warnings
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from ..errors import FieldToolError
+from ..project import load_project, save_project
+from .images import FRAME_LIKE, KINDS, Display, lens_of, load_display, load_field
+from .mapping import ImagePlane, camera_pose, fit_plane, inside, pixel_to_scene, ray_to_pixel
+from .picks import MODES, PickState, get_field, set_field
+
+LOOPBACK = ("127.0.0.1", "localhost", "::1")
+FOV_RAD = np.deg2rad(50.0)
+NO_MODE = "view only"
+COLORS = {
+    "gcp": (255, 200, 0), "section": (0, 220, 255), "roi": (0, 220, 0), "masks": (255, 50, 50),
+    "stable": (220, 0, 220), "edges": (60, 130, 255), "edges1": (60, 130, 255), "edges2": (60, 130, 255),
+    "divergence": (220, 0, 0), "field": (255, 120, 0),
+}
+OnPick = Callable[[str, Any], None]
+
+
+class ViewerHandle:
+    """A running viewer. Thread-safe; ``stop()`` shuts the web server down."""
+
+    def __init__(self, viewer: "_Viewer"):
+        self._v = viewer
+        self.host: str = viewer.host
+        self.port: int = viewer.server.get_port()
+        shown = "127.0.0.1" if self.host in ("0.0.0.0", "::") else self.host
+        shown = f"[{shown}]" if ":" in shown else shown
+        self.url: str = f"http://{shown}:{self.port}/"
+        self.warning: str | None = viewer.host_warning
+
+    def set_mode(self, mode: str) -> None:
+        """Select a pick mode (a key of ``picks.MODES``, or ``None`` / "" for view only); the image
+        the mode needs is shown."""
+        self._v.set_mode(mode or None)
+
+    def show_image(self, kind: str) -> None:
+        """Show one of ``images.KINDS`` (frame, working, ortho, image1, image2, dem_plot)."""
+        self._v.show_image(kind)
+
+    def reload(self) -> None:
+        """Re-read the project file (after the TUI changed it) and redraw."""
+        self._v.reload()
+
+    def show_field(self, npz_path: str | Path | None = None) -> bool:
+        """Overlay the mean velocity field of a run (``mean_field.npz``; default: ``out/`` beside
+        the project). Returns False when the file does not exist yet."""
+        return self._v.show_field(npz_path)
+
+    def click(self, x: float, y: float) -> str:
+        """Apply a pick at display pixel (x, y) exactly as a click in the browser would."""
+        return self._v.pick(np.array([x, y], float))
+
+    @property
+    def mode(self) -> str | None:
+        return self._v.mode
+
+    @property
+    def image(self) -> str:
+        return self._v.display.kind
+
+    @property
+    def status(self) -> str:
+        """The last message shown to the operator."""
+        return self._v.status_text
+
+    def stop(self) -> None:
+        self._v.stop()
+
+    def __enter__(self) -> "ViewerHandle":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+
+def start_viewer(project_path: str | Path, host: str = "127.0.0.1", port: int = 0,
+                 on_pick: OnPick | None = None) -> ViewerHandle:
+    """Serve the picking page for the project file ``project_path``.
+
+    Parameters
+    ----------
+    project_path : path of the project file (TOML); picks are saved into it.
+    host : address to bind. Anything but the loopback exposes the page to the network (warns).
+    port : TCP port; 0 picks a free one (see ``handle.port``).
+    on_pick : called as ``on_pick(field, value)`` after each saved pick, from a server thread;
+        ``field`` is the dotted project key (``"ortho.gcp_px"``).
+    """
+    import viser
+
+    host_warning = None
+    if host not in LOOPBACK:
+        host_warning = (f"the picking viewer listens on {host}: anyone who can reach this machine on the port can "
+                        f"see the frames and change the picks of the project. Use the default 127.0.0.1 with SSH port "
+                        f"forwarding (ssh -L PORT:127.0.0.1:PORT) unless the network is trusted.")
+        warnings.warn(host_warning, stacklevel=2)
+    with contextlib.redirect_stdout(io.StringIO()):  # viser prints a banner; the TUI owns the terminal
+        server = viser.ViserServer(host=host, port=port, verbose=False)
+    try:
+        viewer = _Viewer(server, Path(project_path).resolve(), host, host_warning, on_pick)
+    except BaseException:
+        server.stop()
+        raise
+    return ViewerHandle(viewer)
+
+
+class _Viewer:
+    def __init__(self, server, path: Path, host: str, host_warning: str | None, on_pick: OnPick | None):
+        self.server, self.path, self.host, self.host_warning, self.on_pick = server, path, host, host_warning, on_pick
+        self._lock = threading.RLock()
+        self.project = load_project(path)
+        self.mode: str | None = None
+        self.states: dict[str, PickState] = {}
+        self.field: dict | None = None
+        self.status_text = ""
+        self._overlay: list = []
+        self._syncing = False
+        self._aspect: dict[int, float] = {}
+        self.display = Display("frame", np.full((480, 640, 3), 90, np.uint8))
+        self.plane: ImagePlane = fit_plane(640, 480)
+
+        s = server
+        s.gui.configure_theme(show_logo=False, show_share_button=False, control_width="medium")
+        s.gui.main_panel.dock_right()
+        s.scene.set_up_direction("-y")
+        s.scene.world_axes.visible = False
+        s.gui.add_markdown(f"**fieldtool picks** - `{path.name}`")
+        self.gui_image = s.gui.add_dropdown("Image", tuple(KINDS.values()), initial_value=KINDS["frame"])
+        self.gui_mode = s.gui.add_dropdown("Pick mode", (NO_MODE,) + tuple(m.label for m in MODES.values()),
+                                           initial_value=NO_MODE)
+        self.gui_help = s.gui.add_markdown("Choose a pick mode, then click on the image.")
+        undo = s.gui.add_button("Undo")
+        close = s.gui.add_button("Close polygon")
+        clear = s.gui.add_button("Clear this mode")
+        self.gui_field = s.gui.add_checkbox("Velocity field", True)
+        self.gui_status = s.gui.add_markdown(" ")
+        s.gui.add_markdown(f"Picks are saved to `{path}` at once.")
+
+        @self.gui_image.on_update
+        def _(_):
+            if not self._syncing:
+                kind = next(k for k, v in KINDS.items() if v == self.gui_image.value)
+                self.show_image(kind)
+
+        @self.gui_mode.on_update
+        def _(_):
+            if not self._syncing:
+                key = next((k for k, m in MODES.items() if m.label == self.gui_mode.value), None)
+                self.set_mode(key)
+
+        undo.on_click(lambda _: self._act("undo"))
+        close.on_click(lambda _: self._act("close"))
+        clear.on_click(lambda _: self._act("clear"))
+        self.gui_field.on_update(lambda _: self.redraw())
+
+        @s.scene.on_click()
+        def _(ev):
+            self.on_ray(ev.ray_origin, ev.ray_direction)
+
+        @s.on_client_connect
+        def _(client):
+            self._fit_camera(client)
+
+            @client.camera.on_update
+            def _(cam):
+                # the page docks its panel after connecting: refit when the canvas shape changes
+                if cam.image_height and abs(cam.aspect - self._aspect.get(client.client_id, cam.aspect)) > 0.02:
+                    self._fit_camera(client)
+
+        self._load_states()
+        self.show_field(None)
+        self.show_image("frame")
+
+    # ------------------------------------------------------------------ state
+
+    def _load_states(self) -> None:
+        for key, spec in MODES.items():
+            if spec.image == "dem_plot":
+                continue  # needs the plot's axes: built when the plot is shown
+            st = spec.make()
+            st.load(get_field(self.project, spec.field))
+            self.states[key] = st
+
+    def reload(self) -> None:
+        with self._lock:
+            self.project = load_project(self.path)
+            self._load_states()
+            if self.display.kind == "dem_plot":
+                self.show_image("dem_plot")
+            self.redraw()
+
+    def set_status(self, text: str) -> None:
+        self.status_text = text
+        self.gui_status.content = text or " "
+
+    def set_mode(self, key: str | None) -> None:
+        if key is not None and key not in MODES:
+            raise ValueError(f"unknown pick mode {key!r}; one of {', '.join(MODES)}")
+        with self._lock:
+            self.mode = key
+            self._sync(self.gui_mode, MODES[key].label if key else NO_MODE)
+            if key is None:
+                self.gui_help.content = "View only: choose a pick mode to click points."
+                self.redraw()
+                return
+            spec = MODES[key]
+            self.gui_help.content = spec.help
+            if self.display.pick_image != spec.image:
+                self.show_image(spec.image)
+                if self.display.pick_image != spec.image:
+                    return  # the image could not be shown; the status says why
+            else:
+                self.redraw()
+            if key in self.states:
+                self.set_status(f"{spec.label}: {len(self.states[key].labels())} picked")
+
+    def _sync(self, handle, value: str) -> None:
+        if handle.value != value:
+            self._syncing = True
+            try:
+                handle.value = value
+            finally:
+                self._syncing = False
+        self._aspect: dict[int, float] = {}
+
+    def show_image(self, kind: str) -> None:
+        if kind not in KINDS:
+            raise ValueError(f"unknown image {kind!r}; one of {', '.join(KINDS)}")
+        with self._lock:
+            try:
+                disp = load_display(self.project, kind)
+            except FieldToolError as e:
+                self.set_status(f"cannot show {KINDS[kind].lower()}: {e}")
+                self._sync(self.gui_image, KINDS[self.display.kind])
+                return
+            self.display = disp
+            if kind == "dem_plot":
+                spec = MODES["divergence"]
+                st = spec.make(axes=disp.axes)
+                st.load(get_field(self.project, spec.field))
+                self.states["divergence"] = st
+            self._sync(self.gui_image, KINDS[kind])
+            h, w = disp.rgb.shape[:2]
+            self.plane = fit_plane(w, h)
+            self.server.scene.add_image("/image", disp.rgb, self.plane.render_width, self.plane.render_height,
+                                        format="png" if kind == "dem_plot" else "jpeg", jpeg_quality=92,
+                                        cast_shadow=False, receive_shadow=False)
+            pos, look, up = camera_pose(self.plane, FOV_RAD, 16 / 9)
+            cam = self.server.initial_camera
+            cam.fov, cam.position, cam.look_at, cam.up = FOV_RAD, pos, look, up
+            for client in self.server.get_clients().values():
+                self._fit_camera(client)
+            if disp.note:
+                self.set_status(disp.note)
+            self.redraw()
+
+    def _fit_camera(self, client) -> None:
+        try:
+            cam = client.camera
+            aspect = cam.aspect if cam.image_height else 16 / 9
+            self._aspect[client.client_id] = aspect
+            pos, look, up = camera_pose(self.plane, FOV_RAD, aspect, margin=1.08)
+            with client.atomic():
+                cam.fov = FOV_RAD
+                cam.position = pos
+                cam.look_at = look
+                cam.up_direction = up
+        except Exception as e:  # noqa: BLE001 - a client that went away must not break the viewer
+            self.set_status(f"camera not reset for a client: {e}")
+
+    # ------------------------------------------------------------------ picking
+
+    def on_ray(self, origin, direction) -> None:
+        px = ray_to_pixel(origin, direction, self.plane)
+        if px is None:
+            return
+        self.pick(px)
+
+    def pick(self, px: np.ndarray) -> str:
+        with self._lock:
+            if self.mode is None:
+                msg = f"clicked ({px[0]:.1f}, {px[1]:.1f}) px; choose a pick mode to record points"
+                self.set_status(msg)
+                return msg
+            spec = MODES[self.mode]
+            if not inside(self.plane, px):
+                msg = "click on the image"
+                self.set_status(msg)
+                return msg
+            if self.display.pick_image != spec.image:
+                msg = f"{spec.label} are picked on the {KINDS[spec.image].lower()}: switch the image"
+                self.set_status(msg)
+                return msg
+            raw = self.display.from_display(px)[0] if self.display.kind in FRAME_LIKE else px
+            state = self.states[self.mode]
+            msg = state.click(float(raw[0]), float(raw[1]))
+        return self._commit(spec, state, msg)
+
+    def _act(self, action: str) -> str:
+        with self._lock:
+            if self.mode is None or self.mode not in self.states:
+                msg = "choose a pick mode first"
+                self.set_status(msg)
+                return msg
+            spec, state = MODES[self.mode], self.states[self.mode]
+            if action == "undo":
+                msg = state.undo()
+            elif action == "close":
+                msg = state.close()
+            else:
+                fresh = spec.make(axes=getattr(state, "axes", None))
+                self.states[self.mode] = state = fresh
+                msg = f"{spec.label} cleared"
+        return self._commit(spec, state, msg)
+
+    def _commit(self, spec, state: PickState, msg: str) -> str:
+        value = state.value()
+        saved = False
+        with self._lock:
+            if value is not ...:
+                try:
+                    project = load_project(self.path)  # fresh: keeps what the TUI saved meanwhile
+                    if value != get_field(project, spec.field):
+                        set_field(project, spec.field, value)
+                        save_project(project, self.path)
+                        saved = True
+                    self.project = project
+                except (FieldToolError, OSError) as e:
+                    msg = f"NOT SAVED: {e}"
+            self.set_status(msg)
+            self.redraw()
+        if saved and self.on_pick is not None:
+            try:
+                self.on_pick(spec.field, value)
+            except Exception as e:  # noqa: BLE001 - the TUI's callback must not break picking
+                self.set_status(f"{msg} (the TUI was not updated: {e})")
+        return msg
+
+    # ------------------------------------------------------------------ overlays
+
+    def show_field(self, npz_path) -> bool:
+        path = Path(npz_path) if npz_path else self.project.root / "out" / "mean_field.npz"
+        with self._lock:
+            self.field = load_field(path)
+            if self.field is not None:
+                self.redraw()
+            return self.field is not None
+
+    def redraw(self) -> None:
+        with self._lock:
+            for h in self._overlay:
+                try:
+                    h.remove()
+                except Exception:  # noqa: BLE001 - already gone with a replaced image
+                    pass
+            self._overlay = []
+            kind = self.display.kind
+            if kind in FRAME_LIKE:
+                for key in ("roi", "stable", "masks", "section", "edges", "gcp"):
+                    self._draw_state(key)
+                if self.field is not None and self.gui_field.value:
+                    self._draw_field()
+            elif kind in ("image1", "image2"):
+                self._draw_state("edges1" if kind == "image1" else "edges2")
+            elif kind == "dem_plot" and "divergence" in self.states:
+                self._draw_divergence()
+
+    def _to_scene(self, raw_pts, lift: float = 0.0) -> np.ndarray:
+        p = np.asarray(raw_pts, float).reshape(-1, 2)
+        if self.display.kind in FRAME_LIKE:
+            p = self.display.to_display(p)
+        return pixel_to_scene(p, self.plane, lift=lift + self.plane.render_width * 1e-3)
+
+    def _lines(self, name: str, pts_raw, color, closed: bool = False, width: float = 2.5) -> None:
+        p = self._to_scene(pts_raw)
+        if len(p) < 2:
+            return
+        if closed:
+            p = np.vstack([p, p[:1]])
+        seg = np.stack([p[:-1], p[1:]], axis=1)
+        self._overlay.append(self.server.scene.add_line_segments(
+            f"/overlay/{name}_lines", seg, color, thickness=width, thickness_units="screen"))
+
+    def _points(self, name: str, labels: list[tuple[str, list[float]]], color, active: bool) -> None:
+        if not labels:
+            return
+        pts = self._to_scene([p for _, p in labels], lift=self.plane.render_width * 1e-3)
+        size = self.plane.render_width * (0.009 if active else 0.006)
+        self._overlay.append(self.server.scene.add_point_cloud(
+            f"/overlay/{name}_pts", pts, np.array(color, np.uint8), point_size=size, point_shape="circle",
+            point_shading="flat", precision="float32"))
+        for i, ((text, _), p) in enumerate(zip(labels, pts)):
+            self._overlay.append(self.server.scene.add_label(
+                f"/overlay/{name}_label{i}", text, position=tuple(p), anchor="bottom-left",
+                font_screen_scale=1.3 if active else 1.0))
+
+    def _draw_state(self, key: str) -> None:
+        st = self.states.get(key)
+        if st is None:
+            return
+        color, active = COLORS[key], key == self.mode
+        width = 3.5 if active else 2.0
+        if key == "gcp":
+            self._lines(key, st.value(), color, closed=st.complete, width=width)
+        elif key in ("section", "edges", "edges1", "edges2"):
+            self._lines(key, st.value(), color, width=width)
+        elif key == "roi":
+            if st.complete:
+                x0, y0, x1, y1 = st.value()
+                self._lines(key, self._rect_outline(x0, y0, x1, y1), color, width=width)
+        elif key == "stable":
+            for i, (x0, y0, x1, y1) in enumerate(st.value()):
+                self._lines(f"{key}{i}", self._rect_outline(x0, y0, x1, y1), color, width=width)
+        elif key == "masks":
+            for i, poly in enumerate(st.closed):
+                self._lines(f"{key}{i}", poly, color, closed=True, width=width)
+            self._lines(f"{key}_open", st.open, color, width=width)
+        self._points(key, st.labels(), color, active)
+
+    @staticmethod
+    def _rect_outline(x0, y0, x1, y1, n: int = 8) -> np.ndarray:
+        """Rectangle corners with points along the edges, so it bends correctly on the undistorted
+        frame and on the map."""
+        t = np.linspace(0, 1, n, endpoint=False)[:, None]
+        a, b, c, d = (np.array(p, float) for p in ((x0, y0), (x1, y0), (x1, y1), (x0, y1)))
+        return np.vstack([a + t * (b - a), b + t * (c - b), c + t * (d - c), d + t * (a - d), a[None]])
+
+    def _draw_field(self) -> None:
+        f = self.field
+        ok = f["valid"]
+        if not np.any(ok):
+            return
+        x, y, u, v = f["x"][ok], f["y"][ok], f["u"][ok], f["v"][ok]
+        speed = np.hypot(u, v)
+        xs = np.unique(np.round(f["x"].ravel(), 3))
+        spacing = float(np.median(np.diff(xs))) if len(xs) > 1 else 16.0
+        scale = 0.9 * spacing / max(float(np.percentile(speed, 90)), 1e-9)  # seconds of travel drawn
+        start = np.c_[x, y]
+        end = start + scale * np.c_[u, v]
+        d = end - start
+        n = np.hypot(d[:, 0], d[:, 1])[:, None] + 1e-12
+        back, side = -d / n * np.minimum(n, 0.35 * spacing), np.c_[-d[:, 1], d[:, 0]] / n * 0.15 * spacing
+        head1, head2 = end + back + side, end + back - side
+        lens = lens_of(self.project) if self.project.calibration.path else None
+        pts = np.vstack([start, end, head1, head2])
+        if lens is not None:  # the field is in working (undistorted) pixels
+            pts = lens.distort_points(pts)
+        k = len(start)
+        p = self._to_scene(pts, lift=self.plane.render_width * 5e-4).reshape(4, k, 3)
+        seg = np.concatenate([np.stack([p[0], p[1]], 1), np.stack([p[1], p[2]], 1), np.stack([p[1], p[3]], 1)])
+        self._overlay.append(self.server.scene.add_line_segments(
+            "/overlay/field", seg, COLORS["field"], thickness=1.5, thickness_units="screen"))
+
+    def _draw_divergence(self) -> None:
+        st = self.states["divergence"]
+        ax = st.axes
+        if ax is None or not st.points:
+            return
+        col = st.points[0][0]
+        color = COLORS["divergence"]
+        p = pixel_to_scene([[col, ax.top_px], [col, ax.bottom_px]], self.plane, lift=self.plane.render_width * 1e-3)
+        self._overlay.append(self.server.scene.add_line_segments(
+            "/overlay/divergence", p[None], color, thickness=3.0, thickness_units="screen"))
+        self._overlay.append(self.server.scene.add_label(
+            "/overlay/divergence_label", f"D = {st.value():.3f} m", position=tuple(p[0]), anchor="top-left"))
+
+    def stop(self) -> None:
+        with contextlib.redirect_stdout(io.StringIO()):
+            self.server.stop()

@@ -1,0 +1,128 @@
+"""rerun stream of a run: saved to an .rrd file, read back with rerun's RrdReader."""
+
+import argparse
+import json
+
+import numpy as np
+import pyarrow as pa
+import pytest
+from rerun.chunk import RrdReader
+
+from fieldtool.errors import ParameterError
+from fieldtool.pipeline import run_project
+from fieldtool.project import load_project
+from fieldtool.viewer.rerun_log import RerunObserver, observer_from_args
+
+EXPECTED = {"/frames/input", "/frames/filtered", "/frames/input/pair_vectors", "/frames/input/mean_field",
+            "/frames/input/section", "/map/mean_field", "/map/section/subsections", "/section/surface_velocity_ms",
+            "/section/discharge_m3s", "/piv/valid_fraction", "/discharge/pair_m3s", "/discharge/running_m3s",
+            "/discharge/total_m3s", "/log"}
+
+
+def _column(rows, name):
+    return [v for rb in rows for v in rb.column(name).to_pylist()]
+
+
+def _read(path):
+    out = {}
+    for ch in RrdReader(path).stream():
+        out.setdefault(ch.entity_path, []).append(ch.to_record_batch())
+    return out
+
+
+@pytest.fixture(scope="module")
+def logged_run(short_scene, tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("rerun_run")
+    project = load_project(short_scene.project_path)
+    project.video.end_s = 0.5
+    args = argparse.Namespace(rerun="save", rerun_path=None, rerun_url=None)
+    obs = observer_from_args(project, args, tmp / "out")
+    result = run_project(project, tmp / "out", observer=obs)
+    return result, tmp / "out", _read(tmp / "out" / "run.rrd")
+
+
+def test_the_recording_holds_every_entity(logged_run):
+    result, out, ent = logged_run
+    assert EXPECTED <= set(ent), sorted(EXPECTED - set(ent))
+    assert not [w for w in result.warnings if "rerun" in w]
+
+
+def test_vector_counts_match_the_fields(logged_run):
+    result, out, ent = logged_run
+    with np.load(out / "mean_field.npz") as z:
+        ok = z["valid"] & np.isfinite(z["u_px_s"]) & np.isfinite(z["v_px_s"])
+        U, V = z["U_ms"][ok], z["V_ms"][ok]
+    mean = _column(ent["/frames/input/mean_field"], "Arrows2D:vectors")
+    assert len(mean) == 1 and len(mean[0]) == int(ok.sum()) > 0
+    world = np.array(_column(ent["/map/mean_field"], "Arrows2D:vectors")[0])
+    np.testing.assert_allclose(world, np.c_[U, V], rtol=1e-5, atol=1e-6)  # m/s, float32 in the file
+    pairs = _column(ent["/frames/input/pair_vectors"], "Arrows2D:vectors")
+    p = result.piv
+    expected = [int(np.sum(np.isfinite(p.u_pairs[k]) & np.isfinite(p.v_pairs[k]))) for k in range(len(p.u_pairs))]
+    assert [len(a) for a in pairs] == expected
+    frac = np.ravel(_column(ent["/piv/valid_fraction"], "Scalars:scalars"))
+    np.testing.assert_allclose(frac, np.array(expected) / p.u_pairs[0].size, rtol=1e-6)
+
+
+def test_discharge_scalars(logged_run):
+    result, out, ent = logged_run
+    q = json.loads((out / "result.json").read_text())["discharge_m3s"]
+    total = np.ravel(_column(ent["/discharge/total_m3s"], "Scalars:scalars"))
+    assert total.tolist() == pytest.approx([q], rel=1e-9)
+    pair_q = np.ravel(_column(ent["/discharge/pair_m3s"], "Scalars:scalars"))
+    fin = result.q_pairs[np.isfinite(result.q_pairs)]
+    np.testing.assert_allclose(pair_q, fin)
+    running = np.ravel(_column(ent["/discharge/running_m3s"], "Scalars:scalars"))
+    assert running[-1] == pytest.approx(np.median(fin))
+    ns = [v for rb in ent["/discharge/pair_m3s"] for v in rb.column("time").cast(pa.int64()).to_pylist()]
+    t_pairs = np.asarray(result.piv.t_pairs)[np.isfinite(result.q_pairs)]
+    np.testing.assert_allclose(np.array(ns) / 1e9, t_pairs, atol=1e-6)  # on the clip's time timeline (s)
+
+
+def test_observer_from_args_modes(tmp_path):
+    project = load_project_stub()
+    none = argparse.Namespace(rerun=None, rerun_path=None, rerun_url=None)
+    assert observer_from_args(project, none, tmp_path) is None  # off by default
+    project.rerun.mode = "save"
+    obs = observer_from_args(project, none, tmp_path / "out")
+    assert obs.path == tmp_path / "out" / "run.rrd"
+    obs.close()
+    flag = argparse.Namespace(rerun="save", rerun_path=str(tmp_path / "x.rrd"), rerun_url=None)
+    obs = observer_from_args(project, flag, tmp_path / "out")  # the flags override the project
+    assert obs.path == tmp_path / "x.rrd"
+    obs.close()
+    bad = argparse.Namespace(rerun="connect", rerun_path=None, rerun_url="http://host:9876")
+    with pytest.raises(ParameterError, match="--rerun-url"):
+        observer_from_args(project, bad, tmp_path)
+    project.rerun.mode = "bogus"
+    with pytest.raises(ParameterError, match="rerun.mode"):
+        observer_from_args(project, none, tmp_path)
+
+
+def load_project_stub():
+    from fieldtool.project import Project
+
+    return Project()
+
+
+def test_a_failing_logger_becomes_a_warning_and_the_run_goes_on(short_scene, tmp_path):
+    class Broken:
+        def __getattr__(self, name):
+            def fail(*a, **k):
+                raise ConnectionError("viewer went away")
+            return fail
+
+    project = load_project(short_scene.project_path)
+    project.video.end_s = 0.3
+    obs = RerunObserver("save", recording=Broken())
+    result = run_project(project, None, observer=obs)
+    assert np.isfinite(result.discharge.discharge_m3s)
+    assert any("rerun logging stopped" in w and "viewer went away" in w for w in result.warnings)
+
+
+@pytest.mark.slow
+def test_unreachable_viewer_is_a_warning(tmp_path):
+    obs = RerunObserver("connect", url="rerun+http://127.0.0.1:9/proxy")
+    obs.pair(0, 0.1, np.zeros((2, 2)), np.zeros((2, 2)), np.ones((2, 2)), np.ones((2, 2)), np.ones((2, 2), bool))
+    obs.close(timeout_s=8.0)
+    assert any("did not get everything" in w for w in obs.warnings), obs.warnings
