@@ -27,7 +27,7 @@ def main() -> None:
     ap.add_argument("--engines", default="fieldtool,openpiv")
     args = ap.parse_args()
     engines = args.engines.split(",")
-    print(f"| scene | true Q (m³/s) | " + " | ".join(f"{e} Q | {e} error | {e} time (s)" for e in engines) + " |")
+    print("| scene | true Q (m³/s) | " + " | ".join(f"{e} Q | {e} error | {e} time (s)" for e in engines) + " |")
     print("|---|---|" + "---|---|---|" * len(engines))
     with tempfile.TemporaryDirectory() as tmp:
         for name, flags in SCENES:

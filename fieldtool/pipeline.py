@@ -122,6 +122,7 @@ class RunResult:
             "subsections_filled": int(d.velocity_filled.sum()),
             "ortho_method": self.mapping.method,
             "ortho_residual_m": self.mapping.residual_m,
+            "ortho_details": self.mapping.details,
             "stabilization": self.stabilization,
             "warnings": self.warnings + d.warnings,
             "timings_s": self.timings_s,
@@ -193,10 +194,16 @@ def build_mapping(project: Project, inputs: Inputs, level_m: float | None) -> or
             raise ParameterError("ortho.method = pose needs the camera intrinsics: set calibration.path")
         if level_m is None:
             raise ParameterError("ortho.method = pose needs the water level first")
-        p = pose.solve_pose(np.asarray(o.gcp_px, float), np.asarray(o.gcp_world_m, float),
-                            inputs.lens.camera_matrix, inputs.lens.dist_coeffs)
+        raw = np.asarray(o.gcp_px, float)
+        world = np.asarray(o.gcp_world_m, float)
+        p = pose.solve_pose(raw, world, inputs.lens.camera_matrix, inputs.lens.dist_coeffs)
         H = pose.plane_homography(p, level_m)
-        return ortho.from_homography(H, "pose", p.rms_px, None, {"reprojection_rms_px": p.rms_px})
+        # residual in metres: each GCP's ray met on the horizontal plane at its own elevation
+        und = inputs.to_working(raw)
+        miss = [np.hypot(*(ortho._apply(pose.plane_homography(p, z), und[i:i + 1])[0] - world[i, :2]))
+                for i, z in enumerate(world[:, 2])]
+        return ortho.from_homography(H, "pose", float(np.sqrt(np.mean(np.square(miss)))), world[:, :2],
+                                     {"reprojection_rms_px": p.rms_px, "gcp_residual_m": [float(m) for m in miss]})
     if o.method == "none":
         if level_m is None:
             raise ParameterError("ortho.method = none takes the image scale from the wetted width: the water level is needed first")
