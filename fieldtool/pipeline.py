@@ -37,6 +37,9 @@ class Observer:
 
     def frame(self, index: int, t_s: float, raw: np.ndarray, filtered: np.ndarray) -> None: ...
 
+    def geometry(self, pair_discharge: Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray], float]) -> None:
+        """Called once before PIV: ``pair_discharge(x, y, u_px_s, v_px_s) -> m³/s`` for live discharge."""
+
     def pair(self, i: int, t_s: float, x: np.ndarray, y: np.ndarray, u_px_s: np.ndarray, v_px_s: np.ndarray,
              valid: np.ndarray) -> None: ...
 
@@ -343,6 +346,18 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
     if project.piv.max_velocity_ms is not None:
         max_speed = project.piv.max_velocity_ms / mapping.scale_m_per_px(x, y)
 
+    def pair_q_fn(g: dq.SectionGeometry) -> Callable[..., float]:
+        """Discharge of one pixel-velocity field (px/s) on the section ``g``."""
+        area, depth = dq.subsection_areas(g, cs, level.level_m)
+        alpha = dq.resolve_alpha(sec.alpha, cs, level.level_m)
+
+        def q(xx, yy, u, v) -> float:
+            Uw, Vw = mapping.rectify_velocity(xx, yy, u, v)
+            return dq.pair_discharge(g, area, depth, alpha, xx, yy, Uw, Vw)
+
+        return q
+
+    obs("geometry", pair_q_fn(geom))
     obs("stage", "piv")
     stab: dict = {}
 
@@ -367,8 +382,8 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
         geom.swapped = True
         v_sub = dq.subsection_velocity(geom, res.x, res.y, U, V)
         dres = dq.compute_discharge(geom, cs, level.level_m, v_sub, sec.alpha)
-    Up, Vp = mapping.rectify_velocity(res.x, res.y, res.u_pairs, res.v_pairs)
-    q_pairs = np.array([_pair_q(geom, res.x, res.y, Up[k], Vp[k], dres) for k in range(len(Up))])
+    pair_q = pair_q_fn(geom)
+    q_pairs = np.array([pair_q(res.x, res.y, res.u_pairs[k], res.v_pairs[k]) for k in range(len(res.u_pairs))])
     lap("discharge")
 
     result = RunResult(dres, q_pairs, level, mapping, res, geom, U, V, None, timings_s=timings, warnings=warnings,
@@ -378,14 +393,6 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
         lap("outputs")
     obs("result", result)
     return result
-
-
-def _pair_q(geom, x, y, U, V, ref: dq.DischargeResult) -> float:
-    v = dq.subsection_velocity(geom, x, y, U, V)
-    if not np.any(np.isfinite(v)):
-        return float("nan")
-    v, _ = dq.fill_velocity(v, ref.mean_depth_m)
-    return float(np.sum(ref.alpha * ref.area_m2 * v))
 
 
 # ---------------------------------------------------------------------------------------------

@@ -161,15 +161,41 @@ def fill_velocity(v: np.ndarray, depth: np.ndarray) -> tuple[np.ndarray, np.ndar
     return v, filled
 
 
+def subsection_areas(geom: SectionGeometry, cs: CrossSection, level: float) -> tuple[np.ndarray, np.ndarray]:
+    """Wetted area (m²) and mean depth (m) of each subsection (trapezoidal rule on the cross-section)."""
+    cs.check_level(level)
+    edges = geom.station_edges
+    area = np.array([cs.wetted_area(level, a, b) for a, b in zip(edges[:-1], edges[1:])])
+    widths = np.diff(edges)
+    return area, np.where(widths > 0, area / np.where(widths > 0, widths, 1), 0.0)
+
+
+def resolve_alpha(alpha: float | None, cs: CrossSection, level: float) -> float:
+    """The velocity index given, or the thesis' default from the mean depth (area / width)."""
+    if alpha is None:
+        width = cs.wetted_width(level)
+        alpha = default_alpha(cs.wetted_area(level) / width if width > 0 else 0.0)
+    if not (0.0 < alpha <= 1.2):
+        raise ParameterError(f"section.alpha: {alpha:g} is not a plausible velocity index; use 0.5 to 1.0 (0.85 typical)")
+    return float(alpha)
+
+
+def pair_discharge(geom: SectionGeometry, area: np.ndarray, mean_depth: np.ndarray, alpha: float,
+                   x: np.ndarray, y: np.ndarray, U: np.ndarray, V: np.ndarray) -> float:
+    """Discharge (m³/s) of one velocity field (m/s on the pixel grid); NaN when nothing is valid."""
+    v = subsection_velocity(geom, x, y, U, V)
+    if not np.any(np.isfinite(v)):
+        return float("nan")
+    v, _ = fill_velocity(v, mean_depth)
+    return float(np.sum(alpha * area * v))
+
+
 def compute_discharge(geom: SectionGeometry, cs: CrossSection, level: float, surface_v: np.ndarray,
                       alpha: float | None = None) -> DischargeResult:
     """Q = Σ alpha · A_i · v_i over the subsections (trapezoidal areas on the cross-section)."""
-    cs.check_level(level)
     edges = geom.station_edges
     n = len(edges) - 1
-    area = np.array([cs.wetted_area(level, edges[i], edges[i + 1]) for i in range(n)])
-    widths = np.diff(edges)
-    mean_depth = np.where(widths > 0, area / np.where(widths > 0, widths, 1), 0.0)
+    area, mean_depth = subsection_areas(geom, cs, level)
     warnings: list[str] = []
     if not np.any(np.isfinite(surface_v)):
         raise GeometryError(
@@ -182,10 +208,7 @@ def compute_discharge(geom: SectionGeometry, cs: CrossSection, level: float, sur
     total_area = float(area.sum())
     width = cs.wetted_width(level)
     alpha_default = alpha is None
-    if alpha is None:
-        alpha = default_alpha(total_area / width if width > 0 else 0.0)
-    if not (0.0 < alpha <= 1.2):
-        raise ParameterError(f"section.alpha: {alpha:g} is not a plausible velocity index; use 0.5 to 1.0 (0.85 typical)")
+    alpha = resolve_alpha(alpha, cs, level)
     q_sub = alpha * area * v
     Q = float(q_sub.sum())
     return DischargeResult(

@@ -98,6 +98,7 @@ class RerunObserver(Observer):
         self.urls: dict[str, str] = {}
         self.path: Path | None = None
         self._q_pairs: list[float] = []
+        self._pair_q = None  # live discharge of one field, from the pipeline's geometry()
         if recording is not None:
             self.rec = recording
             return
@@ -165,8 +166,19 @@ class RerunObserver(Observer):
             self.rec.log(name, rr.Image(im, color_model="L" if im.ndim == 2 else "RGB").compress(
                 jpeg_quality=self.jpeg_quality))
 
+    def geometry(self, pair_discharge) -> None:
+        self._pair_q = pair_discharge
+
     def pair(self, i, t_s, x, y, u_px_s, v_px_s, valid) -> None:
         self._guard(self._pair, i, t_s, x, y, u_px_s, v_px_s, valid)
+
+    def _log_q(self, q: float) -> None:
+        """One pair's discharge and the running median, at the current time."""
+        if np.isfinite(q):
+            self._q_pairs.append(float(q))
+            self.rec.log("discharge/pair_m3s", self.rr.Scalars(float(q)))
+        if self._q_pairs:
+            self.rec.log("discharge/running_m3s", self.rr.Scalars(float(np.median(self._q_pairs))))
 
     def _arrow_scale(self, x, u, v) -> None:
         xs = np.unique(np.round(np.asarray(x, float).ravel(), 3))
@@ -192,6 +204,8 @@ class RerunObserver(Observer):
         s, a = self.image_scale or 1.0, self.arrow_s or 1.0
         self.rec.log("frames/input/pair_vectors", rr.Arrows2D(
             origins=np.c_[x[ok], y[ok]] * s, vectors=np.c_[u[ok], v[ok]] * (a * s), colors=[255, 140, 0]))
+        if self._pair_q is not None:
+            self._log_q(self._pair_q(x, y, np.where(ok, u, np.nan), np.where(ok, v, np.nan)))
 
     def result(self, result) -> None:
         self._guard(self._result, result)
@@ -203,14 +217,13 @@ class RerunObserver(Observer):
         p, d, geom = res.piv, res.discharge, res.section
         t_pairs = np.asarray(p.t_pairs, float)
         t_end = float(t_pairs[-1]) if len(t_pairs) else 0.0
-        # per-pair and running discharge on the clip's timeline
-        for k, (t, q) in enumerate(zip(t_pairs, res.q_pairs)):
-            self._time(t, pair=k)
-            if np.isfinite(q):
-                self._q_pairs.append(float(q))
-                self.rec.log("discharge/pair_m3s", rr.Scalars(float(q)))
-            if self._q_pairs:
-                self.rec.log("discharge/running_m3s", rr.Scalars(float(np.median(self._q_pairs))))
+        # per-pair and running discharge on the clip's timeline: logged live when the pipeline gave the
+        # geometry; again here when it was not, or when the section was swapped after the run
+        if self._pair_q is None or res.section.swapped:
+            self._q_pairs = []
+            for k, (t, q) in enumerate(zip(t_pairs, res.q_pairs)):
+                self._time(t, pair=k)
+                self._log_q(q)
         self._time(t_end, pair=max(len(t_pairs) - 1, 0))
         self.rec.log("discharge/total_m3s", rr.Scalars(float(d.discharge_m3s)))
         ok = np.asarray(p.valid, bool) & np.isfinite(p.u) & np.isfinite(p.v)
