@@ -24,3 +24,15 @@ def test_discharge_within_3_percent(name, tmp_path):
     assert abs(err) < 0.03, f"{name}: Q = {q:.4f} vs true {truth.discharge_m3s:.4f} ({100 * err:+.2f} %)"
     # the spread over pairs brackets the averaged result loosely
     assert summary["discharge_p05_m3s"] <= summary["discharge_p95_m3s"]
+
+
+@pytest.mark.slow
+def test_nadir_without_gcps_scale_from_wetted_width(tmp_path):
+    """Thesis 8.2: no orthorectification; the image scale is the wetted width over the section's pixel length."""
+    truth = render_scene(presets.get("nadir", duration_s=2.0), tmp_path / "scene")
+    proj = load_project(truth.project_path)
+    proj.ortho.method = "none"
+    result = run_project(proj, None)
+    assert result.mapping.method == "none"
+    err = (result.discharge.discharge_m3s - truth.discharge_m3s) / truth.discharge_m3s
+    assert abs(err) < 0.03, f"{100 * err:+.2f} %"
