@@ -219,6 +219,19 @@ def build_mapping(project: Project, inputs: Inputs, level_m: float | None) -> or
     raise ParameterError(f"ortho.method: {o.method!r} is not one of distances, world, pose, none")
 
 
+def level_and_mapping(project: Project, inputs: Inputs):
+    """Water level and image -> water-plane mapping, in the order the methods need: the image method
+    measures the level on the mapping; every other method gives the level the mapping may need."""
+    if project.water_level.method == "image":
+        mapping = build_mapping(project, inputs, None)
+        level = compute_level(project, inputs, mapping)
+    else:
+        level = compute_level(project, inputs, None)
+        mapping = build_mapping(project, inputs, level.level_m)
+    inputs.cross_section.check_level(level.level_m)
+    return level, mapping
+
+
 def roi_and_mask(project: Project, inputs: Inputs) -> tuple[tuple[int, int, int, int] | None, np.ndarray | None]:
     """ROI (x0, y0, x1, y1) and invalid-area mask in working-image pixels."""
     h, w = inputs.shape
@@ -323,14 +336,8 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
     lap("inputs")
 
     obs("stage", "water_level")
-    if project.water_level.method == "image":
-        mapping = build_mapping(project, inputs, None)
-        level = compute_level(project, inputs, mapping)
-    else:
-        level = compute_level(project, inputs, None)
-        mapping = build_mapping(project, inputs, level.level_m)
+    level, mapping = level_and_mapping(project, inputs)
     cs = inputs.cross_section
-    cs.check_level(level.level_m)
     lap("level_and_ortho")
 
     sec = project.section

@@ -79,8 +79,12 @@ def test_walkthrough_by_keys_gives_the_pipeline_discharge(project_path, tmp_path
             assert isinstance(app.screen, PivScreen)
             await pilot.press("ctrl+r")
             await pilot.pause()
-            assert app.job is not None, (app.last_job, str(app.screen.query_one("#step-errors").render()))
-            assert app.screen.query_one("#job").display
+            # the run is under way (progress panel shown), or already done with a result on a fast machine
+            if app.job is not None:
+                assert app.screen.query_one("#job").display
+            else:
+                assert "discharge_m3s" in app.last_job.get("piv", {}), (
+                    app.last_job, str(app.screen.query_one("#step-errors").render()))
             await wait_job(app, pilot)
             await pilot.press("ctrl+n")
             await pilot.pause()
@@ -157,7 +161,18 @@ def test_invalid_entries_show_messages_and_block_next(project_path):
     asyncio.run(run())
 
 
-def test_cancel_during_piv_keeps_the_ui_and_writes_no_result(project_path):
+def test_cancel_during_piv_keeps_the_ui_and_writes_no_result(project_path, monkeypatch):
+    import fieldtool.pipeline as pipeline
+
+    streamed = pipeline.working_frames
+
+    def slow_frames(*args, **kwargs):  # 50 ms a frame: the run outlasts the key press, whatever the CPU
+        for item in streamed(*args, **kwargs):
+            time.sleep(0.05)
+            yield item
+
+    monkeypatch.setattr(pipeline, "working_frames", slow_frames)
+
     async def run():
         p = load_project(project_path)
         p.step = "piv"

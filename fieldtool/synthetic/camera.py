@@ -143,3 +143,19 @@ def distortion_maps(cam: Camera, margin_px: int = 4) -> tuple[np.ndarray, np.nda
     map_x = (und[:, 0] + ox).reshape(h, w).astype(np.float32)
     map_y = (und[:, 1] + oy).reshape(h, w).astype(np.float32)
     return map_x, map_y, (ox, oy), (cw, ch)
+
+
+def render_canvas(cam: Camera) -> tuple[np.ndarray | None, np.ndarray | None, tuple[int, int], tuple[int, int], np.ndarray]:
+    """Where to render an ideal (pinhole) view before the lens is applied.
+
+    Returns ``(map_x, map_y, offset, canvas_size, T)``: remap tables from the distorted frame into the
+    (enlarged) ideal canvas, or None without distortion; the canvas offset and size (px); and ``T``,
+    the 3x3 shift from ideal image pixels to canvas pixels.
+    """
+    if cam.has_distortion:
+        map_x, map_y, offset, canvas = distortion_maps(cam)
+    else:
+        map_x = map_y = None
+        offset, canvas = (0, 0), (cam.width_px, cam.height_px)
+    T = np.array([[1.0, 0, offset[0]], [0, 1.0, offset[1]], [0, 0, 1.0]])
+    return map_x, map_y, offset, canvas, T

@@ -12,7 +12,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .camera import Camera, distortion_maps
+from .camera import Camera, render_canvas
 
 _TEX_PER_SQUARE = 40
 
@@ -60,12 +60,7 @@ def render_checkerboard(
     path = Path(path)
     w, h = cam.width_px, cam.height_px
     rng = np.random.default_rng(seed)
-    if cam.has_distortion:
-        map_x, map_y, offset, canvas = distortion_maps(cam)
-    else:
-        map_x = map_y = None
-        offset, canvas = (0, 0), (w, h)
-    T = np.array([[1.0, 0, offset[0]], [0, 1.0, offset[1]], [0, 0, 1.0]])
+    map_x, map_y, offset, canvas, T = render_canvas(cam)
     tex = _board_texture(corners)
     ones = np.ones_like(tex)
     sq_tex = square_m / _TEX_PER_SQUARE

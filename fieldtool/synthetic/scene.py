@@ -44,7 +44,7 @@ from ..project import (
     atomic_write_bytes,
     save_project,
 )
-from .camera import Camera, distortion_maps
+from .camera import Camera, render_canvas
 
 
 @dataclass(frozen=True)
@@ -467,12 +467,7 @@ def render_scene(
     truth = river.truth()
 
     # ---- image geometry: ideal canvas (enlarged when the lens distorts) ----
-    if cam.has_distortion:
-        map_x, map_y, offset, canvas = distortion_maps(cam)
-    else:
-        map_x = map_y = None
-        offset, canvas = (0, 0), (w, h)
-    T = np.array([[1.0, 0, offset[0]], [0, 1.0, offset[1]], [0, 0, 1.0]])
+    map_x, map_y, offset, canvas, T = render_canvas(cam)
     H_world = T @ cam.plane_homography(river.level_m)  # world (X, Y) -> canvas px
     ras = _raster_for_view(spec, offset, canvas)
     H_static = H_world @ ras.to_world

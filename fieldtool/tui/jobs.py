@@ -65,26 +65,12 @@ def run_full(project: Project, out_dir: Path, job: Job) -> dict:
     return res.summary()
 
 
-def level_and_mapping(project: Project, inputs):
-    """Water level and image -> world mapping, in the pipeline's order."""
-    from ..pipeline import build_mapping, compute_level
-
-    if project.water_level.method == "image":
-        mapping = build_mapping(project, inputs, None)
-        level = compute_level(project, inputs, mapping)
-    else:
-        level = compute_level(project, inputs, None)
-        mapping = build_mapping(project, inputs, level.level_m)
-    inputs.cross_section.check_level(level.level_m)
-    return level, mapping
-
-
 def run_piv_only(project: Project, job: Job) -> dict:
     """PIV on the project's clip (before a section of interest exists): field statistics.
 
     The level and mapping are used when they can be computed (speed limit, m/s statistics)."""
     from ..errors import FieldToolError
-    from ..pipeline import load_inputs, piv_params, roi_and_mask, working_frames
+    from ..pipeline import level_and_mapping, load_inputs, piv_params, roi_and_mask, working_frames
     from ..processing import piv as piv_mod
 
     job.progress("inputs", 0, 0)

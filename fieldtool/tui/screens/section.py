@@ -22,10 +22,10 @@ class SectionScreen(StepScreen):
 
     def geometry(self):
         from ...processing import discharge as dq
-        from .. import jobs
+        from ...pipeline import level_and_mapping
 
         inputs = self.session.inputs()
-        level, mapping = jobs.level_and_mapping(self.project, inputs)
+        level, mapping = level_and_mapping(self.project, inputs)
         sec = self.project.section
         geom = dq.section_geometry(inputs.to_working(sec.points_px), mapping, inputs.cross_section, level.level_m,
                                    sec.n_sub, sec.station_offset_m, inputs.shape)

@@ -23,10 +23,10 @@ class WaterLevelScreen(StepScreen):
         yield SectionPlot(id="plot")
 
     def compute(self):
-        from .. import jobs
+        from ...pipeline import level_and_mapping
 
         inputs = self.session.inputs()
-        level, _ = jobs.level_and_mapping(self.project, inputs)
+        level, _ = level_and_mapping(self.project, inputs)
         return level, inputs.cross_section
 
     def refresh_view(self, computed: bool = False) -> None:
