@@ -57,6 +57,11 @@ def cmd_run(args: argparse.Namespace) -> int:
     for w in s["warnings"]:
         print(f"warning: {w}")
     print(f"results in    {out}  ({time.perf_counter() - t0:.1f} s)")
+    if args.record:
+        from .records.history import record_run
+
+        mid = record_run(project, s, out, site=args.site or project.site, db=args.db)
+        print(f"recorded      history id {mid}")
     if observer is not None and observer.mode == "serve":
         print("rerun: still serving the run (listening on all interfaces); press Ctrl-C to stop", file=sys.stderr)
         threading.Event().wait()  # Ctrl-C ends it: main() catches KeyboardInterrupt
@@ -111,6 +116,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--rerun", choices=["save", "connect", "serve"], help="stream to rerun (see README)")
     p.add_argument("--rerun-path", help="rerun: .rrd file for --rerun save")
     p.add_argument("--rerun-url", help="rerun: rerun+http://HOST:PORT/proxy for --rerun connect")
+    p.add_argument("--record", action="store_true", help="record the result in the measurement history")
+    p.add_argument("--site", help="site name for --record (default: the project's site)")
+    p.add_argument("--db", help="history database for --record (default: $FIELDTOOL_DB or the user data folder)")
     p.set_defaults(func=cmd_run)
 
     p = sub.add_parser("init", help="write a commented project template into DIR")

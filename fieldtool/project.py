@@ -170,6 +170,7 @@ class Project:
     """One measurement. ``root`` is the folder relative paths are resolved from (not saved)."""
 
     name: str = "measurement"  # a name for this measurement (station, date)
+    site: str = ""  # site this measurement belongs to ("" = none); see `fieldtool site`
     step: str = "cross_section"  # last TUI step visited
     video: VideoCfg = field(default_factory=VideoCfg)
     cross_section: CrossSectionCfg = field(default_factory=CrossSectionCfg)
@@ -311,7 +312,10 @@ def atomic_write_bytes(path: Path | str, data: bytes) -> None:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    umask = os.umask(0)
+    os.umask(umask)
     try:
+        os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600; results are for others to read too
         with os.fdopen(fd, "wb") as fh:
             fh.write(data)
             fh.flush()

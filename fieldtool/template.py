@@ -53,6 +53,7 @@ def template_text() -> str:
         "# Relative paths are relative to this file. Run it with: fieldtool run project.toml",
         "",
         f'name = "measurement"  # {top.get("name", "")}',
+        f'site = ""  # {top.get("site", "")}',
         f'step = "cross_section"  # {top.get("step", "")}',
         f"filters = []  # {top.get('filters', '')}",
         "",
@@ -88,7 +89,7 @@ def key_table_markdown() -> str:
     """Markdown table of every key with its default and comment (for the README)."""
     rows = ["| key | default | meaning (unit) |", "|---|---|---|"]
     top = field_comments(pj.Project)
-    for k in ("name", "step", "filters"):
+    for k in ("name", "site", "step", "filters"):
         rows.append(f"| `{k}` | `{_value(getattr(pj.Project(), k))}` | {top.get(k, '')} |")
     for name, cls, inst in sections():
         comments = field_comments(cls)

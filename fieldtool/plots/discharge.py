@@ -5,22 +5,26 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import io
+
 import cv2
-import matplotlib
+import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-
-from ..project import atomic_write_bytes  # noqa: E402
+from ..project import atomic_write_bytes
 
 
-def _save(fig, path: Path) -> Path:
-    import io
+def _figure(**kwargs) -> Figure:
+    """A figure on its own Agg canvas: no pyplot state, safe in worker threads."""
+    fig = Figure(**kwargs)
+    FigureCanvasAgg(fig)
+    return fig
 
+
+def _save(fig: Figure, path: Path) -> Path:
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
-    plt.close(fig)
     atomic_write_bytes(path, buf.getvalue())
     return path
 
@@ -37,7 +41,8 @@ def plot_vectors(path: Path, first_bgr: np.ndarray, result, inputs) -> Path:
     p = result.piv
     rgb = _working_rgb(first_bgr, inputs)
     speed = np.hypot(result.world_u, result.world_v)
-    fig, ax = plt.subplots(figsize=(10, 10 * rgb.shape[0] / rgb.shape[1]))
+    fig = _figure(figsize=(10, 10 * rgb.shape[0] / rgb.shape[1]))
+    ax = fig.subplots()
     ax.imshow(rgb)
     ok = p.valid & np.isfinite(p.u)
     step = max(1, int(np.ceil(max(p.x.shape) / 60)))
@@ -68,7 +73,8 @@ def plot_rectified(path: Path, first_bgr: np.ndarray, result, inputs) -> Path:
     p = result.piv
     XY = m.image_to_world(np.c_[p.x.ravel(), p.y.ravel()]).reshape(p.x.shape + (2,))
     ok = p.valid & np.isfinite(result.world_u)
-    fig, ax = plt.subplots(figsize=(9, 9))
+    fig = _figure(figsize=(9, 9))
+    ax = fig.subplots()
     ax.imshow(img, extent=(bounds[0], bounds[1], bounds[2], bounds[3]), origin="upper")
     step = max(1, int(np.ceil(max(p.x.shape) / 50)))
     sl = (slice(None, None, step), slice(None, None, step))
@@ -95,7 +101,8 @@ def plot_section(path: Path, cs, result) -> Path:
     """Cross-section with the water level, subsections and their surface velocities."""
     d = result.discharge
     level = d.water_level_m
-    fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(9, 7), sharex=True, gridspec_kw={"height_ratios": [1, 1.3]})
+    fig = _figure(figsize=(9, 7))
+    ax1, ax2 = fig.subplots(2, 1, sharex=True, gridspec_kw={"height_ratios": [1, 1.3]})
     mid = 0.5 * (d.station_from + d.station_to)
     colors = np.where(d.velocity_filled, "tab:orange", "tab:blue")
     ax1.bar(mid, d.surface_velocity_ms, width=np.diff(np.r_[d.station_from, d.station_to[-1]]) * 0.9, color=colors)

@@ -1,0 +1,105 @@
+"""HTML (and PDF) report of a measurement: from a fake result folder and from a real run."""
+
+from __future__ import annotations
+
+import base64
+import json
+import re
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from fieldtool.cli import main
+from fieldtool.errors import InputFileError
+from fieldtool.records.history import History
+from fieldtool.records.report import load_result, render_html, write_report
+
+
+def png(seed: int) -> bytes:
+    img = np.random.default_rng(seed).integers(0, 255, (40, 60, 3), dtype=np.uint8)
+    ok, buf = cv2.imencode(".png", img)
+    assert ok
+    return buf.tobytes()
+
+
+def fake_result(folder: Path, q: float = 12.3456) -> dict:
+    folder.mkdir(parents=True, exist_ok=True)
+    pngs = {"vectors_png": "vectors.png", "section_png": "section.png", "rectified_png": "rectified.png"}
+    for i, name in enumerate(pngs.values()):
+        (folder / name).write_bytes(png(i))
+    rows = ["subsection,station_from_m,station_to_m,area_m2,mean_depth_m,surface_velocity_ms,velocity_filled,discharge_m3s"]
+    rows += [f"{k + 1},{k:.4f},{k + 1:.4f},0.5,0.5,1.0,0,{q / 4:.5f}" for k in range(4)]
+    (folder / "subsections.csv").write_text("\n".join(rows) + "\n")
+    summary = {"discharge_m3s": q, "discharge_p05_m3s": 11.5, "discharge_p95_m3s": 13.25, "n_pairs": 29,
+               "water_level_m": 10.0, "water_level_method": "value", "water_level_uncertainty_m": 0.01,
+               "wetted_area_m2": 11.86, "wetted_width_m": 12.0, "mean_velocity_ms": 1.04, "alpha": 0.85,
+               "warnings": ["subsection 1: velocity filled <from the neighbours>"], "fieldtool_version": "0.1.0",
+               "files": {**pngs, "subsections": "subsections.csv", "result": "result.json"},
+               "inputs": {"name": "river <b>x</b>", "video": {"path": "clip.mp4"}, "piv": {"window_px": 48}}}
+    (folder / "result.json").write_text(json.dumps(summary))
+    return summary
+
+
+def test_html_has_discharge_plots_table_and_is_self_contained(tmp_path):
+    fake_result(tmp_path / "res")
+    summary, images, rows = load_result(tmp_path / "res")
+    html = render_html(summary, images, rows)
+    assert re.search(r"Q = 12\.3456 m³/s", html)
+    assert "11.5000 – 13.2500 m³/s" in html and "29 frame pairs" in html
+    embedded = re.findall(r"src='data:image/png;base64,([A-Za-z0-9+/=]+)'", html)
+    assert sorted(base64.b64decode(e) for e in embedded) == sorted(png(i) for i in range(3))
+    assert html.index("plot-vectors_png") < html.index("plot-rectified_png") < html.index("plot-section_png")
+    table = html[html.index("id='subsections'"):]
+    assert table[:table.index("</table>")].count("<tr>") == 5
+    assert "window_px" in html and "48" in html
+    # nothing external, and user text escaped
+    assert not re.search(r"(src|href)=['\"](?!data:)", html)
+    assert "<b>x</b>" not in html and "river &lt;b&gt;x&lt;/b&gt;" in html
+    assert "&lt;from the neighbours&gt;" in html
+
+
+def test_write_report_html_pdf_and_cli(tmp_path, capsys):
+    fake_result(tmp_path / "res")
+    paths = write_report(tmp_path / "res", pdf=True)
+    assert [p.name for p in paths] == ["report.html", "report.pdf"]
+    assert paths[1].read_bytes()[:5] == b"%PDF-"
+    assert "12.3456" in paths[0].read_text()
+
+    # from the history: site, time and the reference with its error
+    db = tmp_path / "h.sqlite"
+    with History(db) as h:
+        s, _, _ = load_result(tmp_path / "res")
+        mid = h.record_summary(s, site="bridge", output_dir=(tmp_path / "res").resolve(),
+                               video_time=("2024-05-01T08:00:00Z", "container"))
+        h.add_reference(mid, 12.0, "adcp")
+    out = tmp_path / "r.html"
+    assert main(["report", "--id", str(mid), "--db", str(db), "--out", str(out)]) == 0
+    html = out.read_text()
+    assert "bridge" in html and "2024-05-01T08:00:00Z" in html and "adcp" in html
+    assert "+2.88" in html  # (12.3456 - 12) / 12
+    # by folder: the history entry is found by its output folder
+    assert main(["report", str(tmp_path / "res"), "--db", str(db)]) == 0
+    assert "bridge" in (tmp_path / "res" / "report.html").read_text()
+
+
+def test_missing_result(tmp_path, capsys):
+    with pytest.raises(InputFileError, match="result.json"):
+        write_report(tmp_path)
+    assert main(["report", str(tmp_path), "--db", str(tmp_path / "none.sqlite")]) == 2
+    assert "result.json" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_report_of_a_real_run(short_scene, tmp_path):
+    from fieldtool.pipeline import run_project
+    from fieldtool.project import load_project
+
+    r = run_project(load_project(short_scene.project_path), tmp_path / "out")
+    (html_path,) = write_report(tmp_path / "out")
+    html = html_path.read_text()
+    assert f"Q = {r.discharge.discharge_m3s:.4f} m³/s" in html
+    n_png = sum(1 for v in r.files.values() if str(v).endswith(".png"))
+    assert n_png >= 3 and html.count("data:image/png;base64,") == n_png
+    assert html.count("<tr>") >= len(r.discharge.area_m2)
