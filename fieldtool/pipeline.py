@@ -120,7 +120,8 @@ class RunResult:
             "alpha": d.alpha,
             "alpha_default": d.alpha_default,
             "section_length_m": d.section_length_m,
-            "n_pairs": int(len(self.q_pairs)),
+            "n_pairs": int(getattr(self.piv, "n_pairs", 0) or len(self.q_pairs)),
+            "n_pairs_with_vectors": int(len(self.q_pairs)),
             "valid_fraction_mean": float(np.nanmean(self.piv.valid_fraction)),
             "subsections_filled": int(d.velocity_filled.sum()),
             "ortho_method": self.mapping.method,
@@ -302,6 +303,19 @@ def working_frames(project: Project, inputs: Inputs, cancel: Callable[[], bool] 
         stab_report.update(stabilizer.report())
 
 
+class _Sized:
+    """A frame stream with the count the container claims (a plan, not a promise: it may end sooner)."""
+
+    def __init__(self, frames: Iterator, n: int):
+        self.frames, self.n = frames, n
+
+    def __iter__(self) -> Iterator:
+        return iter(self.frames)
+
+    def __len__(self) -> int:
+        return self.n
+
+
 def piv_params(project: Project):
     from .processing.piv import PivParams
 
@@ -372,6 +386,9 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
         obs("pair", i, t, xx, yy, u, v, valid)
 
     frames = working_frames(project, inputs, cancel, obs, stab if project.stabilize.enabled else None, progress)
+    n_expected = inputs.source.estimated_count()
+    if n_expected:
+        frames = _Sized(frames, n_expected)  # lets the ensemble plan which pairs get per-pair vectors
     res = piv_mod.analyze(frames, params, roi=roi, mask=mask, max_speed_px_s=max_speed,
                           progress=None, cancel=cancel, on_pair=on_pair)
     lap("frames_and_piv")

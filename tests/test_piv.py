@@ -386,3 +386,82 @@ def test_gpu_code_path_logic_with_numpy_standing_in_for_cupy(monkeypatch):
         c = analyze(frames, PivParams(**kw), backend="cpu")
         assert np.array_equal(g.valid, c.valid)
         assert np.nanmax(np.abs(g.u - c.u)) * 0.5 < 0.01 and np.nanmax(np.abs(g.v - c.v)) * 0.5 < 0.01
+
+
+# ------------------------------------------------------------------------------------- engine internals
+
+
+def _second_peak_reference(plane, ky, kx, span):
+    """Brute force: highest value >= its 8 neighbours (region circular) outside the 5 x 5 block of the first peak."""
+    s = plane.shape[0]
+    best = -np.inf
+    for y in range(span):
+        for x in range(span):
+            if ((y - ky) % s in (0, 1, 2, s - 1, s - 2)) and ((x - kx) % s in (0, 1, 2, s - 1, s - 2)):
+                continue
+            nb = [plane[(y + dy) % span, (x + dx) % span] for dy in (-1, 0, 1) for dx in (-1, 0, 1)]
+            if plane[y, x] >= max(nb):
+                best = max(best, plane[y, x])
+    return best
+
+
+@pytest.mark.parametrize("s, margin, blur", [(16, 0, 0.0), (16, 0, 1.5), (24, 4, 1.5)])
+def test_second_peak_is_highest_other_local_maximum(s, margin, blur):
+    """Broad, elongated first peaks (blurred noise): the shoulder next to the first peak is never the second peak."""
+    import scipy.ndimage as ndi
+
+    rng = np.random.default_rng(21)
+    planes = rng.normal(size=(60, s, s))
+    if blur:
+        planes = ndi.gaussian_filter(planes, (0, blur, 2.5 * blur), mode="wrap")
+    planes = (planes - planes.mean(axis=(1, 2), keepdims=True)).astype(np.float32)
+    before = planes.copy()
+    pk = piv._find_peaks(planes, margin)
+    assert np.array_equal(planes, before)  # planes left as they were
+    span = 2 * margin + 1 if margin else s
+    for i in np.flatnonzero(pk.ok):
+        ky, kx = np.unravel_index(np.argmax(planes[i, :span, :span]), (span, span))
+        p2 = _second_peak_reference(planes[i], ky, kx, span)
+        assert pk.snr[i] == pytest.approx(min(planes[i, ky, kx] / p2, piv._SNR_CAP) if p2 > 0 else piv._SNR_CAP,
+                                          rel=1e-6)
+
+
+@pytest.mark.parametrize("sized", [True, False])
+def test_ensemble_keeps_evenly_spaced_pair_sample(monkeypatch, sized):
+    """Ensemble mode correlates every pair into the sum but keeps per-pair vectors only on a sample of pairs."""
+    monkeypatch.setattr(piv, "ENSEMBLE_PAIRS", 2)
+    disp = uniform(1.4, -0.8)
+    frames = particle_clip(disp, n_frames=10, seed=22)  # 9 pairs
+    src = frames if sized else iter(frames)
+    res = analyze(src, PivParams(averaging="ensemble"))
+    # known length: every 9 // 2 = 4th pair; unknown: stride 1 -> 2 (at 4 kept) -> 4 (at 4 kept again)
+    assert res.n_pairs == 9
+    assert list(res.pair_index) == [0, 4, 8]
+    assert res.u_pairs.shape == (3,) + res.x.shape and len(res.t_pairs) == 3 and len(res.dt_s) == 3
+    assert np.allclose(res.t_pairs, [0.25, 2.25, 4.25])
+    bx, by, rms = errors(res, disp)
+    assert abs(bx) < 0.05 and abs(by) < 0.05 and rms < 0.1
+    full = analyze(frames, PivParams(averaging="mean"))
+    assert full.u_pairs.shape[0] == 9 and full.n_pairs == 9
+
+
+def test_gpu_code_path_ensemble_sample_with_numpy_standing_in_for_cupy(monkeypatch):
+    """As above, with pairs whose cross-spectra go to the ensemble without peaks (correlate(peaks=False))."""
+    import types
+
+    import scipy.fft
+
+    from fieldtool.processing import piv_gpu
+
+    fake = types.SimpleNamespace(**{k: getattr(np, k) for k in ("ascontiguousarray", "where", "sqrt", "maximum",
+                                                                   "float32", "conj", "asarray", "lib")})
+    fake.asnumpy = np.asarray
+    monkeypatch.setattr(piv_gpu, "_cupy", lambda: (fake, scipy.fft))
+    monkeypatch.setattr(piv_gpu, "_CHECKED", None)
+    monkeypatch.setattr(piv, "ENSEMBLE_PAIRS", 2)
+    frames = particle_clip(rankine, n_frames=7, seed=23)
+    g = analyze(frames, PivParams(averaging="ensemble"), backend="gpu")
+    c = analyze(frames, PivParams(averaging="ensemble"), backend="cpu")
+    assert list(g.pair_index) == list(c.pair_index) == [0, 3]
+    assert np.array_equal(g.valid, c.valid)
+    assert np.nanmax(np.abs(g.u - c.u)) * 0.5 < 0.01 and np.nanmax(np.abs(g.v - c.v)) * 0.5 < 0.01

@@ -109,10 +109,15 @@ class GpuEngine:
         spec_b0 = spec_a[0] if lv0.s == lv0.w else self._spectra(g, oy - lv0.margin, ox - lv0.margin, lv0, lv0.s)
         return self._piv._Frame(img=None, spec_a=spec_a, spec_b0=spec_b0)
 
-    def correlate(self, a, b, cancel=None, ensemble=None):
+    spectrum_only = True  # as the CPU engine: correlate(peaks=False) feeds the ensemble without peaks
+
+    def correlate(self, a, b, cancel=None, ensemble=None, peaks=True):
         """As the CPU engine's ``correlate`` for one pass: total displacement (px) per node and the peaks."""
         lv = self.levels[0]
         cross = self.cp.conj(a.spec_a[0]) * b.spec_b0
+        if not peaks:
+            ensemble(cross, None, None, None)
+            return None, None, None
         corr = self.cp.asnumpy(self.fft.irfft2(cross, s=(lv.s, lv.s), axes=(1, 2)))
         pk = self._piv._find_peaks(corr, lv.margin)
         if ensemble is not None:

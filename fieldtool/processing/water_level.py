@@ -42,12 +42,20 @@ from typing import Callable
 
 import numpy as np
 from scipy.optimize import least_squares
-from scipy.signal import argrelextrema
 
 from ..errors import GeometryError, InputFileError, ParameterError
 from ..project import WaterLevelCfg
 from .cross_section import CrossSection
 from .ortho import OrthoMapping
+
+
+def _argrelextrema(*args, **kwargs):
+    """scipy.signal.argrelextrema, imported on first use: scipy.signal costs 0.4 s to import and only the
+    DEM method needs it."""
+    from scipy.signal import argrelextrema
+
+    return argrelextrema(*args, **kwargs)
+
 
 METHODS = ("value", "width", "dem", "angle_height", "image")
 DEFAULT_LEVEL_SIGMA_M = 0.01  # method = value, when water_level.uncertainty_m is not given
@@ -349,7 +357,7 @@ def hellebaut_divergence(station: np.ndarray, dem: np.ndarray, bed: np.ndarray, 
             raise ParameterError("water_level.dem_compare_m: must be a positive length (m)")
         keep = (station <= station[0] + compare_m) if bank == "left" else (station >= station[-1] - compare_m)
         station, dem, bed, d = station[keep], dem[keep], bed[keep], d[keep]
-    minima = argrelextrema(d, np.less)[0]
+    minima = _argrelextrema(d, np.less)[0]
     if len(minima) == 0:
         raise GeometryError("DEM method: D(x) = |DEM - bed| has no local minimum over the compared stretch; "
                             "give the divergence point as water_level.divergence_station_m")

@@ -90,7 +90,7 @@ def run_piv_only(project: Project, job: Job) -> dict:
     speed = np.hypot(res.u, res.v)
     stats = {
         "nodes": int(res.u.size),
-        "pairs": int(len(res.u_pairs)),
+        "pairs": int(res.n_pairs or len(res.u_pairs)),
         "valid_fraction": float(np.nanmean(res.valid_fraction)),
         "median_speed_px_s": float(np.nanmedian(speed)) if np.isfinite(speed).any() else None,
     }
