@@ -194,16 +194,25 @@ def read_list(path: Path | str) -> list[str]:
 # the task
 
 
-def run_item(item: BatchItem, cv_threads: int | None = 1) -> ItemResult:
-    """Run one item (in a worker): load the project, hash its inputs, run it into ``item.out_dir``.
-    Never raises: failures come back as ``ok=False`` with the reason."""
+def _single_threaded() -> None:
+    """One OpenCV and one FFT thread in this process: the batch already uses every core."""
+    import cv2
+
+    from ..processing.piv import set_fft_workers
+
+    cv2.setNumThreads(1)
+    set_fft_workers(1)
+
+
+def run_item(item: BatchItem, single_thread: bool = False) -> ItemResult:
+    """Run one item: load the project, hash its inputs, run it into ``item.out_dir``. ``single_thread``
+    for a worker that shares the machine with others (Dask). Never raises: failures come back as
+    ``ok=False`` with the reason."""
     t0, c0 = time.perf_counter(), time.process_time()
     res = ItemResult(item=item, ok=False)
     try:
-        if cv_threads is not None:
-            import cv2
-
-            cv2.setNumThreads(cv_threads)
+        if single_thread:
+            _single_threaded()
         from ..pipeline import _json_default, run_project
         from ..project import load_project, project_to_dict
 
@@ -229,12 +238,8 @@ def run_item(item: BatchItem, cv_threads: int | None = 1) -> ItemResult:
 
 
 def _init_worker() -> None:
-    try:
-        import cv2
-
-        cv2.setNumThreads(1)
-    except ImportError:  # pragma: no cover - cv2 is a dependency
-        pass
+    """One thread per worker process: the pool already uses every core."""
+    _single_threaded()
 
 
 # ---------------------------------------------------------------------------------------------
@@ -302,7 +307,7 @@ def _run_dask(items: list[BatchItem], scheduler: str, emit: Callable[[ItemResult
         raise ParameterError(f"--scheduler {scheduler}: cannot reach the Dask scheduler ({e}); start it with "
                              "`dask scheduler` and workers with `dask worker ADDRESS --nthreads 1`") from e
     try:
-        futs = {client.submit(run_item, it, key=f"fieldtool-batch-{i}-{os.getpid()}-{time.time_ns()}", pure=False): it
+        futs = {client.submit(run_item, it, True, key=f"fieldtool-batch-{i}-{os.getpid()}-{time.time_ns()}", pure=False): it
                 for i, it in enumerate(items)}
         for f in as_completed(list(futs), loop=client.loop):
             try:
