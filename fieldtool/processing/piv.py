@@ -347,8 +347,11 @@ def _local_max(plane: np.ndarray) -> np.ndarray:
     return plane >= dil[:, 1:-1, 1:-1]
 
 
-def _find_peaks(corr: np.ndarray, margin: int, scale: np.ndarray | None = None) -> _Peaks:
+def _find_peaks(corr: np.ndarray, margin: int, scale: np.ndarray | None = None, second: bool = True) -> _Peaks:
     """Peaks of correlation planes (n, s, s) in FFT order (index k <-> displacement k - margin, circular).
+
+    ``second=False`` skips the second-peak search (the SNR is then reported as the cap): for predictor passes,
+    which do not judge vectors by their SNR.
 
     ``scale`` (n,): factor that turns a plane into correlation coefficients (product of its windows' unit-energy
     factors; None = the planes are normalised already). Only the reported peak value depends on it; a plane with
@@ -388,31 +391,34 @@ def _find_peaks(corr: np.ndarray, margin: int, scale: np.ndarray | None = None) 
     # views) give a broad first peak whose shoulder is not a second peak. The highest value outside the
     # neighbourhood is that maximum whenever it passes the local-maximum test; only planes where it fails (it
     # sits on the first peak's shoulder) are searched in full.
-    off = np.arange(-2, 3)
-    yy = (ky[:, None] + off) % s
-    xx = (kx[:, None] + off) % s
-    if margin > 0:  # neighbourhood cells outside the searched region are not in it
-        yy = np.where(yy < span, yy, ky[:, None])
-        xx = np.where(xx < span, xx, kx[:, None])
-    blk = (rows[:, None, None], yy[:, :, None], xx[:, None, :])
-    saved = region[blk] if region is corr else None
-    region[blk] = -np.inf
-    j = rflat.argmax(axis=1)
-    p2 = rflat[rows, j].astype(np.float64)
-    if saved is not None:
-        region[blk] = saved
-    orig = corr[:, :span, :span]
-    cy, cx = np.divmod(j, span)
-    found = np.isfinite(p2)
-    is_max = found.copy()
-    for dy_, dx_ in _NB8:
-        is_max &= p2 >= orig[rows, (cy + dy_) % span, (cx + dx_) % span]
-    redo = np.flatnonzero(found & ~is_max)
-    if redo.size:
-        sub = orig[redo]
-        cand = _local_max(sub)
-        cand[(np.arange(redo.size)[:, None, None], yy[redo][:, :, None], xx[redo][:, None, :])] = False
-        p2[redo] = np.where(cand, sub, -np.inf).reshape(redo.size, -1).max(axis=1)
+    if not second:
+        p2 = np.full(n, np.nan)
+    else:
+        off = np.arange(-2, 3)
+        yy = (ky[:, None] + off) % s
+        xx = (kx[:, None] + off) % s
+        if margin > 0:  # neighbourhood cells outside the searched region are not in it
+            yy = np.where(yy < span, yy, ky[:, None])
+            xx = np.where(xx < span, xx, kx[:, None])
+        blk = (rows[:, None, None], yy[:, :, None], xx[:, None, :])
+        saved = region[blk] if region is corr else None
+        region[blk] = -np.inf
+        j = rflat.argmax(axis=1)
+        p2 = rflat[rows, j].astype(np.float64)
+        if saved is not None:
+            region[blk] = saved
+        orig = corr[:, :span, :span]
+        cy, cx = np.divmod(j, span)
+        found = np.isfinite(p2)
+        is_max = found.copy()
+        for dy_, dx_ in _NB8:
+            is_max &= p2 >= orig[rows, (cy + dy_) % span, (cx + dx_) % span]
+        redo = np.flatnonzero(found & ~is_max)
+        if redo.size:
+            sub = orig[redo]
+            cand = _local_max(sub)
+            cand[(np.arange(redo.size)[:, None, None], yy[redo][:, :, None], xx[redo][:, None, :])] = False
+            p2[redo] = np.where(cand, sub, -np.inf).reshape(redo.size, -1).max(axis=1)
     with np.errstate(divide="ignore", invalid="ignore"):
         snr = np.where(p2 > 0, c / p2, _SNR_CAP)
         p2m = c / rms
@@ -568,7 +574,7 @@ class _Engine:
                 work = self._buffer(("work", k), cross)
                 np.copyto(work, cross)
             corr = _irfft2(work if keep else cross, lv.s)
-            pk = _find_peaks(corr, lv.margin, scale)
+            pk = _find_peaks(corr, lv.margin, scale, second=k == last)
             dx, dy = pk.dx.reshape(lv.ny, lv.nx), pk.dy.reshape(lv.ny, lv.nx)
             if pred_x is not None:
                 dx = dx + pred_x
