@@ -187,11 +187,11 @@ def build_mapping(project: Project, inputs: Inputs, level_m: float | None) -> or
         raw = np.asarray(o.gcp_px, float)
         if raw.shape != (4, 2):
             raise ParameterError("ortho.gcp_px: give exactly four [x, y] pixel points P1..P4 for method = distances")
-        ortho._check_px(raw, shape, "ortho.gcp_px")
+        ortho.check_in_frame(raw, shape, "ortho.gcp_px")
         return ortho.from_distances(inputs.to_working(raw), o.distances_m)
     if o.method == "world":
         raw = np.asarray(o.gcp_px, float)
-        ortho._check_px(raw.reshape(-1, 2), shape, "ortho.gcp_px")
+        ortho.check_in_frame(raw.reshape(-1, 2), shape, "ortho.gcp_px")
         return ortho.from_world_points(inputs.to_working(raw), o.gcp_world_m)
     if o.method == "pose":
         from .processing import pose
@@ -362,7 +362,7 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
     geom = dq.section_geometry(inputs.to_working(sec.points_px) if sec.points_px else sec.points_px, mapping, cs,
                                level.level_m, sec.n_sub, sec.station_offset_m)
     if np.asarray(sec.points_px).shape == (2, 2):
-        ortho._check_px(np.asarray(sec.points_px, float), inputs.shape, "section.points_px")
+        ortho.check_in_frame(np.asarray(sec.points_px, float), inputs.shape, "section.points_px")
     roi, mask = roi_and_mask(project, inputs)
 
     params = piv_params(project)

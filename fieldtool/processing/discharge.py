@@ -22,7 +22,7 @@ import numpy as np
 
 from ..errors import GeometryError, ParameterError
 from .cross_section import CrossSection
-from .ortho import OrthoMapping
+from .ortho import OrthoMapping, check_in_frame
 
 SAMPLES_PER_SUB = 7
 
@@ -51,11 +51,7 @@ def section_geometry(points_px, mapping: OrthoMapping, cs: CrossSection, level: 
     p = np.asarray(points_px, float)
     if p.shape != (2, 2):
         raise ParameterError("section.points_px: give two [x, y] pixel points, the left then the right water edge")
-    if image_shape is not None:
-        h, w = image_shape
-        for i, (x, y) in enumerate(p):
-            if not (-0.5 <= x <= w - 0.5 and -0.5 <= y <= h - 0.5):
-                raise GeometryError(f"section.points_px[{i}] = ({x:g}, {y:g}) px is outside the {w}x{h} frame")
+    check_in_frame(p, image_shape, "section.points_px")
     if n_sub < 1:
         raise ParameterError(f"section.n_sub: {n_sub} subsections is not possible; use 1 or more (15 is typical)")
     pw = mapping.image_to_world(p)

@@ -177,7 +177,8 @@ def gcp_world_from_distances(gcp_px: np.ndarray, distances: np.ndarray) -> tuple
     return q, float(np.sqrt(np.mean(r**2))), float(np.max(np.abs(r)))
 
 
-def _check_px(pts: np.ndarray, shape: tuple[int, int] | None, key: str) -> None:
+def check_in_frame(pts: np.ndarray, shape: tuple[int, int] | None, key: str) -> None:
+    """GeometryError naming ``key[i]`` when a pixel point lies outside a frame of ``shape`` (H, W)."""
     if shape is None:
         return
     h, w = shape
@@ -192,7 +193,7 @@ def from_distances(gcp_px, distances, image_shape: tuple[int, int] | None = None
     px = np.asarray(gcp_px, float)
     if px.shape != (4, 2):
         raise ParameterError("ortho.gcp_px: give exactly four [x, y] pixel points P1..P4 for method = distances")
-    _check_px(px, image_shape, "ortho.gcp_px")
+    check_in_frame(px, image_shape, "ortho.gcp_px")
     world, rms, worst = gcp_world_from_distances(px, distances)
     H, _ = cv2.findHomography(px, world, 0)
     if H is None:
@@ -208,7 +209,7 @@ def from_world_points(gcp_px, gcp_world, image_shape: tuple[int, int] | None = N
         raise ParameterError("ortho.gcp_px: give at least four [x, y] pixel points")
     if wd.ndim != 2 or wd.shape[1] < 2 or len(wd) != len(px):
         raise ParameterError(f"ortho.gcp_world_m: give one [X, Y] per GCP ({len(px)} GCPs)")
-    _check_px(px, image_shape, "ortho.gcp_px")
+    check_in_frame(px, image_shape, "ortho.gcp_px")
     wd = wd[:, :2]
     H, _ = cv2.findHomography(px, wd, 0)
     if H is None:

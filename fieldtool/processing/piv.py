@@ -478,8 +478,8 @@ class _Engine:
     def _offsets(self, lv: _Level) -> tuple[int, int]:
         return lv.top - self.cy0, lv.left - self.cx0
 
-    def prepare(self, frame: np.ndarray) -> _Frame:
-        """Crop, fill the mask with the frame mean, and compute the window spectra of all levels."""
+    def _masked_crop(self, frame: np.ndarray) -> np.ndarray:
+        """The frame's crop (float32) with masked pixels set to the ROI's mean intensity."""
         f = frame if frame.dtype == np.float32 else frame.astype(np.float32)
         x0, y0, x1, y1 = self.box
         fill = float(f[y0:y1, x0:x1].mean())
@@ -487,6 +487,11 @@ class _Engine:
         if self.mask_crop is not None:
             img = img.copy()
             img[self.mask_crop] = fill
+        return img
+
+    def prepare(self, frame: np.ndarray) -> _Frame:
+        """Crop, fill the mask with the frame mean, and compute the window spectra of all levels."""
+        img = self._masked_crop(frame)
         spec_a, scale_a = [], []
         for lv in self.levels:
             oy, ox = self._offsets(lv)
@@ -883,14 +888,7 @@ class _OpenPivEngine(_Engine):
             )
 
     def prepare(self, frame: np.ndarray) -> _Frame:
-        f = frame if frame.dtype == np.float32 else frame.astype(np.float32)
-        x0, y0, x1, y1 = self.box
-        fill = float(f[y0:y1, x0:x1].mean())
-        img = self._crop(f, fill)
-        if self.mask_crop is not None:
-            img = img.copy()
-            img[self.mask_crop] = fill
-        return _Frame(img=img, spec_a=[], spec_b0=None)
+        return _Frame(img=self._masked_crop(frame), spec_a=[], spec_b0=None)
 
     def _sub(self, img: np.ndarray, lv: _Level, size: int) -> np.ndarray:
         """Part of the crop whose OpenPIV grid (windows of ``size`` from 0, step lv.step) is our level grid."""
