@@ -359,10 +359,10 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
     lap("level_and_ortho")
 
     sec = project.section
+    if np.asarray(sec.points_px).shape == (2, 2):  # raw-frame pixels, checked before undistortion
+        ortho.check_in_frame(np.asarray(sec.points_px, float), inputs.shape, "section.points_px")
     geom = dq.section_geometry(inputs.to_working(sec.points_px) if sec.points_px else sec.points_px, mapping, cs,
                                level.level_m, sec.n_sub, sec.station_offset_m)
-    if np.asarray(sec.points_px).shape == (2, 2):
-        ortho.check_in_frame(np.asarray(sec.points_px, float), inputs.shape, "section.points_px")
     roi, mask = roi_and_mask(project, inputs)
 
     params = piv_params(project)

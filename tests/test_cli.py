@@ -87,3 +87,15 @@ def test_init_refuses_to_overwrite(tmp_path, capsys):
     assert _run(capsys, "init", str(tmp_path))[0] == 0
     code, _, err = _run(capsys, "init", str(tmp_path))
     assert code == 2 and "already exists" in err
+
+
+def test_section_picked_right_to_left_is_swapped(short_scene):
+    from fieldtool.pipeline import run_project
+    from fieldtool.project import load_project
+
+    proj = load_project(short_scene.project_path)
+    ref = run_project(proj, None)
+    proj.section.points_px = proj.section.points_px[::-1]
+    swapped = run_project(proj, None)
+    assert swapped.section.swapped and any("swapped" in w for w in swapped.warnings)
+    assert swapped.discharge.discharge_m3s == pytest.approx(ref.discharge.discharge_m3s, rel=1e-9)
