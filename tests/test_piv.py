@@ -366,8 +366,9 @@ def test_backend_choice_without_gpu_falls_back_to_cpu():
     assert np.allclose(a.u, b.u, atol=0.01 / 0.5, equal_nan=True)
 
 
-def test_gpu_code_path_logic_with_numpy_standing_in_for_cupy(monkeypatch):
-    """No GPU here: run the CuPy engine with NumPy/SciPy in CuPy's place to check its logic (not the device)."""
+@pytest.fixture
+def numpy_as_cupy(monkeypatch):
+    """No GPU here: the CuPy engine runs with NumPy/SciPy in CuPy's place (its logic, not the device)."""
     import types
 
     import scipy.fft
@@ -379,6 +380,12 @@ def test_gpu_code_path_logic_with_numpy_standing_in_for_cupy(monkeypatch):
     fake.asnumpy = np.asarray
     monkeypatch.setattr(piv_gpu, "_cupy", lambda: (fake, scipy.fft))
     monkeypatch.setattr(piv_gpu, "_CHECKED", None)
+    return piv_gpu
+
+
+def test_gpu_code_path_logic_with_numpy_standing_in_for_cupy(numpy_as_cupy):
+    """Run the CuPy engine with NumPy/SciPy in CuPy's place to check its logic (not the device)."""
+    piv_gpu = numpy_as_cupy
     assert piv_gpu.available()  # self-check against the CPU engine passed
     frames = particle_clip(rankine, n_frames=3, seed=17)
     for kw in (dict(averaging="ensemble"), dict(averaging="mean", search_px=48)):
@@ -445,19 +452,8 @@ def test_ensemble_keeps_evenly_spaced_pair_sample(monkeypatch, sized):
     assert full.u_pairs.shape[0] == 9 and full.n_pairs == 9
 
 
-def test_gpu_code_path_ensemble_sample_with_numpy_standing_in_for_cupy(monkeypatch):
+def test_gpu_code_path_ensemble_sample_with_numpy_standing_in_for_cupy(numpy_as_cupy, monkeypatch):
     """As above, with pairs whose cross-spectra go to the ensemble without peaks (correlate(peaks=False))."""
-    import types
-
-    import scipy.fft
-
-    from fieldtool.processing import piv_gpu
-
-    fake = types.SimpleNamespace(**{k: getattr(np, k) for k in ("ascontiguousarray", "where", "sqrt", "maximum",
-                                                                   "float32", "conj", "asarray", "lib")})
-    fake.asnumpy = np.asarray
-    monkeypatch.setattr(piv_gpu, "_cupy", lambda: (fake, scipy.fft))
-    monkeypatch.setattr(piv_gpu, "_CHECKED", None)
     monkeypatch.setattr(piv, "ENSEMBLE_PAIRS", 2)
     frames = particle_clip(rankine, n_frames=7, seed=23)
     g = analyze(frames, PivParams(averaging="ensemble"), backend="gpu")
