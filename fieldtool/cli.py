@@ -56,6 +56,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     print(f"mean velocity {s['mean_velocity_ms']:.4f} m/s  (alpha {s['alpha']:.2f})")
     for w in s["warnings"]:
         print(f"warning: {w}")
+    if result.piv_reused:
+        print("PIV field     reused from the output folder (same clip, corrections and PIV parameters)")
     print(f"results in    {out}  ({time.perf_counter() - t0:.1f} s)")
     if args.record:
         from .records.history import record_run

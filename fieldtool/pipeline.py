@@ -20,7 +20,7 @@ from typing import Callable, Iterator
 
 import numpy as np
 
-from . import __version__
+from . import __version__, piv_cache
 from .errors import Cancelled, FieldToolError, GeometryError, ParameterError
 from .processing import cross_section as xs
 from .processing import discharge as dq
@@ -103,6 +103,7 @@ class RunResult:
     warnings: list[str] = field(default_factory=list)
     stabilization: dict | None = None
     project: dict = field(default_factory=dict)
+    piv_reused: bool = False  # the PIV field came from the output folder's piv_cache.npz
 
     def summary(self) -> dict:
         d = self.discharge
@@ -130,6 +131,7 @@ class RunResult:
             "ortho_residual_m": self.mapping.residual_m,
             "ortho_details": self.mapping.details,
             "stabilization": self.stabilization,
+            "piv_reused": self.piv_reused,
             "warnings": self.warnings + d.warnings,
             "timings_s": self.timings_s,
             "files": self.files,
@@ -389,12 +391,23 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
     def on_pair(i, t, xx, yy, u, v, valid):
         obs("pair", i, t, xx, yy, u, v, valid)
 
-    frames = working_frames(project, inputs, cancel, obs, stab if project.stabilize.enabled else None, progress)
-    n_expected = inputs.source.estimated_count()
-    if n_expected:
-        frames = _Sized(frames, n_expected)  # lets the ensemble plan which pairs get per-pair vectors
-    res = piv_mod.analyze(frames, params, roi=roi, mask=mask, max_speed_px_s=max_speed,
-                          progress=None, cancel=cancel, on_pair=on_pair)
+    # the pixel-space field is reused when only the mapping, level, section or alpha changed (not while
+    # streaming to an observer, who wants to see the frames and pairs)
+    cache_dir = Path(out_dir) if out_dir is not None and observer is None else None
+    key = piv_cache.piv_key(project, max_speed) if cache_dir is not None else ""
+    cached = piv_cache.load(cache_dir, key) if cache_dir is not None else None
+    if cached is not None:
+        res, stab_cached = cached
+        stab.update(stab_cached or {})
+    else:
+        frames = working_frames(project, inputs, cancel, obs, stab if project.stabilize.enabled else None, progress)
+        n_expected = inputs.source.estimated_count()
+        if n_expected:
+            frames = _Sized(frames, n_expected)  # lets the ensemble plan which pairs get per-pair vectors
+        res = piv_mod.analyze(frames, params, roi=roi, mask=mask, max_speed_px_s=max_speed,
+                              progress=None, cancel=cancel, on_pair=on_pair)
+        if cache_dir is not None:
+            piv_cache.save(cache_dir, key, res, stab or None)
     lap("frames_and_piv")
 
     obs("stage", "discharge")
@@ -415,7 +428,7 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
     lap("discharge")
 
     result = RunResult(dres, q_pairs, level, mapping, res, geom, U, V, None, timings_s=timings, warnings=warnings,
-                       stabilization=stab or None, project=project_to_dict(project))
+                       stabilization=stab or None, project=project_to_dict(project), piv_reused=cached is not None)
     if out_dir is not None:
         write_outputs(result, project, inputs, Path(out_dir))
     obs("result", result)

@@ -1,0 +1,78 @@
+"""Reuse of the PIV field between runs into the same output folder.
+
+PIV works in image pixels, so its field depends only on the clip, the lens model, stabilisation,
+ROI/masks, filters and PIV parameters (and on the speed limit, which goes through the mapping). Changing
+the GCPs, the water level, the section or the velocity index then recomputes the discharge in well under
+a second instead of re-running PIV. The cache file ``piv_cache.npz`` carries a key over all those inputs
+(file sizes and modification times included) and the fieldtool version; any difference means a new run.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import io
+import json
+from pathlib import Path
+
+import numpy as np
+
+from . import __version__
+from .project import Project, atomic_write_bytes, project_to_dict
+
+FILE = "piv_cache.npz"
+
+
+def _stat(path: Path) -> list:
+    """Size and modification time of a file, or of every image of a sequence folder/glob."""
+    if path.is_file():
+        st = path.stat()
+        return [path.name, st.st_size, st.st_mtime_ns]
+    files = sorted(path.iterdir()) if path.is_dir() else sorted(path.parent.glob(path.name))
+    return [[f.name, f.stat().st_size, f.stat().st_mtime_ns] for f in files if f.is_file()]
+
+
+def piv_key(project: Project, max_speed_px_s: np.ndarray | None) -> str:
+    """Hash of everything the PIV field depends on."""
+    d = project_to_dict(project)
+    parts = {k: d.get(k) for k in ("video", "calibration", "stabilize", "roi", "filters", "piv")}
+    parts["video_file"] = _stat(project.resolve(project.video.path))
+    if project.calibration.path:
+        parts["calibration_file"] = _stat(project.resolve(project.calibration.path))
+    if max_speed_px_s is not None:
+        parts["max_speed"] = hashlib.sha256(np.ascontiguousarray(max_speed_px_s, dtype=np.float64)).hexdigest()
+    parts["version"] = __version__
+    return hashlib.sha256(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()
+
+
+def save(folder: Path, key: str, res, stabilization: dict | None) -> None:
+    """Write the PIV result (arrays and parameters) with its key, atomically."""
+    arrays = {}
+    for f in dataclasses.fields(res):
+        v = getattr(res, f.name)
+        if isinstance(v, np.ndarray):
+            arrays[f.name] = v
+    meta = {"key": key, "params": dataclasses.asdict(res.params), "n_pairs": res.n_pairs,
+            "stabilization": stabilization}
+    buf = io.BytesIO()
+    np.savez(buf, meta=np.array(json.dumps(meta)), **arrays)
+    atomic_write_bytes(folder / FILE, buf.getvalue())
+
+
+def load(folder: Path, key: str):
+    """``(PivResult, stabilization report)`` saved under ``key``, or None (absent, other key, unreadable)."""
+    from .processing.piv import PivParams, PivResult
+
+    path = folder / FILE
+    if not path.is_file():
+        return None
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            meta = json.loads(str(z["meta"]))
+            if meta.get("key") != key:
+                return None
+            arrays = {k: z[k] for k in z.files if k != "meta"}
+    except (OSError, ValueError, KeyError):
+        return None  # a damaged cache is only a cache: PIV runs again and rewrites it
+    res = PivResult(params=PivParams(**meta["params"]), n_pairs=meta.get("n_pairs"), **arrays)
+    return res, meta.get("stabilization")
