@@ -18,18 +18,19 @@ from pathlib import Path
 import numpy as np
 
 from . import __version__
+from .processing.frames import sequence_files
 from .project import Project, atomic_write_bytes, project_to_dict
 
 FILE = "piv_cache.npz"
 
 
 def _stat(path: Path) -> list:
-    """Size and modification time of a file, or of every image of a sequence folder/glob."""
-    if path.is_file():
+    """Size and modification time of a file, or of every image of a sequence, as the frame reader sees it."""
+    files = sequence_files(path)
+    if files is None:
         st = path.stat()
         return [path.name, st.st_size, st.st_mtime_ns]
-    files = sorted(path.iterdir()) if path.is_dir() else sorted(path.parent.glob(path.name))
-    return [[f.name, f.stat().st_size, f.stat().st_mtime_ns] for f in files if f.is_file()]
+    return [[f.name, f.stat().st_size, f.stat().st_mtime_ns] for f in files]
 
 
 def piv_key(project: Project, max_speed_px_s: np.ndarray | None) -> str:

@@ -33,6 +33,13 @@ def _value(v) -> str:
     return tomli_w.dumps({"k": v}).split("=", 1)[1].strip()
 
 
+def top_keys() -> list[tuple[str, object]]:
+    """(key, default) of the project file's top-level keys (those outside any table)."""
+    proj = pj.Project()
+    return [(f.name, getattr(proj, f.name)) for f in dataclasses.fields(pj.Project)
+            if f.metadata.get("saved", True) and not dataclasses.is_dataclass(getattr(proj, f.name))]
+
+
 def sections() -> list[tuple[str, type, object]]:
     """(table name, dataclass, default instance) for every table of the project file."""
     proj = pj.Project()
@@ -52,10 +59,7 @@ def template_text() -> str:
         "# _ms m/s. Pixel coordinates: raw video frame, x right, y down, origin at the top-left pixel centre.",
         "# Relative paths are relative to this file. Run it with: fieldtool run project.toml",
         "",
-        f'name = "measurement"  # {top.get("name", "")}',
-        f'site = ""  # {top.get("site", "")}',
-        f'step = "cross_section"  # {top.get("step", "")}',
-        f"filters = []  # {top.get('filters', '')}",
+        *(f"{k} = {_value(v)}  # {top.get(k, '')}" for k, v in top_keys()),
         "",
     ]
     for name, cls, inst in sections():
@@ -89,8 +93,8 @@ def key_table_markdown() -> str:
     """Markdown table of every key with its default and comment (for the README)."""
     rows = ["| key | default | meaning (unit) |", "|---|---|---|"]
     top = field_comments(pj.Project)
-    for k in ("name", "site", "step", "filters"):
-        rows.append(f"| `{k}` | `{_value(getattr(pj.Project(), k))}` | {top.get(k, '')} |")
+    for k, v in top_keys():
+        rows.append(f"| `{k}` | `{_value(v)}` | {top.get(k, '')} |")
     for name, cls, inst in sections():
         comments = field_comments(cls)
         for f in dataclasses.fields(cls):

@@ -44,7 +44,7 @@ def _natural_key(p: Path):
     return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", p.name)]
 
 
-def _sequence_files(path: Path) -> list[Path] | None:
+def sequence_files(path: Path) -> list[Path] | None:
     """Image files of a sequence given as a folder or a glob; None when ``path`` is a video."""
     if path.is_dir():
         files = [p for p in path.iterdir() if p.suffix.lower() in IMAGE_EXTS]
@@ -69,7 +69,7 @@ class FrameSource:
     def __init__(self, path: Path | str, start_s: float = 0.0, end_s: float | None = None, step: int = 1,
                  frame_interval_s: float | None = None) -> None:
         self.path = Path(path)
-        self.files = _sequence_files(self.path)
+        self.files = sequence_files(self.path)
         if step < 1:
             raise ParameterError(f"video.step: {step} is not allowed; use 1 (every frame) or more")
         if self.files is None:
@@ -185,7 +185,7 @@ class FrameSource:
 def read_color_frame(path: Path | str, t_s: float = 0.0, frame_interval_s: float | None = None) -> np.ndarray:
     """The BGR frame at (or just after) ``t_s`` seconds, for display and plots."""
     path = Path(path)
-    files = _sequence_files(path)
+    files = sequence_files(path)
     if files is not None:
         if not files:
             raise InputFileError(f"{path}: no images found")
