@@ -79,9 +79,9 @@ def test_walkthrough_by_keys_gives_the_pipeline_discharge(project_path, tmp_path
             assert isinstance(app.screen, PivScreen)
             await pilot.press("ctrl+r")
             await pilot.pause()
-            # the run is under way (progress panel shown), or already done with a result on a fast machine
+            # the run is under way (status line shown), or already done with a result on a fast machine
             if app.job is not None:
-                assert app.screen.query_one("#job").display
+                assert app.screen.query_one("#status").display
             else:
                 assert "discharge_m3s" in app.last_job.get("piv", {}), (
                     app.last_job, str(app.screen.query_one("#step-errors").render()))
@@ -190,7 +190,7 @@ def test_cancel_during_piv_keeps_the_ui_and_writes_no_result(project_path, monke
             await pilot.press("escape")
             await wait_job(app, pilot)
             assert "cancelled" in app.last_job["piv"]
-            label = str(app.screen.query_one("#job-label").render())
+            label = str(app.screen.query_one("#status").render())
             assert "cancelled" in label
             await pilot.press("ctrl+n")  # still responsive
             await pilot.pause()

@@ -48,9 +48,6 @@ class CrossSectionScreen(StepScreen):
             level = None
         plot.set_data(cs.station, cs.elevation, level)
 
-    def step_check(self) -> None:
-        build_cross_section(self.project)
-
     def action_write_csv(self) -> None:
         """Write the created shape's points to a CSV beside the project (reusable with 'load a file')."""
         from ...project import atomic_write_bytes

@@ -123,9 +123,6 @@ class FiltersScreen(StepScreen):
         self.refresh_view()
         self.refresh_marks()
 
-    def step_check(self) -> None:
-        FilterStack.from_config(self.project.filters)
-
     # -- preview ---------------------------------------------------------------------------------
     def action_run(self) -> None:
         from ...processing.filters import preview

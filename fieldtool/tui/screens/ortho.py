@@ -44,13 +44,6 @@ class OrthoScreen(StepScreen):
 
         return build_mapping(self.project, self.session.inputs(), None)
 
-    def step_check(self) -> None:
-        m = self.project.ortho.method
-        if m in ("distances", "world"):
-            self.mapping()
-        elif m == "pose" and not self.project.calibration.path:
-            raise ParameterError("ortho.method = pose needs the camera intrinsics: calibrate or load a lens in step 3")
-
     def action_run(self) -> None:
         info = self.query_one("#ortho-info", Static)
         if self.project.ortho.method not in ("distances", "world"):

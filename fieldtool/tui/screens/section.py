@@ -21,18 +21,9 @@ class SectionScreen(StepScreen):
         yield Static("", id="section-info")
 
     def geometry(self):
-        from ...processing import discharge as dq
-        from ...pipeline import level_and_mapping
+        from ..checks import section_geometry
 
-        inputs = self.session.inputs()
-        level, mapping = level_and_mapping(self.project, inputs)
-        sec = self.project.section
-        geom = dq.section_geometry(inputs.to_working(sec.points_px), mapping, inputs.cross_section, level.level_m,
-                                   sec.n_sub, sec.station_offset_m, inputs.shape)
-        return geom, level, inputs.cross_section
-
-    def step_check(self) -> None:
-        self.geometry()
+        return section_geometry(self.session)
 
     def refresh_view(self, checked: bool = False) -> None:
         info = self.query_one("#section-info", Static)

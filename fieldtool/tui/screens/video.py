@@ -44,12 +44,6 @@ class VideoScreen(StepScreen):
         else:
             st.update("")
 
-    def step_check(self) -> None:
-        src = self.session.inputs().source
-        if src.estimated_count() < 2:
-            raise ParameterError("video: the range holds fewer than 2 frames; widen video.start_s .. video.end_s "
-                                 "or lower video.step")
-
     def check_action(self, action: str, parameters: tuple) -> bool | None:
         if action == "run":
             return self.project.stabilize.enabled

@@ -56,8 +56,5 @@ class WaterLevelScreen(StepScreen):
         except FieldToolError as e:
             plot.set_data(message=str(e))
 
-    def step_check(self) -> None:
-        self.compute()
-
     def action_run(self) -> None:
         self.refresh_view(computed=True)

@@ -54,7 +54,8 @@ class FieldRow(Vertical):
                              id="input", type_to_search=False)
             else:
                 ph = f.placeholder(self.project) if callable(f.placeholder) else f.placeholder
-                yield Input(f.format(value), placeholder=ph, compact=True, id="input", select_on_focus=False)
+                # select_on_focus: typing into a field that holds "0" replaces it (not "0abc")
+                yield Input(f.format(value), placeholder=ph, compact=True, id="input", select_on_focus=True)
         yield Static("", classes="field-error")
 
     def on_mount(self) -> None:
@@ -118,8 +119,19 @@ class FieldRow(Vertical):
         self._show(self.current_error())
 
     def _show(self, msg: str | None) -> None:
+        """One line under the field (the key and the help are left out: the label says the first,
+        the help line shows the full message and the help when the field has the focus)."""
         self.error = msg
         box = self.query_one(".field-error", Static)
-        box.update(Text(msg or ""))
+        box.update(Text(short_message(msg, self.field.key), no_wrap=True, overflow="ellipsis") if msg else "")
         box.display = bool(msg)
         self.set_class(bool(msg), "-invalid")
+
+
+def short_message(msg: str, key: str) -> str:
+    """The one-line form of a field's message: without the leading key, "required" without the help."""
+    if msg.startswith(key + ": "):
+        msg = msg[len(key) + 2:]
+    if msg.startswith("required"):
+        return "✗ required (the help line below says what to enter)"
+    return "✗ " + msg

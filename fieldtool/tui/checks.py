@@ -1,0 +1,136 @@
+"""Whether each step's entries are right, for the sidebar marks and the "next" key.
+
+Three layers, cheapest first: the TUI's own field checks (``fields.field_errors``), the project's
+validation layer (``fieldtool.validation.problems_for``; one call, in :func:`validation_problems`),
+and the core's own check of the step (``core_check``: it reads the clip, builds the cross-section,
+solves the GCPs, computes a typed level), which catches what needs the files: a start past the end
+of the clip, a level below the bed, a CSV given as the video. Core checks are cached on the project
+tables they depend on, so the sidebar can be refreshed after every keystroke.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+
+from ..errors import FieldToolError, ParameterError
+from ..project import project_to_dict
+
+# project tables each step's core check reads (its cache key)
+_INPUTS = ("video", "cross_section", "calibration")
+CORE_TABLES = {
+    "cross_section": ("cross_section",),
+    "video": _INPUTS + ("stabilize",),
+    "calibration": ("calibration",),
+    "ortho": _INPUTS + ("ortho",),
+    "water_level": _INPUTS + ("ortho", "water_level"),
+    "roi": _INPUTS + ("roi",),
+    "filters": ("filters",),
+    "piv": _INPUTS + ("roi", "piv"),
+    "section": _INPUTS + ("ortho", "water_level", "section"),
+}
+
+
+def validation_problems(project, prefix: str) -> list[str]:
+    """Error messages of the validation layer for the keys under ``prefix`` ("video.", "filters").
+
+    The only place the TUI calls ``fieldtool.validation``; without it (an older tree) nothing is added."""
+    try:
+        from ..validation import problems_for
+    except ImportError:
+        return []
+    try:
+        found = problems_for(project, prefix)
+    except FieldToolError as e:
+        return [str(e)]
+    return [f"{p.key}: {p.message}" for p in found if p.severity == "error"]
+
+
+def core_check(session, step: str) -> None:
+    """The core's check of ``step`` on the session's project; raises FieldToolError with the message."""
+    from ..pipeline import build_mapping, level_and_mapping, piv_params, roi_and_mask
+
+    p = session.project
+    if step == "cross_section":
+        from .screens.cross_section import build_cross_section
+
+        build_cross_section(p)
+    elif step == "video":
+        src = session.inputs().source
+        if src.estimated_count() < 2:
+            raise ParameterError("video: the range holds fewer than 2 frames; widen video.start_s .. video.end_s "
+                                 "or lower video.step")
+    elif step == "calibration":
+        if session.ui.get("calibration_mode") != "skip" and p.calibration.path:
+            from ..processing.calibration import load_calibration
+
+            load_calibration(p.resolve(p.calibration.path))
+    elif step == "ortho":
+        if p.ortho.method in ("distances", "world"):
+            build_mapping(p, session.inputs(), None)
+        elif p.ortho.method == "pose" and not p.calibration.path:
+            raise ParameterError("ortho.method = pose needs the camera intrinsics: calibrate or load a lens in step 3")
+    elif step == "water_level":
+        level_and_mapping(p, session.inputs())
+    elif step == "roi":
+        roi_and_mask(p, session.inputs())
+    elif step == "filters":
+        from ..processing.filters import FilterStack
+
+        FilterStack.from_config(p.filters)
+    elif step == "piv":
+        from ..processing import piv as piv_mod
+
+        inputs = session.inputs()
+        roi, _ = roi_and_mask(p, inputs)
+        piv_mod.check_params(inputs.shape, piv_params(p), roi)
+    elif step == "section":
+        section_geometry(session)
+
+
+def section_geometry(session):
+    """(section geometry, level result, cross-section) of the session's project."""
+    from ..pipeline import level_and_mapping
+    from ..processing import discharge as dq
+
+    p = session.project
+    inputs = session.inputs()
+    level, mapping = level_and_mapping(p, inputs)
+    sec = p.section
+    if np.asarray(sec.points_px, float).shape != (2, 2):
+        raise ParameterError("section.points_px: give the two water edges P1, P2 as 'x, y'")
+    geom = dq.section_geometry(inputs.to_working(sec.points_px), mapping, inputs.cross_section, level.level_m,
+                               sec.n_sub, sec.station_offset_m, inputs.shape)
+    return geom, level, inputs.cross_section
+
+
+class CoreChecks:
+    """``core_check`` results cached on the tables each step reads."""
+
+    def __init__(self) -> None:
+        self._cache: dict[str, tuple[str, str | None]] = {}
+
+    def message(self, session, step: str) -> str | None:
+        """The core check's message for ``step``, or None when it passes (or the step has none)."""
+        tables = CORE_TABLES.get(step)
+        if tables is None:
+            return None
+        d = project_to_dict(session.project)
+        key = json.dumps([d.get(t) for t in tables] + [session.ui.get("calibration_mode")], sort_keys=True,
+                         default=str)
+        hit = self._cache.get(step)
+        if hit is not None and hit[0] == key:
+            return hit[1]
+        try:
+            core_check(session, step)
+            msg = None
+        except FieldToolError as e:
+            msg = str(e)
+        self._cache[step] = (key, msg)
+        return msg
+
+
+def is_missing(message: str) -> bool:
+    """Whether a field message only says an entry is still to be made (not that it is wrong)."""
+    return ": required" in message or message.endswith("required")
