@@ -187,6 +187,19 @@ class FieldToolApp(App):
         self.notify(f"viewer at {self.viewer_url}: focus a pixel field here, click in the browser; "
                     f"over SSH first run on your computer: {ssh_line(self.viewer.port)}", timeout=12)
 
+    def show_in_viewer(self, kind: str) -> None:
+        """Show an image (``viewer.images.KINDS``, e.g. "filtered") in the viewer, started if needed."""
+        if self.viewer is None:
+            self.action_viewer()
+        if self.viewer is None:
+            return
+        try:
+            self.viewer.show_image(kind)
+        except Exception as e:  # noqa: BLE001 - the viewer is a help, never a stop
+            self.notify(f"the viewer cannot show it: {e}", severity="warning")
+            return
+        self.notify(f"shown in the viewer at {self.viewer_url}", timeout=6)
+
     def _pick_from_viewer(self, key: str, value: Any) -> None:
         """Called from the viewer's thread after it saved a pick."""
         self.call_from_thread(self.viewer_picked, key, value)

@@ -10,6 +10,7 @@ from textual.widgets import Footer, OptionList, Static
 
 from .. import keys
 from ...errors import FieldToolError
+from ..checks import is_missing
 from ..fields import Field
 from ..steps import STEP_BY_ID, STEP_IDS, fields_for
 from ..widgets.chrome import HelpLine, StatusLine, StepList, TitleBar
@@ -50,7 +51,9 @@ class StepScreen(Screen):
             yield StepList(self.STEP, marks, self.session.mark_reasons)
             with VerticalScroll(id="main"):
                 n = STEP_IDS.index(self.STEP) + 1
-                yield Static(f"[b]{n}. {STEP_BY_ID[self.STEP].title}[/b]  [dim]{self.INTRO}[/dim]", id="heading")
+                heading = Text.from_markup(f"[b]{n}. {STEP_BY_ID[self.STEP].title}[/b]  [dim]{self.INTRO}[/dim]")
+                heading.no_wrap, heading.overflow = True, "ellipsis"
+                yield Static(heading, id="heading")
                 yield Static("", id="step-errors")
                 yield from self.compose_top()
                 seen: set[str] = set()
@@ -87,6 +90,12 @@ class StepScreen(Screen):
         self.focus_first()
 
     def focus_first(self) -> None:
+        """Focus the first field still to be entered, else the first field (saves tabs on arrival)."""
+        for row in self.rows:
+            err = row.current_error() if row.display else None
+            if err and is_missing(err):
+                row.control.focus()
+                return
         for w in self.query("#main Input, #main Select, #main OptionList, #main DataTable"):
             if w.display and w.parent is not None and all(a.display for a in w.ancestors_with_self if hasattr(a, "display")):
                 w.focus()
@@ -143,7 +152,9 @@ class StepScreen(Screen):
     def show_row_help(self, row: FieldRow) -> None:
         """The help line of a field: its full message first when its entry is wrong, then its help."""
         t = Text()
-        if row.error:
+        if row.error and is_missing(row.error):
+            t.append("✗ required · ", style="bold red")
+        elif row.error:
             t.append(f"✗ {row.error}\n", style="bold red")
         t.append(row.field.help_line(self.project))
         self.query_one(HelpLine).update(t)

@@ -27,7 +27,7 @@ def typed_level(project) -> float | None:
 
 class CrossSectionScreen(StepScreen):
     STEP = "cross_section"
-    INTRO = "the surveyed bed, left bank to right bank"
+    INTRO = "the surveyed bed, left to right bank"
     BINDINGS = keys.CROSS_SECTION
 
     def compose_extra(self) -> ComposeResult:

@@ -20,7 +20,7 @@ SCHEMATIC = ("P1 ──L1── P2   bank 1\n"
 
 class OrthoScreen(StepScreen):
     STEP = "ortho"
-    INTRO = "image pixels -> metres on the water"
+    INTRO = "pixels -> metres on the water"
     BINDINGS = [keys.run("Check GCPs")]
 
     def compose_extra(self) -> ComposeResult:

@@ -15,7 +15,7 @@ from .cross_section import build_cross_section
 
 class WaterLevelScreen(StepScreen):
     STEP = "water_level"
-    INTRO = "elevation of the surface, datum of the section"
+    INTRO = "surface elevation in the section datum"
     BINDINGS = [keys.run("Compute level")]
 
     def compose_extra(self) -> ComposeResult:

@@ -13,6 +13,7 @@ from textual.containers import Horizontal, Vertical
 from textual.message import Message
 from textual.widgets import Input, Label, Select, Static
 
+from ..checks import is_missing
 from ..fields import Field
 
 
@@ -119,19 +120,24 @@ class FieldRow(Vertical):
         self._show(self.current_error())
 
     def _show(self, msg: str | None) -> None:
-        """One line under the field (the key and the help are left out: the label says the first,
-        the help line shows the full message and the help when the field has the focus)."""
+        """A wrong entry: one line under the field, without the key (the label says it); the help
+        line shows the full message when the field has the focus. A missing entry takes no line:
+        the label turns red and the empty input says "required"."""
         self.error = msg
+        missing = bool(msg) and is_missing(msg)
         box = self.query_one(".field-error", Static)
-        box.update(Text(short_message(msg, self.field.key), no_wrap=True, overflow="ellipsis") if msg else "")
-        box.display = bool(msg)
+        box.update(Text(short_message(msg, self.field.key), no_wrap=True, overflow="ellipsis")
+                   if msg and not missing else "")
+        box.display = bool(msg) and not missing
         self.set_class(bool(msg), "-invalid")
+        ctl = self.control
+        if isinstance(ctl, Input):
+            ph = self.field.placeholder(self.project) if callable(self.field.placeholder) else self.field.placeholder
+            ctl.placeholder = "✗ required" + (f" · {ph}" if ph else "") if missing else ph
 
 
 def short_message(msg: str, key: str) -> str:
-    """The one-line form of a field's message: without the leading key, "required" without the help."""
+    """The one-line form of a field's message: "✗ " and the message without the leading key."""
     if msg.startswith(key + ": "):
         msg = msg[len(key) + 2:]
-    if msg.startswith("required"):
-        return "✗ required (the help line below says what to enter)"
     return "✗ " + msg
