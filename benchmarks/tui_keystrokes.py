@@ -3,7 +3,8 @@
 A scripted Pilot walk, as an operator would do it: `fieldtool init` in a folder holding the demo's
 clip and cross-section, then the TUI by keys only, step by step, with the fewest keys the TUI allows
 (tabs counted until the wanted field has the focus; a field holding a value is cleared first when
-focusing it does not select its content). Two variants:
+focusing it does not select its content; a file name typed until the field offers it, then →).
+Two variants:
 
 * ``keys``  : every value typed, pixel points included;
 * ``viewer``: pixel points picked in the viewer (ctrl+o opens it; clicks counted separately).
@@ -64,13 +65,25 @@ class Walk:
             await self.press("end", "ctrl+u")
         await self.press(*text)
 
+    async def type_path(self, key: str, text: str) -> None:
+        """Type a file name until the field offers it, then accept it with → (when it does)."""
+        await self.focus(key)
+        inp = self.app.focused
+        sel = getattr(inp, "selection", None)
+        if inp.value and not (sel is not None and abs(sel.end - sel.start) == len(inp.value)):
+            await self.press("end", "ctrl+u")
+        for i, ch in enumerate(text):
+            await self.press(ch)
+            await self.pilot.pause(0.05)
+            if i + 1 < len(text) and getattr(inp, "_suggestion", "") == text:
+                await self.press("right")
+                break
+        assert inp.value == text, inp.value
+
     async def next(self, step: str) -> None:
         await self.press("ctrl+n")
         await self.pilot.pause(0.2)
         assert self.app.screen.STEP == step, (self.app.screen.STEP, step)
-
-    def keyname(self, ch: str) -> str:
-        return ch
 
 
 async def walk(folder: Path, demo, variant: str) -> dict:
@@ -80,9 +93,9 @@ async def walk(folder: Path, demo, variant: str) -> dict:
         await pilot.pause(0.5)
         t0 = time.monotonic()
         assert app.screen.STEP == "cross_section"
-        await w.type("cross_section.path", "cross_section.csv")
+        await w.type_path("cross_section.path", "cross_section.csv")
         await w.next("video")
-        await w.type("video.path", "river.mp4")
+        await w.type_path("video.path", "river.mp4")
         await w.next("calibration")
         await w.next("ortho")
         if variant == "viewer":

@@ -44,8 +44,9 @@ def make_project(root, step: str, **changes) -> FieldToolApp:
     return p
 
 
-def fake_result(root, p: Project) -> None:
-    """result.json and subsections.csv as a run writes them (numbers made up, inputs current)."""
+def fake_result(root, p: Project, n: int = 5, quality: bool = False) -> None:
+    """result.json and subsections.csv as a run writes them (numbers made up, inputs current);
+    ``quality``: with the 95 % interval and the quality verdict."""
     out = root / "out"
     out.mkdir()
     summary = {"discharge_m3s": 1.2345, "discharge_p05_m3s": 1.1, "discharge_p95_m3s": 1.35,
@@ -54,11 +55,17 @@ def fake_result(root, p: Project) -> None:
                "alpha_default": True, "n_pairs": 7, "valid_fraction_mean": 0.9, "warnings": [],
                "files": {"result": "result.json", "subsections": "subsections.csv", "section_png": "section.png"},
                "inputs": project_to_dict(p)}
+    if quality:
+        summary["discharge_ci95_m3s"] = [1.069, 1.4]
+        summary["quality"] = {"grade": "doubtful", "reasons": [
+            {"code": "valid_fraction", "severity": "doubtful", "message": "few valid vectors (38 % < 50 %)",
+             "value": 0.38, "threshold": 0.5}]}
     (out / "result.json").write_text(json.dumps(summary))
     rows = ["subsection,station_from_m,station_to_m,area_m2,mean_depth_m,surface_velocity_ms,velocity_filled,"
             "discharge_m3s"]
-    for i in range(5):
-        rows.append(f"{i + 1},{0.3 + 0.88 * i:.4f},{0.3 + 0.88 * (i + 1):.4f},0.84,0.95,0.37,{int(i == 4)},0.25")
+    w = 4.4 / n
+    for i in range(n):
+        rows.append(f"{i + 1},{0.3 + w * i:.4f},{0.3 + w * (i + 1):.4f},0.84,0.95,0.37,{int(i == n - 1)},0.25")
     (out / "subsections.csv").write_text("\n".join(rows) + "\n")
 
 

@@ -15,6 +15,7 @@ from textual.widgets import Input, Label, Select, Static
 
 from ..checks import is_missing
 from ..fields import Field
+from .path_suggester import PathSuggester
 
 
 def field_id(field: Field) -> str:
@@ -56,7 +57,9 @@ class FieldRow(Vertical):
             else:
                 ph = f.placeholder(self.project) if callable(f.placeholder) else f.placeholder
                 # select_on_focus: typing into a field that holds "0" replaces it (not "0abc")
-                yield Input(f.format(value), placeholder=ph, compact=True, id="input", select_on_focus=True)
+                suggester = PathSuggester(self.project.root, f.key) if f.kind == "path" else None
+                yield Input(f.format(value), placeholder=ph, compact=True, id="input", select_on_focus=True,
+                            suggester=suggester)
         yield Static("", classes="field-error")
 
     def on_mount(self) -> None:
