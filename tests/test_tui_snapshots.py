@@ -72,13 +72,36 @@ def fake_result(root, p: Project, n: int = 5, quality: bool = False) -> None:
 @pytest.mark.parametrize("step", [s for s in STEP_IDS if s != "results"])
 def test_screen(step, tmp_path, snap_compare):
     make_project(tmp_path / "m", step)
-    press = ["ctrl+r", "_"] if step == "filters" else []  # the filter preview
-    assert snap_compare(FieldToolApp(tmp_path / "m" / "project.toml"), press=press, terminal_size=SIZE)
+    assert snap_compare(FieldToolApp(tmp_path / "m" / "project.toml"), terminal_size=SIZE)
+
+
+def test_filter_preview(tmp_path, snap_compare):
+    """ctrl+r on the filters step: before / after at the size of the terminal."""
+    make_project(tmp_path / "m", "filters")
+    assert snap_compare(FieldToolApp(tmp_path / "m" / "project.toml"), press=["ctrl+r", "_"], terminal_size=SIZE)
 
 
 def test_results_screen(tmp_path, snap_compare):
     p = make_project(tmp_path / "m", "results")
     fake_result(tmp_path / "m", p)
+    assert snap_compare(FieldToolApp(tmp_path / "m" / "project.toml"), terminal_size=SIZE)
+
+
+def test_results_with_interval_grade_and_15_subsections(tmp_path, snap_compare):
+    p = make_project(tmp_path / "m", "results")
+    fake_result(tmp_path / "m", p, n=15, quality=True)
+    assert snap_compare(FieldToolApp(tmp_path / "m" / "project.toml"), terminal_size=SIZE)
+
+
+def test_ortho_with_empty_gcps(tmp_path, snap_compare):
+    """Missing entries take no line: red label and "✗ required" in the input; L1-L6 stay on screen."""
+    make_project(tmp_path / "m", "ortho", ortho__gcp_px=[])
+    assert snap_compare(FieldToolApp(tmp_path / "m" / "project.toml"), terminal_size=SIZE)
+
+
+def test_sidebar_with_a_wrong_step(tmp_path, snap_compare):
+    """Start 10 s past the end of a 1 s clip: ✗ and the reason under the video step."""
+    make_project(tmp_path / "m", "cross_section", video__start_s=10.0, video__end_s=None)
     assert snap_compare(FieldToolApp(tmp_path / "m" / "project.toml"), terminal_size=SIZE)
 
 

@@ -28,7 +28,7 @@ class PreviewScreen(ModalScreen):
 
     def compose(self) -> ComposeResult:
         with Vertical(id="preview-box"):
-            yield Static(f"filter preview · escape closes · ctrl+o opens {self.png} in the viewer", id="preview-title")
+            yield Static(f"filter preview · esc closes · ctrl+o shows {self.png} in the viewer", id="preview-title")
             with Horizontal(id="preview-big"):
                 yield GrayImage(id="big-before")
                 yield GrayImage(id="big-after")
