@@ -191,6 +191,13 @@ def build_mapping(project: Project, inputs: Inputs, level_m: float | None) -> or
             raise ParameterError("ortho.gcp_px: give exactly four [x, y] pixel points P1..P4 for method = distances")
         ortho.check_in_frame(raw, shape, "ortho.gcp_px")
         return ortho.from_distances(inputs.to_working(raw), o.distances_m)
+    if o.method == "two_points":
+        raw = np.asarray(o.gcp_px, float)
+        if raw.shape != (2, 2):
+            raise ParameterError("ortho.gcp_px: give exactly two [x, y] pixel points P1, P2 for method = two_points")
+        ortho.check_in_frame(raw, shape, "ortho.gcp_px")
+        return ortho.from_two_points(inputs.to_working(raw), o.distances_m[0] if len(o.distances_m) == 1 else None,
+                                     o.gcp_world_m or None)
     if o.method == "world":
         raw = np.asarray(o.gcp_px, float)
         ortho.check_in_frame(raw.reshape(-1, 2), shape, "ortho.gcp_px")
@@ -221,7 +228,7 @@ def build_mapping(project: Project, inputs: Inputs, level_m: float | None) -> or
         length_px = float(np.hypot(*(pts[1] - pts[0])))
         width = inputs.cross_section.wetted_width(level_m)
         return ortho.from_scale(width / length_px)
-    raise ParameterError(f"ortho.method: {o.method!r} is not one of distances, world, pose, none")
+    raise ParameterError(f"ortho.method: {o.method!r} is not one of distances, world, pose, two_points, none")
 
 
 def level_and_mapping(project: Project, inputs: Inputs):

@@ -83,9 +83,9 @@ class OrthoCfg:
     |P1P3|, |P2P4|.
     """
 
-    method: str = "distances"  # distances | world | pose | none
+    method: str = "distances"  # distances | world | pose | two_points (nadir, P1 P2 + |P1P2|) | none
     gcp_px: list[Point] = field(default_factory=list)  # [[x, y], ...] pixels, P1..P4 (pose: 6+)
-    distances_m: list[float] = field(default_factory=list)  # L1..L6 (method = distances)
+    distances_m: list[float] = field(default_factory=list)  # L1..L6 (method = distances); [|P1P2|] (method = two_points)
     gcp_world_m: list[list[float]] = field(default_factory=list)  # [[X, Y], ...] or [[X, Y, Z], ...] (pose)
     resolution_m: float | None = None  # pixel size of the rectified image (m); None = automatic
 
