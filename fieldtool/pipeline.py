@@ -225,9 +225,11 @@ def build_mapping(project: Project, inputs: Inputs, level_m: float | None) -> or
         pts = inputs.to_working(project.section.points_px)
         if pts.shape != (2, 2):
             raise ParameterError("section.points_px: give the two water edges; without GCPs they set the image scale")
+        # the picked points are the OUTER water edges, so the scale is their distance on the cross-section,
+        # not the wetted width (which leaves out islands: -8.3 % with a 1 m island in 12 m)
         length_px = float(np.hypot(*(pts[1] - pts[0])))
-        width = inputs.cross_section.wetted_width(level_m)
-        return ortho.from_scale(width / length_px)
+        left, right = inputs.cross_section.water_edges(level_m)
+        return ortho.from_scale((right - left) / length_px)
     raise ParameterError(f"ortho.method: {o.method!r} is not one of distances, world, pose, two_points, none")
 
 

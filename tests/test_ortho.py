@@ -101,3 +101,26 @@ def test_two_points_similarity():
         from_two_points([[10, 10], [12, 11]], 5.0)
     with pytest.raises(ParameterError, match="distances_m"):
         from_two_points(px[:2], None)
+
+
+def test_scale_without_gcps_spans_the_outer_water_edges():
+    """Thesis 8.2 with an island: the two picked points are the outer water edges, so the image scale is
+    their distance on the cross-section (12 m), not the wetted width (11 m, island left out), which
+    would make every velocity 8.3 % too low."""
+    from types import SimpleNamespace
+
+    from fieldtool.pipeline import Inputs, build_mapping
+    from fieldtool.processing.cross_section import CrossSection
+    from fieldtool.project import Project
+
+    cs = CrossSection(np.array([0, 2, 7.5, 8, 8.5, 9, 9.5, 14, 16.0]), np.array([11, 10, 8, 10, 10.4, 10, 8, 10, 11.0]))
+    assert cs.wetted_width(10.0) == pytest.approx(11.0)
+    left, right = cs.water_edges(10.0)
+    assert right - left == pytest.approx(12.0)
+    p = Project()
+    p.ortho.method = "none"
+    p.section.points_px = [[40.0, 300.0], [1240.0, 300.0]]  # 1200 px between the outer edges
+    inputs = Inputs(cs, SimpleNamespace(shape=(720, 1280)), None, None)
+    m = build_mapping(p, inputs, 10.0)
+    assert m.details["m_per_px"] == pytest.approx(12.0 / 1200.0)
+    assert 11.0 / 1200.0 / m.details["m_per_px"] - 1 == pytest.approx(-0.0833, abs=1e-3)  # the old scale's error
