@@ -276,7 +276,8 @@ def working_frames(project: Project, inputs: Inputs, cancel: Callable[[], bool] 
     """Stream (t_s, float32 working frame): undistorted, stabilised, filtered."""
     from .processing.filters import FilterStack
 
-    stack = FilterStack.from_config(project.filters) if project.filters else None
+    # filters work inside the ROI only (thesis 9.2.7): banks and sky do not set their statistics
+    stack = FilterStack.from_config(project.filters, roi=roi_and_mask(project, inputs)[0]) if project.filters else None
     stabilizer = None
     total = inputs.source.estimated_count()
 
