@@ -177,7 +177,8 @@ def compute_level(project: Project, inputs: Inputs, mapping: ortho.OrthoMapping 
 
     fov = inputs.lens.fov_deg() if inputs.lens is not None else None
     return _compute(project.water_level, inputs.cross_section, root=project.root, mapping=mapping, fov_deg=fov,
-                    points_transform=inputs.to_working if inputs.lens is not None else None)
+                    points_transform=inputs.to_working if inputs.lens is not None else None,
+                    image_undistort=inputs.lens.undistort_points_in if inputs.lens is not None else None)
 
 
 def build_mapping(project: Project, inputs: Inputs, level_m: float | None) -> ortho.OrthoMapping:

@@ -611,7 +611,8 @@ def image_width(edges_px, mapping: OrthoMapping, pixel_sigma_px: float,
 
 def compute_level(cfg: WaterLevelCfg, cs: CrossSection, *, root: Path, mapping: OrthoMapping | None = None,
                   fov_deg: tuple[float, float, float] | None = None,
-                  points_transform: Callable[[np.ndarray], np.ndarray] | None = None) -> LevelResult:
+                  points_transform: Callable[[np.ndarray], np.ndarray] | None = None,
+                  image_undistort: Callable[[np.ndarray, tuple[int, int]], np.ndarray] | None = None) -> LevelResult:
     """Water level by ``cfg.method`` (see module docstring).
 
     Parameters
@@ -624,6 +625,8 @@ def compute_level(cfg: WaterLevelCfg, cs: CrossSection, *, root: Path, mapping: 
         None, ``cfg.fov_deg`` is used.
     points_transform : raw-frame pixels -> working-image pixels (lens undistortion), applied to
         ``cfg.edges_px`` (method = image).
+    image_undistort : ``(pts, (H, W)) -> pts`` lens undistortion of pixels of an image of that size
+        (angle_height: the pinhole formulas of thesis 5.2.1 need undistorted edges).
     """
     root = Path(root)
     m = cfg.method
@@ -658,10 +661,14 @@ def compute_level(cfg: WaterLevelCfg, cs: CrossSection, *, root: Path, mapping: 
                                  "(calibration.path) or give water_level.fov_deg = [x, y, diagonal] in degrees")
         shape1 = _read_shape(_resolve(root, cfg.image1), "water_level.image1")
         shape2 = _read_shape(_resolve(root, cfg.image2), "water_level.image2")
-        r = angle_height_width(cfg.edges1_px, cfg.edges2_px, shape1, shape2, cfg.dh_m, fov,
+        e1, e2 = cfg.edges1_px, cfg.edges2_px
+        if image_undistort is not None and np.shape(e1) == (2, 2) and np.shape(e2) == (2, 2):
+            e1, e2 = image_undistort(np.asarray(e1, float), shape1), image_undistort(np.asarray(e2, float), shape2)
+        r = angle_height_width(e1, e2, shape1, shape2, cfg.dh_m, fov,
                                dh_sigma_m=cfg.dh_uncertainty_m, pixel_sigma_px=cfg.pixel_uncertainty_px,
                                fov_sigma_deg=cfg.fov_uncertainty_deg)
         r["fov_source"] = "calibration" if fov_deg is not None else "water_level.fov_deg"
+        r["edges_undistorted"] = image_undistort is not None
         return _from_width(cs, r["width_m"], r["width_sigma_m"], "angle_height", r)
     if m == "image":
         if mapping is None:
