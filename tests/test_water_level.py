@@ -380,3 +380,35 @@ def test_angle_height_undistorts_edges_with_a_calibration(tmp_path):
     # a drone photo at another resolution of the same sensor is scaled, not refused
     half = lens.undistort_points_in(e1 / 2, (H_img // 2, W_img // 2))
     np.testing.assert_allclose(half * 2, lens.undistort_points(e1), atol=1e-6)
+
+
+def test_dem_from_any_gdal_raster(tmp_path):
+    """The DEM is read with GDAL (rasterio): GeoTIFF with a no-data value, an ESRI ASCII grid; a header
+    that claims an absurd size is refused before reading."""
+    import rasterio
+    from affine import Affine
+
+    from fieldtool.errors import InputFileError
+    from fieldtool.processing.water_level import read_dem
+
+    z = np.arange(12, dtype=np.float32).reshape(3, 4) + 10
+    z[1, 2] = -9999
+    tif = tmp_path / "dem.tif"
+    with rasterio.open(tif, "w", driver="GTiff", width=4, height=3, count=1, dtype="float32", nodata=-9999,
+                       transform=Affine(1, 0, 0, 0, -1, 3)) as ds:
+        ds.write(z, 1)
+    a = read_dem(tif)
+    assert np.isnan(a[1, 2]) and a[0, 0] == 10 and a.shape == (3, 4)
+    asc = tmp_path / "dem.asc"
+    asc.write_text("ncols 4\nnrows 3\nxllcorner 0\nyllcorner 0\ncellsize 1\nNODATA_value -1\n"
+                   "10 11 12 13\n14 15 -1 17\n18 19 20 21\n")
+    b = read_dem(asc)
+    assert np.isnan(b[1, 2]) and b[2, 3] == 21
+    huge = tmp_path / "huge.asc"
+    huge.write_text("ncols 100000\nnrows 100000\nxllcorner 0\nyllcorner 0\ncellsize 1\n1 2 3\n")
+    with pytest.raises(InputFileError, match="100000x100000"):
+        read_dem(huge)
+    bad = tmp_path / "bad.tif"
+    bad.write_bytes(b"II*\x00garbage")
+    with pytest.raises(InputFileError, match="cannot read"):
+        read_dem(bad)

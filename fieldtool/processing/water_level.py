@@ -278,26 +278,30 @@ def _from_width(cs: CrossSection, width_m: float, width_sigma_m: float, method: 
 # adapted Hellebaut (DEM)
 
 
+MAX_DEM_CELLS = 200_000_000  # 1.6 GB as float64: a bank DEM larger than this is to be cropped first
+
+
 def read_dem(path: Path) -> np.ndarray:
-    """Elevations (m) of a TIFF DEM as float, no-data (GDAL tag or non-finite) as NaN; first band."""
-    import tifffile
+    """Elevations (m) of a DEM in any raster format GDAL reads (GeoTIFF, ASCII grid, IMG, VRT, ...), as
+    float, its no-data value and non-finite cells as NaN; first band. The size is checked from the header
+    before any cell is read."""
+    import warnings
+
+    import rasterio
+    from rasterio.errors import NotGeoreferencedWarning, RasterioIOError
 
     if not path.is_file():
-        raise InputFileError(f"{path}: DEM file not found (water_level.dem_path); give a TIFF of elevations in metres")
+        raise InputFileError(f"{path}: DEM file not found (water_level.dem_path); give a raster of elevations in metres")
     try:
-        with tifffile.TiffFile(path) as tif:
-            page = tif.pages[0]
-            arr = page.asarray().astype(float)
-            tag = page.tags.get(42113)  # GDAL_NODATA
-            nodata = float(str(tag.value).strip("\x00 ")) if tag is not None else None
-    except (tifffile.TiffFileError, ValueError, OSError) as e:
-        raise InputFileError(f"{path}: cannot read this DEM as a TIFF ({e}); export it as a GeoTIFF of elevations") from e
-    if arr.ndim == 3:
-        arr = arr[..., 0] if arr.shape[-1] <= 4 else arr[0]
-    if arr.ndim != 2:
-        raise InputFileError(f"{path}: a DEM must be one 2-D band of elevations, got shape {arr.shape}")
-    if nodata is not None:
-        arr[arr == nodata] = np.nan
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", NotGeoreferencedWarning)
+            with rasterio.open(path) as ds:
+                if ds.width * ds.height > MAX_DEM_CELLS:
+                    raise InputFileError(f"{path}: the DEM header says {ds.width}x{ds.height} cells, more than "
+                                         f"{MAX_DEM_CELLS:,}; crop it to the bank near the section")
+                arr = ds.read(1, masked=True).astype(float).filled(np.nan)
+    except RasterioIOError as e:
+        raise InputFileError(f"{path}: cannot read this DEM as a raster ({e}); export it as a GeoTIFF of elevations") from e
     arr[~np.isfinite(arr)] = np.nan
     return arr
 
