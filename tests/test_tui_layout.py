@@ -16,7 +16,7 @@ from fieldtool.tui.fields import Field, Invalid
 from fieldtool.tui.screens.filters import parse_params
 from fieldtool.tui.screens.preview import PreviewScreen
 from fieldtool.tui.session import Session
-from fieldtool.tui.steps import STEP_IDS, fields_for
+from fieldtool.tui.steps import STEP_IDS
 from fieldtool.tui.widgets.chrome import HelpLine, StatusLine
 from fieldtool.tui.widgets.field_row import FieldRow
 from fieldtool.tui.widgets.plots import GrayImage

@@ -67,7 +67,7 @@ def core_check(session, step: str) -> None:
 
             load_calibration(p.resolve(p.calibration.path))
     elif step == "ortho":
-        if p.ortho.method in ("distances", "world"):
+        if p.ortho.method in ("distances", "world", "two_points"):
             build_mapping(p, session.inputs(), None)
         elif p.ortho.method == "pose" and not p.calibration.path:
             raise ParameterError("ortho.method = pose needs the camera intrinsics: calibrate or load a lens in step 3")

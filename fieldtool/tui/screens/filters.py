@@ -143,8 +143,8 @@ class FiltersScreen(StepScreen):
             frames = None
             if FilterStack.from_config(self.project.filters).needs_prepass:
                 frames = (self.lens(inputs, f.image) for f in inputs.source)
-            # the pipeline filters whole frames (image-based defaults come from the whole frame)
-            filtered = preview(self.project.filters, gray, frames)
+            # as the pipeline: filtered inside the ROI only (image-based defaults come from the ROI)
+            filtered = preview(self.project.filters, gray, frames, roi)
         except FieldToolError as e:
             self.show_errors([str(e)])
             return

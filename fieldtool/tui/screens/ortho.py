@@ -7,7 +7,7 @@ from textual.app import ComposeResult
 from textual.markup import escape
 from textual.widgets import Static
 
-from ...errors import FieldToolError, ParameterError
+from ...errors import FieldToolError
 from .. import keys
 from .base import StepScreen
 
@@ -46,13 +46,17 @@ class OrthoScreen(StepScreen):
 
     def action_run(self) -> None:
         info = self.query_one("#ortho-info", Static)
-        if self.project.ortho.method not in ("distances", "world"):
+        if self.project.ortho.method not in ("distances", "world", "two_points"):
             self.refresh_view()
             return
         try:
             mp = self.mapping()
         except FieldToolError as e:
             info.update(f"[red]{escape(str(e))}[/red]")
+            return
+        if mp.method == "two_points":
+            info.update(f"scale {mp.details['m_per_px'] * 1000:.2f} mm/px, rotation {mp.details['rotation_deg']:.1f}°; "
+                        "two points: exact, a straight-down view is assumed, not checked")
             return
         res = f"{mp.residual_m * 1000:.1f} mm" if mp.residual_m is not None else "n/a"
         info.update(f"GCP geometry solved: residual of the distances {res}")

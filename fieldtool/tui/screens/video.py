@@ -6,7 +6,7 @@ from textual.app import ComposeResult
 from textual.markup import escape
 from textual.widgets import Static
 
-from ...errors import FieldToolError, ParameterError
+from ...errors import FieldToolError
 from .. import keys
 from .base import StepScreen
 
