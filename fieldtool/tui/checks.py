@@ -21,7 +21,7 @@ from ..project import project_to_dict
 _INPUTS = ("video", "cross_section", "calibration")
 CORE_TABLES = {
     "cross_section": ("cross_section",),
-    "video": _INPUTS + ("stabilize",),
+    "video": ("video", "stabilize"),
     "calibration": ("calibration",),
     "ortho": _INPUTS + ("ortho",),
     "water_level": _INPUTS + ("ortho", "water_level"),
@@ -56,8 +56,14 @@ def core_check(session, step: str) -> None:
         from .screens.cross_section import build_cross_section
 
         build_cross_section(p)
-    elif step == "video":
-        src = session.inputs().source
+    elif step == "video":  # the clip alone (not the lens, whose step comes after)
+        from ..processing.frames import FrameSource, read_color_frame
+
+        v = p.video
+        if not v.path:
+            raise ParameterError("video.path: no video given; set the clip to analyse")
+        src = FrameSource(p.resolve(v.path), v.start_s, v.end_s, v.step, v.frame_interval_s)
+        read_color_frame(p.resolve(v.path), v.start_s, v.frame_interval_s)
         if src.estimated_count() < 2:
             raise ParameterError("video: the range holds fewer than 2 frames; widen video.start_s .. video.end_s "
                                  "or lower video.step")

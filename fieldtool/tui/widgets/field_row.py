@@ -23,6 +23,9 @@ def field_id(field: Field) -> str:
     return "f-" + field.key.replace(".", "-").replace("[", "-").replace("]", "")
 
 
+PLACEHOLDER_MAX = 30  # characters an input shows at 80 x 24 (placeholders are kept within it)
+
+
 class FieldRow(Vertical):
     """A labelled input bound to one project key."""
 
@@ -136,7 +139,8 @@ class FieldRow(Vertical):
         ctl = self.control
         if isinstance(ctl, Input):
             ph = self.field.placeholder(self.project) if callable(self.field.placeholder) else self.field.placeholder
-            ctl.placeholder = "✗ required" + (f" · {ph}" if ph else "") if missing else ph
+            full = f"✗ required · {ph}" if ph else "✗ required"
+            ctl.placeholder = (full if len(full) <= PLACEHOLDER_MAX else "✗ required") if missing else ph
 
 
 def short_message(msg: str, key: str) -> str:
