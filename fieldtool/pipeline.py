@@ -206,20 +206,31 @@ def build_mapping(project: Project, inputs: Inputs, level_m: float | None) -> or
     if o.method == "pose":
         from .processing import pose
 
-        if inputs.lens is None:
-            raise ParameterError("ortho.method = pose needs the camera intrinsics: set calibration.path")
         if level_m is None:
             raise ParameterError("ortho.method = pose needs the water level first")
         raw = np.asarray(o.gcp_px, float)
         world = np.asarray(o.gcp_world_m, float)
-        p = pose.solve_pose(raw, world, inputs.lens.camera_matrix, inputs.lens.dist_coeffs)
+        lens_fit = None
+        if inputs.lens is None:
+            if not o.fit_lens:
+                raise ParameterError("ortho.method = pose needs the camera intrinsics: set calibration.path, or set "
+                                     "ortho.fit_lens = true to fit focal length and k1 from 8+ GCPs")
+            from .processing.calibration import LensModel
+
+            h, w = shape
+            K, dist, p, lens_fit = pose.fit_lens(raw, world, (w, h))
+            inputs.lens = LensModel(K, dist, (w, h), rms_px=lens_fit["rms_px"])  # frames are undistorted with it
+        else:
+            p = pose.solve_pose(raw, world, inputs.lens.camera_matrix, inputs.lens.dist_coeffs)
         H = pose.plane_homography(p, level_m)
         # residual in metres: each GCP's ray met on the horizontal plane at its own elevation
         und = inputs.to_working(raw)
         miss = [np.hypot(*(ortho._apply(pose.plane_homography(p, z), und[i:i + 1])[0] - world[i, :2]))
                 for i, z in enumerate(world[:, 2])]
-        return ortho.from_homography(H, "pose", float(np.sqrt(np.mean(np.square(miss)))), world[:, :2],
-                                     {"reprojection_rms_px": p.rms_px, "gcp_residual_m": [float(m) for m in miss]})
+        details = {"reprojection_rms_px": p.rms_px, "gcp_residual_m": [float(m) for m in miss]}
+        if lens_fit is not None:
+            details["lens_from_gcps"] = lens_fit
+        return ortho.from_homography(H, "pose", float(np.sqrt(np.mean(np.square(miss)))), world[:, :2], details)
     if o.method == "none":
         if level_m is None:
             raise ParameterError("ortho.method = none takes the image scale from the wetted width: the water level is needed first")

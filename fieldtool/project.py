@@ -87,6 +87,7 @@ class OrthoCfg:
     gcp_px: list[Point] = field(default_factory=list)  # [[x, y], ...] pixels, P1..P4 (pose: 6+)
     distances_m: list[float] = field(default_factory=list)  # L1..L6 (method = distances); [|P1P2|] (method = two_points)
     gcp_world_m: list[list[float]] = field(default_factory=list)  # [[X, Y], ...] or [[X, Y, Z], ...] (pose)
+    fit_lens: bool = False  # pose without calibration.path: fit focal length and k1 from 8+ GCPs (X, Y, Z)
     resolution_m: float | None = None  # pixel size of the rectified image (m); None = automatic
 
 
