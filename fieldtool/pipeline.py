@@ -171,14 +171,36 @@ def load_inputs(project: Project) -> Inputs:
     return Inputs(cs, src, lens, first)
 
 
+def detect_waterline(project: Project, inputs: Inputs) -> dict:
+    """Water edges found along the search line in the clip's first frames (processing.waterline): the
+    project's ``water_level.search_line_px``, else the section's points lengthened by 40 % each way."""
+    from .processing import waterline
+
+    wl = project.water_level
+    if wl.search_line_px:
+        line = inputs.to_working(wl.search_line_px)
+        if line.shape != (2, 2):
+            raise ParameterError("water_level.search_line_px: give two [x, y] pixel points, one on each bank")
+    else:
+        sec = np.asarray(project.section.points_px, float)
+        if sec.shape != (2, 2):
+            raise ParameterError("water_level.search_line_px: draw a line from bank to bank across the river "
+                                 "(or pick the section's water edges, which it extends)")
+        line = waterline.extend_line(*inputs.to_working(sec), 0.4, inputs.shape)
+    frames = (inputs.lens.undistort(f.image) if inputs.lens is not None else f.image for f in inputs.source)
+    return waterline.detect_water_edges(frames, line)
+
+
 def compute_level(project: Project, inputs: Inputs, mapping: ortho.OrthoMapping | None):
     """Water level by the project's method (see processing.water_level)."""
     from .processing.water_level import compute_level as _compute
 
+    detected = detect_waterline(project, inputs) if project.water_level.method == "waterline" else None
     fov = inputs.lens.fov_deg() if inputs.lens is not None else None
     return _compute(project.water_level, inputs.cross_section, root=project.root, mapping=mapping, fov_deg=fov,
                     points_transform=inputs.to_working if inputs.lens is not None else None,
-                    image_undistort=inputs.lens.undistort_points_in if inputs.lens is not None else None)
+                    image_undistort=inputs.lens.undistort_points_in if inputs.lens is not None else None,
+                    detected=detected)
 
 
 def build_mapping(project: Project, inputs: Inputs, level_m: float | None) -> ortho.OrthoMapping:
@@ -248,7 +270,7 @@ def build_mapping(project: Project, inputs: Inputs, level_m: float | None) -> or
 def level_and_mapping(project: Project, inputs: Inputs):
     """Water level and image -> water-plane mapping, in the order the methods need: the image method
     measures the level on the mapping; every other method gives the level the mapping may need."""
-    if project.water_level.method == "image":
+    if project.water_level.method in ("image", "waterline"):
         mapping = build_mapping(project, inputs, None)
         level = compute_level(project, inputs, mapping)
     else:

@@ -95,7 +95,7 @@ class OrthoCfg:
 class WaterLevelCfg:
     """[water_level] elevation of the water surface, in the cross-section's datum (thesis ch. 5)."""
 
-    method: str = "value"  # value | width | dem | angle_height | image
+    method: str = "value"  # value | width | dem | angle_height | image | waterline (edges found in the clip)
     value_m: float | None = None  # method = value: typed level (m, datum of the cross-section, not a depth)
     uncertainty_m: float | None = None  # method = value: 1-sigma of the typed level (m); None = 0.01 m
     width_m: float | None = None  # method = width: measured wetted width, water edge to water edge (m)
@@ -120,6 +120,9 @@ class WaterLevelCfg:
     edges2_px: list[Point] = field(default_factory=list)  # left and right water edges on image 2
     # image method: left and right water edges on the raw frame, mapped with the ortho mapping
     edges_px: list[Point] = field(default_factory=list)
+    # waterline: a line from bank to bank on the raw frame along which the water edges are found; [] = the
+    # section's points lengthened by 40 % each way
+    search_line_px: list[Point] = field(default_factory=list)
 
 
 @dataclass
