@@ -351,6 +351,9 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
 
     if out_dir is not None:  # matplotlib takes ~0.6 s to import: let that overlap the PIV
         threading.Thread(target=importlib.import_module, args=("fieldtool.plots.discharge",), daemon=True).start()
+    from .validation import check
+
+    warnings += [str(w) for w in check(project)]  # every key, before any step
     obs("stage", "inputs")
     inputs = load_inputs(project)
     lap("inputs")

@@ -278,6 +278,9 @@ def _from_width(cs: CrossSection, width_m: float, width_sigma_m: float, method: 
 # adapted Hellebaut (DEM)
 
 
+DEM_MAX_PIXELS = 50_000_000  # a DEM larger than this (400 MB as float64) is refused from its header
+
+
 def read_dem(path: Path) -> np.ndarray:
     """Elevations (m) of a TIFF DEM as float, no-data (GDAL tag or non-finite) as NaN; first band."""
     import tifffile
@@ -287,6 +290,9 @@ def read_dem(path: Path) -> np.ndarray:
     try:
         with tifffile.TiffFile(path) as tif:
             page = tif.pages[0]
+            if int(np.prod(page.shape)) > DEM_MAX_PIXELS:  # checked on the header, before reading
+                raise InputFileError(f"{path}: the DEM is {'x'.join(map(str, page.shape))} pixels (more than "
+                                     f"{DEM_MAX_PIXELS:,}); crop it to the bank near the section")
             arr = page.asarray().astype(float)
             tag = page.tags.get(42113)  # GDAL_NODATA
             nodata = float(str(tag.value).strip("\x00 ")) if tag is not None else None

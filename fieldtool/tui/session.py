@@ -17,7 +17,7 @@ from typing import Any
 from ..errors import FieldToolError, InputFileError
 from ..project import Project, load_project, project_to_dict, save_project
 from .fields import field_errors
-from .steps import PIV_TABLES, STEP_IDS, STEPS, calibration_mode, fields_for
+from .steps import PIV_TABLES, STEP_IDS, STEPS, calibration_mode, fields_for, step_problems
 
 IGNORED_KEYS = ("name", "step", "rerun")
 
@@ -142,7 +142,9 @@ class Session:
             if not errs and self.calibration_state() != "current":
                 errs.append("calibration: run the calibration (ctrl+r) so the lens file exists and matches the settings")
             return errs
-        return field_errors(fields_for(step, self.ui), self.project)
+        errs = field_errors(fields_for(step, self.ui), self.project)
+        return errs + [str(pr) for pr in step_problems(step, self.project)
+                       if pr.severity == "error" and not any(e.startswith(pr.key) for e in errs)]
 
     def step_marks(self) -> dict[str, str]:
         """Sidebar mark per step: "ok", "todo" (something to fix/enter), "stale" (changed since
