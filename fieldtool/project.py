@@ -290,22 +290,31 @@ def project_to_dict(project: Project) -> dict:
     return _to_dict(project)
 
 
+def _parse_toml(path: Path) -> dict:
+    """The parsed TOML of a project file in any encoding fieldtool reads (see ``textfile``)."""
+    from .textfile import read_text
+
+    text = read_text(path, "project file")
+    try:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as e:
+        raise InputFileError(f"{path}: not valid TOML ({e}). Fix the line named, or re-create it.") from e
+    except RecursionError:
+        raise InputFileError(f"{path}: values nested too deeply to be a project file; fix or re-create it") from None
+
+
 def load_project(path: Path | str) -> Project:
     """Read a project file. Errors name the file and the key."""
     path = Path(path)
-    if not path.is_file():
+    if not path.exists():
         raise InputFileError(f"{path}: project file not found. Create one with `fieldtool init DIR`.")
-    try:
-        with path.open("rb") as fh:
-            data = tomllib.load(fh)
-    except tomllib.TOMLDecodeError as e:
-        raise InputFileError(f"{path}: not valid TOML ({e}). Fix the line named, or re-create it.") from e
-    except OSError as e:
-        raise InputFileError(f"{path}: cannot be read ({e.strerror}).") from e
+    data = _parse_toml(path)
     try:
         return project_from_dict(data, path.resolve().parent)
     except ParameterError as e:
         raise ParameterError(f"{path}: {e}") from e
+    except RecursionError:
+        raise ParameterError(f"{path}: values nested too deeply; fix or re-create the file") from None
 
 
 def atomic_write_bytes(path: Path | str, data: bytes) -> None:
@@ -330,6 +339,130 @@ def atomic_write_bytes(path: Path | str, data: bytes) -> None:
         raise
 
 
+def _merge_into(doc: Any, new: dict) -> None:
+    """Make the tomlkit container ``doc`` hold ``new``, touching only what differs (comments, order
+    and layout of everything else survive)."""
+    for k in [k for k in list(doc.keys()) if k not in new]:
+        del doc[k]
+    for k, v in new.items():
+        if k in doc and isinstance(v, dict) and hasattr(doc[k], "keys") and not isinstance(doc[k], list):
+            _merge_into(doc[k], v)
+        elif k not in doc or _plain(doc[k]) != v:
+            doc[k] = _inline(v)
+
+
+def _inline(v: Any) -> Any:
+    """Lists of tables as inline arrays (``filters = [{name = "clahe"}]``), so that they stay where
+    the key is, with its comment, instead of moving to an array of tables."""
+    if isinstance(v, list) and any(isinstance(x, dict) for x in v):
+        import tomlkit
+
+        arr = tomlkit.array()
+        for x in v:
+            if isinstance(x, dict):
+                t = tomlkit.inline_table()
+                t.update({kk: _inline(vv) for kk, vv in x.items()})
+                arr.append(t)
+            else:
+                arr.append(_inline(x))
+        return arr
+    return v
+
+
+def _plain(v: Any) -> Any:
+    return v.unwrap() if hasattr(v, "unwrap") else v
+
+
+def _dump_roundtrip(path: Path, data: dict) -> bytes:
+    """TOML bytes of ``data``, keeping the comments and layout of the file at ``path`` if it parses."""
+    import tomlkit
+
+    try:
+        from .textfile import read_text
+
+        doc = tomlkit.parse(read_text(path, "project file")) if path.exists() else None
+    except Exception:  # noqa: BLE001 - an unreadable old file is replaced by a plain new one
+        doc = None
+    if doc is None:
+        return tomli_w.dumps(data).encode("utf-8")
+    _merge_into(doc, data)
+    return tomlkit.dumps(doc).encode("utf-8")
+
+
+class _DirLock:
+    """An exclusive lock on the project file's folder (flock), held while re-reading, merging and
+    writing, so that two fieldtool processes never interleave their saves."""
+
+    def __init__(self, path: Path):
+        self.dir = path.resolve().parent
+        self.fd: int | None = None
+
+    def __enter__(self):
+        try:
+            import fcntl
+
+            self.fd = os.open(self.dir, os.O_RDONLY)
+            fcntl.flock(self.fd, fcntl.LOCK_EX)
+        except (ImportError, OSError):
+            if self.fd is not None:
+                os.close(self.fd)
+            self.fd = None
+        return self
+
+    def __exit__(self, *exc):
+        if self.fd is not None:
+            os.close(self.fd)  # closing releases the flock
+        return False
+
+
 def save_project(project: Project, path: Path | str) -> None:
-    """Write the project file atomically (temp file + rename)."""
-    atomic_write_bytes(path, tomli_w.dumps(project_to_dict(project)).encode("utf-8"))
+    """Write the whole project file atomically (temp file + rename), keeping the comments and
+    layout of the file already there. To change some keys while other processes may edit the same
+    file, use ``apply_changes``."""
+    path = Path(path)
+    with _DirLock(path):
+        atomic_write_bytes(path, _dump_roundtrip(path, project_to_dict(project)))
+
+
+def flat_changes(old: dict, new: dict) -> dict[str, Any]:
+    """Dotted keys ("video.path", "filters") whose values differ between two project dicts
+    (``project_to_dict``); a key left out of ``new`` maps to None (remove it)."""
+    out: dict[str, Any] = {}
+    for k in set(old) | set(new):
+        a, b = old.get(k), new.get(k)
+        if isinstance(a, dict) or isinstance(b, dict):
+            a, b = a if isinstance(a, dict) else {}, b if isinstance(b, dict) else {}
+            for kk in set(a) | set(b):
+                if a.get(kk) != b.get(kk):
+                    out[f"{k}.{kk}"] = b.get(kk)
+        elif a != b:
+            out[k] = b
+    return out
+
+
+def apply_changes(path: Path | str, changes: dict[str, Any]) -> Project:
+    """Set the dotted keys ``changes`` ({"calibration.path": "cal.toml"}; None removes a key) in the
+    project file at ``path`` as it is on disk now, leaving every other key as another process may
+    have saved it; write atomically (comments kept) and return the merged Project.
+
+    Re-read, merge and write happen under a lock on the folder, so concurrent writers each keep
+    their own keys. Raises ParameterError (naming the key) when a change does not fit the project.
+    """
+    path = Path(path)
+    with _DirLock(path):
+        data = _parse_toml(path) if path.exists() else {}
+        for dotted, value in changes.items():
+            *head, last = dotted.split(".")
+            node = data
+            for part in head:
+                nxt = node.get(part)
+                if not isinstance(nxt, dict):
+                    nxt = node[part] = {}
+                node = nxt
+            if value is None:
+                node.pop(last, None)
+            else:
+                node[last] = _to_dict(value)
+        project = project_from_dict(data, path.resolve().parent)
+        atomic_write_bytes(path, _dump_roundtrip(path, project_to_dict(project)))
+    return project
