@@ -273,6 +273,7 @@ class _Validator:
         self.files = files
         self.problems: list[Problem] = []
         self.bad: set[str] = set()
+        self.checked: set[str] = set()  # path keys whose file was checked
 
     def err(self, key: str, msg: str) -> None:
         self.bad.add(key)
@@ -324,6 +325,8 @@ class _Validator:
                          ("roi", self.roi), ("piv", self.piv), ("section", self.section),
                          ("calibration", self.calibration)):
             self.guarded(name, fn)
+        if self.files:
+            self.guarded("paths", self.unused_paths)
         order = {k: i for i, k in enumerate(_key_order())}
         self.problems.sort(key=lambda pr: (order.get(pr.key.split("[")[0], len(order)),
                                            order.get(pr.key.split(".")[0], len(order))))
@@ -454,6 +457,7 @@ class _Validator:
             if required:
                 self.err(k, "no file given; set the path")
             return False
+        self.checked.add(k)
         if not self.files or not self.ok(k):
             return self.ok(k)
         msg = path_problem(self.p.resolve(rel), k, kind=kind)
@@ -461,6 +465,20 @@ class _Validator:
             (self.err if required else self.warn)(k, msg)
             return False
         return True
+
+    def unused_paths(self) -> None:
+        """Paths the current methods do not read: a pipe, a device or a folder is still an error
+        (something would open it later); a missing file is a warning."""
+        for k, spec in describe().items():
+            if spec is None or spec.path not in ("file", "video") or k in self.checked or not self.ok(k):
+                continue
+            table, _, name = k.rpartition(".")
+            rel = getattr(getattr(self.p, table) if table else self.p, name, "")
+            if not rel or not isinstance(rel, str):
+                continue
+            msg = path_problem(self.p.resolve(rel), k, kind=spec.path)
+            if msg:
+                (self.warn if "not found" in msg else self.err)(k, msg)
 
     def video(self) -> None:
         v = self.p.video
