@@ -84,9 +84,9 @@ class OrthoCfg:
     |P1P3|, |P2P4|.
     """
 
-    method: str = key("distances", choices=("distances", "world", "pose", "none"))  # distances | world | pose | none
+    method: str = key("distances", choices=("distances", "world", "pose", "two_points", "none"))  # distances | world | pose | two_points (nadir, P1 P2 + |P1P2|) | none
     gcp_px: list[Point] = key(factory=list, unit="px", dim=2, ge=-1e5, le=1e5, max_items=1000)  # [[x, y], ...] pixels, P1..P4 (pose: 6+)
-    distances_m: list[float] = key(factory=list, unit="m", gt=0.0, le=1e5, counts=(0, 6))  # L1..L6 (method = distances)
+    distances_m: list[float] = key(factory=list, unit="m", gt=0.0, le=1e5, counts=(0, 1, 6))  # L1..L6 (method = distances); [|P1P2|] (method = two_points)
     gcp_world_m: list[list[float]] = key(factory=list, unit="m", dim=(2, 3), ge=-1e8, le=1e8, max_items=1000)  # [[X, Y], ...] or [[X, Y, Z], ...] (pose)
     resolution_m: float | None = key(None, unit="m", gt=0.0, le=100.0)  # pixel size of the rectified image (m); None = automatic
 
@@ -101,7 +101,7 @@ class WaterLevelCfg:
     width_m: float | None = key(None, unit="m", gt=0.0, le=1e5)  # method = width: measured wetted width, water edge to water edge (m)
     width_uncertainty_m: float | None = key(None, unit="m", ge=0.0, le=1e4)  # method = width: 1-sigma of that width (m); None = 0.02 m
     # adapted Hellebaut (DEM of one bank, x across the river = cross-section station, y along the shore)
-    dem_path: str = key("", path="file")  # TIFF of elevations (m, datum of the cross-section); row 0 = y_max
+    dem_path: str = key("", path="file")  # raster of elevations, any GDAL format (GeoTIFF, .asc, ...; m, datum of the cross-section); row 0 = y_max
     dem_x_m: list[float] = key(factory=list, unit="m", counts=(0, 2), ge=-1e7, le=1e7)  # [x_min, x_max] of the DEM domain (m, = station)
     dem_y_m: list[float] = key(factory=list, unit="m", counts=(0, 2), ge=-1e7, le=1e7)  # [y_min, y_max] of the DEM domain (m)
     dem_precision_mm: float | None = key(None, unit="mm", gt=0.0, le=1e6)  # DEM pixel size (mm/pixel); checked against domain / size

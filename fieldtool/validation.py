@@ -42,7 +42,6 @@ TEXT_LIMIT = 1000  # characters of a text value that is not a path
 PATH_LIMIT = 4096  # characters of a path
 PATH_PART_LIMIT = 255  # characters of one path component
 NESTING_LIMIT = 4  # depth of lists/tables inside a filter table
-DEM_PIXEL_LIMIT = 50_000_000  # pixels of a DEM read into memory (400 MB as float64)
 BACKGROUND_MEMORY_LIMIT = 1_500_000_000  # bytes the median background filter may hold (samples x frame x 4 B x 3)
 GCP_MIN_SEPARATION_PX = 2.0  # two GCP pixels closer than this are one point
 COLLINEAR_RELATIVE = 0.01  # a point closer than this fraction of the longest side to the line of two others
@@ -578,7 +577,16 @@ class _Validator:
         px = o.gcp_px
         if o.method == "none":
             return
-        need = {"distances": 4, "world": 4, "pose": 6}[o.method]
+        if o.method == "two_points":
+            if len(px) != 2:
+                self.err("ortho.gcp_px", f"has {len(px)} points; method = two_points needs exactly 2 [x, y] points P1, P2")
+            if len(o.distances_m) != 1:
+                self.err("ortho.distances_m", f"has {len(o.distances_m)} values; method = two_points needs [|P1P2|] in "
+                                              "metres")
+            if self.ok("ortho.gcp_px") and len(px) == 2 and coincident_pairs(px, GCP_MIN_SEPARATION_PX):
+                self.err("ortho.gcp_px", "P1 and P2 are the same point; pick two GCPs far apart")
+            return
+        need = {"distances": 4, "world": 4, "pose": 6}.get(o.method, 4)
         if o.method == "distances":
             if len(px) != 4:
                 self.err("ortho.gcp_px", f"has {len(px)} points; method = distances needs exactly 4 [x, y] points P1..P4")
@@ -662,20 +670,26 @@ class _Validator:
                                                 "right edge")
 
     def dem_header(self) -> None:
+        """The DEM's size from its header (GDAL), before anything reads its cells."""
+        from .processing.water_level import MAX_DEM_CELLS
+
         path = self.p.resolve(self.p.water_level.dem_path)
         try:
-            import tifffile
+            import warnings
 
-            with tifffile.TiffFile(path) as tif:
-                shape = tif.pages[0].shape
-        except Exception as e:  # noqa: BLE001 - any failure: not a readable TIFF
-            self.err("water_level.dem_path", f"{path}: cannot read this DEM as a TIFF ({type(e).__name__}); export "
+            import rasterio
+
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                with rasterio.open(path) as ds:
+                    w, h = ds.width, ds.height
+        except Exception as e:  # noqa: BLE001 - any failure: not a readable raster
+            self.err("water_level.dem_path", f"{path}: cannot read this DEM as a raster ({type(e).__name__}); export "
                                              "it as a GeoTIFF of elevations")
             return
-        n = math.prod(shape)
-        if n > DEM_PIXEL_LIMIT:
-            self.err("water_level.dem_path", f"{path}: the DEM is {'x'.join(map(str, shape))} pixels (more than "
-                                             f"{DEM_PIXEL_LIMIT:,}); crop it to the bank near the section")
+        if w * h > MAX_DEM_CELLS:
+            self.err("water_level.dem_path", f"{path}: the DEM header says {w}x{h} cells (more than "
+                                             f"{MAX_DEM_CELLS:,}); crop it to the bank near the section")
 
     def roi(self) -> None:
         r = self.p.roi.rect_px
