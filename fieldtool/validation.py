@@ -262,6 +262,35 @@ def frame_size(path: Path, key: str = "video.path") -> tuple[int, int] | str:
     return res
 
 
+_clip_cache: dict[tuple, str | None] = {}
+
+
+def clip_problem(path: Path, start_s: float, end_s: float | None, step: int, interval: float | None) -> str | None:
+    """Why the clip cannot be read over this range ("key: message"), or None; cached on the file's
+    size and mtime, so that the TUI may ask on every keystroke."""
+    from .processing.frames import FrameSource
+
+    try:
+        st = os.stat(path)
+        ck = (str(path), st.st_size, st.st_mtime_ns, start_s, end_s, step, interval)
+    except OSError:
+        ck = None
+    if ck is not None and ck in _clip_cache:
+        return _clip_cache[ck]
+    try:
+        FrameSource(path, start_s, end_s, step, interval)
+        res = None
+    except FieldToolError as e:
+        res = str(e)
+    except Exception as e:  # noqa: BLE001 - a decoder failure is a property of the file
+        res = f"{path}: cannot be read as a video ({type(e).__name__}: {e})"
+    if ck is not None:
+        if len(_clip_cache) > 256:
+            _clip_cache.clear()
+        _clip_cache[ck] = res
+    return res
+
+
 # ---------------------------------------------------------------------------------------------
 # the validator
 
@@ -485,12 +514,9 @@ class _Validator:
             self.err("video.end_s", f"{v.end_s:g} s must be after video.start_s ({v.start_s:g} s)")
         if self.file("video.path", v.path, "video") and self.ok("video.start_s", "video.end_s", "video.step",
                                                               "video.frame_interval_s"):
-            from .processing.frames import FrameSource
-
-            try:
-                FrameSource(self.p.resolve(v.path), v.start_s, v.end_s, v.step, v.frame_interval_s)
-            except FieldToolError as e:
-                self.from_error(e, "video.path")
+            msg = clip_problem(self.p.resolve(v.path), v.start_s, v.end_s, v.step, v.frame_interval_s)
+            if msg:
+                self.from_error(ParameterError(msg), "video.path")
 
     def cross_section(self) -> None:
         c = self.p.cross_section
