@@ -395,6 +395,9 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
 
     if out_dir is not None:  # matplotlib takes ~0.6 s to import: let that overlap the PIV
         threading.Thread(target=importlib.import_module, args=("fieldtool.plots.discharge",), daemon=True).start()
+    from .validation import check
+
+    warnings += [str(w) for w in check(project)]  # every key, before any step
     obs("stage", "inputs")
     inputs = load_inputs(project)
     lap("inputs")
@@ -445,6 +448,14 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
         stab.update(stab_cached or {})
     else:
         frames = working_frames(project, inputs, cancel, obs, stab if project.stabilize.enabled else None, progress)
+        decoded: list[float] = []
+
+        def tracked(it):
+            for t, img in it:
+                decoded[:] = [t]
+                yield t, img
+
+        frames = tracked(frames)
         n_expected = inputs.source.estimated_count()
         if n_expected:
             frames = _Sized(frames, n_expected)  # lets the ensemble plan which pairs get per-pair vectors
@@ -452,6 +463,10 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
                               progress=None, cancel=cancel, on_pair=on_pair)
         if cache_dir is not None:
             piv_cache.save(cache_dir, key, res, stab or None)
+        v, fps = project.video, getattr(getattr(inputs.source, "info", None), "fps", 0) or 0
+        if v.end_s is not None and decoded and fps > 0 and decoded[0] < v.end_s - (v.step + 1) / fps:
+            warnings.append(f"video.end_s: the clip decoded only up to {decoded[0]:.2f} s of the {v.end_s:g} s asked "
+                            f"(its container claims more); the measurement covers {v.start_s:g}-{decoded[0]:.2f} s")
     lap("frames_and_piv")
 
     obs("stage", "discharge")
@@ -485,9 +500,35 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
 
 def write_outputs(result: RunResult, project: Project, inputs: Inputs, out: Path) -> None:
     """result.json, subsections.csv, mean_field.npz/.npy and the PNG plots, each written atomically."""
+    from .outdir import Staging
+
     t0 = time.perf_counter()
-    out.mkdir(parents=True, exist_ok=True)
+    project_file_inside = out.exists() and out.resolve() in (project.root.resolve(), *project.root.resolve().parents)
+    stage = Staging(out, in_place=project_file_inside)
+    try:
+        _write_outputs(result, inputs, stage.path)
+        result.timings_s["outputs"] = round(time.perf_counter() - t0, 3)  # all but result.json itself
+        _write_result_json(result, stage.path)
+        stage.commit()
+    except BaseException:
+        stage.abort()
+        raise
     result.out_dir = out
+
+
+def _write_result_json(result: RunResult, out: Path) -> None:
+    """result.json, strict JSON: a non-finite number is written as null and named in the warnings."""
+    from .outdir import strict_json
+
+    extra: list[str] = []
+    summary = strict_json(result.summary(), extra)
+    if extra:
+        summary["warnings"] = list(summary.get("warnings") or []) + extra
+    atomic_write_bytes(out / "result.json", json.dumps(summary, indent=2, default=_json_default,
+                                                       allow_nan=False).encode())
+
+
+def _write_outputs(result: RunResult, inputs: Inputs, out: Path) -> None:
     d, p = result.discharge, result.piv
     files = result.files
     lines = ["subsection,station_from_m,station_to_m,area_m2,mean_depth_m,surface_velocity_ms,velocity_filled,discharge_m3s"]
@@ -524,8 +565,6 @@ def write_outputs(result: RunResult, project: Project, inputs: Inputs, out: Path
     except FieldToolError as e:
         result.warnings.append(f"water-level plot not written: {e}")
     files["result"] = "result.json"
-    result.timings_s["outputs"] = round(time.perf_counter() - t0, 3)  # all but result.json itself
-    atomic_write_bytes(out / "result.json", json.dumps(result.summary(), indent=2, default=_json_default).encode())
 
 
 def _json_default(o):

@@ -426,3 +426,11 @@ def fields_for(step: str, ui: dict) -> list[Field]:
         "piv": PIV,
         "section": SECTION,
     }.get(step, [])
+
+
+def step_problems(step: str, project: Project, *, files: bool = True):
+    """Problems of the validation layer (``fieldtool.validation``) on the tables a step edits."""
+    from ..validation import validate
+
+    tables = STEP_BY_ID[step].tables if step in STEP_BY_ID else ()
+    return [p for p in validate(project, files=files) if p.key.split(".")[0].split("[")[0] in tables]
