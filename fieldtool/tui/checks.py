@@ -1,9 +1,10 @@
 """Whether each step's entries are right, for the sidebar marks and the "next" key.
 
-Three layers, cheapest first: the TUI's own field checks (``fields.field_errors``), the project's
-validation layer (``fieldtool.validation.problems_for``; one call, in :func:`validation_problems`),
-and the core's own check of the step (``core_check``: it reads the clip, builds the cross-section,
-solves the GCPs, computes a typed level), which catches what needs the files: a start past the end
+Three layers, cheapest first: the TUI's own field checks (``fields.field_errors``) and the
+project's validation layer (``fieldtool.validation`` through ``steps.step_problems``), both in
+``Session.step_errors``; then the core's own check of the step (``core_check``: it reads the clip,
+builds the cross-section, solves the GCPs, computes a typed level), which catches what needs the
+files and the other steps: a start past the end
 of the clip, a level below the bed, a CSV given as the video. Core checks are cached on the project
 tables they depend on, so the sidebar can be refreshed after every keystroke.
 """
@@ -30,21 +31,6 @@ CORE_TABLES = {
     "piv": _INPUTS + ("roi", "piv"),
     "section": _INPUTS + ("ortho", "water_level", "section"),
 }
-
-
-def validation_problems(project, prefix: str) -> list[str]:
-    """Error messages of the validation layer for the keys under ``prefix`` ("video.", "filters").
-
-    The only place the TUI calls ``fieldtool.validation``; without it (an older tree) nothing is added."""
-    try:
-        from ..validation import problems_for
-    except ImportError:
-        return []
-    try:
-        found = problems_for(project, prefix)
-    except FieldToolError as e:
-        return [str(e)]
-    return [f"{p.key}: {p.message}" for p in found if p.severity == "error"]
 
 
 def core_check(session, step: str) -> None:
