@@ -166,7 +166,7 @@ class FieldToolApp(App):
     # -- viewer (clicks in a browser) ----------------------------------------------------------------
     def action_viewer(self) -> None:
         if self.viewer is not None:
-            self.notify(f"viewer at {self.viewer_url} · over SSH: {ssh_line(self.viewer.port)}", timeout=10)
+            self.notify(f"viewer at {self.viewer_url} · over SSH: {ssh_line(self.viewer)}", timeout=10)
             return
         try:
             from ..viewer.server import start_viewer
@@ -181,11 +181,11 @@ class FieldToolApp(App):
         self.viewer_url = self.viewer.url
         if isinstance(self.screen, StepScreen):
             self.screen.update_title()
-        self.status = (f"viewer {self.viewer_url} · over SSH: {ssh_line(self.viewer.port)}", False)
+        self.status = (f"viewer over SSH: {ssh_line(self.viewer)}", False)  # the URL is in the title bar
         if isinstance(self.screen, StepScreen):
             self.show_status(self.screen)
         self.notify(f"viewer at {self.viewer_url}: focus a pixel field here, click in the browser; "
-                    f"over SSH first run on your computer: {ssh_line(self.viewer.port)}", timeout=12)
+                    f"over SSH first run on your computer: {ssh_line(self.viewer)}", timeout=12)
 
     def show_in_viewer(self, kind: str) -> None:
         """Show an image (``viewer.images.KINDS``, e.g. "filtered") in the viewer, started if needed."""

@@ -3,11 +3,10 @@
 from __future__ import annotations
 
 
-def ssh_line(port: int, host: str = "HOST") -> str:
-    """The port forward to run on the operator's computer to reach a viewer on ``port`` of the
-    machine the TUI runs on (``host``: that machine's SSH name)."""
-    try:  # the viewer's own wording, once it provides one
-        from ..viewer.server import ssh_forward_line
-    except ImportError:
-        return f"ssh -L {port}:127.0.0.1:{port} {host}"
-    return ssh_forward_line(port)
+def ssh_line(viewer) -> str:
+    """The port forward to run on the operator's computer to reach ``viewer`` (a running viewer
+    handle): the viewer's own ``ssh_hint()`` where it has one, else the plain ``ssh -L`` line."""
+    hint = getattr(viewer, "ssh_hint", None)
+    if callable(hint):
+        return hint()
+    return f"ssh -L {viewer.port}:127.0.0.1:{viewer.port} USER@THIS-MACHINE"
