@@ -303,3 +303,26 @@ def test_viewer_ssh_line_is_shown(tmp_path, monkeypatch):
             assert "ssh -L 8765:127.0.0.1:8765" in text
 
     run(go())
+
+
+def test_typing_in_the_tui_keeps_the_template_comments(tmp_path):
+    """Defect: the `init` template's comments were all gone after the first save (the saving is
+    helper valid's round-trip; this checks it from the TUI's keys)."""
+    from fieldtool.template import write_template
+
+    path = write_template(tmp_path / "m")
+    before = path.read_text(encoding="utf-8")
+    comments = [ln.split("#", 1)[1] for ln in before.splitlines() if "#" in ln]
+
+    async def go():
+        app = FieldToolApp(path)
+        async with app.run_test(size=SIZE) as pilot:
+            await pilot.pause()
+            app.screen.query_one("#f-cross_section-path Input").focus()
+            await pilot.press(*"bed.csv")
+            await pilot.pause()
+
+    run(go())
+    after = path.read_text(encoding="utf-8")
+    assert 'path = "bed.csv"' in after
+    assert [ln.split("#", 1)[1] for ln in after.splitlines() if "#" in ln] == comments
