@@ -124,6 +124,13 @@ def test_empty_ortho_fields_keep_every_distance_on_screen(tmp_path):
             for i in range(1, 7):
                 assert f"L{i} = |" in text, text
             assert text.count("✗ required") >= 4  # the four empty GCP inputs say it
+            await pilot.press("ctrl+n")  # refused: the four messages, one line each, and L1-L6 in view
+            await pilot.pause()
+            assert app.screen.STEP == "ortho"
+            text = "\n".join(screen_lines(app))
+            assert text.count("✗ ortho.gcp_px[") == 4, text
+            for i in range(1, 7):
+                assert f"L{i} = |" in text, text
             # a wrong entry: one line under its field, the full message in the help line on focus
             app.screen.query_one("#f-ortho-distances_m-0 Input").focus()
             await pilot.press("-", "1")

@@ -29,8 +29,8 @@ from .screens.section import SectionScreen
 from .screens.video import VideoScreen
 from .screens.water_level import WaterLevelScreen
 from .session import Session, open_session
-from .viewer_link import ssh_line
 from .steps import STEP_IDS, STEPS
+from .viewer_link import ssh_line
 
 SCREENS_BY_STEP: dict[str, type[StepScreen]] = {
     s.STEP: s for s in (CrossSectionScreen, VideoScreen, CalibrationScreen, OrthoScreen, WaterLevelScreen, RoiScreen,

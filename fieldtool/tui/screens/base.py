@@ -203,8 +203,12 @@ class StepScreen(Screen):
         core_check(self.session, self.STEP)
 
     def show_errors(self, msgs: list[str]) -> None:
+        """What blocks "next": one message whole, several one line each (a missing entry as "key:
+        required"); the field at fault gets the focus, so the help line shows its full message."""
         box = self.query_one("#step-errors", Static)
-        box.update(Text("\n".join(f"✗ {m}" for m in msgs)))
+        lines = [m.split(" — ")[0] if is_missing(m) else m for m in msgs]
+        one_line = len(lines) > 1
+        box.update(Text("\n".join(f"✗ {m}" for m in lines), no_wrap=one_line, overflow="ellipsis" if one_line else None))
         box.display = bool(msgs)
         if msgs:
             for row in self.rows:
