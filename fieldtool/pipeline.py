@@ -104,6 +104,8 @@ class RunResult:
     stabilization: dict | None = None
     project: dict = field(default_factory=dict)
     piv_reused: bool = False  # the PIV field came from the output folder's piv_cache.npz
+    uncertainty: object | None = None  # processing.uncertainty.McResult
+    quality: object | None = None  # processing.quality.Quality
 
     def summary(self) -> dict:
         d = self.discharge
@@ -111,6 +113,11 @@ class RunResult:
         lv = self.level
         return {
             "discharge_m3s": d.discharge_m3s,
+            "discharge_ci95_m3s": list(self.uncertainty.ci95_m3s) if self.uncertainty is not None else None,
+            "uncertainty": self.uncertainty.to_dict() if self.uncertainty is not None else None,
+            "quality": self.quality.to_dict() if self.quality is not None else None,
+            # spread of the discharges of single frame pairs (the sampled pairs, n_pairs_with_vectors of them):
+            # not an interval of Q, which averages every pair (see discharge_ci95_m3s)
             "discharge_p05_m3s": float(np.percentile(qp, 5)) if len(qp) else None,
             "discharge_p95_m3s": float(np.percentile(qp, 95)) if len(qp) else None,
             "discharge_pairs_median_m3s": float(np.median(qp)) if len(qp) else None,
@@ -190,11 +197,14 @@ def build_mapping(project: Project, inputs: Inputs, level_m: float | None) -> or
         if raw.shape != (4, 2):
             raise ParameterError("ortho.gcp_px: give exactly four [x, y] pixel points P1..P4 for method = distances")
         ortho.check_in_frame(raw, shape, "ortho.gcp_px")
-        return ortho.from_distances(inputs.to_working(raw), o.distances_m)
+        return ortho.from_distances(inputs.to_working(raw), o.distances_m, max_residual_m=o.max_residual_m,
+                                    accept_residual=o.accept_residual, frame_shape=shape)
     if o.method == "world":
         raw = np.asarray(o.gcp_px, float)
         ortho.check_in_frame(raw.reshape(-1, 2), shape, "ortho.gcp_px")
-        return ortho.from_world_points(inputs.to_working(raw), o.gcp_world_m)
+        m = ortho.from_world_points(inputs.to_working(raw), o.gcp_world_m)
+        ortho.check_gcp_residuals(m, inputs.to_working(raw), o.max_residual_m, o.accept_residual)
+        return m
     if o.method == "pose":
         from .processing import pose
 
@@ -210,8 +220,11 @@ def build_mapping(project: Project, inputs: Inputs, level_m: float | None) -> or
         und = inputs.to_working(raw)
         miss = [np.hypot(*(ortho._apply(pose.plane_homography(p, z), und[i:i + 1])[0] - world[i, :2]))
                 for i, z in enumerate(world[:, 2])]
-        return ortho.from_homography(H, "pose", float(np.sqrt(np.mean(np.square(miss)))), world[:, :2],
-                                     {"reprojection_rms_px": p.rms_px, "gcp_residual_m": [float(m) for m in miss]})
+        m = ortho.from_homography(H, "pose", float(np.sqrt(np.mean(np.square(miss)))), world[:, :2],
+                                  {"reprojection_rms_px": p.rms_px, "gcp_residual_m": [float(m) for m in miss],
+                                   "gcp_reprojection_px": [float(r) for r in p.reprojection_px]})
+        ortho.check_gcp_residuals(m, und, o.max_residual_m, o.accept_residual)
+        return m
     if o.method == "none":
         if level_m is None:
             raise ParameterError("ortho.method = none takes the image scale from the wetted width: the water level is needed first")
@@ -222,6 +235,20 @@ def build_mapping(project: Project, inputs: Inputs, level_m: float | None) -> or
         width = inputs.cross_section.wetted_width(level_m)
         return ortho.from_scale(width / length_px)
     raise ParameterError(f"ortho.method: {o.method!r} is not one of distances, world, pose, none")
+
+
+def build_section(project: Project, inputs: Inputs, level_m: float, mapping: ortho.OrthoMapping,
+                  points_px=None) -> dq.SectionGeometry:
+    """The section of interest (raw-frame ``points_px``, default the project's), checked against the water
+    edges of the cross-section at ``level_m`` (see processing.discharge.check_section)."""
+    sec = project.section
+    pts = sec.points_px if points_px is None else points_px
+    if np.asarray(pts).shape == (2, 2):  # raw-frame pixels, checked before undistortion
+        ortho.check_in_frame(np.asarray(pts, float), inputs.shape, "section.points_px")
+    geom = dq.section_geometry(inputs.to_working(pts) if len(pts) else pts, mapping, inputs.cross_section,
+                               level_m, sec.n_sub, sec.station_offset_m)
+    dq.check_section(geom, inputs.cross_section, level_m, sec.min_length_fraction, sec.edge_tolerance_m)
+    return geom
 
 
 def level_and_mapping(project: Project, inputs: Inputs):
@@ -307,6 +334,21 @@ def working_frames(project: Project, inputs: Inputs, cancel: Callable[[], bool] 
         stab_report.update(stabilizer.report())
 
 
+def _count_identical(frames: Iterator[tuple[float, np.ndarray]], stats: dict) -> Iterator[tuple[float, np.ndarray]]:
+    """Pass the frames through, counting consecutive frames that are identical (duplicates, a still image)."""
+    prev = None
+    n = same = 0
+    for t, img in frames:
+        if prev is not None:
+            n += 1
+            sub = img[::4, ::4]
+            if float(np.max(np.abs(sub - prev))) < 0.5:
+                same += 1
+        prev = img[::4, ::4].astype(np.float32, copy=True)
+        stats["pairs"], stats["identical"] = n, same
+        yield t, img
+
+
 class _Sized:
     """A frame stream with the count the container claims (a plan, not a promise: it may end sooner)."""
 
@@ -361,10 +403,7 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
     lap("level_and_ortho")
 
     sec = project.section
-    if np.asarray(sec.points_px).shape == (2, 2):  # raw-frame pixels, checked before undistortion
-        ortho.check_in_frame(np.asarray(sec.points_px, float), inputs.shape, "section.points_px")
-    geom = dq.section_geometry(inputs.to_working(sec.points_px) if sec.points_px else sec.points_px, mapping, cs,
-                               level.level_m, sec.n_sub, sec.station_offset_m)
+    geom = build_section(project, inputs, level.level_m, mapping)
     roi, mask = roi_and_mask(project, inputs)
 
     params = piv_params(project)
@@ -387,6 +426,7 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
     obs("geometry", pair_q_fn(geom))
     obs("stage", "piv")
     stab: dict = {}
+    frame_stats: dict = {}
 
     def on_pair(i, t, xx, yy, u, v, valid):
         obs("pair", i, t, xx, yy, u, v, valid)
@@ -401,6 +441,7 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
         stab.update(stab_cached or {})
     else:
         frames = working_frames(project, inputs, cancel, obs, stab if project.stabilize.enabled else None, progress)
+        frames = _count_identical(frames, frame_stats)
         n_expected = inputs.source.estimated_count()
         if n_expected:
             frames = _Sized(frames, n_expected)  # lets the ensemble plan which pairs get per-pair vectors
@@ -427,8 +468,14 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
     q_pairs = np.array([pair_q(res.x, res.y, res.u_pairs[k], res.v_pairs[k]) for k in range(len(res.u_pairs))])
     lap("discharge")
 
+    from .assess import assess_run
+
+    unc, qual = assess_run(project, inputs, level, mapping, geom, res, U, V, dres, q_pairs, frame_stats)
+    lap("uncertainty_and_quality")
+
     result = RunResult(dres, q_pairs, level, mapping, res, geom, U, V, None, timings_s=timings, warnings=warnings,
-                       stabilization=stab or None, project=project_to_dict(project), piv_reused=cached is not None)
+                       stabilization=stab or None, project=project_to_dict(project), piv_reused=cached is not None,
+                       uncertainty=unc, quality=qual)
     if out_dir is not None:
         write_outputs(result, project, inputs, Path(out_dir))
     obs("result", result)

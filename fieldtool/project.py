@@ -88,6 +88,8 @@ class OrthoCfg:
     distances_m: list[float] = field(default_factory=list)  # L1..L6 (method = distances)
     gcp_world_m: list[list[float]] = field(default_factory=list)  # [[X, Y], ...] or [[X, Y, Z], ...] (pose)
     resolution_m: float | None = None  # pixel size of the rectified image (m); None = automatic
+    max_residual_m: float = 0.10  # largest GCP distance / world-point residual accepted (m); above it the run stops naming the suspect
+    accept_residual: bool = False  # go on despite a residual above max_residual_m (the grade becomes doubtful)
 
 
 @dataclass
@@ -154,6 +156,45 @@ class SectionCfg:
     n_sub: int = 15  # number of subsections
     station_offset_m: float | None = None  # station of the first point; None = left water edge
     alpha: float | None = None  # velocity index; None = 0.8 if mean depth < 2 m else 0.9
+    min_length_fraction: float = 0.5  # a section shorter than this fraction of the wetted width is refused
+    edge_tolerance_m: float | None = None  # largest distance of the section's ends from the water edges (m); None = 10 % of the wetted width, at least 0.3 m
+
+
+@dataclass
+class QualityCfg:
+    """[quality] limits of the measurement's grade (good / doubtful / unusable); see the README's quality section."""
+
+    measured_width_doubtful: float = 0.8  # fraction of the section width with a measured (not filled) velocity below which Q is doubtful
+    measured_width_unusable: float = 0.4  # ... below which Q is unusable
+    valid_fraction_doubtful: float = 0.5  # mean fraction of frame pairs with a valid vector along the section: doubtful below
+    valid_fraction_unusable: float = 0.15  # ... unusable below
+    stalled_ratio: float = 0.3  # a subsection slower than this times its neighbours' median (moving downstream) is stalled
+    stalled_width_unusable: float = 0.3  # stalled share of the width above which Q is unusable (any stalled: doubtful)
+    displacement_doubtful: float = 0.25  # 95th-percentile displacement along the section / first-pass search side: doubtful above
+    displacement_unusable: float = 0.45  # ... unusable above
+    peak_min: float = 0.15  # median correlation peak (coefficient) along the section: doubtful below
+    pair_spread_max: float = 0.35  # half the 16-84 % spread of the per-pair discharges / Q: doubtful above
+    angle_doubtful_deg: float = 30.0  # mean flow direction off the section normal (deg): doubtful above
+    angle_unusable_deg: float = 60.0  # ... unusable above
+    identical_frames_doubtful: float = 0.05  # fraction of identical consecutive frames: doubtful above
+    identical_frames_unusable: float = 0.5  # ... unusable above
+    min_motion_px: float = 0.1  # median displacement along the section (px/frame) below which nothing moved: unusable
+    max_surface_speed_ms: float = 15.0  # surface speed along the section (m/s) above which Q is unusable
+    relative_u95_doubtful: float = 0.2  # half-width of the 95 % interval / Q above which Q is doubtful
+
+
+@dataclass
+class UncertaintyCfg:
+    """[uncertainty] 1-sigma of the inputs the Monte Carlo interval of Q propagates (0 switches a source off)."""
+
+    gcp_px_sigma_px: float = 1.0  # each picked GCP pixel coordinate (px)
+    gcp_distance_sigma_m: float = 0.01  # each taped distance L1..L6, or each GCP world coordinate (m)
+    bed_sigma_m: float = 0.02  # each surveyed bed elevation of the cross-section (m)
+    alpha_sigma: float | None = None  # velocity index; None = 0.05 for the rule of thumb, 0.03 for a typed section.alpha
+    filled_rel_sigma: float = 0.25  # velocity of a subsection filled from a neighbour (relative)
+    piv_rel_sigma: float = 0.02  # systematic error of the PIV surface velocity (relative): sub-pixel bias, window averaging
+    n_draws: int = 400  # Monte Carlo draws of Q (each source's share: a quarter of that each)
+    seed: int = 0  # seed of the draws (same inputs, same interval)
 
 
 @dataclass
@@ -183,6 +224,8 @@ class Project:
     piv: PivCfg = field(default_factory=PivCfg)
     section: SectionCfg = field(default_factory=SectionCfg)
     rerun: RerunCfg = field(default_factory=RerunCfg)
+    quality: QualityCfg = field(default_factory=QualityCfg)
+    uncertainty: UncertaintyCfg = field(default_factory=UncertaintyCfg)
     root: Path = field(default=Path("."), metadata={"saved": False})
 
     def resolve(self, rel: str) -> Path:
