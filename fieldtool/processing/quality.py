@@ -131,18 +131,17 @@ def check_stalled(ev: Evidence, th: Thresholds) -> list[Reason]:
     """Subsections near zero or upstream while their neighbours move downstream (glints, standing waves)."""
     v = np.asarray(ev.subsection_velocity_ms, float)
     w = np.asarray(ev.subsection_width_m, float)
-    n = len(v)
+    meas = np.isfinite(v)
+    if meas.sum() < 3:
+        return []
+    typical = float(np.median(v[meas]))
     stalled = []
-    for i in range(n):
-        if not np.isfinite(v[i]):
-            continue
-        nb = np.r_[v[max(0, i - 2):i], v[i + 1:i + 3]]
-        nb = nb[np.isfinite(nb)]
-        if len(nb) == 0:
-            continue
-        ref = float(np.median(nb))
-        if ref > 0 and v[i] < th.stalled_ratio * ref:
-            stalled.append(i)
+    for i in np.nonzero(meas)[0]:
+        left, right = v[:i][meas[:i]], v[i + 1:][meas[i + 1:]]
+        # both sides move faster (a band in the stream), or upstream flow beside a downstream-moving river
+        ref = min(left.max(), right.max()) if len(left) and len(right) else 0.0
+        if (ref > 0 and v[i] < th.stalled_ratio * ref) or (typical > 0 and v[i] < -0.05 * typical):
+            stalled.append(int(i))
     if not stalled:
         return []
     share = float(w[stalled].sum() / w.sum()) if w.sum() > 0 else 0.0

@@ -13,7 +13,7 @@ import numpy as np
 
 from ..errors import FieldToolError
 from .cross_section import CrossSection
-from .discharge import fill_velocity, sample_field, section_geometry, subsection_areas
+from .discharge import fill_velocity, sample_field, section_geometry
 from .ortho import OrthoMapping
 
 
@@ -179,10 +179,8 @@ class _Draw:
             for up, vq in zip(m.u_pairs, m.v_pairs):
                 U, V = map0.rectify_velocity(self.x, self.y, np.asarray(up, float)[sl], np.asarray(vq, float)[sl])
                 vp.append(_subsection_samples(g0, self.x, self.y, U, V))
-            vp = np.nanmean(np.stack(vp), axis=2) if vp else None  # (n_pairs, n_sub)
-            self.vp = vp
-            with np.errstate(all="ignore"):
-                self.vp_mean = np.nanmean(vp, axis=0)
+            self.vp = _nanmean(np.stack(vp), axis=2)  # (n_pairs, n_sub)
+            self.vp_mean = _nanmean(self.vp, axis=0)
 
     def __call__(self, active: frozenset[str], rng: np.random.Generator) -> float:
         m, sig = self.m, self.sig
@@ -201,7 +199,7 @@ class _Draw:
         cs.check_level(level)
         mapping = OrthoMapping(H, m.method)
         geom = section_geometry(m.section_px, mapping, cs, level, m.n_sub, m.station_offset_m)
-        area, depth = subsection_areas(geom, cs, level)
+        area, depth = _subsection_areas(cs, level, geom.station_edges)
         U, V = mapping.rectify_velocity(self.x, self.y, self.u, self.v)
         vn = _subsection_samples(geom, self.x, self.y, U, V)  # (n_sub, k)
         if "velocity_sampling" in active and sig.sampling:
@@ -212,7 +210,7 @@ class _Draw:
             vs = np.where(cnt > 0, np.nansum(vn, axis=1) / np.maximum(cnt, 1), np.nan)
             if "velocity_sampling" in active and sig.sampling and self.vp is not None:
                 idx = rng.integers(0, len(self.vp), len(self.vp))
-                dev = np.nanmean(self.vp[idx], axis=0) - self.vp_mean
+                dev = _nanmean(self.vp[idx], axis=0) - self.vp_mean
                 vs = vs + np.where(np.isfinite(dev), dev, 0.0)
             if "velocity_sampling" in active and sig.piv_rel > 0:
                 vs = vs * (1.0 + sig.piv_rel * rng.standard_normal())
@@ -225,6 +223,28 @@ class _Draw:
         if "velocity_index" in active and sig.alpha > 0:
             alpha = m.alpha + sig.alpha * rng.standard_normal()
         return float(alpha * np.sum(area * vf))
+
+
+def _subsection_areas(cs: CrossSection, level: float, edges: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Wetted area (m²) and mean depth (m) between consecutive ``edges`` (m): the exact integral of the
+    piecewise-linear depth, as :func:`discharge.subsection_areas`, for all subsections at once."""
+    ss, d = cs.wet_polyline(level)
+    cum = np.r_[0.0, np.cumsum(0.5 * (d[1:] + d[:-1]) * np.diff(ss))]
+    e = np.clip(np.asarray(edges, float), ss[0], ss[-1])
+    k = np.clip(np.searchsorted(ss, e, side="right") - 1, 0, len(ss) - 2)
+    de = np.interp(e, ss, d)
+    a_at = cum[k] + 0.5 * (d[k] + de) * (e - ss[k])
+    area = np.diff(a_at)
+    widths = np.diff(np.asarray(edges, float))
+    return area, np.where(widths > 0, area / np.where(widths > 0, widths, 1), 0.0)
+
+
+def _nanmean(a: np.ndarray, axis: int) -> np.ndarray:
+    """Mean over ``axis`` ignoring NaN; NaN (no warning) where nothing is finite."""
+    ok = np.isfinite(a)
+    n = ok.sum(axis=axis)
+    with np.errstate(all="ignore"):
+        return np.where(n > 0, np.where(ok, a, 0.0).sum(axis=axis) / np.maximum(n, 1), np.nan)
 
 
 def _norm_h(H: np.ndarray) -> np.ndarray:
@@ -302,7 +322,8 @@ def monte_carlo_discharge(model: McModel, sigmas: McSigmas, discharge_m3s: float
             u[src] = 0.0
             continue
         q = draws(frozenset([src]), n_draws_source)
-        u[src] = float(np.std(q, ddof=1)) if len(q) > 2 else 0.0
+        sd = float(np.std(q, ddof=1)) if len(q) > 2 else 0.0
+        u[src] = sd if sd > 1e-9 * max(abs(discharge_m3s), 1e-12) else 0.0
     total = sum(v * v for v in u.values())
     budget = [{"source": s, "share": float(u[s] ** 2 / total) if total > 0 else 0.0, "u_m3s": u[s]} for s in SOURCES]
     return McResult(float(discharge_m3s), (lo, hi), int(len(q_all)), budget, failed)
