@@ -67,13 +67,28 @@ def _mapping_fn(project, inputs, mapping: OrthoMapping):
             return pose.plane_homography(p, level)
 
         return fn, raw, world.ravel()
-    # method none: the scale comes from the wetted width at the level
+    if o.method == "two_points":
+        px = inputs.to_working(np.asarray(o.gcp_px, float))
+        if o.gcp_world_m:
+            ref = np.asarray(o.gcp_world_m, float)[:, :2].ravel()
+
+            def fn(g, r, level):
+                return ortho.from_two_points(g, None, r.reshape(-1, 2)).H
+        else:
+            ref = np.asarray(o.distances_m[:1], float)
+
+            def fn(g, r, level):
+                return ortho.from_two_points(g, float(r[0])).H
+
+        return fn, px, ref
+    # method none: the scale comes from the outer water edges at the level
     cs = inputs.cross_section
     pts = inputs.to_working(project.section.points_px)
     length_px = float(np.hypot(*(pts[1] - pts[0])))
 
     def fn(g, r, level):
-        s = cs.wetted_width(level) / length_px
+        left, right = cs.water_edges(level)
+        s = (right - left) / length_px
         return np.diag([s, -s, 1.0])
 
     return fn, np.zeros((0, 2)), np.zeros(0)
