@@ -192,7 +192,7 @@ class UncertaintyCfg:
     bed_sigma_m: float = 0.02  # each surveyed bed elevation of the cross-section (m)
     alpha_sigma: float | None = None  # velocity index; None = 0.05 for the rule of thumb, 0.03 for a typed section.alpha
     filled_rel_sigma: float = 0.25  # velocity of a subsection filled from a neighbour (relative)
-    piv_rel_sigma: float = 0.02  # systematic error of the PIV surface velocity (relative): sub-pixel bias, window averaging
+    piv_rel_sigma: float = 0.01  # systematic error of the PIV surface velocity (relative): sub-pixel bias, window averaging
     n_draws: int = 400  # Monte Carlo draws of Q (each source's share: a quarter of that each)
     seed: int = 0  # seed of the draws (same inputs, same interval)
 

@@ -73,7 +73,7 @@ class McSigmas:
     alpha: float = ALPHA_SIGMA_DEFAULT  # velocity index (-)
     bed_m: float = 0.02  # each surveyed bed elevation (m)
     filled_rel: float = 0.25  # velocity of a subsection filled from a neighbour (relative)
-    piv_rel: float = 0.02  # systematic error of the PIV surface velocity, common to the section (relative)
+    piv_rel: float = 0.01  # systematic error of the PIV surface velocity, common to the section (relative)
     sampling: bool = True  # bootstrap over frame pairs and over the sample points of each subsection
 
 
