@@ -94,6 +94,14 @@ def _mapping_fn(project, inputs, mapping: OrthoMapping):
     return fn, np.zeros((0, 2)), np.zeros(0)
 
 
+def _suspect(dres, ratio: float) -> np.ndarray:
+    """Subsections whose measured velocity is in doubt (stalled while the neighbours move)."""
+    v = np.where(dres.velocity_filled, np.nan, dres.surface_velocity_ms)
+    out = np.zeros(len(v), bool)
+    out[ql.stalled_subsections(v, ratio)] = True
+    return out
+
+
 def assess_run(project, inputs, level, mapping, geom, res, U, V, dres, q_pairs, frame_stats: dict):
     """(McResult, Quality) of a finished run; never raises for a draw that fails (it is counted)."""
     sig = sigmas(project, level)
@@ -101,7 +109,8 @@ def assess_run(project, inputs, level, mapping, geom, res, U, V, dres, q_pairs, 
     model = un.McModel(cross_section=inputs.cross_section, level_m=level.level_m, section_px=geom.p_img,
                        n_sub=len(geom.station_edges) - 1, station_offset_m=project.section.station_offset_m,
                        alpha=dres.alpha, mapping_fn=fn, method=mapping.method, gcp_px=px, gcp_ref=ref,
-                       x=res.x, y=res.y, u=res.u, v=res.v, u_pairs=res.u_pairs, v_pairs=res.v_pairs)
+                       x=res.x, y=res.y, u=res.u, v=res.v, u_pairs=res.u_pairs, v_pairs=res.v_pairs,
+                       suspect=_suspect(dres, project.quality.stalled_ratio))
     u = project.uncertainty
     mc = un.monte_carlo_discharge(model, sig, dres.discharge_m3s, n_draws=u.n_draws,
                                   n_draws_source=max(u.n_draws // 4, 20), seed=u.seed)

@@ -127,21 +127,32 @@ def check_valid_fraction(ev: Evidence, th: Thresholds) -> list[Reason]:
                    f"{100 * limit:.0f} %): poor seeding, glare or too strong filters", vf, limit)]
 
 
+def stalled_subsections(v: np.ndarray, ratio: float = 0.3) -> np.ndarray:
+    """Indices of measured subsections near zero or upstream while the river moves downstream.
+
+    A subsection is stalled when the fastest measured subsection on each side of it moves downstream
+    faster than ``v / ratio`` (a slow band inside the stream: glints, standing waves), or when it flows
+    upstream (below -5 % of the median) while the median moves downstream. ``v`` (m/s), NaN = not measured.
+    """
+    v = np.asarray(v, float)
+    meas = np.isfinite(v)
+    if meas.sum() < 3:
+        return np.zeros(0, int)
+    typical = float(np.median(v[meas]))
+    out = []
+    for i in np.nonzero(meas)[0]:
+        left, right = v[:i][meas[:i]], v[i + 1:][meas[i + 1:]]
+        ref = min(left.max(), right.max()) if len(left) and len(right) else 0.0
+        if (ref > 0 and v[i] < ratio * ref) or (typical > 0 and v[i] < -0.05 * typical):
+            out.append(int(i))
+    return np.asarray(out, int)
+
+
 def check_stalled(ev: Evidence, th: Thresholds) -> list[Reason]:
     """Subsections near zero or upstream while their neighbours move downstream (glints, standing waves)."""
     v = np.asarray(ev.subsection_velocity_ms, float)
     w = np.asarray(ev.subsection_width_m, float)
-    meas = np.isfinite(v)
-    if meas.sum() < 3:
-        return []
-    typical = float(np.median(v[meas]))
-    stalled = []
-    for i in np.nonzero(meas)[0]:
-        left, right = v[:i][meas[:i]], v[i + 1:][meas[i + 1:]]
-        # both sides move faster (a band in the stream), or upstream flow beside a downstream-moving river
-        ref = min(left.max(), right.max()) if len(left) and len(right) else 0.0
-        if (ref > 0 and v[i] < th.stalled_ratio * ref) or (typical > 0 and v[i] < -0.05 * typical):
-            stalled.append(int(i))
+    stalled = stalled_subsections(v, th.stalled_ratio).tolist()
     if not stalled:
         return []
     share = float(w[stalled].sum() / w.sum()) if w.sum() > 0 else 0.0

@@ -102,6 +102,7 @@ class McModel:
     v: np.ndarray
     u_pairs: np.ndarray | None = None  # (n_pairs, ny, nx) px/s per-pair fields (bootstrap over pairs)
     v_pairs: np.ndarray | None = None
+    suspect: np.ndarray | None = None  # (n_sub,) bool: measured velocities in doubt (e.g. stalled by glints)
 
 
 @dataclass
@@ -216,6 +217,12 @@ class _Draw:
                 vs = vs * (1.0 + sig.piv_rel * rng.standard_normal())
         if not np.any(np.isfinite(vs)):
             return float("nan")
+        suspect = m.suspect if m.suspect is not None and "filled_subsections" in active else None
+        if suspect is not None and suspect.any():
+            # a velocity in doubt lies anywhere between what was measured and what its neighbours suggest
+            alt, _ = fill_velocity(np.where(suspect, np.nan, vs), depth)
+            t = rng.uniform(0.0, 1.0)  # one artefact (glints, waves): the same for every suspect subsection
+            vs = np.where(suspect & np.isfinite(alt), vs + t * (alt - vs), vs)
         vf, filled = fill_velocity(vs, depth)
         if "filled_subsections" in active and sig.filled_rel > 0 and filled.any():
             vf = np.where(filled, vf * (1.0 + sig.filled_rel * rng.standard_normal(len(vf))), vf)
@@ -261,7 +268,8 @@ def _subsection_samples(geom, x, y, U, V) -> np.ndarray:
 def _active_sources(sig: McSigmas, model: McModel, drawer: _Draw) -> list[str]:
     on = {"water_level": sig.level_m > 0, "gcp_pixels": sig.gcp_px > 0 and drawer.n_px > 0,
           "gcp_distances": sig.gcp_ref_m > 0 and drawer.n_ref > 0, "velocity_index": sig.alpha > 0,
-          "velocity_sampling": bool(sig.sampling) or sig.piv_rel > 0, "filled_subsections": sig.filled_rel > 0,
+          "velocity_sampling": bool(sig.sampling) or sig.piv_rel > 0,
+          "filled_subsections": sig.filled_rel > 0 or (model.suspect is not None and bool(np.any(model.suspect))),
           "cross_section": sig.bed_m > 0}
     return [s for s in SOURCES if on[s]]
 
