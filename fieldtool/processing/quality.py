@@ -237,8 +237,8 @@ def check_motion(ev: Evidence, th: Thresholds) -> list[Reason]:
     if ev.median_displacement_px is not None and ev.median_displacement_px < th.min_motion_px:
         out.append(Reason("no_motion", "unusable",
                           f"the surface along the section moves {ev.median_displacement_px:.3f} px per frame (limit "
-                          f"{th.min_motion_px:g}): no motion was measured (still image, duplicated frames, or the "
-                          "section is not on the water)", ev.median_displacement_px, th.min_motion_px))
+                          f"{th.min_motion_px:g}): no motion was measured (a still image, duplicated frames, the section "
+                          "not on the water, or a surface too slow for one frame: raise video.step)", ev.median_displacement_px, th.min_motion_px))
     return out
 
 
