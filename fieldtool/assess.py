@@ -94,23 +94,27 @@ def _mapping_fn(project, inputs, mapping: OrthoMapping):
     return fn, np.zeros((0, 2)), np.zeros(0)
 
 
-def _suspect(dres, ratio: float) -> np.ndarray:
-    """Subsections whose measured velocity is in doubt (stalled while the neighbours move)."""
+def _suspect(dres, th: ql.Thresholds) -> tuple[np.ndarray, np.ndarray]:
+    """Subsections whose measured velocity is in doubt (stalled while the neighbours move, or far below what
+    their depth suggests), and the velocity each may reach (the depth envelope)."""
     v = np.where(dres.velocity_filled, np.nan, dres.surface_velocity_ms)
     out = np.zeros(len(v), bool)
-    out[ql.stalled_subsections(v, ratio)] = True
-    return out
+    out[ql.stalled_subsections(v, th.stalled_ratio)] = True
+    out[ql.deficit_subsections(v, dres.mean_depth_m, th.deficit_ratio)] = True
+    return out, ql.depth_envelope(v, dres.mean_depth_m)
 
 
 def assess_run(project, inputs, level, mapping, geom, res, U, V, dres, q_pairs, frame_stats: dict):
     """(McResult, Quality) of a finished run; never raises for a draw that fails (it is counted)."""
     sig = sigmas(project, level)
+    th = thresholds(project)
+    suspect, upper = _suspect(dres, th)
     fn, px, ref = _mapping_fn(project, inputs, mapping)
     model = un.McModel(cross_section=inputs.cross_section, level_m=level.level_m, section_px=geom.p_img,
                        n_sub=len(geom.station_edges) - 1, station_offset_m=project.section.station_offset_m,
                        alpha=dres.alpha, mapping_fn=fn, method=mapping.method, gcp_px=px, gcp_ref=ref,
                        x=res.x, y=res.y, u=res.u, v=res.v, u_pairs=res.u_pairs, v_pairs=res.v_pairs,
-                       suspect=_suspect(dres, project.quality.stalled_ratio))
+                       suspect=suspect, suspect_upper_ms=upper)
     u = project.uncertainty
     mc = un.monte_carlo_discharge(model, sig, dres.discharge_m3s, n_draws=u.n_draws,
                                   n_draws_source=max(u.n_draws // 4, 20), seed=u.seed)
@@ -119,6 +123,7 @@ def assess_run(project, inputs, level, mapping, geom, res, U, V, dres, q_pairs, 
     first = p.window_px * 2 ** (max(p.passes, 1) - 1)
     v_meas = np.where(dres.velocity_filled, np.nan, dres.surface_velocity_ms)
     ev = ql.Evidence(subsection_width_m=np.diff(geom.station_edges), subsection_velocity_ms=v_meas,
+                     subsection_depth_m=dres.mean_depth_m,
                      discharge_m3s=dres.discharge_m3s, first_window_px=first, search_px=p.search_px or first,
                      q_pairs_m3s=q_pairs, relative_u95=mc.relative_u95,
                      **ql.section_evidence(geom.sample_img, geom.normal, res.x, res.y, res.u, res.v, U, V, dt,
@@ -134,4 +139,4 @@ def assess_run(project, inputs, level, mapping, geom, res, U, V, dres, q_pairs, 
                                f"ortho.max_residual_m = {project.ortho.max_residual_m:g} m and was accepted "
                                "(ortho.accept_residual)", float(mapping.details.get('max_distance_residual_m', r)),
                                project.ortho.max_residual_m))
-    return mc, ql.assess(ev, thresholds(project), extra)
+    return mc, ql.assess(ev, th, extra)

@@ -266,3 +266,15 @@ def test_identical_frames_are_unusable(short_scene, tmp_path, capsys):
     res = json.loads((tmp_path / "out" / "result.json").read_text())
     codes = {r["code"] for r in res["quality"]["reasons"]}
     assert {"identical_frames", "no_motion"} <= codes
+
+
+def test_a_band_far_below_what_its_depth_suggests_is_in_deficit_and_widens_the_interval():
+    depth = np.array([0.2, 0.5, 0.8, 1.0, 1.1, 1.0, 0.8, 0.5, 0.2])
+    v = 1.2 * depth ** (2 / 3)
+    assert ql.assess(_ev(v, subsection_depth_m=depth)).grade == "good"
+    v[5:8] *= 0.5  # glints pull a band down by half
+    q = ql.assess(_ev(v, subsection_depth_m=depth))
+    r = {x.code: x for x in q.reasons}["velocity_deficit"]
+    assert q.grade == "doubtful" and "6 (" in r.message and r.value == pytest.approx(3 / 9)
+    assert list(ql.deficit_subsections(v, depth)) == [5, 6, 7]
+    assert ql.depth_envelope(v, depth)[6] == pytest.approx(1.2 * 0.8 ** (2 / 3), rel=0.02)

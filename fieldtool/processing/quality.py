@@ -56,6 +56,8 @@ class Thresholds:
     valid_fraction_unusable: float = 0.15
     stalled_ratio: float = 0.3  # a subsection slower than this times its moving neighbours' median is stalled
     stalled_width_unusable: float = 0.3  # stalled/upstream share of the width that makes it unusable
+    deficit_ratio: float = 0.8  # a subsection below this times the velocity its depth suggests is in deficit
+    deficit_width_unusable: float = 0.5  # share of the width in deficit that makes it unusable
     displacement_doubtful: float = 0.25  # largest displacement along the section / first-pass window side
     displacement_unusable: float = 0.45
     peak_min: float = 0.15  # median correlation peak (coefficient) along the section
@@ -76,6 +78,7 @@ class Evidence:
     subsection_width_m: np.ndarray  # (n,) width of each subsection (m)
     subsection_velocity_ms: np.ndarray  # (n,) measured downstream-normal surface velocity, NaN = filled
     discharge_m3s: float
+    subsection_depth_m: np.ndarray | None = None  # (n,) mean depth of each subsection (m)
     valid_fraction_section: float | None = None  # mean over the section's sample points (0..1)
     displacement_px: float | None = None  # 95th percentile of |displacement| per frame along the section
     median_displacement_px: float | None = None
@@ -146,6 +149,48 @@ def stalled_subsections(v: np.ndarray, ratio: float = 0.3) -> np.ndarray:
         if (ref > 0 and v[i] < ratio * ref) or (typical > 0 and v[i] < -0.05 * typical):
             out.append(int(i))
     return np.asarray(out, int)
+
+
+def depth_envelope(v: np.ndarray, depth: np.ndarray, anchor: float = 0.8) -> np.ndarray:
+    """Velocity each subsection's depth suggests (m/s): c · depth^(2/3) (Manning, as the thesis fills
+    subsections), with c the ``anchor`` quantile of v / depth^(2/3) over the measured subsections, i.e. anchored
+    on the best-measured part of the section. NaN where nothing is measured."""
+    v, d = np.asarray(v, float), np.asarray(depth, float)
+    k = np.where(d > 0, d, np.nan) ** (2.0 / 3.0)
+    ok = np.isfinite(v) & np.isfinite(k) & (k > 0)
+    if ok.sum() < 3:
+        return np.full(len(v), np.nan)
+    c = float(np.quantile(v[ok] / k[ok], anchor))
+    return np.where(np.isfinite(k), c * np.nan_to_num(k), 0.0) if c > 0 else np.full(len(v), np.nan)
+
+
+def deficit_subsections(v: np.ndarray, depth: np.ndarray, ratio: float = 0.8) -> np.ndarray:
+    """Indices of measured subsections slower than ``ratio`` times the velocity their depth suggests
+    (:func:`depth_envelope`): a band of the section the PIV under-reads (glints, ripples, empty seeding)."""
+    v = np.asarray(v, float)
+    env = depth_envelope(v, depth)
+    with np.errstate(invalid="ignore"):
+        bad = np.isfinite(v) & np.isfinite(env) & (env > 0) & (v < ratio * env)
+    return np.nonzero(bad)[0]
+
+
+def check_deficit(ev: Evidence, th: Thresholds) -> list[Reason]:
+    if ev.subsection_depth_m is None:
+        return []
+    v = np.asarray(ev.subsection_velocity_ms, float)
+    w = np.asarray(ev.subsection_width_m, float)
+    idx = deficit_subsections(v, ev.subsection_depth_m, th.deficit_ratio)
+    if len(idx) == 0:
+        return []
+    env = depth_envelope(v, ev.subsection_depth_m)
+    share = float(w[idx].sum() / w.sum()) if w.sum() > 0 else 0.0
+    sev = "unusable" if share > th.deficit_width_unusable else "doubtful"
+    lst = ", ".join(f"{i + 1} ({v[i]:.2f} of {env[i]:.2f} m/s)" for i in idx[:6]) + (" ..." if len(idx) > 6 else "")
+    return [Reason("velocity_deficit", sev,
+                   f"subsection(s) {lst} measure less than {100 * th.deficit_ratio:.0f} % of the velocity their depth "
+                   f"suggests (v ~ depth^(2/3), anchored on the best-measured part; {100 * share:.0f} % of the "
+                   "width): the PIV likely under-reads there (glints, ripples, too few tracers)", share,
+                   th.deficit_width_unusable)]
 
 
 def check_stalled(ev: Evidence, th: Thresholds) -> list[Reason]:
@@ -260,7 +305,7 @@ def check_interval(ev: Evidence, th: Thresholds) -> list[Reason]:
                    ev.relative_u95, th.relative_u95_doubtful)]
 
 
-CHECKS: list[Check] = [check_motion, check_speed, check_measured_width, check_valid_fraction, check_stalled,
+CHECKS: list[Check] = [check_motion, check_speed, check_measured_width, check_valid_fraction, check_stalled, check_deficit,
                        check_displacement, check_peak, check_pair_spread, check_angle, check_interval]
 
 

@@ -103,6 +103,7 @@ class McModel:
     u_pairs: np.ndarray | None = None  # (n_pairs, ny, nx) px/s per-pair fields (bootstrap over pairs)
     v_pairs: np.ndarray | None = None
     suspect: np.ndarray | None = None  # (n_sub,) bool: measured velocities in doubt (e.g. stalled by glints)
+    suspect_upper_ms: np.ndarray | None = None  # (n_sub,) what a suspect's velocity may reach (m/s); None = neighbours'
 
 
 @dataclass
@@ -221,6 +222,8 @@ class _Draw:
         if suspect is not None and suspect.any():
             # a velocity in doubt lies anywhere between what was measured and what its neighbours suggest
             alt, _ = fill_velocity(np.where(suspect, np.nan, vs), depth)
+            if m.suspect_upper_ms is not None:
+                alt = np.where(np.isfinite(m.suspect_upper_ms), np.fmax(m.suspect_upper_ms, alt), alt)
             t = rng.uniform(0.0, 1.0)  # one artefact (glints, waves): the same for every suspect subsection
             vs = np.where(suspect & np.isfinite(alt), vs + t * (alt - vs), vs)
         vf, filled = fill_velocity(vs, depth)
