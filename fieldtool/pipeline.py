@@ -113,7 +113,8 @@ class RunResult:
         lv = self.level
         return {
             "discharge_m3s": d.discharge_m3s,
-            "discharge_ci95_m3s": list(self.uncertainty.ci95_m3s) if self.uncertainty is not None else None,
+            "discharge_ci95_m3s": (list(self.uncertainty.ci95_m3s) if self.uncertainty is not None
+                                   and np.all(np.isfinite(self.uncertainty.ci95_m3s)) else None),
             "uncertainty": self.uncertainty.to_dict() if self.uncertainty is not None else None,
             "quality": self.quality.to_dict() if self.quality is not None else None,
             # spread of the discharges of single frame pairs (the sampled pairs, n_pairs_with_vectors of them):
@@ -481,7 +482,11 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
 
     from .assess import assess_run
 
-    unc, qual = assess_run(project, inputs, level, mapping, geom, res, U, V, dres, q_pairs, frame_stats)
+    try:
+        unc, qual = assess_run(project, inputs, level, mapping, geom, res, U, V, dres, q_pairs, frame_stats)
+    except Exception as e:  # noqa: BLE001 - the discharge is kept; the missing verdict is said
+        unc = qual = None
+        warnings.append(f"uncertainty and quality not computed ({type(e).__name__}: {e}); please report this")
     lap("uncertainty_and_quality")
 
     result = RunResult(dres, q_pairs, level, mapping, res, geom, U, V, None, timings_s=timings, warnings=warnings,

@@ -125,7 +125,8 @@ class McResult:
     def to_dict(self) -> dict:
         """The ``uncertainty`` key of result.json."""
         return {"method": "monte_carlo", "n_draws": int(self.n_draws),
-                "ci95_m3s": [float(self.ci95_m3s[0]), float(self.ci95_m3s[1])],
+                "ci95_m3s": ([float(self.ci95_m3s[0]), float(self.ci95_m3s[1])]
+                             if np.all(np.isfinite(self.ci95_m3s)) else None),
                 "relative_u95": _finite_or_none(self.relative_u95), "budget": self.budget}
 
 
