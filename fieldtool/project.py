@@ -171,7 +171,8 @@ class QualityCfg:
     stalled_ratio: float = 0.3  # a subsection slower than this times its neighbours' median (moving downstream) is stalled
     stalled_width_unusable: float = 0.3  # stalled share of the width above which Q is unusable (any stalled: doubtful)
     deficit_ratio: float = 0.8  # a subsection below this times the velocity its depth suggests (v ~ depth^(2/3)) is in deficit: doubtful
-    deficit_width_unusable: float = 0.5  # share of the width in deficit above which Q is unusable
+    deficit_q_doubtful: float = 0.03  # discharge the subsections in deficit may miss (up to their depth's velocity) / Q: doubtful above
+    deficit_q_unusable: float = 0.5  # ... unusable above
     displacement_doubtful: float = 0.25  # 95th-percentile displacement along the section / first-pass search side: doubtful above
     displacement_unusable: float = 0.45  # ... unusable above
     peak_min: float = 0.15  # median correlation peak (coefficient) along the section: doubtful below

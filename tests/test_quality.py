@@ -275,6 +275,6 @@ def test_a_band_far_below_what_its_depth_suggests_is_in_deficit_and_widens_the_i
     v[5:8] *= 0.5  # glints pull a band down by half
     q = ql.assess(_ev(v, subsection_depth_m=depth))
     r = {x.code: x for x in q.reasons}["velocity_deficit"]
-    assert q.grade == "doubtful" and "6 (" in r.message and r.value == pytest.approx(3 / 9)
+    assert q.grade == "doubtful" and "6 (" in r.message and 0.1 < r.value < 0.3 and r.threshold == 0.03
     assert list(ql.deficit_subsections(v, depth)) == [5, 6, 7]
     assert ql.depth_envelope(v, depth)[6] == pytest.approx(1.2 * 0.8 ** (2 / 3), rel=0.02)

@@ -57,7 +57,8 @@ class Thresholds:
     stalled_ratio: float = 0.3  # a subsection slower than this times its moving neighbours' median is stalled
     stalled_width_unusable: float = 0.3  # stalled/upstream share of the width that makes it unusable
     deficit_ratio: float = 0.8  # a subsection below this times the velocity its depth suggests is in deficit
-    deficit_width_unusable: float = 0.5  # share of the width in deficit that makes it unusable
+    deficit_q_doubtful: float = 0.03  # discharge the subsections in deficit may miss / Q: doubtful above
+    deficit_q_unusable: float = 0.5  # ... unusable above
     displacement_doubtful: float = 0.25  # largest displacement along the section / first-pass window side
     displacement_unusable: float = 0.45
     peak_min: float = 0.15  # median correlation peak (coefficient) along the section
@@ -183,14 +184,20 @@ def check_deficit(ev: Evidence, th: Thresholds) -> list[Reason]:
     if len(idx) == 0:
         return []
     env = depth_envelope(v, ev.subsection_depth_m)
-    share = float(w[idx].sum() / w.sum()) if w.sum() > 0 else 0.0
-    sev = "unusable" if share > th.deficit_width_unusable else "doubtful"
+    d = np.asarray(ev.subsection_depth_m, float)
+    flux = w * d  # ~ area of each subsection
+    total = float(np.nansum(flux * np.where(np.isfinite(v), np.maximum(v, 0.0), 0.0)))
+    missing = float(np.sum(flux[idx] * (env[idx] - v[idx])) / total) if total > 0 else float("inf")
+    if missing <= th.deficit_q_doubtful:
+        return []
+    sev = "unusable" if missing > th.deficit_q_unusable else "doubtful"
+    limit = th.deficit_q_unusable if sev == "unusable" else th.deficit_q_doubtful
     lst = ", ".join(f"{i + 1} ({v[i]:.2f} of {env[i]:.2f} m/s)" for i in idx[:6]) + (" ..." if len(idx) > 6 else "")
     return [Reason("velocity_deficit", sev,
                    f"subsection(s) {lst} measure less than {100 * th.deficit_ratio:.0f} % of the velocity their depth "
-                   f"suggests (v ~ depth^(2/3), anchored on the best-measured part; {100 * share:.0f} % of the "
-                   "width): the PIV likely under-reads there (glints, ripples, too few tracers)", share,
-                   th.deficit_width_unusable)]
+                   f"suggests (v ~ depth^(2/3), anchored on the best-measured part): Q may miss up to "
+                   f"{100 * missing:.0f} % there (limit {100 * limit:.0f} %); the PIV likely under-reads (glints, "
+                   "ripples, too few tracers, a grazing view)", missing, limit)]
 
 
 def check_stalled(ev: Evidence, th: Thresholds) -> list[Reason]:
