@@ -106,6 +106,7 @@ class RunResult:
     piv_reused: bool = False  # the PIV field came from the output folder's piv_cache.npz
     uncertainty: object | None = None  # processing.uncertainty.McResult
     quality: object | None = None  # processing.quality.Quality
+    sections: list = field(default_factory=list)  # several sections: the main one first (fieldtool.sections)
 
     def summary(self) -> dict:
         d = self.discharge
@@ -117,6 +118,8 @@ class RunResult:
                                    and np.all(np.isfinite(self.uncertainty.ci95_m3s)) else None),
             "uncertainty": self.uncertainty.to_dict() if self.uncertainty is not None else None,
             "quality": self.quality.to_dict() if self.quality is not None else None,
+            "sections": self.sections or None,
+            "sections_summary": _sections_summary(self.sections),
             # spread of the discharges of single frame pairs (the sampled pairs, n_pairs_with_vectors of them):
             # not an interval of Q, which averages every pair (see discharge_ci95_m3s)
             "discharge_p05_m3s": float(np.percentile(qp, 5)) if len(qp) else None,
@@ -146,6 +149,12 @@ class RunResult:
             "fieldtool_version": __version__,
             "inputs": self.project,
         }
+
+
+def _sections_summary(entries: list) -> dict | None:
+    from .sections import summarize
+
+    return summarize(entries) if entries else None
 
 
 # ---------------------------------------------------------------------------------------------
@@ -441,6 +450,9 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
     from .validation import check
 
     warnings += [str(w) for w in check(project)]  # every key, before any step
+    from .sections import parse as parse_sections
+
+    extra_sections = parse_sections(project)
     obs("stage", "inputs")
     inputs = load_inputs(project)
     lap("inputs")
@@ -460,10 +472,12 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
     if project.piv.max_velocity_ms is not None:
         max_speed = project.piv.max_velocity_ms / mapping.scale_m_per_px(x, y)
 
-    def pair_q_fn(g: dq.SectionGeometry) -> Callable[..., float]:
-        """Discharge of one pixel-velocity field (px/s) on the section ``g``."""
-        area, depth = dq.subsection_areas(g, cs, level.level_m)
-        alpha = dq.resolve_alpha(sec.alpha, cs, level.level_m)
+    def pair_q_fn(g: dq.SectionGeometry, cs_g: xs.CrossSection | None = None) -> Callable[..., float]:
+        """Discharge of one pixel-velocity field (px/s) on the section ``g`` (cross-section ``cs_g``, default
+        the project's)."""
+        cs_g = cs if cs_g is None else cs_g
+        area, depth = dq.subsection_areas(g, cs_g, level.level_m)
+        alpha = dq.resolve_alpha(sec.alpha, cs_g, level.level_m)
 
         def q(xx, yy, u, v) -> float:
             Uw, Vw = mapping.rectify_velocity(xx, yy, u, v)
@@ -524,8 +538,11 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
         geom.swapped = True
         v_sub = dq.subsection_velocity(geom, res.x, res.y, U, V)
         dres = dq.compute_discharge(geom, cs, level.level_m, v_sub, sec.alpha)
-    pair_q = pair_q_fn(geom)
-    q_pairs = np.array([pair_q(res.x, res.y, res.u_pairs[k], res.v_pairs[k]) for k in range(len(res.u_pairs))])
+    def pairs_q(g: dq.SectionGeometry, cs_g: xs.CrossSection | None = None) -> np.ndarray:
+        pair_q = pair_q_fn(g, cs_g)
+        return np.array([pair_q(res.x, res.y, res.u_pairs[k], res.v_pairs[k]) for k in range(len(res.u_pairs))])
+
+    q_pairs = pairs_q(geom)
     lap("discharge")
 
     from .assess import assess_run
@@ -535,11 +552,37 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
     except Exception as e:  # noqa: BLE001 - the discharge is kept; the missing verdict is said
         unc = qual = None
         warnings.append(f"uncertainty and quality not computed ({type(e).__name__}: {e}); please report this")
+    section_entries = []
+    if extra_sections:
+        from . import sections as secs
+
+        main = {"name": "main", "points_px": np.asarray(sec.points_px, float).tolist(), "discharge_m3s": dres.discharge_m3s,
+                "discharge_ci95_m3s": (list(unc.ci95_m3s) if unc is not None and np.all(np.isfinite(unc.ci95_m3s))
+                                       else None), "grade": qual.grade if qual is not None else None,
+                "wetted_area_m2": dres.wetted_area_m2, "wetted_width_m": dres.wetted_width_m,
+                "mean_velocity_ms": dres.mean_velocity_ms, "subsections_filled": int(dres.velocity_filled.sum())}
+        section_entries = [main] + [secs.measure(project, inputs, s, level, mapping, res, U, V, frame_stats, pairs_q)
+                                    for s in extra_sections]
+        for e in section_entries:
+            if "error" in e:
+                warnings.append(f"section {e['name']!r}: {e['error']}")
+        summ = secs.summarize(section_entries)
+        if qual is not None and summ is not None and summ["cv"] is not None \
+                and summ["cv"] > project.quality.sections_cv_doubtful:
+            from .processing.quality import Reason
+
+            qual.reasons.append(Reason("sections_disagree", "doubtful",
+                                       f"the {summ['n']} sections' discharges differ by a coefficient of variation of "
+                                       f"{100 * summ['cv']:.1f} % (quality.sections_cv_doubtful = "
+                                       f"{100 * project.quality.sections_cv_doubtful:g} %)", summ["cv"],
+                                       project.quality.sections_cv_doubtful))
+            if qual.grade == "good":
+                qual.grade = "doubtful"
     lap("uncertainty_and_quality")
 
     result = RunResult(dres, q_pairs, level, mapping, res, geom, U, V, None, timings_s=timings, warnings=warnings,
                        stabilization=stab or None, project=project_to_dict(project), piv_reused=cached is not None,
-                       uncertainty=unc, quality=qual)
+                       uncertainty=unc, quality=qual, sections=section_entries)
     if out_dir is not None:
         write_outputs(result, project, inputs, Path(out_dir))
     obs("result", result)
