@@ -144,6 +144,9 @@ class PivCfg:
     median_threshold: float = 2.0  # normalised local median test threshold
     std_threshold: float = 4.0  # global standard-deviation test (n sigma)
     min_valid_fraction: float = 0.3  # mean/median: a node valid in fewer pairs than this is dropped
+    remove_stationary: bool = True  # standardise each pixel over ~1 s before PIV: glints and patterns fixed in the image go
+    frame_gap: int | None = None  # frames between the two images of a pair; None = chosen from a first look at the clip
+    reject_upstream: bool = True  # subsections going upstream while the section goes downstream: rejected, filled, reported
 
 
 @dataclass
