@@ -107,6 +107,7 @@ class RunResult:
     uncertainty: object | None = None  # processing.uncertainty.McResult
     quality: object | None = None  # processing.quality.Quality
     sections: list = field(default_factory=list)  # several sections: the main one first (fieldtool.sections)
+    robust: dict | None = None  # facts of the robust stages (processing/surface.py, robust.py, planning.py)
 
     def summary(self) -> dict:
         d = self.discharge
@@ -143,6 +144,7 @@ class RunResult:
             "ortho_details": self.mapping.details,
             "stabilization": self.stabilization,
             "piv_reused": self.piv_reused,
+            "robust": self.robust,
             "warnings": self.warnings + d.warnings,
             "timings_s": self.timings_s,
             "files": self.files,
@@ -422,7 +424,8 @@ def piv_params(project: Project):
     p = project.piv
     return PivParams(window_px=p.window_px, overlap_px=p.overlap_px, search_px=p.search_px, passes=p.passes,
                      snr_min=p.snr_min, averaging=p.averaging, median_threshold=p.median_threshold,
-                     std_threshold=p.std_threshold, min_valid_fraction=p.min_valid_fraction, engine=p.engine)
+                     std_threshold=p.std_threshold, min_valid_fraction=p.min_valid_fraction, engine=p.engine,
+                     frame_gap=p.frame_gap or 1)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -467,6 +470,11 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
     roi, mask = roi_and_mask(project, inputs)
 
     params = piv_params(project)
+    if project.piv.remove_stationary:
+        from .processing.surface import MIN_TEXTURE
+        from dataclasses import replace
+
+        params = replace(params, min_texture=MIN_TEXTURE)
     x, y = piv_mod.grid(inputs.shape, params, roi)
     max_speed = None
     if project.piv.max_velocity_ms is not None:
@@ -489,6 +497,12 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
     obs("stage", "piv")
     stab: dict = {}
     frame_stats: dict = {}
+    surface_stats = None
+    plan = None
+    if project.piv.remove_stationary:
+        from .processing.surface import SurfaceStats
+
+        surface_stats = SurfaceStats()
 
     def on_pair(i, t, xx, yy, u, v, valid):
         obs("pair", i, t, xx, yy, u, v, valid)
@@ -512,6 +526,26 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
 
         frames = tracked(frames)
         frames = _count_identical(frames, frame_stats)
+        if project.piv.remove_stationary:
+            from .processing import surface
+
+            frames = surface.standardize(frames, roi, margin=max(64, params.search_px or 0), half=surface.HALF_WINDOW,
+                                         shrink=surface.SHRINK, stats=surface_stats)
+        from dataclasses import replace as _replace
+
+        from .processing import planning
+
+        if project.piv.frame_gap is None:
+            plan, frames = planning.first_look(frames, params, roi, mask)
+            params = _replace(params, frame_gap=plan.frame_gap, search_px=params.search_px or plan.search_px)
+            if plan.frame_gap > 1 or plan.search_px:
+                warnings.append(
+                    f"piv: from a first look at {plan.pairs_looked} pairs (slow nodes {plan.slow_px_per_frame:.1f}, "
+                    f"fast nodes {plan.fast_px_per_frame:.1f} px per frame) pairs are {plan.frame_gap} frame(s) apart"
+                    + (f" and the first pass searches {plan.search_px} px" if plan.search_px else "")
+                    + "; set piv.frame_gap (and piv.search_px) to choose yourself")
+        else:
+            plan = planning.Plan(frame_gap=int(project.piv.frame_gap), search_px=params.search_px, chosen="user")
         n_expected = inputs.source.estimated_count()
         if n_expected:
             frames = _Sized(frames, n_expected)  # lets the ensemble plan which pairs get per-pair vectors
@@ -538,6 +572,23 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
         geom.swapped = True
         v_sub = dq.subsection_velocity(geom, res.x, res.y, U, V)
         dres = dq.compute_discharge(geom, cs, level.level_m, v_sub, sec.alpha)
+    robust_facts: dict = {"plan": plan.as_dict() if plan is not None else None}
+    if surface_stats is not None:
+        robust_facts["stationary_removed"] = {"frames": surface_stats.frames, "std_ref": surface_stats.std_ref,
+                                              "specular_fraction": surface_stats.specular_fraction}
+    if project.piv.reject_upstream:
+        from .processing import robust
+
+        v_clean, rejected = robust.reject_upstream(v_sub)
+        robust_facts["upstream_rejected"] = [int(i) for i in np.flatnonzero(rejected)]
+        if rejected.any():
+            dres = dq.compute_discharge(geom, cs, level.level_m, v_clean, sec.alpha)
+            warnings.append(f"{int(rejected.sum())} subsection(s) went upstream while the section goes downstream "
+                            "(wind ripples, standing waves or glints); rejected and filled from their neighbours")
+    from .processing.robust import width_share
+
+    robust_facts["filled_subsections"] = [int(i) for i in np.flatnonzero(dres.velocity_filled)]
+    robust_facts["filled_width_share"] = width_share(dres.station_from, dres.station_to, dres.velocity_filled)
     def pairs_q(g: dq.SectionGeometry, cs_g: xs.CrossSection | None = None) -> np.ndarray:
         pair_q = pair_q_fn(g, cs_g)
         return np.array([pair_q(res.x, res.y, res.u_pairs[k], res.v_pairs[k]) for k in range(len(res.u_pairs))])
@@ -582,7 +633,7 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
 
     result = RunResult(dres, q_pairs, level, mapping, res, geom, U, V, None, timings_s=timings, warnings=warnings,
                        stabilization=stab or None, project=project_to_dict(project), piv_reused=cached is not None,
-                       uncertainty=unc, quality=qual, sections=section_entries)
+                       uncertainty=unc, quality=qual, sections=section_entries, robust=robust_facts)
     if out_dir is not None:
         write_outputs(result, project, inputs, Path(out_dir))
     obs("result", result)
