@@ -84,6 +84,7 @@ def standardize(frames: Iterable[tuple[float, np.ndarray]], roi=None, *, margin:
     box = None
     shape = None
     ref = None
+    static = [False]
 
     def push(t, img):
         nonlocal box, shape
@@ -105,7 +106,9 @@ def standardize(frames: Iterable[tuple[float, np.ndarray]], roi=None, *, margin:
             st.reset(buf)
         mean, sd = st.moments(len(buf))
         if ref is None:  # the box's typical spread, from the first window
-            ref = max(float(np.median(sd)), 1e-3)
+            med = float(np.median(sd))
+            static[0] = med < 1e-3  # nothing moves or flickers: frames pass unchanged (PIV then sees no motion)
+            ref = max(med, 1e-3)
             if stats is not None:
                 stats.std_ref = ref
                 stats.specular_fraction = float(np.mean(sd > 4.0 * ref))
@@ -118,6 +121,11 @@ def standardize(frames: Iterable[tuple[float, np.ndarray]], roi=None, *, margin:
         out = np.zeros(shape, np.float32)
         x0, y0, x1, y1 = box
         o = out[y0:y1, x0:x1]
+        if static[0]:
+            o[:] = c16
+            if stats is not None:
+                stats.frames += 1
+            return t, out
         np.subtract(c16, mean, out=o, dtype=np.float32)
         o /= den
         if shrink > 0:
