@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import json
 
-import numpy as np
 
 from ..errors import FieldToolError, ParameterError
 from ..project import project_to_dict
@@ -82,18 +81,14 @@ def core_check(session, step: str) -> None:
 
 
 def section_geometry(session):
-    """(section geometry, level result, cross-section) of the session's project."""
-    from ..pipeline import level_and_mapping
-    from ..processing import discharge as dq
+    """(section geometry, level result, cross-section) of the session's project, with the same
+    checks as `fieldtool run` (``pipeline.build_section``)."""
+    from ..pipeline import build_section, level_and_mapping
 
     p = session.project
     inputs = session.inputs()
     level, mapping = level_and_mapping(p, inputs)
-    sec = p.section
-    if np.asarray(sec.points_px, float).shape != (2, 2):
-        raise ParameterError("section.points_px: give the two water edges P1, P2 as 'x, y'")
-    geom = dq.section_geometry(inputs.to_working(sec.points_px), mapping, inputs.cross_section, level.level_m,
-                               sec.n_sub, sec.station_offset_m, inputs.shape)
+    geom = build_section(p, inputs, level.level_m, mapping)
     return geom, level, inputs.cross_section
 
 
