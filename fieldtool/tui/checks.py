@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import json
 
-
 from ..errors import FieldToolError, ParameterError
 from ..project import project_to_dict
 
