@@ -26,9 +26,8 @@ def discharge_lines(s: dict) -> list[str]:
     q = s["discharge_m3s"]
     ci = s.get("discharge_ci95_m3s")
     if isinstance(ci, (list, tuple)) and len(ci) == 2 and all(isinstance(v, (int, float)) for v in ci):
-        lo, hi = ci
-        half = max(q - lo, hi - q)
-        lines = [f"[b]discharge      {q:.4f} ± {half:.4f} m³/s[/b] [dim](95 %: {lo:.4f} .. {hi:.4f})[/dim]"]
+        lo, hi = ci  # the interval is not symmetric about Q: both ends are shown
+        lines = [f"[b]discharge      {q:.4f} m³/s[/b]  95 %: {lo:.3f} .. {hi:.3f}"]
     else:
         p05, p95 = s.get("discharge_p05_m3s"), s.get("discharge_p95_m3s")
         spread = f"  [dim](pairs 5-95 %: {p05:.4f} - {p95:.4f})[/dim]" if p05 is not None and p95 is not None else ""
