@@ -330,8 +330,9 @@ def test_piv_progress_line_is_on_screen_at_80x24(project_path, monkeypatch):
 
 def test_piv_without_a_section_is_kept_when_quitting(project_path, tmp_path):
     """Defect: a finished PIV was lost when the user quit before a section existed. The PIV-only run
-    saves the field in the PIV cache at once: a new session finds it (PIV marked done), and the
-    discharge run reuses it instead of running PIV again."""
+    saves the field at once (out/tui_piv, the PIV cache's format and key): a new session finds it (PIV
+    marked done, its figures shown). The discharge run does not take it for its own (its PIV has stages
+    the PIV-only run does not repeat): its discharge is that of a fresh run."""
     section = load_project(project_path).section.points_px
 
     async def first():
@@ -349,17 +350,18 @@ def test_piv_without_a_section_is_kept_when_quitting(project_path, tmp_path):
             await pilot.press("ctrl+q")
 
     asyncio.run(first())
-    assert (project_path.parent / "out" / "piv_cache.npz").is_file()
+    assert (project_path.parent / "out" / "tui_piv" / "piv_cache.npz").is_file()
     from fieldtool.tui.session import Session
 
     s = Session(project_path)
     assert s.piv_state() == "current"
     assert s.step_marks()["piv"] == "ok"
+    assert s.piv_preview["stats"]["pairs"] > 0
     p = load_project(project_path)
     ref = load_project(project_path)
     p.section.points_px = ref.section.points_px = section
     res = run_project(p, project_path.parent / "out")
-    assert res.piv_reused
+    assert not res.piv_reused
     fresh = run_project(ref, tmp_path / "fresh")
     assert not fresh.piv_reused
     assert res.discharge.discharge_m3s == pytest.approx(fresh.discharge.discharge_m3s, rel=1e-12)
