@@ -20,7 +20,7 @@ from typing import Callable, Iterator
 
 import numpy as np
 
-from . import __version__, piv_cache
+from . import __version__, piv_cache, stiv_stage
 from .errors import Cancelled, FieldToolError, GeometryError, ParameterError
 from .processing import cross_section as xs
 from .processing import discharge as dq
@@ -104,6 +104,7 @@ class RunResult:
     stabilization: dict | None = None
     project: dict = field(default_factory=dict)
     piv_reused: bool = False  # the PIV field came from the output folder's piv_cache.npz
+    stiv: dict | None = None  # STIV beside PIV per subsection (stiv_stage.finish); None when [stiv] enabled = false
 
     def summary(self) -> dict:
         d = self.discharge
@@ -132,6 +133,7 @@ class RunResult:
             "ortho_details": self.mapping.details,
             "stabilization": self.stabilization,
             "piv_reused": self.piv_reused,
+            "stiv": self.stiv,
             "warnings": self.warnings + d.warnings,
             "timings_s": self.timings_s,
             "files": self.files,
@@ -366,6 +368,7 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
     geom = dq.section_geometry(inputs.to_working(sec.points_px) if sec.points_px else sec.points_px, mapping, cs,
                                level.level_m, sec.n_sub, sec.station_offset_m)
     roi, mask = roi_and_mask(project, inputs)
+    stiv_run = stiv_stage.start(project, mapping, geom, inputs.shape, roi, mask)
 
     params = piv_params(project)
     x, y = piv_mod.grid(inputs.shape, params, roi)
@@ -401,6 +404,8 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
         stab.update(stab_cached or {})
     else:
         frames = working_frames(project, inputs, cancel, obs, stab if project.stabilize.enabled else None, progress)
+        if stiv_run is not None:  # STIV samples its lines from the same stream (one decode)
+            frames = stiv_run.tap(frames)
         n_expected = inputs.source.estimated_count()
         if n_expected:
             frames = _Sized(frames, n_expected)  # lets the ensemble plan which pairs get per-pair vectors
@@ -408,6 +413,7 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
                               progress=None, cancel=cancel, on_pair=on_pair)
         if cache_dir is not None:
             piv_cache.save(cache_dir, key, res, stab or None)
+    stiv_stage.ensure_sampled(stiv_run, lambda: working_frames(project, inputs, cancel))
     lap("frames_and_piv")
 
     obs("stage", "discharge")
@@ -423,12 +429,14 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
         geom.swapped = True
         v_sub = dq.subsection_velocity(geom, res.x, res.y, U, V)
         dres = dq.compute_discharge(geom, cs, level.level_m, v_sub, sec.alpha)
+    stiv_block, dres = stiv_stage.finish(stiv_run, project, geom, cs, level.level_m, dres, res, U, V)
     pair_q = pair_q_fn(geom)
     q_pairs = np.array([pair_q(res.x, res.y, res.u_pairs[k], res.v_pairs[k]) for k in range(len(res.u_pairs))])
     lap("discharge")
 
     result = RunResult(dres, q_pairs, level, mapping, res, geom, U, V, None, timings_s=timings, warnings=warnings,
-                       stabilization=stab or None, project=project_to_dict(project), piv_reused=cached is not None)
+                       stabilization=stab or None, project=project_to_dict(project), piv_reused=cached is not None,
+                       stiv=stiv_block)
     if out_dir is not None:
         write_outputs(result, project, inputs, Path(out_dir))
     obs("result", result)
@@ -446,10 +454,11 @@ def write_outputs(result: RunResult, project: Project, inputs: Inputs, out: Path
     result.out_dir = out
     d, p = result.discharge, result.piv
     files = result.files
-    lines = ["subsection,station_from_m,station_to_m,area_m2,mean_depth_m,surface_velocity_ms,velocity_filled,discharge_m3s"]
+    lines = ["subsection,station_from_m,station_to_m,area_m2,mean_depth_m,surface_velocity_ms,velocity_filled,discharge_m3s,stiv_velocity_ms"]
+    stiv_v = stiv_stage.stiv_column(result.stiv, len(d.area_m2))
     for i in range(len(d.area_m2)):
         lines.append(f"{i + 1},{d.station_from[i]:.4f},{d.station_to[i]:.4f},{d.area_m2[i]:.5f},{d.mean_depth_m[i]:.4f},"
-                     f"{d.surface_velocity_ms[i]:.5f},{int(d.velocity_filled[i])},{d.sub_discharge_m3s[i]:.5f}")
+                     f"{d.surface_velocity_ms[i]:.5f},{int(d.velocity_filled[i])},{d.sub_discharge_m3s[i]:.5f},{stiv_v[i]}")
     atomic_write_bytes(out / "subsections.csv", ("\n".join(lines) + "\n").encode())
     files["subsections"] = "subsections.csv"
 

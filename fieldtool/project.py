@@ -154,6 +154,19 @@ class SectionCfg:
     n_sub: int = 15  # number of subsections
     station_offset_m: float | None = None  # station of the first point; None = left water edge
     alpha: float | None = None  # velocity index; None = 0.8 if mean depth < 2 m else 0.9
+    velocity_source: str = "piv"  # piv | stiv | combined (confidence-weighted per subsection); see [stiv]
+
+
+@dataclass
+class StivCfg:
+    """[stiv] space-time image velocimetry on search lines across the section: a second estimator."""
+
+    enabled: bool = True  # sample the lines during the PIV's frame stream and report STIV beside PIV
+    method: str = "fft"  # fft (2-D autocorrelation of the space-time image) | tensor (structure tensor)
+    line_length_m: float = 3.0  # length of each search line along the flow, centred on the section (m)
+    lines_per_sub: int = 3  # search lines per subsection
+    angles_deg: list[float] = field(default_factory=lambda: [0.0])  # line turns from the section normal (deg); the one nearest the PIV flow direction is used
+    min_confidence: float = 0.1  # lines below this confidence (0..1) are not used
 
 
 @dataclass
@@ -182,6 +195,7 @@ class Project:
     filters: list[dict[str, Any]] = field(default_factory=list)  # ordered stack: [{name = "clahe", ...}]
     piv: PivCfg = field(default_factory=PivCfg)
     section: SectionCfg = field(default_factory=SectionCfg)
+    stiv: StivCfg = field(default_factory=StivCfg)
     rerun: RerunCfg = field(default_factory=RerunCfg)
     root: Path = field(default=Path("."), metadata={"saved": False})
 

@@ -1,0 +1,362 @@
+"""STIV: space-time image velocimetry along search lines across the section of interest.
+
+A search line is a straight segment on the water plane, parallel to the flow (by default along the
+section's downstream normal), centred on a subsection of the section. Each working frame is sampled
+along every line (bilinear, through the ortho mapping: the line is laid out in metres on the water
+plane and placed in image pixels with the inverse homography, so its samples are equally spaced in
+metres). Stacking the samples of successive frames gives one space-time image (STI) per line: rows are
+times (s), columns are positions along the line (m). A tracer or a texture drifting at ``v`` m/s along
+the line draws a streak ``s = s0 + v t``; the orientation of the STI's texture is the velocity.
+
+Two orientation estimators are provided (see ``benchmarks/stiv_accuracy.py`` for their errors):
+
+- ``"fft"`` (default): the STI's 2-D autocorrelation (FFT power spectrum, inverse FFT; the
+  Wiener-Khinchin form of Fujita's 2-D FFT method), integrated along straight lines through the origin
+  (a Radon projection over 1..K row lags); the angle of the best line is the velocity. Works at any
+  streak slope, both signs, and its normalised peak height is the confidence (0..1: how much of the
+  texture is carried unchanged along the line).
+- ``"tensor"``: the classical structure tensor of the STI (Gaussian-smoothed Scharr gradients, summed
+  over the image); confidence is the tensor's coherence. Biased once streaks move more than ~1 px per
+  row (temporal derivatives alias), which the FFT method is not.
+
+Before either, the STI is put on a uniform time grid from the frames' own timestamps (dropped or
+irregular frames are interpolated, never assumed at 1/fps), and its per-column temporal mean and
+per-row mean are removed (static texture, glints flickering in place and global brightness changes
+draw no streak).
+
+Units: metres, seconds, m/s. World axes as :mod:`fieldtool.processing.ortho`; image x right, y down.
+Velocities along a line are signed: positive in the line's direction.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from ..errors import ParameterError
+from .ortho import OrthoMapping
+
+METHODS = ("fft", "tensor")
+
+
+@dataclass
+class StivLine:
+    """One search line: ``sub`` is the subsection it samples (0-based, in the geometry it was built on).
+
+    ``center_m`` (2,) and ``direction`` (2,) unit vector on the water plane (m); ``ds_m`` sample
+    spacing (m); ``pts_px`` (n, 2) sample positions in working-image pixels; ``angle_deg`` the turn of
+    ``direction`` from the section normal (counter-clockwise seen from above).
+    """
+
+    sub: int
+    center_m: np.ndarray
+    direction: np.ndarray
+    length_m: float
+    ds_m: float
+    pts_px: np.ndarray
+    angle_deg: float = 0.0
+
+
+def _rot(v: np.ndarray, deg: float) -> np.ndarray:
+    a = np.radians(deg)
+    c, s = np.cos(a), np.sin(a)
+    return np.array([c * v[0] - s * v[1], s * v[0] + c * v[1]])
+
+
+def build_lines(p_world: np.ndarray, normal: np.ndarray, mapping: OrthoMapping, n_sub: int, *,
+                length_m: float = 3.0, lines_per_sub: int = 3, angles_deg=(0.0,),
+                image_shape: tuple[int, int] | None = None, valid: np.ndarray | None = None,
+                px_per_sample: float = 1.0) -> list[StivLine]:
+    """Search lines across the section, ``lines_per_sub`` per subsection and per angle.
+
+    Parameters
+    ----------
+    p_world : (2, 2) m, the section's left then right water edge on the water plane.
+    normal : (2,) downstream unit normal of the section (world).
+    mapping : image <-> water-plane mapping.
+    n_sub : number of subsections; line centres sit at the fractions (i + (j + 0.5) / lines_per_sub) / n_sub.
+    length_m : line length (m), centred on the section.
+    lines_per_sub : lines per subsection (spread evenly across it).
+    angles_deg : turns of the line direction from the normal (deg, counter-clockwise from above); 0 = normal.
+    image_shape : (H, W) of the working frames; samples outside are cut (the longest inside run is kept).
+    valid : optional bool (H, W), False where samples must not be taken (outside the ROI, masks).
+    px_per_sample : spacing of the samples in image pixels at the line's centre (1 = one per pixel).
+
+    Returns
+    -------
+    list of StivLine (lines shorter than 8 samples after cutting are dropped).
+    """
+    if length_m <= 0 or lines_per_sub < 1 or n_sub < 1:
+        raise ParameterError("stiv.line_length_m and stiv.lines_per_sub must be positive")
+    p_world = np.asarray(p_world, float)
+    d = p_world[1] - p_world[0]
+    lines = []
+    for i in range(n_sub):
+        for j in range(lines_per_sub):
+            c = p_world[0] + d * (i + (j + 0.5) / lines_per_sub) / n_sub
+            for ang in angles_deg:
+                e = _rot(np.asarray(normal, float), float(ang))
+                e /= np.hypot(*e)
+                ends = mapping.world_to_image(np.array([c - 0.5 * length_m * e, c + 0.5 * length_m * e]))
+                n = int(np.ceil(np.hypot(*(ends[1] - ends[0])) / px_per_sample)) + 1
+                if n < 8:
+                    continue
+                s = np.linspace(-0.5 * length_m, 0.5 * length_m, n)
+                px = mapping.world_to_image(c + s[:, None] * e)
+                ok = np.all(np.isfinite(px), axis=1)
+                if image_shape is not None:
+                    h, w = image_shape
+                    ok &= (px[:, 0] >= 0) & (px[:, 0] <= w - 1) & (px[:, 1] >= 0) & (px[:, 1] <= h - 1)
+                if valid is not None and ok.any():
+                    ix = np.clip(np.rint(px[:, 0]).astype(int), 0, valid.shape[1] - 1)
+                    iy = np.clip(np.rint(px[:, 1]).astype(int), 0, valid.shape[0] - 1)
+                    ok &= valid[iy, ix]
+                a, b = _longest_run(ok)
+                if b - a < 8:
+                    continue
+                ds = length_m / (n - 1)
+                lines.append(StivLine(i, c + 0.5 * (s[a] + s[b - 1]) * e, e, float(s[b - 1] - s[a]), ds,
+                                      px[a:b].astype(np.float32), float(ang)))
+    return lines
+
+
+def _longest_run(ok: np.ndarray) -> tuple[int, int]:
+    """[a, b) of the longest run of True in ``ok``."""
+    best, start = (0, 0), None
+    for k, v in enumerate(np.r_[ok, False]):
+        if v and start is None:
+            start = k
+        elif not v and start is not None:
+            if k - start > best[1] - best[0]:
+                best = (start, k)
+            start = None
+    return best
+
+
+class StiAccumulator:
+    """Builds the space-time images of ``lines`` one frame at a time (only the samples are kept:
+    frames x samples float32, never the frames)."""
+
+    def __init__(self, lines: list[StivLine]):
+        self.lines = lines
+        self.bounds = np.cumsum([0] + [len(ln.pts_px) for ln in lines])
+        pts = np.concatenate([ln.pts_px for ln in lines]) if lines else np.zeros((0, 2), np.float32)
+        self.map_x = np.ascontiguousarray(pts[None, :, 0], dtype=np.float32)
+        self.map_y = np.ascontiguousarray(pts[None, :, 1], dtype=np.float32)
+        self.rows: list[np.ndarray] = []
+        self.times: list[float] = []
+
+    def add(self, t_s: float, frame: np.ndarray) -> None:
+        """Sample one working frame (gray, any dtype) taken at ``t_s`` seconds."""
+        if not len(self.lines):
+            return
+        img = frame if frame.dtype == np.float32 else frame.astype(np.float32)
+        row = cv2.remap(img, self.map_x, self.map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        self.rows.append(row[0])
+        self.times.append(float(t_s))
+
+    def tap(self, frames):
+        """Pass a (t_s, frame) stream through unchanged, sampling every frame on the way."""
+        for t, img in frames:
+            self.add(t, img)
+            yield t, img
+
+    def sti(self, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """(STI (T, n) of line ``k``, times (T,) s)."""
+        a, b = self.bounds[k], self.bounds[k + 1]
+        return np.stack([r[a:b] for r in self.rows]), np.asarray(self.times)
+
+
+# ---------------------------------------------------------------------------------------------
+# one space-time image -> one velocity
+
+
+def uniform_time(sti: np.ndarray, t_s: np.ndarray) -> tuple[np.ndarray, float]:
+    """Resample the rows of ``sti`` onto a uniform time grid (step = the median frame interval, s),
+    linearly between the frames' own timestamps. Returns (STI, dt_s)."""
+    t = np.asarray(t_s, float)
+    dts = np.diff(t)
+    if len(dts) == 0 or not np.all(dts > 0):
+        raise ParameterError("frames: STIV needs at least 2 frames with increasing timestamps")
+    dt = float(np.median(dts))
+    if np.allclose(dts, dt, rtol=1e-3, atol=1e-6):
+        return np.asarray(sti, np.float32), dt
+    grid = t[0] + dt * np.arange(int(np.floor((t[-1] - t[0]) / dt + 1e-9)) + 1)
+    j = np.clip(np.searchsorted(t, grid, side="right") - 1, 0, len(t) - 2)
+    w = ((grid - t[j]) / (t[j + 1] - t[j]))[:, None]
+    return ((1 - w) * sti[j] + w * sti[j + 1]).astype(np.float32), dt
+
+
+def _prepare(sti: np.ndarray) -> np.ndarray:
+    a = np.asarray(sti, np.float64)
+    a = a - a.mean(axis=0, keepdims=True)  # static texture, glints flickering in place
+    return a - a.mean(axis=1, keepdims=True)  # global brightness changes
+
+
+def orientation_fft(sti: np.ndarray, max_lag: int | None = None, n_angles: int = 1800) -> tuple[float, float]:
+    """Streak slope of a uniform-time STI by its 2-D autocorrelation, in samples per row.
+
+    Parameters
+    ----------
+    sti : (T, S) prepared STI (zero-mean columns).
+    max_lag : most row lags integrated (default T // 2).
+    n_angles : angle grid over (-90°, 90°) before the parabolic refinement.
+
+    Returns
+    -------
+    (slope samples/row, confidence 0..1): the mean normalised autocorrelation along the best line.
+    """
+    T, S = sti.shape
+    F = np.fft.rfft2(sti, s=(2 * T, 2 * S))
+    R = np.fft.irfft2(F * np.conj(F), s=(2 * T, 2 * S))
+    K = max(1, min(max_lag or T // 2, T // 2))
+    half = S // 2
+    # lags 0..K rows, shifts -half..half samples; unbiased by the overlap count
+    R = np.concatenate([R[:K + 1, -half:], R[:K + 1, :half + 1]], axis=1)
+    overlap = (T - np.arange(K + 1))[:, None] * (S - np.abs(np.arange(-half, half + 1)))[None, :]
+    R = R / overlap
+    if not R[0, half] > 0:
+        return float("nan"), 0.0
+    R /= R[0, half]
+    theta = np.linspace(-np.pi / 2, np.pi / 2, n_angles + 1)[1:-1]
+    p = np.tan(theta)
+    k = np.arange(1, K + 1)
+    sig = p[:, None] * k[None, :] + half  # column index of the line at lag k
+    inside = (sig >= 0) & (sig <= 2 * half)
+    s0 = np.clip(np.floor(sig).astype(int), 0, 2 * half - 1)
+    f = np.clip(sig - s0, 0, 1)
+    rows = np.broadcast_to(k, sig.shape)
+    val = (1 - f) * R[rows, s0] + f * R[rows, s0 + 1]
+    cnt = inside.sum(axis=1)
+    score = np.where(cnt >= 3, np.where(inside, val, 0).sum(axis=1) / np.maximum(cnt, 1), -np.inf)
+    m = int(np.argmax(score))
+    if not np.isfinite(score[m]):
+        return float("nan"), 0.0
+    th = theta[m]
+    if 0 < m < len(theta) - 1 and np.all(np.isfinite(score[m - 1:m + 2])):
+        y0, y1, y2 = score[m - 1:m + 2]
+        den = y0 - 2 * y1 + y2
+        if den < 0:
+            th += 0.5 * (y0 - y2) / den * (theta[1] - theta[0])
+    return float(np.tan(th)), float(np.clip(score[m], 0.0, 1.0))
+
+
+def orientation_tensor(sti: np.ndarray, sigma: float = 1.0) -> tuple[float, float]:
+    """Streak slope of a uniform-time STI by the structure tensor (samples per row) and its coherence."""
+    a = cv2.GaussianBlur(np.asarray(sti, np.float32), (0, 0), sigma)
+    gs = cv2.Scharr(a, cv2.CV_64F, 1, 0)
+    gt = cv2.Scharr(a, cv2.CV_64F, 0, 1)
+    jss, jtt, jst = float(np.sum(gs * gs)), float(np.sum(gt * gt)), float(np.sum(gs * gt))
+    tr = jss + jtt
+    if not tr > 0:
+        return float("nan"), 0.0
+    phi = 0.5 * np.arctan2(2 * jst, jss - jtt)  # direction of the dominant gradient, (s, t) axes
+    coh = float(np.hypot(jss - jtt, 2 * jst) / tr)
+    c = np.cos(phi)
+    if abs(c) < 1e-9:
+        return float("nan"), coh
+    return float(-np.tan(phi)), coh
+
+
+def sti_velocity(sti: np.ndarray, t_s: np.ndarray, ds_m: float, method: str = "fft",
+                 max_lag_s: float | None = None) -> tuple[float, float]:
+    """Velocity along a line (m/s, positive in the line's direction) and its confidence (0..1).
+
+    Parameters
+    ----------
+    sti : (T, S) samples along the line at successive frames.
+    t_s : (T,) frame times from the container (s).
+    ds_m : sample spacing along the line (m).
+    method : "fft" or "tensor" (see the module docstring).
+    max_lag_s : fft: longest time lag integrated (s); None = half the clip.
+    """
+    if method not in METHODS:
+        raise ParameterError(f"stiv.method: {method!r} is not one of {', '.join(METHODS)}")
+    u, dt = uniform_time(sti, t_s)
+    if u.shape[0] < 4 or u.shape[1] < 8:
+        return float("nan"), 0.0
+    a = _prepare(u)
+    if method == "fft":
+        lag = None if max_lag_s is None else max(1, int(round(max_lag_s / dt)))
+        p, conf = orientation_fft(a, lag)
+    else:
+        p, conf = orientation_tensor(a)
+    if not np.isfinite(p):
+        return float("nan"), 0.0
+    return p * ds_m / dt, conf
+
+
+# ---------------------------------------------------------------------------------------------
+# all lines -> subsections
+
+
+@dataclass
+class StivResult:
+    """Per-line and per-subsection STIV velocities (m/s) with confidences (0..1).
+
+    ``line_velocity_ms`` is signed along each line; ``velocity_ms`` / ``confidence`` per subsection are
+    the downstream-normal components of the geometry passed to :func:`subsection_velocity` (NaN where no
+    line passed ``min_confidence``); ``angle_deg`` the chosen line turn per subsection.
+    """
+
+    line_velocity_ms: np.ndarray
+    line_confidence: np.ndarray
+    velocity_ms: np.ndarray
+    confidence: np.ndarray
+    angle_deg: np.ndarray
+    method: str
+    n_lines: int
+    n_frames: int
+    warnings: list[str] = field(default_factory=list)
+
+
+def line_velocities(acc: StiAccumulator, method: str = "fft", max_lag_s: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Velocity (m/s along each line) and confidence of every line of ``acc``."""
+    v = np.full(len(acc.lines), np.nan)
+    c = np.zeros(len(acc.lines))
+    if len(acc.rows) < 4:
+        return v, c
+    for k, ln in enumerate(acc.lines):
+        sti, t = acc.sti(k)
+        v[k], c[k] = sti_velocity(sti, t, ln.ds_m, method, max_lag_s)
+    return v, c
+
+
+def subsection_velocity(lines: list[StivLine], v_line: np.ndarray, c_line: np.ndarray, n_sub: int,
+                        normal: np.ndarray, reversed_order: bool = False, flow_dir: np.ndarray | None = None,
+                        min_confidence: float = 0.05) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Downstream-normal velocity (m/s), confidence and line angle (deg) per subsection.
+
+    Each subsection takes the lines of one angle: the one nearest the flow direction ``flow_dir``
+    ((n_sub, 2) world unit vectors, e.g. the PIV mean direction; NaN rows allowed) or, without it, the
+    angle of highest mean confidence. A line along ``e`` measuring ``v`` along it contributes
+    ``v * (e · normal)`` (a tracer moving along the line). Lines are combined by the confidence-weighted
+    mean. ``normal`` is the geometry's normal; ``reversed_order`` when its subsections run the other way
+    from the lines' (P1/P2 swapped after the lines were built).
+    """
+    vel = np.full(n_sub, np.nan)
+    conf = np.zeros(n_sub)
+    ang = np.full(n_sub, np.nan)
+    subs = np.array([ln.sub for ln in lines], int)
+    angles = np.array([ln.angle_deg for ln in lines])
+    for i in range(n_sub):
+        src = n_sub - 1 - i if reversed_order else i
+        sel = np.nonzero((subs == src) & np.isfinite(v_line) & (c_line >= min_confidence))[0]
+        if not len(sel):
+            continue
+        cand = np.unique(angles[sel])
+        if flow_dir is not None and np.all(np.isfinite(flow_dir[i])):
+            dots = [abs(np.dot(lines[sel[angles[sel] == a][0]].direction, flow_dir[i])) for a in cand]
+            best = cand[int(np.argmax(dots))]
+        else:
+            best = cand[int(np.argmax([c_line[sel][angles[sel] == a].mean() for a in cand]))]
+        use = sel[angles[sel] == best]
+        w = c_line[use]
+        proj = np.array([np.dot(lines[k].direction, normal) for k in use])
+        vn = v_line[use] * proj
+        vel[i] = float(np.sum(w * vn) / np.sum(w))
+        conf[i] = float(np.mean(w))
+        ang[i] = float(best)
+    return vel, conf, ang

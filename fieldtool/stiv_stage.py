@@ -1,0 +1,179 @@
+"""STIV inside a run: search lines from the project, sampled during the PIV's frame stream, then
+per-subsection STIV velocities, the STIV discharge, the PIV/STIV disagreement and the velocity source
+the user chose (``[section] velocity_source`` = piv | stiv | combined).
+
+The science is in :mod:`fieldtool.processing.stiv`; this module only reads the Project and shapes the
+``"stiv"`` block of ``result.json``.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Callable, Iterator
+
+import numpy as np
+
+from .errors import ParameterError
+from .processing import discharge as dq
+from .processing import stiv
+from .project import Project
+
+SOURCES = ("piv", "stiv", "combined")
+DISAGREE_REL = 0.15  # a subsection disagrees when |v_stiv - v_piv| exceeds this share of the reference speed
+
+
+@dataclass
+class StivRun:
+    """Lines and their space-time images for one run; ``seconds`` counts sampling and analysis."""
+
+    acc: stiv.StiAccumulator
+    n_sub: int
+    normal: np.ndarray  # normal of the geometry the lines were built on
+    p_img: np.ndarray  # its P1, P2 (px): tells whether the pipeline swapped them later
+    seconds: float = 0.0
+    sampled: bool = False
+
+    def tap(self, frames) -> Iterator:
+        """The frame stream, unchanged, with every frame sampled on the lines (timed)."""
+        self.sampled = True
+        for t, img in frames:
+            t0 = time.perf_counter()
+            self.acc.add(t, img)
+            self.seconds += time.perf_counter() - t0
+            yield t, img
+
+
+def start(project: Project, mapping, geom: dq.SectionGeometry, shape: tuple[int, int],
+          roi: tuple[int, int, int, int] | None, mask: np.ndarray | None) -> StivRun | None:
+    """The STIV lines of ``project`` on ``geom`` (None when ``[stiv] enabled = false``)."""
+    s = project.stiv
+    if project.section.velocity_source not in SOURCES:
+        raise ParameterError(f"section.velocity_source: {project.section.velocity_source!r} is not one of "
+                             f"{', '.join(SOURCES)}")
+    if not s.enabled:
+        if project.section.velocity_source != "piv":
+            raise ParameterError(f"section.velocity_source = {project.section.velocity_source!r} needs STIV: "
+                                 "set [stiv] enabled = true or velocity_source = \"piv\"")
+        return None
+    if s.method not in stiv.METHODS:
+        raise ParameterError(f"stiv.method: {s.method!r} is not one of {', '.join(stiv.METHODS)}")
+    valid = None
+    if roi is not None or mask is not None:
+        valid = np.ones(shape, bool)
+        if roi is not None:
+            x0, y0, x1, y1 = roi
+            valid[:] = False
+            valid[y0:y1, x0:x1] = True
+        if mask is not None:
+            valid &= ~mask
+    t0 = time.perf_counter()
+    lines = stiv.build_lines(geom.p_world, geom.normal, mapping, len(geom.station_edges) - 1,
+                             length_m=s.line_length_m, lines_per_sub=s.lines_per_sub, angles_deg=s.angles_deg,
+                             image_shape=shape, valid=valid)
+    run = StivRun(stiv.StiAccumulator(lines), len(geom.station_edges) - 1, geom.normal.copy(), geom.p_img.copy())
+    run.seconds = time.perf_counter() - t0
+    return run
+
+
+def ensure_sampled(run: StivRun | None, frames: Callable[[], Iterator]) -> None:
+    """Sample the lines from a stream of their own when the PIV did not stream (its field was reused)."""
+    if run is not None and not run.sampled:
+        for _ in run.tap(frames()):
+            pass
+
+
+def _piv_share(geom: dq.SectionGeometry, x, y, U, V) -> np.ndarray:
+    """Share (0..1) of a subsection's sample points where the PIV field is valid."""
+    su, sv = dq.sample_field(x, y, U, V, geom.sample_img)
+    return np.mean(np.isfinite(su) & np.isfinite(sv), axis=1)
+
+
+def _flow_dir(geom: dq.SectionGeometry, x, y, U, V) -> np.ndarray:
+    """PIV mean flow direction per subsection (unit world vectors; NaN where PIV has none)."""
+    su, sv = dq.sample_field(x, y, U, V, geom.sample_img)
+    with np.errstate(invalid="ignore"):
+        mu, mv = np.nanmean(su, axis=1), np.nanmean(sv, axis=1)
+        n = np.hypot(mu, mv)
+        return np.c_[mu / n, mv / n]
+
+
+def combine(v_piv: np.ndarray, w_piv: np.ndarray, v_stiv: np.ndarray, w_stiv: np.ndarray) -> np.ndarray:
+    """Confidence-weighted mean per subsection; where one estimate is missing (NaN or zero weight), the other."""
+    vp = np.where(np.isfinite(v_piv) & (w_piv > 0), v_piv, np.nan)
+    vs = np.where(np.isfinite(v_stiv) & (w_stiv > 0), v_stiv, np.nan)
+    both = np.isfinite(vp) & np.isfinite(vs)
+    out = np.where(np.isfinite(vp), vp, vs)
+    wsum = np.where(both, w_piv + w_stiv, 1.0)
+    return np.where(both, (w_piv * np.nan_to_num(vp) + w_stiv * np.nan_to_num(vs)) / wsum, out)
+
+
+def disagreement(v_piv: np.ndarray, v_stiv: np.ndarray, q_weight: np.ndarray) -> dict:
+    """Relative PIV/STIV disagreement: per subsection against max(|v_piv|, 10 % of the section's fastest),
+    and on the discharge (Σ w·(v_stiv - v_piv) / Σ w·v_piv, w = alpha·area). NaN-free."""
+    both = np.isfinite(v_piv) & np.isfinite(v_stiv)
+    ref = np.maximum(np.abs(v_piv), 0.1 * (np.nanmax(np.abs(v_piv)) if np.any(np.isfinite(v_piv)) else 0.0))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        rel = np.where(both & (ref > 0), (v_stiv - v_piv) / ref, np.nan)
+    qp = np.sum(np.where(both, q_weight * v_piv, 0.0))
+    qs = np.sum(np.where(both, q_weight * v_stiv, 0.0))
+    bad = [int(i) + 1 for i in np.nonzero(np.abs(np.nan_to_num(rel)) > DISAGREE_REL)[0]]
+    return {"discharge_relative": float((qs - qp) / qp) if qp != 0 and both.any() else None,
+            "subsections_relative": [None if not np.isfinite(r) else float(r) for r in rel],
+            "subsections_over_threshold": bad, "threshold": DISAGREE_REL,
+            "n_compared": int(both.sum())}
+
+
+def finish(run: StivRun | None, project: Project, geom: dq.SectionGeometry, cs, level_m: float,
+           dres: dq.DischargeResult, piv_res, U: np.ndarray, V: np.ndarray) -> tuple[dict | None, dq.DischargeResult]:
+    """STIV per subsection on the final ``geom``; returns (the ``"stiv"`` block, the discharge result of
+    the chosen velocity source: ``dres`` itself for "piv")."""
+    if run is None:
+        return None, dres
+    t0 = time.perf_counter()
+    s = project.stiv
+    v_line, c_line = stiv.line_velocities(run.acc, s.method)
+    swapped = not np.allclose(geom.p_img, run.p_img)
+    flow = _flow_dir(geom, piv_res.x, piv_res.y, U, V) if len(set(s.angles_deg)) > 1 else None
+    v_st, c_st, ang = stiv.subsection_velocity(run.acc.lines, v_line, c_line, run.n_sub, geom.normal,
+                                               reversed_order=swapped, flow_dir=flow, min_confidence=s.min_confidence)
+    v_piv_raw = dq.subsection_velocity(geom, piv_res.x, piv_res.y, U, V)
+    w_piv = _piv_share(geom, piv_res.x, piv_res.y, U, V)
+    v_comb = combine(v_piv_raw, w_piv, v_st, c_st)
+    q_w = dres.alpha * dres.area_m2
+    block: dict = {"method": s.method, "n_lines": len(run.acc.lines), "n_frames": len(run.acc.rows),
+                   "line_length_m": s.line_length_m, "lines_per_sub": s.lines_per_sub,
+                   "velocity_ms": _clean(v_st), "confidence": _clean(c_st), "angle_deg": _clean(ang),
+                   "piv_velocity_ms": _clean(v_piv_raw), "piv_confidence": _clean(w_piv),
+                   "combined_velocity_ms": _clean(v_comb),
+                   "disagreement": disagreement(v_piv_raw, v_st, q_w),
+                   "velocity_source": project.section.velocity_source}
+    alpha = project.section.alpha
+    out = {}
+    for name, v in (("stiv", v_st), ("combined", v_comb)):
+        if np.any(np.isfinite(v)):
+            out[name] = dq.compute_discharge(geom, cs, level_m, v, alpha)
+    block["discharge_m3s"] = out["stiv"].discharge_m3s if "stiv" in out else None
+    block["discharge_combined_m3s"] = out["combined"].discharge_m3s if "combined" in out else None
+    block["subsections_filled"] = int(out["stiv"].velocity_filled.sum()) if "stiv" in out else run.n_sub
+    run.seconds += time.perf_counter() - t0
+    block["seconds"] = round(run.seconds, 3)
+    src = project.section.velocity_source
+    if src == "piv":
+        return block, dres
+    if src not in out:
+        raise ParameterError(f"section.velocity_source = {src!r}: STIV found no velocity on the section "
+                             "(check the search lines lie on textured water, or use velocity_source = \"piv\")")
+    chosen = out[src]
+    chosen.warnings.insert(0, f"discharge from the {src} velocities (section.velocity_source)")
+    return block, chosen
+
+
+def _clean(a) -> list:
+    return [None if not np.isfinite(x) else float(x) for x in np.asarray(a, float)]
+
+
+def stiv_column(block: dict | None, n: int) -> list[str]:
+    """The ``stiv_velocity_ms`` cells of subsections.csv ("" where STIV gave none)."""
+    vals = (block or {}).get("velocity_ms") or [None] * n
+    return ["" if v is None else f"{v:.5f}" for v in vals]
