@@ -83,10 +83,13 @@ def ensure_sampled(run: StivRun | None, frames: Callable[[], Iterator]) -> None:
             pass
 
 
-def _piv_share(geom: dq.SectionGeometry, x, y, U, V) -> np.ndarray:
-    """Share (0..1) of a subsection's sample points where the PIV field is valid."""
-    su, sv = dq.sample_field(x, y, U, V, geom.sample_img)
-    return np.mean(np.isfinite(su) & np.isfinite(sv), axis=1)
+def _piv_confidence(geom: dq.SectionGeometry, piv_res, U, V) -> np.ndarray:
+    """PIV confidence per subsection (0..1): the fraction of pairs in which the nodes were valid, averaged
+    over the subsection's sample points (0 where the averaged field is invalid)."""
+    ok = np.isfinite(U) & np.isfinite(V)
+    vf = np.where(ok, np.asarray(piv_res.valid_fraction, float), np.nan)
+    a, _ = dq.sample_field(piv_res.x, piv_res.y, vf, vf, geom.sample_img)
+    return np.mean(np.nan_to_num(a), axis=1)
 
 
 def _flow_dir(geom: dq.SectionGeometry, x, y, U, V) -> np.ndarray:
@@ -132,16 +135,18 @@ def finish(run: StivRun | None, project: Project, geom: dq.SectionGeometry, cs, 
         return None, dres
     t0 = time.perf_counter()
     s = project.stiv
-    v_line, c_line = stiv.line_velocities(run.acc, s.method)
     swapped = not np.allclose(geom.p_img, run.p_img)
     flow = _flow_dir(geom, piv_res.x, piv_res.y, U, V) if len(set(s.angles_deg)) > 1 else None
+    only = stiv.select_lines(run.acc.lines, run.n_sub, flow, reversed_order=swapped)
+    v_line, c_line = stiv.line_velocities(run.acc, s.method, only=only)
     v_st, c_st, ang = stiv.subsection_velocity(run.acc.lines, v_line, c_line, run.n_sub, geom.normal,
                                                reversed_order=swapped, flow_dir=flow, min_confidence=s.min_confidence)
     v_piv_raw = dq.subsection_velocity(geom, piv_res.x, piv_res.y, U, V)
-    w_piv = _piv_share(geom, piv_res.x, piv_res.y, U, V)
+    w_piv = _piv_confidence(geom, piv_res, U, V)
     v_comb = combine(v_piv_raw, w_piv, v_st, c_st)
     q_w = dres.alpha * dres.area_m2
-    block: dict = {"method": s.method, "n_lines": len(run.acc.lines), "n_frames": len(run.acc.rows),
+    block: dict = {"method": s.method, "n_lines": len(run.acc.lines), "n_lines_analysed": int(only.sum()),
+                   "n_frames": len(run.acc.rows), "angles_deg": list(s.angles_deg),
                    "line_length_m": s.line_length_m, "lines_per_sub": s.lines_per_sub,
                    "velocity_ms": _clean(v_st), "confidence": _clean(c_st), "angle_deg": _clean(ang),
                    "piv_velocity_ms": _clean(v_piv_raw), "piv_confidence": _clean(w_piv),

@@ -34,6 +34,7 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
+import scipy.fft as sfft
 
 from ..errors import ParameterError
 from .ortho import OrthoMapping
@@ -46,7 +47,8 @@ class StivLine:
     """One search line: ``sub`` is the subsection it samples (0-based, in the geometry it was built on).
 
     ``center_m`` (2,) and ``direction`` (2,) unit vector on the water plane (m); ``ds_m`` sample
-    spacing (m); ``pts_px`` (n, 2) sample positions in working-image pixels; ``angle_deg`` the turn of
+    spacing (m); ``pts_px`` (width, n, 2) sample positions in working-image pixels (``width`` parallel
+    rows ``ds_m`` apart, averaged); ``angle_deg`` the turn of
     ``direction`` from the section normal (counter-clockwise seen from above).
     """
 
@@ -68,7 +70,7 @@ def _rot(v: np.ndarray, deg: float) -> np.ndarray:
 def build_lines(p_world: np.ndarray, normal: np.ndarray, mapping: OrthoMapping, n_sub: int, *,
                 length_m: float = 3.0, lines_per_sub: int = 3, angles_deg=(0.0,),
                 image_shape: tuple[int, int] | None = None, valid: np.ndarray | None = None,
-                px_per_sample: float = 1.0) -> list[StivLine]:
+                px_per_sample: float = 1.0, width: int = 3) -> list[StivLine]:
     """Search lines across the section, ``lines_per_sub`` per subsection and per angle.
 
     Parameters
@@ -83,6 +85,8 @@ def build_lines(p_world: np.ndarray, normal: np.ndarray, mapping: OrthoMapping, 
     image_shape : (H, W) of the working frames; samples outside are cut (the longest inside run is kept).
     valid : optional bool (H, W), False where samples must not be taken (outside the ROI, masks).
     px_per_sample : spacing of the samples in image pixels at the line's centre (1 = one per pixel).
+    width : parallel sample rows averaged across the line (one sample spacing apart): a band, so a tracer
+        crossing a line slightly off the flow stays in it longer.
 
     Returns
     -------
@@ -104,21 +108,25 @@ def build_lines(p_world: np.ndarray, normal: np.ndarray, mapping: OrthoMapping, 
                 if n < 8:
                     continue
                 s = np.linspace(-0.5 * length_m, 0.5 * length_m, n)
-                px = mapping.world_to_image(c + s[:, None] * e)
-                ok = np.all(np.isfinite(px), axis=1)
+                ds = length_m / (n - 1)
+                across = (np.arange(width) - (width - 1) / 2) * ds
+                e_perp = np.array([-e[1], e[0]])
+                pw = c + s[None, :, None] * e + across[:, None, None] * e_perp
+                px = mapping.world_to_image(pw.reshape(-1, 2)).reshape(width, n, 2)
+                ok = np.all(np.isfinite(px), axis=(0, 2))
                 if image_shape is not None:
                     h, w = image_shape
-                    ok &= (px[:, 0] >= 0) & (px[:, 0] <= w - 1) & (px[:, 1] >= 0) & (px[:, 1] <= h - 1)
+                    ok &= np.all((px[..., 0] >= 0) & (px[..., 0] <= w - 1) & (px[..., 1] >= 0) & (px[..., 1] <= h - 1),
+                                 axis=0)
                 if valid is not None and ok.any():
-                    ix = np.clip(np.rint(px[:, 0]).astype(int), 0, valid.shape[1] - 1)
-                    iy = np.clip(np.rint(px[:, 1]).astype(int), 0, valid.shape[0] - 1)
-                    ok &= valid[iy, ix]
+                    ix = np.clip(np.rint(px[..., 0]).astype(int), 0, valid.shape[1] - 1)
+                    iy = np.clip(np.rint(px[..., 1]).astype(int), 0, valid.shape[0] - 1)
+                    ok &= np.all(valid[iy, ix], axis=0)
                 a, b = _longest_run(ok)
                 if b - a < 8:
                     continue
-                ds = length_m / (n - 1)
                 lines.append(StivLine(i, c + 0.5 * (s[a] + s[b - 1]) * e, e, float(s[b - 1] - s[a]), ds,
-                                      px[a:b].astype(np.float32), float(ang)))
+                                      px[:, a:b].astype(np.float32), float(ang)))
     return lines
 
 
@@ -136,15 +144,18 @@ def _longest_run(ok: np.ndarray) -> tuple[int, int]:
 
 
 class StiAccumulator:
-    """Builds the space-time images of ``lines`` one frame at a time (only the samples are kept:
-    frames x samples float32, never the frames)."""
+    """Builds the space-time images of ``lines`` one frame at a time (only the samples are kept, as
+    float16: frames x samples x 2 bytes, never the frames)."""
 
     def __init__(self, lines: list[StivLine]):
         self.lines = lines
-        self.bounds = np.cumsum([0] + [len(ln.pts_px) for ln in lines])
-        pts = np.concatenate([ln.pts_px for ln in lines]) if lines else np.zeros((0, 2), np.float32)
-        self.map_x = np.ascontiguousarray(pts[None, :, 0], dtype=np.float32)
-        self.map_y = np.ascontiguousarray(pts[None, :, 1], dtype=np.float32)
+        self.bounds = np.cumsum([0] + [ln.pts_px.shape[1] for ln in lines])
+        width = {ln.pts_px.shape[0] for ln in lines}
+        if len(width) > 1:
+            raise ParameterError("stiv: all search lines must have the same width")
+        pts = np.concatenate([ln.pts_px for ln in lines], axis=1) if lines else np.zeros((1, 0, 2), np.float32)
+        self.map_x = np.ascontiguousarray(pts[..., 0], dtype=np.float32)
+        self.map_y = np.ascontiguousarray(pts[..., 1], dtype=np.float32)
         self.rows: list[np.ndarray] = []
         self.times: list[float] = []
 
@@ -154,7 +165,7 @@ class StiAccumulator:
             return
         img = frame if frame.dtype == np.float32 else frame.astype(np.float32)
         row = cv2.remap(img, self.map_x, self.map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        self.rows.append(row[0])
+        self.rows.append(row.mean(axis=0).astype(np.float16))
         self.times.append(float(t_s))
 
     def tap(self, frames):
@@ -166,7 +177,7 @@ class StiAccumulator:
     def sti(self, k: int) -> tuple[np.ndarray, np.ndarray]:
         """(STI (T, n) of line ``k``, times (T,) s)."""
         a, b = self.bounds[k], self.bounds[k + 1]
-        return np.stack([r[a:b] for r in self.rows]), np.asarray(self.times)
+        return np.stack([r[a:b] for r in self.rows]).astype(np.float32), np.asarray(self.times)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -195,52 +206,61 @@ def _prepare(sti: np.ndarray) -> np.ndarray:
     return a - a.mean(axis=1, keepdims=True)  # global brightness changes
 
 
-def orientation_fft(sti: np.ndarray, max_lag: int | None = None, n_angles: int = 1800) -> tuple[float, float]:
+def orientation_fft(sti: np.ndarray, max_lag: int | None = None, n_angles: int = 360) -> tuple[float, float]:
     """Streak slope of a uniform-time STI by its 2-D autocorrelation, in samples per row.
 
     Parameters
     ----------
     sti : (T, S) prepared STI (zero-mean columns).
     max_lag : most row lags integrated (default T // 2).
-    n_angles : angle grid over (-90°, 90°) before the parabolic refinement.
+    n_angles : coarse angle grid over (-90°, 90°); the best cell is searched again 20x finer, then
+        refined by a parabola.
 
     Returns
     -------
     (slope samples/row, confidence 0..1): the mean normalised autocorrelation along the best line.
     """
     T, S = sti.shape
-    F = np.fft.rfft2(sti, s=(2 * T, 2 * S))
-    R = np.fft.irfft2(F * np.conj(F), s=(2 * T, 2 * S))
+    shape = (sfft.next_fast_len(2 * T, real=True), sfft.next_fast_len(2 * S, real=True))
+    F = sfft.rfft2(np.asarray(sti, np.float32), s=shape)
+    R = sfft.irfft2(F * np.conj(F), s=shape)
     K = max(1, min(max_lag or T // 2, T // 2))
     half = S // 2
     # lags 0..K rows, shifts -half..half samples; unbiased by the overlap count
-    R = np.concatenate([R[:K + 1, -half:], R[:K + 1, :half + 1]], axis=1)
+    R = np.concatenate([R[:K + 1, -half:], R[:K + 1, :half + 1]], axis=1).astype(np.float64)
     overlap = (T - np.arange(K + 1))[:, None] * (S - np.abs(np.arange(-half, half + 1)))[None, :]
     R = R / overlap
     if not R[0, half] > 0:
         return float("nan"), 0.0
     R /= R[0, half]
-    theta = np.linspace(-np.pi / 2, np.pi / 2, n_angles + 1)[1:-1]
-    p = np.tan(theta)
     k = np.arange(1, K + 1)
-    sig = p[:, None] * k[None, :] + half  # column index of the line at lag k
-    inside = (sig >= 0) & (sig <= 2 * half)
-    s0 = np.clip(np.floor(sig).astype(int), 0, 2 * half - 1)
-    f = np.clip(sig - s0, 0, 1)
-    rows = np.broadcast_to(k, sig.shape)
-    val = (1 - f) * R[rows, s0] + f * R[rows, s0 + 1]
-    cnt = inside.sum(axis=1)
-    score = np.where(cnt >= 3, np.where(inside, val, 0).sum(axis=1) / np.maximum(cnt, 1), -np.inf)
-    m = int(np.argmax(score))
-    if not np.isfinite(score[m]):
+
+    def score(theta: np.ndarray) -> np.ndarray:
+        sig = np.tan(theta)[:, None] * k[None, :] + half  # column index of the line at lag k
+        inside = (sig >= 0) & (sig <= 2 * half)
+        s0 = np.clip(np.floor(sig).astype(int), 0, 2 * half - 1)
+        f = np.clip(sig - s0, 0, 1)
+        rows = np.broadcast_to(k, sig.shape)
+        val = (1 - f) * R[rows, s0] + f * R[rows, s0 + 1]
+        cnt = inside.sum(axis=1)
+        return np.where(cnt >= 3, np.where(inside, val, 0).sum(axis=1) / np.maximum(cnt, 1), -np.inf)
+
+    step = np.pi / n_angles
+    coarse = -np.pi / 2 + step * np.arange(1, n_angles)
+    m = int(np.argmax(score(coarse)))
+    fine = coarse[m] + np.linspace(-step, step, 41)[1:-1]
+    fine = fine[np.abs(fine) < np.pi / 2]
+    sc = score(fine)
+    m = int(np.argmax(sc))
+    if not np.isfinite(sc[m]):
         return float("nan"), 0.0
-    th = theta[m]
-    if 0 < m < len(theta) - 1 and np.all(np.isfinite(score[m - 1:m + 2])):
-        y0, y1, y2 = score[m - 1:m + 2]
+    th = fine[m]
+    if 0 < m < len(fine) - 1 and np.all(np.isfinite(sc[m - 1:m + 2])):
+        y0, y1, y2 = sc[m - 1:m + 2]
         den = y0 - 2 * y1 + y2
         if den < 0:
-            th += 0.5 * (y0 - y2) / den * (theta[1] - theta[0])
-    return float(np.tan(th)), float(np.clip(score[m], 0.0, 1.0))
+            th += 0.5 * (y0 - y2) / den * (fine[1] - fine[0])
+    return float(np.tan(th)), float(np.clip(sc[m], 0.0, 1.0))
 
 
 def orientation_tensor(sti: np.ndarray, sigma: float = 1.0) -> tuple[float, float]:
@@ -312,13 +332,39 @@ class StivResult:
     warnings: list[str] = field(default_factory=list)
 
 
-def line_velocities(acc: StiAccumulator, method: str = "fft", max_lag_s: float | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Velocity (m/s along each line) and confidence of every line of ``acc``."""
+def select_lines(lines: list[StivLine], n_sub: int, flow_dir: np.ndarray | None = None,
+                 reversed_order: bool = False) -> np.ndarray:
+    """Which lines to analyse (bool per line): in each subsection the angle nearest the flow direction
+    ``flow_dir`` ((n_sub, 2) world unit vectors of the geometry's subsections, NaN rows allowed), or
+    every angle where the direction is unknown (the most confident is chosen afterwards)."""
+    use = np.ones(len(lines), bool)
+    if flow_dir is None:
+        return use
+    for i in range(n_sub):
+        src = n_sub - 1 - i if reversed_order else i
+        if not np.all(np.isfinite(flow_dir[i])):
+            continue
+        idx = [k for k, ln in enumerate(lines) if ln.sub == src]
+        if not idx:
+            continue
+        dots = np.array([abs(np.dot(lines[k].direction, flow_dir[i])) for k in idx])
+        best = lines[idx[int(np.argmax(dots))]].angle_deg
+        for k in idx:
+            use[k] = lines[k].angle_deg == best
+    return use
+
+
+def line_velocities(acc: StiAccumulator, method: str = "fft", max_lag_s: float | None = None,
+                    only: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Velocity (m/s along each line) and confidence of the lines of ``acc`` (those where ``only`` is
+    True; the others get NaN and 0)."""
     v = np.full(len(acc.lines), np.nan)
     c = np.zeros(len(acc.lines))
     if len(acc.rows) < 4:
         return v, c
     for k, ln in enumerate(acc.lines):
+        if only is not None and not only[k]:
+            continue
         sti, t = acc.sti(k)
         v[k], c[k] = sti_velocity(sti, t, ln.ds_m, method, max_lag_s)
     return v, c
@@ -327,14 +373,17 @@ def line_velocities(acc: StiAccumulator, method: str = "fft", max_lag_s: float |
 def subsection_velocity(lines: list[StivLine], v_line: np.ndarray, c_line: np.ndarray, n_sub: int,
                         normal: np.ndarray, reversed_order: bool = False, flow_dir: np.ndarray | None = None,
                         min_confidence: float = 0.05) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Downstream-normal velocity (m/s), confidence and line angle (deg) per subsection.
+    """Downstream-normal velocity (m/s), confidence and flow angle (deg from the lines' normal) per subsection.
 
-    Each subsection takes the lines of one angle: the one nearest the flow direction ``flow_dir``
-    ((n_sub, 2) world unit vectors, e.g. the PIV mean direction; NaN rows allowed) or, without it, the
-    angle of highest mean confidence. A line along ``e`` measuring ``v`` along it contributes
-    ``v * (e · normal)`` (a tracer moving along the line). Lines are combined by the confidence-weighted
-    mean. ``normal`` is the geometry's normal; ``reversed_order`` when its subsections run the other way
-    from the lines' (P1/P2 swapped after the lines were built).
+    A tracer crossing a line obliquely draws a short streak, so each subsection uses the lines of one
+    angle, the one nearest the flow: the flow direction is ``flow_dir`` ((n_sub, 2) world unit vectors,
+    e.g. the PIV mean direction; NaN rows allowed) or, without it, the vertex of a parabola through the
+    mean line confidence over the angles (streaks are longest, so confidence highest, along the flow).
+    A line along ``e`` measuring ``v`` along a flow ``f`` gives the normal component
+    ``v / (e · f) * (f · normal)``. The lines that pass ``min_confidence`` are averaged (they are spread
+    evenly across the subsection); the confidence is their mean. ``normal`` is the geometry's normal;
+    ``reversed_order`` when its subsections run the other way from the lines' (P1/P2 swapped after the
+    lines were built).
     """
     vel = np.full(n_sub, np.nan)
     conf = np.zeros(n_sub)
@@ -347,16 +396,23 @@ def subsection_velocity(lines: list[StivLine], v_line: np.ndarray, c_line: np.nd
         if not len(sel):
             continue
         cand = np.unique(angles[sel])
+        mc = np.array([c_line[sel][angles[sel] == a].mean() for a in cand])
+        e_of = {a: lines[sel[angles[sel] == a][0]].direction for a in cand}
         if flow_dir is not None and np.all(np.isfinite(flow_dir[i])):
-            dots = [abs(np.dot(lines[sel[angles[sel] == a][0]].direction, flow_dir[i])) for a in cand]
-            best = cand[int(np.argmax(dots))]
+            best = cand[int(np.argmax([abs(np.dot(e_of[a], flow_dir[i])) for a in cand]))]
+            f = np.asarray(flow_dir[i], float) * np.sign(np.dot(e_of[best], flow_dir[i]) or 1.0)
         else:
-            best = cand[int(np.argmax([c_line[sel][angles[sel] == a].mean() for a in cand]))]
+            k = int(np.argmax(mc))
+            best, phi = cand[k], cand[k]
+            if 0 < k < len(cand) - 1 and np.allclose(np.diff(cand[k - 1:k + 2]), cand[k] - cand[k - 1]):
+                den = mc[k - 1] - 2 * mc[k] + mc[k + 1]
+                if den < 0:
+                    phi += float(np.clip(0.5 * (mc[k - 1] - mc[k + 1]) / den, -0.5, 0.5)) * (cand[k] - cand[k - 1])
+            f = _rot(e_of[best], phi - best)
+        e = e_of[best]
         use = sel[angles[sel] == best]
-        w = c_line[use]
-        proj = np.array([np.dot(lines[k].direction, normal) for k in use])
-        vn = v_line[use] * proj
-        vel[i] = float(np.sum(w * vn) / np.sum(w))
-        conf[i] = float(np.mean(w))
-        ang[i] = float(best)
+        # lines spread evenly: their plain mean is the subsection's
+        vel[i] = float(np.mean(v_line[use]) / max(np.dot(e, f), 0.5) * np.dot(f, normal))
+        conf[i] = float(np.mean(c_line[use]))
+        ang[i] = float(best + np.degrees(np.arctan2(e[0] * f[1] - e[1] * f[0], np.dot(e, f))))
     return vel, conf, ang
