@@ -164,8 +164,8 @@ class StivCfg:
     enabled: bool = True  # sample the lines during the PIV's frame stream and report STIV beside PIV
     method: str = "fft"  # fft (2-D autocorrelation of the space-time image) | tensor (structure tensor)
     line_length_m: float = 3.0  # length of each search line along the flow, centred on the section (m)
-    lines_per_sub: int = 3  # search lines per subsection
-    angles_deg: list[float] = field(default_factory=lambda: [0.0])  # line turns from the section normal (deg); the one nearest the PIV flow direction is used
+    lines_per_sub: int = 2  # search lines per subsection
+    angles_deg: list[float] = field(default_factory=lambda: [-30.0, -20.0, -10.0, 0.0, 10.0, 20.0, 30.0])  # line turns from the section normal (deg), all sampled; the one nearest the PIV flow direction is analysed
     min_confidence: float = 0.1  # lines below this confidence (0..1) are not used
 
 

@@ -95,10 +95,13 @@ def _piv_confidence(geom: dq.SectionGeometry, piv_res, U, V) -> np.ndarray:
 def _flow_dir(geom: dq.SectionGeometry, x, y, U, V) -> np.ndarray:
     """PIV mean flow direction per subsection (unit world vectors; NaN where PIV has none)."""
     su, sv = dq.sample_field(x, y, U, V, geom.sample_img)
-    with np.errstate(invalid="ignore"):
-        mu, mv = np.nanmean(su, axis=1), np.nanmean(sv, axis=1)
-        n = np.hypot(mu, mv)
-        return np.c_[mu / n, mv / n]
+    ok = np.isfinite(su) & np.isfinite(sv)
+    cnt = ok.sum(axis=1)
+    mu = np.where(cnt > 0, np.where(ok, su, 0).sum(axis=1) / np.maximum(cnt, 1), np.nan)
+    mv = np.where(cnt > 0, np.where(ok, sv, 0).sum(axis=1) / np.maximum(cnt, 1), np.nan)
+    n = np.hypot(mu, mv)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where((n > 0)[:, None], np.c_[mu / n, mv / n], np.nan)
 
 
 def combine(v_piv: np.ndarray, w_piv: np.ndarray, v_stiv: np.ndarray, w_stiv: np.ndarray) -> np.ndarray:

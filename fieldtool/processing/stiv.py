@@ -154,8 +154,14 @@ class StiAccumulator:
         if len(width) > 1:
             raise ParameterError("stiv: all search lines must have the same width")
         pts = np.concatenate([ln.pts_px for ln in lines], axis=1) if lines else np.zeros((1, 0, 2), np.float32)
-        self.map_x = np.ascontiguousarray(pts[..., 0], dtype=np.float32)
-        self.map_y = np.ascontiguousarray(pts[..., 1], dtype=np.float32)
+        self.width, self.n = pts.shape[0], pts.shape[1]
+        # remap wants maps narrower than 32767: fold the samples into rows of 4096
+        flat = pts.reshape(-1, 2)
+        rows = -(-len(flat) // 4096) if len(flat) else 1
+        padded = np.zeros((rows * 4096, 2), np.float32)
+        padded[:len(flat)] = flat
+        self.map_x = np.ascontiguousarray(padded[:, 0].reshape(rows, 4096))
+        self.map_y = np.ascontiguousarray(padded[:, 1].reshape(rows, 4096))
         self.rows: list[np.ndarray] = []
         self.times: list[float] = []
 
@@ -165,6 +171,7 @@ class StiAccumulator:
             return
         img = frame if frame.dtype == np.float32 else frame.astype(np.float32)
         row = cv2.remap(img, self.map_x, self.map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        row = row.ravel()[:self.width * self.n].reshape(self.width, self.n)
         self.rows.append(row.mean(axis=0).astype(np.float16))
         self.times.append(float(t_s))
 
