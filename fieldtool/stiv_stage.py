@@ -20,7 +20,6 @@ from .processing import stiv
 from .project import Project
 
 SOURCES = ("piv", "stiv", "combined")
-DISAGREE_REL = 0.15  # a subsection disagrees when |v_stiv - v_piv| exceeds this share of the reference speed
 
 
 @dataclass
@@ -114,22 +113,6 @@ def combine(v_piv: np.ndarray, w_piv: np.ndarray, v_stiv: np.ndarray, w_stiv: np
     return np.where(both, (w_piv * np.nan_to_num(vp) + w_stiv * np.nan_to_num(vs)) / wsum, out)
 
 
-def disagreement(v_piv: np.ndarray, v_stiv: np.ndarray, q_weight: np.ndarray) -> dict:
-    """Relative PIV/STIV disagreement: per subsection against max(|v_piv|, 10 % of the section's fastest),
-    and on the discharge (Σ w·(v_stiv - v_piv) / Σ w·v_piv, w = alpha·area). NaN-free."""
-    both = np.isfinite(v_piv) & np.isfinite(v_stiv)
-    ref = np.maximum(np.abs(v_piv), 0.1 * (np.nanmax(np.abs(v_piv)) if np.any(np.isfinite(v_piv)) else 0.0))
-    with np.errstate(invalid="ignore", divide="ignore"):
-        rel = np.where(both & (ref > 0), (v_stiv - v_piv) / ref, np.nan)
-    qp = np.sum(np.where(both, q_weight * v_piv, 0.0))
-    qs = np.sum(np.where(both, q_weight * v_stiv, 0.0))
-    bad = [int(i) + 1 for i in np.nonzero(np.abs(np.nan_to_num(rel)) > DISAGREE_REL)[0]]
-    return {"discharge_relative": float((qs - qp) / qp) if qp != 0 and both.any() else None,
-            "subsections_relative": [None if not np.isfinite(r) else float(r) for r in rel],
-            "subsections_over_threshold": bad, "threshold": DISAGREE_REL,
-            "n_compared": int(both.sum())}
-
-
 def finish(run: StivRun | None, project: Project, geom: dq.SectionGeometry, cs, level_m: float,
            dres: dq.DischargeResult, piv_res, U: np.ndarray, V: np.ndarray) -> tuple[dict | None, dq.DischargeResult]:
     """STIV per subsection on the final ``geom``; returns (the ``"stiv"`` block, the discharge result of
@@ -154,8 +137,9 @@ def finish(run: StivRun | None, project: Project, geom: dq.SectionGeometry, cs, 
                    "velocity_ms": _clean(v_st), "confidence": _clean(c_st), "angle_deg": _clean(ang),
                    "piv_velocity_ms": _clean(v_piv_raw), "piv_confidence": _clean(w_piv),
                    "combined_velocity_ms": _clean(v_comb),
-                   "disagreement": disagreement(v_piv_raw, v_st, q_w),
+                   "disagreement": stiv.disagreement(v_piv_raw, v_st, q_w),
                    "velocity_source": project.section.velocity_source}
+    block["disagreement_reason"] = stiv.disagreement_reason(block["disagreement"])
     alpha = project.section.alpha
     out = {}
     for name, v in (("stiv", v_st), ("combined", v_comb)):

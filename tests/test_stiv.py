@@ -197,3 +197,20 @@ def test_velocity_source_and_switch_off(nadir_scene):
     proj.section.velocity_source = "piv"
     proj.stiv.enabled = False
     assert run_project(proj, None).stiv is None
+
+
+def test_disagreement_and_its_reason():
+    w = np.ones(6)
+    v_piv = np.array([0.2, 0.6, 1.0, 1.0, 0.6, np.nan])
+    same = stiv.disagreement(v_piv, v_piv * 1.02, w)
+    assert same["n_compared"] == 5 and same["subsections_over_threshold"] == []
+    assert same["discharge_relative"] == pytest.approx(0.02)
+    assert stiv.disagreement_reason(same) is None
+    v_st = v_piv.copy()
+    v_st[2:4] = 0.7  # two fast subsections 30 % slower by STIV
+    d = stiv.disagreement(v_piv, v_st, w)
+    assert d["subsections_over_threshold"] == [3, 4]
+    assert d["discharge_relative"] == pytest.approx(-0.6 / 3.4)
+    r = stiv.disagreement_reason(d)
+    assert r["severity"] == "doubtful" and "3, 4" in r["message"] and "30 %" in r["message"]
+    assert json.dumps(d) and "nan" not in json.dumps(d).lower()

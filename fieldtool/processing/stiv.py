@@ -423,3 +423,66 @@ def subsection_velocity(lines: list[StivLine], v_line: np.ndarray, c_line: np.nd
         conf[i] = float(np.mean(c_line[use]))
         ang[i] = float(best + np.degrees(np.arctan2(e[0] * f[1] - e[1] * f[0], np.dot(e, f))))
     return vel, conf, ang
+
+
+# ---------------------------------------------------------------------------------------------
+# PIV against STIV
+
+DISAGREE_REL = 0.15  # a subsection disagrees when |v_stiv - v_piv| exceeds this share of its reference speed
+DISAGREE_Q = 0.08  # ... the discharges when they differ by more than this share
+DISAGREE_SHARE = 0.2  # ... or when disagreeing subsections carry more than this share of the discharge
+
+
+def disagreement(v_piv: np.ndarray, v_stiv: np.ndarray, q_weight: np.ndarray, rel_threshold: float = DISAGREE_REL) -> dict:
+    """Relative PIV/STIV disagreement on the subsections where both measured (NaN-free, JSON-ready).
+
+    Parameters
+    ----------
+    v_piv, v_stiv : (n,) downstream-normal surface velocities (m/s), NaN where not measured.
+    q_weight : (n,) alpha * area of each subsection (m²): turns a velocity into a discharge.
+    rel_threshold : a subsection disagrees when |v_stiv - v_piv| > this times max(|v_piv|, 10 % of the
+        section's fastest PIV velocity).
+
+    Returns
+    -------
+    dict: ``discharge_relative`` (Q_stiv - Q_piv) / Q_piv over the compared subsections; ``subsections_relative``
+    per subsection (None where not compared); ``subsections_over_threshold`` (1-based); ``share_of_discharge``
+    the PIV discharge share of those; ``threshold``; ``n_compared``.
+    """
+    v_piv, v_stiv, q_weight = (np.asarray(a, float) for a in (v_piv, v_stiv, q_weight))
+    both = np.isfinite(v_piv) & np.isfinite(v_stiv)
+    top = float(np.max(np.abs(v_piv[np.isfinite(v_piv)]))) if np.any(np.isfinite(v_piv)) else 0.0
+    ref = np.maximum(np.abs(np.nan_to_num(v_piv)), 0.1 * top)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        rel = np.where(both & (ref > 0), (v_stiv - v_piv) / ref, np.nan)
+    qp_sub = np.where(both, q_weight * v_piv, 0.0)
+    qp = float(np.sum(qp_sub))
+    qs = float(np.sum(np.where(both, q_weight * v_stiv, 0.0)))
+    bad = np.nonzero(np.abs(np.nan_to_num(rel)) > rel_threshold)[0]
+    return {"discharge_relative": (qs - qp) / qp if qp != 0 and both.any() else None,
+            "subsections_relative": [None if not np.isfinite(r) else float(r) for r in rel],
+            "subsections_over_threshold": [int(i) + 1 for i in bad],
+            "share_of_discharge": float(np.sum(np.abs(qp_sub[bad])) / np.sum(np.abs(qp_sub))) if qp != 0 else 0.0,
+            "threshold": rel_threshold, "n_compared": int(both.sum())}
+
+
+def disagreement_reason(dis: dict, q_threshold: float = DISAGREE_Q, share_threshold: float = DISAGREE_SHARE) -> dict | None:
+    """A "doubtful" reason of the quality verdict when PIV and STIV disagree (see :func:`disagreement`), as
+    the fields of a quality reason (code, severity, message, value, threshold); None when they agree.
+    Two estimators that disagree say the velocity is uncertain, not which one is right: never "unusable"."""
+    dq_rel = dis.get("discharge_relative")
+    share = dis.get("share_of_discharge", 0.0)
+    bad = dis.get("subsections_over_threshold", [])
+    q_bad = dq_rel is not None and abs(dq_rel) > q_threshold
+    if not (q_bad or (bad and share > share_threshold)):
+        return None
+    rel = [abs(dis["subsections_relative"][i - 1]) for i in bad]
+    where = (f" on subsection(s) {', '.join(map(str, bad[:8]))}{' ...' if len(bad) > 8 else ''} (up to "
+             f"{100 * max(rel):.0f} %, {100 * share:.0f} % of the discharge)") if bad else ""
+    qtxt = f"; the discharge by STIV differs by {100 * dq_rel:+.1f} %" if dq_rel is not None else ""
+    return {"code": "piv_stiv_disagree", "severity": "doubtful",
+            "message": f"PIV and STIV disagree by more than {100 * dis['threshold']:.0f} %{where}{qtxt}: sparse or "
+                       "patchy seeding, stationary patterns or ripples mislead one of them; compare the velocities in "
+                       "subsections.csv (stiv_velocity_ms) and consider section.velocity_source",
+            "value": float(abs(dq_rel)) if q_bad else float(share),
+            "threshold": q_threshold if q_bad else share_threshold}
