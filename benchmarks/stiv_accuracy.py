@@ -5,7 +5,8 @@
 One run per scene with the project's defaults gives all three discharges (STIV is computed during the
 PIV's frame stream; ``result.json`` "stiv": discharge_m3s, discharge_combined_m3s). Cost: runs with
 ``[stiv] enabled`` true and false alternate in one process; the table gives the median of STIV's own
-timer (line sampling + analysis, s per clip) and the median wall-time difference of the paired runs.
+timer (line sampling + analysis, wall s per clip) and the median wall and CPU-time differences of the
+paired runs (CPU time is the steadier figure on a loaded machine).
 The true discharge is integrated by the scene generator from the profile it drew.
 
 Scenes: the presets by name; ``sparse`` is ``sparse_patchy`` when fieldtool.synthetic.presets has it,
@@ -44,29 +45,31 @@ def main() -> None:
     args = ap.parse_args()
     print(f"load average at start: {os.getloadavg()}")
     print("| scene | true Q (m³/s) | PIV error | STIV error | combined error | STIV s/clip (own timer, median) "
-          "| run with - without STIV (s, median) | lines analysed |")
+          "| run with - without STIV: wall s, CPU s (medians) | lines analysed |")
     print("|---|---|---|---|---|---|---|---|")
     with tempfile.TemporaryDirectory() as tmp:
         for name in args.scenes.split(","):
             label, spec = scene_spec(name, args.duration)
             truth = render_scene(spec, Path(tmp) / name)
             q0 = truth.discharge_m3s
-            own, diff = [], []
+            own, diff, cpu = [], [], []
             res = None
             for _ in range(args.repeats):
-                times = {}
+                times, cpus = {}, {}
                 for enabled in (True, False):
                     proj = load_project(truth.project_path)
                     proj.stiv.enabled = enabled
                     if args.method:
                         proj.stiv.method = args.method
-                    t0 = time.perf_counter()
+                    t0, c0 = time.perf_counter(), time.process_time()
                     r = run_project(proj, None)
                     times[enabled] = time.perf_counter() - t0
+                    cpus[enabled] = time.process_time() - c0
                     if enabled:
                         res = r
                         own.append(r.stiv["seconds"])
                 diff.append(times[True] - times[False])
+                cpu.append(cpus[True] - cpus[False])
             st = res.stiv
 
             def err(q):
@@ -74,7 +77,7 @@ def main() -> None:
 
             print(f"| {label} | {q0:.3f} | {err(res.discharge.discharge_m3s)} | {err(st['discharge_m3s'])} | "
                   f"{err(st['discharge_combined_m3s'])} | {statistics.median(own):.2f} | "
-                  f"{statistics.median(diff):+.2f} | {st['n_lines_analysed']} of {st['n_lines']} |", flush=True)
+                  f"{statistics.median(diff):+.2f}, {statistics.median(cpu):+.2f} | {st['n_lines_analysed']} of {st['n_lines']} |", flush=True)
     print(f"load average at end: {os.getloadavg()}")
 
 
