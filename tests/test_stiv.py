@@ -214,3 +214,18 @@ def test_disagreement_and_its_reason():
     r = stiv.disagreement_reason(d)
     assert r["severity"] == "doubtful" and "3, 4" in r["message"] and "30 %" in r["message"]
     assert json.dumps(d) and "nan" not in json.dumps(d).lower()
+
+
+def test_swapped_section_points_keep_stiv_downstream(nadir_scene):
+    """P1/P2 picked right-to-left: the pipeline swaps them after the PIV; the STIV lines built on the
+    unswapped section are re-read in the new order and sign."""
+    from fieldtool.pipeline import run_project
+    from fieldtool.project import load_project
+
+    proj = load_project(nadir_scene.project_path)
+    ref = run_project(proj, None).stiv
+    proj.section.points_px = proj.section.points_px[::-1]
+    res = run_project(proj, None)
+    assert res.section.swapped
+    assert res.stiv["velocity_ms"] == pytest.approx(ref["velocity_ms"], rel=1e-6)
+    assert res.stiv["discharge_m3s"] == pytest.approx(ref["discharge_m3s"], rel=1e-6)
