@@ -122,13 +122,15 @@ def finish(run: StivRun | None, project: Project, geom: dq.SectionGeometry, cs, 
     t0 = time.perf_counter()
     s = project.stiv
     swapped = not np.allclose(geom.p_img, run.p_img)
-    flow = _flow_dir(geom, piv_res.x, piv_res.y, U, V) if len(set(s.angles_deg)) > 1 else None
+    w_piv = _piv_confidence(geom, piv_res, U, V)
+    flow = None
+    if len(set(s.angles_deg)) > 1:
+        flow = stiv.guide_directions(_flow_dir(geom, piv_res.x, piv_res.y, U, V), geom.normal, w_piv)
     only = stiv.select_lines(run.acc.lines, run.n_sub, flow, reversed_order=swapped)
     v_line, c_line = stiv.line_velocities(run.acc, s.method, only=only)
     v_st, c_st, ang = stiv.subsection_velocity(run.acc.lines, v_line, c_line, run.n_sub, geom.normal,
                                                reversed_order=swapped, flow_dir=flow, min_confidence=s.min_confidence)
     v_piv_raw = dq.subsection_velocity(geom, piv_res.x, piv_res.y, U, V)
-    w_piv = _piv_confidence(geom, piv_res, U, V)
     v_comb = combine(v_piv_raw, w_piv, v_st, c_st)
     q_w = dres.alpha * dres.area_m2
     block: dict = {"method": s.method, "n_lines": len(run.acc.lines), "n_lines_analysed": int(only.sum()),

@@ -229,3 +229,15 @@ def test_swapped_section_points_keep_stiv_downstream(nadir_scene):
     assert res.section.swapped
     assert res.stiv["velocity_ms"] == pytest.approx(ref["velocity_ms"], rel=1e-6)
     assert res.stiv["discharge_m3s"] == pytest.approx(ref["discharge_m3s"], rel=1e-6)
+
+
+def test_guide_directions_trusts_the_section_over_noisy_nodes():
+    n = np.array([1.0, 0.0])
+    ang = np.array([24.0, 26.0, 70.0, 25.0, -60.0, np.nan])
+    f = np.c_[np.cos(np.radians(ang)), np.sin(np.radians(ang))]
+    f[1] *= -1  # an upstream vector has the same line direction
+    w = np.array([0.9, 0.9, 0.9, 0.2, 0.9, 0.9])
+    g = stiv.guide_directions(f, n, w)
+    got = np.degrees(np.arctan2(g[:, 1], g[:, 0]))
+    np.testing.assert_allclose(got, [24.0, 26.0, 25.0, 25.0, 25.0, 25.0], atol=1e-9)
+    assert np.all(np.isnan(stiv.guide_directions(f, n, np.zeros(6))))

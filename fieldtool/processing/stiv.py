@@ -361,6 +361,35 @@ def select_lines(lines: list[StivLine], n_sub: int, flow_dir: np.ndarray | None 
     return use
 
 
+def guide_directions(flow_dir: np.ndarray, normal: np.ndarray, weight: np.ndarray, min_weight: float = 0.5,
+                     max_dev_deg: float = 15.0) -> np.ndarray:
+    """Flow directions to orient the lines by, per subsection, from a noisy field (e.g. the PIV's).
+
+    The section's direction is the median angle (from ``normal``, folded to ±90°: a line has no sign) of
+    the subsections whose ``weight`` (0..1, e.g. PIV's valid-pair fraction) reaches ``min_weight``; a
+    subsection keeps its own direction when it is that trustworthy and within ``max_dev_deg`` of the
+    section's, else takes the section's. All NaN when no subsection is trustworthy.
+
+    Parameters
+    ----------
+    flow_dir : (n, 2) world unit vectors (NaN rows allowed). normal : (2,) section normal (world).
+    weight : (n,) confidence of each direction.
+    """
+    f = np.asarray(flow_dir, float)
+    n = np.asarray(normal, float)
+    phi = np.degrees(np.arctan2(n[0] * f[:, 1] - n[1] * f[:, 0], f @ n))
+    phi = (phi + 90.0) % 180.0 - 90.0
+    good = np.isfinite(phi) & (np.asarray(weight, float) >= min_weight)
+    out = np.full_like(f, np.nan)
+    if not good.any():
+        return out
+    ref = float(np.median(phi[good]))
+    use = np.where(good & (np.abs(phi - ref) <= max_dev_deg), phi, ref)
+    for i, a in enumerate(use):
+        out[i] = _rot(n, a)
+    return out
+
+
 def line_velocities(acc: StiAccumulator, method: str = "fft", max_lag_s: float | None = None,
                     only: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Velocity (m/s along each line) and confidence of the lines of ``acc`` (those where ``only`` is
