@@ -227,8 +227,9 @@ def test_swapped_section_points_keep_stiv_downstream(nadir_scene):
     proj.section.points_px = proj.section.points_px[::-1]
     res = run_project(proj, None)
     assert res.section.swapped
-    assert res.stiv["velocity_ms"] == pytest.approx(ref["velocity_ms"], rel=1e-6)
-    assert res.stiv["discharge_m3s"] == pytest.approx(ref["discharge_m3s"], rel=1e-6)
+    # the lines are laid out from the other end: the same up to rounding of their sample positions
+    assert res.stiv["velocity_ms"] == pytest.approx(ref["velocity_ms"], rel=1e-4)
+    assert res.stiv["discharge_m3s"] == pytest.approx(ref["discharge_m3s"], rel=1e-4)
 
 
 def test_guide_directions_trusts_the_section_over_noisy_nodes():
