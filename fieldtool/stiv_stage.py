@@ -171,3 +171,14 @@ def stiv_column(block: dict | None, n: int) -> list[str]:
     """The ``stiv_velocity_ms`` cells of subsections.csv ("" where STIV gave none)."""
     vals = (block or {}).get("velocity_ms") or [None] * n
     return ["" if v is None else f"{v:.5f}" for v in vals]
+
+
+def add_reason(quality, block: dict | None) -> None:
+    """Add the PIV/STIV disagreement to the quality verdict (doubtful; a good grade becomes doubtful)."""
+    if quality is None or not block or not block.get("disagreement_reason"):
+        return
+    from .processing.quality import Reason
+
+    quality.reasons.append(Reason(**block["disagreement_reason"]))
+    if quality.grade == "good":
+        quality.grade = "doubtful"
