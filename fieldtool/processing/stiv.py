@@ -469,7 +469,7 @@ def subsection_velocity(lines: list[StivLine], v_line: np.ndarray, c_line: np.nd
 # PIV against STIV
 
 DISAGREE_REL = 0.15  # a subsection disagrees when |v_stiv - v_piv| exceeds this share of its reference speed
-DISAGREE_Q = 0.08  # ... the discharges when they differ by more than this share
+DISAGREE_Q = 0.05  # ... the discharges when they differ by more than this share (the 5 % accuracy aimed at)
 DISAGREE_SHARE = 0.2  # ... or when disagreeing subsections carry more than this share of the discharge
 
 
