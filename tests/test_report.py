@@ -103,3 +103,27 @@ def test_report_of_a_real_run(short_scene, tmp_path):
     n_png = sum(1 for v in r.files.values() if str(v).endswith(".png"))
     assert n_png >= 3 and html.count("data:image/png;base64,") == n_png
     assert html.count("<tr>") >= len(r.discharge.area_m2)
+
+
+def test_report_embeds_only_images_inside_the_result_folder(tmp_path):
+    """result.json "files" naming ../../secret_plot.png, an absolute path or a link out is not embedded."""
+    secret = png(99)
+    (tmp_path / "secret_plot.png").write_bytes(secret)
+    res = tmp_path / "a" / "res"
+    summary = fake_result(res)
+    (res / "out_link.png").symlink_to(tmp_path / "secret_plot.png")
+    summary["files"].update({"secret_png": "../../secret_plot.png", "abs_png": str(tmp_path / "secret_plot.png"),
+                             "link_png": "out_link.png", "subsections": "../../../etc/passwd"})
+    (res / "result.json").write_text(json.dumps(summary))
+    _, images, rows = load_result(res)
+    assert set(images) == {"vectors_png", "section_png", "rectified_png"}
+    assert secret not in images.values() and rows == []
+    (html_path,) = write_report(res)
+    assert base64.b64encode(secret).decode() not in html_path.read_text()
+
+
+@pytest.mark.parametrize("content", ["[1, 2]", '"x"', "null"])
+def test_a_result_that_is_not_an_object_is_refused(tmp_path, content):
+    (tmp_path / "result.json").write_text(content)
+    with pytest.raises(InputFileError, match="result.json"):
+        load_result(tmp_path)

@@ -126,3 +126,36 @@ def test_unreachable_viewer_is_a_warning(tmp_path):
     obs.pair(0, 0.1, np.zeros((2, 2)), np.zeros((2, 2)), np.ones((2, 2)), np.ones((2, 2)), np.ones((2, 2), bool))
     obs.close(timeout_s=8.0)
     assert any("did not get everything" in w for w in obs.warnings), obs.warnings
+
+
+@pytest.mark.parametrize("bad", ["/some/file", "../../x.rrd", ".", "..", "sub/../../x.rrd", "~/x.rrd"])
+def test_rerun_path_is_confined_to_the_output_folder(short_scene, tmp_path, capsys, bad):
+    """A project's rerun.path never writes outside the output folder: exit 2 naming the key, nothing written."""
+    import tomli_w
+
+    from fieldtool.cli import main
+    from fieldtool.project import project_to_dict, save_project
+
+    project = load_project(short_scene.project_path)
+    project.rerun.mode, project.rerun.path = "save", bad
+    d = project_to_dict(project)
+    d["rerun"]["path"] = bad
+    path = tmp_path / "p" / "project.toml"
+    path.parent.mkdir()
+    path.write_text(tomli_w.dumps(d))
+    before = sorted(p.name for p in tmp_path.rglob("*"))
+    assert main(["run", str(path), "--out", str(tmp_path / "p" / "out" / "run1"), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "rerun.path" in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
+    assert sorted(p.name for p in tmp_path.rglob("*")) == before  # nothing written anywhere
+    assert not list(tmp_path.rglob("*.rrd"))
+
+
+def test_rerun_path_inside_the_output_folder_is_accepted(tmp_path):
+    from fieldtool.viewer.rerun_log import confined_rrd_path
+
+    assert confined_rrd_path("run.rrd", tmp_path) == tmp_path.resolve() / "run.rrd"
+    assert confined_rrd_path("live/a.rrd", tmp_path) == tmp_path.resolve() / "live" / "a.rrd"
+    (tmp_path / "link").symlink_to("/tmp")
+    with pytest.raises(ParameterError, match="rerun.path"):
+        confined_rrd_path("link/x.rrd", tmp_path)

@@ -40,17 +40,36 @@ def load_result(result_dir: Path | str) -> tuple[dict, dict[str, bytes], list[di
         raise InputFileError(f"{path}: not found; give the output folder of a run (it holds result.json)") from None
     except (OSError, ValueError) as e:
         raise InputFileError(f"{path}: cannot be read as a run result ({e}); run the project again") from e
+    if not isinstance(summary, dict):
+        raise InputFileError(f"{path}: is not a run result (a JSON object with discharge_m3s); run the project again")
     files = summary.get("files") or {}
+    if not isinstance(files, dict):
+        files = {}
     images = {}
     for key, name in files.items():
-        if isinstance(name, str) and name.lower().endswith(".png") and (d / name).is_file():
-            images[key] = (d / name).read_bytes()
+        if isinstance(name, str) and name.lower().endswith(".png"):
+            f = inside(d, name)
+            if f is not None and f.is_file():
+                images[key] = f.read_bytes()
     rows: list[dict] = []
-    sub = d / str(files.get("subsections", "subsections.csv"))
-    if sub.is_file():
+    sub = inside(d, str(files.get("subsections", "subsections.csv")))
+    if sub is not None and sub.is_file():
         with sub.open(newline="", encoding="utf-8") as fh:
             rows = list(csv.DictReader(fh))
     return summary, images, rows
+
+
+def inside(folder: Path, name: str) -> Path | None:
+    """``folder / name`` when it stays inside ``folder`` (no absolute path, no ``..``, no link out), else None.
+
+    ``result.json`` may have been edited by anyone: the report embeds only files of its own folder.
+    """
+    p = Path(name)
+    if not name or p.is_absolute() or ".." in p.parts:
+        return None
+    root = folder.resolve()
+    target = (root / p).resolve()
+    return target if root in target.parents else None
 
 
 def _f(v, fmt: str = ".4f", unit: str = "") -> str:

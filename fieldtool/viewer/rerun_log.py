@@ -272,6 +272,29 @@ class RerunObserver(Observer):
                 self.warnings.append(f"rerun: could not finish {self.path}: {e}")
 
 
+def confined_rrd_path(rel: str, out_dir: str | Path, key: str = "rerun.path") -> Path:
+    """The ``.rrd`` file named by the project key, inside the output folder, or ParameterError.
+
+    A project file is data that may come from someone else: its ``rerun.path`` is a file name
+    relative to the output folder, never absolute, never climbing out with ``..``, never the
+    folder itself. (``fieldtool run --rerun-path`` is the operator's own choice and is not confined.)
+    """
+    text = str(rel).strip()
+    p = Path(text)
+    fix = "give a file name such as run.rrd; it is written in the output folder"
+    if not text or text in (".", "..") or p.name in ("", ".", ".."):
+        raise ParameterError(f"{key}: {rel!r} is not a file name; {fix}")
+    if p.is_absolute() or text.startswith("~") or ".." in p.parts or any(ord(c) < 32 for c in text):
+        raise ParameterError(f"{key}: {rel!r} points outside the output folder; {fix}")
+    out = Path(out_dir).resolve()
+    target = (out / p).resolve()
+    if out != target and out not in target.parents:  # e.g. a symbolic link inside the folder
+        raise ParameterError(f"{key}: {rel!r} resolves outside the output folder {out}; {fix}")
+    if target.is_dir():
+        raise ParameterError(f"{key}: {rel!r} is a folder; {fix}")
+    return target
+
+
 def check_url(url: str, key: str = "rerun.url") -> str:
     """The viewer URL, checked: ``rerun+http(s)://HOST:PORT/proxy`` or ``rerun://HOST:PORT/proxy``."""
     from urllib.parse import urlparse
@@ -287,8 +310,8 @@ def observer_from_args(project, args, out_dir: str | Path) -> RerunObserver | No
     """The rerun observer asked for by ``fieldtool run`` flags, or else by the project's ``[rerun]``.
 
     ``--rerun save|connect|serve`` overrides ``rerun.mode``; ``--rerun-path`` / ``--rerun-url``
-    override ``rerun.path`` / ``rerun.url``. Returns None when rerun is off. A relative ``.rrd``
-    path is put in ``out_dir``. Serving prints a warning (the servers listen on all interfaces)
+    override ``rerun.path`` / ``rerun.url``. Returns None when rerun is off. ``rerun.path`` is
+    confined to ``out_dir`` (:func:`confined_rrd_path`). Serving prints a warning (the servers listen on all interfaces)
     and the addresses to stderr.
     """
     cfg = project.rerun
@@ -298,11 +321,11 @@ def observer_from_args(project, args, out_dir: str | Path) -> RerunObserver | No
     if mode == "off":
         return None
     if mode == "save":
-        rel = getattr(args, "rerun_path", None) or cfg.path or "run.rrd"
-        p = Path(rel).expanduser()
-        if not p.is_absolute():
-            p = (Path.cwd() / p) if getattr(args, "rerun_path", None) else Path(out_dir) / p
-        return RerunObserver("save", path=p)
+        flag = getattr(args, "rerun_path", None)
+        if flag:  # typed on the command line by the user: taken as given (relative to the working folder)
+            p = Path(flag).expanduser()
+            return RerunObserver("save", path=p if p.is_absolute() else Path.cwd() / p)
+        return RerunObserver("save", path=confined_rrd_path(cfg.path or "run.rrd", out_dir))
     if mode == "connect":
         from_flag = getattr(args, "rerun_url", None)
         url = check_url(from_flag or cfg.url or DEFAULT_URL, "--rerun-url" if from_flag else "rerun.url")
