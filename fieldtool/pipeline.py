@@ -104,6 +104,7 @@ class RunResult:
     stabilization: dict | None = None
     project: dict = field(default_factory=dict)
     piv_reused: bool = False  # the PIV field came from the output folder's piv_cache.npz
+    video: dict = field(default_factory=dict)  # the clip's metadata (records.video_meta.video_info)
 
     def summary(self) -> dict:
         d = self.discharge
@@ -132,6 +133,7 @@ class RunResult:
             "ortho_details": self.mapping.details,
             "stabilization": self.stabilization,
             "piv_reused": self.piv_reused,
+            "video": self.video,
             "warnings": self.warnings + d.warnings,
             "timings_s": self.timings_s,
             "files": self.files,
@@ -352,6 +354,9 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
     if out_dir is not None:  # matplotlib takes ~0.6 s to import: let that overlap the PIV
         threading.Thread(target=importlib.import_module, args=("fieldtool.plots.discharge",), daemon=True).start()
     obs("stage", "inputs")
+    from .writers import check as check_outputs
+
+    check_outputs(project)  # a wrong ortho.crs_epsg stops the run before any work
     inputs = load_inputs(project)
     lap("inputs")
 
@@ -479,6 +484,9 @@ def write_outputs(result: RunResult, project: Project, inputs: Inputs, out: Path
         files["water_level_png"] = plot_level(out / "water_level.png", inputs.cross_section, result.level).name
     except FieldToolError as e:
         result.warnings.append(f"water-level plot not written: {e}")
+    from .writers import write_standard
+
+    write_standard(result, project, inputs, out)  # mean_field.nc, rectified.tif (with a CRS), video metadata
     files["result"] = "result.json"
     result.timings_s["outputs"] = round(time.perf_counter() - t0, 3)  # all but result.json itself
     atomic_write_bytes(out / "result.json", json.dumps(result.summary(), indent=2, default=_json_default).encode())

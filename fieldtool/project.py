@@ -88,6 +88,7 @@ class OrthoCfg:
     distances_m: list[float] = field(default_factory=list)  # L1..L6 (method = distances)
     gcp_world_m: list[list[float]] = field(default_factory=list)  # [[X, Y], ...] or [[X, Y, Z], ...] (pose)
     resolution_m: float | None = None  # pixel size of the rectified image (m); None = automatic
+    crs_epsg: int | None = None  # EPSG code of gcp_world_m (method world/pose), e.g. 28992; writes rectified.tif
 
 
 @dataclass
@@ -171,6 +172,8 @@ class Project:
 
     name: str = "measurement"  # a name for this measurement (station, date)
     site: str = ""  # site this measurement belongs to ("" = none); see `fieldtool site`
+    operator: str = ""  # who made the measurement (printed on the report)
+    station: str = ""  # gauging station name or code (printed on the report)
     step: str = "cross_section"  # last TUI step visited
     video: VideoCfg = field(default_factory=VideoCfg)
     cross_section: CrossSectionCfg = field(default_factory=CrossSectionCfg)
