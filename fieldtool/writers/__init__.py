@@ -2,7 +2,9 @@
 
 - ``mean_field.nc``: the time-averaged surface velocity as CF-convention NetCDF (:mod:`.netcdf`);
 - ``rectified.tif``: the rectified first frame as a GeoTIFF, only when the GCPs carry a CRS
-  (``ortho.crs_epsg``, :mod:`.geotiff`).
+  (``ortho.crs_epsg``, :mod:`.geotiff`);
+- the report's figures ``profile.png`` / ``section_profile.csv`` and ``gcp.png``
+  (:mod:`fieldtool.plots.report_figures`), and the clip's metadata in ``result.json`` ``video``.
 
 :func:`write_standard` is the one hook ``pipeline.write_outputs`` calls; :func:`check` is called
 before any work so that a wrong CRS stops the run at once (exit 2).
@@ -34,6 +36,15 @@ def write_standard(result, project, inputs, out: Path) -> None:
         result.video = video_info(project, inputs.source)
     except (OSError, ValueError) as e:
         result.warnings.append(f"video metadata not read: {e}")
+    from ..plots import report_figures as figs
+
+    try:  # the report's figures: velocity profile with its band, GCPs with distances and residuals
+        result.files["section_profile"], result.files["profile_png"] = figs.write_profile(out, result)
+        gcp = figs.write_gcp(out, project, result, inputs)
+        if gcp is not None:
+            result.files["gcp_png"] = gcp
+    except (OSError, ValueError) as e:
+        result.warnings.append(f"report figures not written: {e}")
     for key, write in (("netcdf", netcdf.write_mean_field), ("geotiff", geotiff.write_rectified)):
         try:
             name = write(result, project, inputs, out)

@@ -25,7 +25,7 @@ from ..errors import ParameterError
 GEOREF_METHODS = ("world", "pose")
 
 # PROJ projection names -> CF grid_mapping_name, and PROJ parameters -> CF attributes
-_CF_NAMES = {"tmerc": "transverse_mercator", "utm": "transverse_mercator", "sterea": "oblique_stereographic",
+_CF_NAMES = {"tmerc": "transverse_mercator", "utm": "transverse_mercator", "sterea": "stereographic",
              "stere": "stereographic", "lcc": "lambert_conformal_conic", "merc": "mercator",
              "laea": "lambert_azimuthal_equal_area", "aea": "albers_conical_equal_area", "omerc": "oblique_mercator"}
 
