@@ -16,11 +16,11 @@ from fieldtool.viewer.rerun_log import RerunObserver, observer_from_args
 EXPECTED = {"/frames/input", "/frames/filtered", "/frames/input/pair_vectors", "/frames/input/mean_field",
             "/frames/input/section", "/map/mean_field", "/map/section/subsections", "/section/surface_velocity_ms",
             "/section/discharge_m3s", "/piv/valid_fraction", "/discharge/pair_m3s", "/discharge/running_m3s",
-            "/discharge/total_m3s", "/log"}
+            "/discharge/final_m3s", "/log", "/map/background", "/section/profile/velocity", "/section/profile/band"}
 
 
 def _column(rows, name):
-    return [v for rb in rows for v in rb.column(name).to_pylist()]
+    return [v for rb in rows if name in rb.schema.names for v in rb.column(name).to_pylist()]
 
 
 def _read(path):
@@ -55,7 +55,7 @@ def test_vector_counts_match_the_fields(logged_run):
     mean = _column(ent["/frames/input/mean_field"], "Arrows2D:vectors")
     assert len(mean) == 1 and len(mean[0]) == int(ok.sum()) > 0
     world = np.array(_column(ent["/map/mean_field"], "Arrows2D:vectors")[0])
-    np.testing.assert_allclose(world, np.c_[U, V], rtol=1e-5, atol=1e-6)  # m/s, float32 in the file
+    np.testing.assert_allclose(world, np.c_[U, -V], rtol=1e-5, atol=1e-6)  # m/s (north up), float32 in the file
     pairs = _column(ent["/frames/input/pair_vectors"], "Arrows2D:vectors")
     p = result.piv
     expected = [int(np.sum(np.isfinite(p.u_pairs[k]) & np.isfinite(p.v_pairs[k]))) for k in range(len(p.u_pairs))]
@@ -67,14 +67,15 @@ def test_vector_counts_match_the_fields(logged_run):
 def test_discharge_scalars(logged_run):
     result, out, ent = logged_run
     q = json.loads((out / "result.json").read_text())["discharge_m3s"]
-    total = np.ravel(_column(ent["/discharge/total_m3s"], "Scalars:scalars"))
-    assert total.tolist() == pytest.approx([q], rel=1e-9)
+    final = np.ravel(_column(ent["/discharge/final_m3s"], "Scalars:scalars"))
+    assert final.tolist() == pytest.approx([q, q], rel=1e-9)  # drawn across the clip's span
     pair_q = np.ravel(_column(ent["/discharge/pair_m3s"], "Scalars:scalars"))
     fin = result.q_pairs[np.isfinite(result.q_pairs)]
     np.testing.assert_allclose(pair_q, fin)
     running = np.ravel(_column(ent["/discharge/running_m3s"], "Scalars:scalars"))
     assert running[-1] == pytest.approx(np.median(fin))
-    ns = [v for rb in ent["/discharge/pair_m3s"] for v in rb.column("time").cast(pa.int64()).to_pylist()]
+    ns = [v for rb in ent["/discharge/pair_m3s"] if "time" in rb.schema.names
+          for v in rb.column("time").cast(pa.int64()).to_pylist()]
     t_pairs = np.asarray(result.piv.t_pairs)[np.isfinite(result.q_pairs)]
     np.testing.assert_allclose(np.array(ns) / 1e9, t_pairs, atol=1e-6)  # on the clip's time timeline (s)
 
@@ -159,3 +160,32 @@ def test_rerun_path_inside_the_output_folder_is_accepted(tmp_path):
     (tmp_path / "link").symlink_to("/tmp")
     with pytest.raises(ParameterError, match="rerun.path"):
         confined_rrd_path("link/x.rrd", tmp_path)
+
+
+def test_the_recording_holds_the_blueprint_and_named_series(logged_run):
+    """The .rrd carries the layout (a blueprint store with the four named views) and every discharge
+    series has a name that says what it is."""
+    result, out, ent = logged_run
+    reader = RrdReader(out / "run.rrd")
+    (bp,) = reader.blueprints()
+    names = []
+    for ch in reader.stream(store=bp):
+        rb = ch.to_record_batch()
+        for col in rb.schema.names:
+            if col.endswith("display_name"):
+                names += [v for v in rb.column(col).to_pylist() if v]
+    names = [n[0] if isinstance(n, list) else n for n in names]
+    for want in ("Current frame and live vectors", "Rectified map and mean field", "Section: surface velocity",
+                 "Discharge over time"):
+        assert any(want in n for n in names), (want, names)
+    series = {}
+    for path, rows in ent.items():
+        for rb in rows:
+            for col in rb.schema.names:
+                if col.endswith(":names") and path.startswith("/discharge/"):
+                    series[path] = rb.column(col).to_pylist()[0][0]
+    assert series["/discharge/pair_m3s"].startswith("per-pair Q")
+    assert series["/discharge/running_m3s"].startswith("running estimate")
+    assert series["/discharge/final_m3s"].startswith("final Q")
+    assert "95 %" in series["/discharge/final_ci95_lo_m3s"] and "95 %" in series["/discharge/final_ci95_hi_m3s"]
+    assert len(set(series.values())) == len(series)
