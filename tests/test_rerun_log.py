@@ -11,7 +11,7 @@ from rerun.chunk import RrdReader
 from fieldtool.errors import ParameterError
 from fieldtool.pipeline import run_project
 from fieldtool.project import load_project
-from fieldtool.viewer.rerun_log import RerunObserver, observer_from_args
+from fieldtool.viewer.rerun_log import RerunObserver, _map_arrow_s, observer_from_args
 
 EXPECTED = {"/frames/input", "/frames/filtered", "/frames/input/pair_vectors", "/frames/input/mean_field",
             "/frames/input/section", "/map/mean_field", "/map/section/subsections", "/section/surface_velocity_ms",
@@ -52,10 +52,14 @@ def test_vector_counts_match_the_fields(logged_run):
     with np.load(out / "mean_field.npz") as z:
         ok = z["valid"] & np.isfinite(z["u_px_s"]) & np.isfinite(z["v_px_s"])
         U, V = z["U_ms"][ok], z["V_ms"][ok]
+        z_x, z_y = z["x_px"], z["y_px"]
     mean = _column(ent["/frames/input/mean_field"], "Arrows2D:vectors")
     assert len(mean) == 1 and len(mean[0]) == int(ok.sum()) > 0
     world = np.array(_column(ent["/map/mean_field"], "Arrows2D:vectors")[0])
-    np.testing.assert_allclose(world, np.c_[U, -V], rtol=1e-5, atol=1e-6)  # m/s (north up), float32 in the file
+    XY = result.mapping.image_to_world(np.c_[z_x[ok], z_y[ok]])
+    s = _map_arrow_s(XY, U, V)
+    assert 0 < s < 10
+    np.testing.assert_allclose(world, np.c_[U, -V] * s, rtol=1e-5, atol=1e-6)  # m/s (north up) x s
     pairs = _column(ent["/frames/input/pair_vectors"], "Arrows2D:vectors")
     p = result.piv
     expected = [int(np.sum(np.isfinite(p.u_pairs[k]) & np.isfinite(p.v_pairs[k]))) for k in range(len(p.u_pairs))]

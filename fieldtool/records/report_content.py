@@ -116,7 +116,7 @@ def parameter_rows(inputs: dict) -> list[tuple[str, str, str]]:
     method = {"distances": "4 GCPs and 6 taped distances", "world": "GCPs with surveyed coordinates",
               "pose": "camera pose from 3-D GCPs", "none": "scale from the wetted width (nadir)"}
     rows.append(("Orthorectification", "Method", method.get(o.get("method", "distances"), str(o.get("method")))))
-    if o.get("distances_m"):
+    if o.get("distances_m") and o.get("method", "distances") == "distances":
         rows.append(("Orthorectification", "Distances L1–L6", ", ".join(f"{d:.3f}" for d in o["distances_m"]) + " m"))
     if o.get("crs_epsg"):
         rows.append(("Orthorectification", "Coordinate system", f"EPSG:{o['crs_epsg']}"))

@@ -12,8 +12,8 @@ entity                                 content
 ``frames/input/mean_field``            ``Arrows2D`` of the time-averaged field
 ``frames/input/section``               the section of interest and its subsection limits
 ``map/background``                     the rectified first frame (north up), placed in metres
-``map/mean_field``                     ``Arrows2D`` of the rectified field, metres and m/s
-``map/section``                        section points labelled with subsection velocities (m/s)
+``map/mean_field``                     ``Arrows2D`` of the rectified field, metres; m/s x ``map_arrow_s``
+``map/section``                        the section and its subsection midpoints (velocities: profile)
 ``section/profile``                    surface velocity along the section, its band (2.5-97.5 % of
                                        the pair fields) and labels (station m, velocity m/s)
 ``section/surface_velocity_ms``        ``BarChart`` of the subsection surface velocities
@@ -246,7 +246,7 @@ class RerunObserver(Observer):
         s = self.image_scale or 1.0
         self.rec.log("scale", self.rr.TextDocument(
             f"Image-space arrows: positions x {s:.4g} (frame downscale); a velocity in px/s is drawn as its "
-            f"displacement over {self.arrow_s:.4g} s. Map arrows: metres, velocity (m/s) x 1 s.",
+            f"displacement over {self.arrow_s:.4g} s.",
             media_type="text/markdown"), static=True)
 
     def _pair(self, i, t_s, x, y, u, v, valid) -> None:
@@ -302,8 +302,12 @@ class RerunObserver(Observer):
         flip = np.array([1.0, -1.0])  # screen y = -world Y: north up
         if self._first is not None:
             self._map_background(res)
-        self.rec.log("map/mean_field", rr.Arrows2D(origins=XY * flip, vectors=np.c_[U, V] * flip,
-                                                   colors=[0, 200, 255]))
+        self.map_arrow_s = _map_arrow_s(XY, U, V)
+        self.rec.log("map/mean_field", rr.Arrows2D(origins=XY * flip, vectors=np.c_[U, V] * flip * self.map_arrow_s,
+                                                   colors=[0, 200, 255], radii=0.02))
+        self.rec.log("map/scale", rr.TextDocument(
+            f"Map: metres, north up (screen y = -Y). A velocity (m/s) is drawn as its displacement over "
+            f"{self.map_arrow_s:.3g} s.", media_type="text/markdown"), static=True)
         # the section: in the image (with subsection limits) and on the map (with velocities)
         edges = np.asarray(geom.station_edges, float)
         frac = (edges - edges[0]) / (edges[-1] - edges[0]) if edges[-1] != edges[0] else np.linspace(0, 1, len(edges))
@@ -314,11 +318,8 @@ class RerunObserver(Observer):
         self.rec.log("frames/input/section/limits", rr.Points2D(ticks_i * s, colors=[255, 255, 0], radii=3.0))
         mid_w = 0.5 * (ticks_w[:-1] + ticks_w[1:])
         vel = np.asarray(d.surface_velocity_ms, float)
-        labels = [f"{i + 1}: {v:.2f} m/s" + (" (filled)" if f else "")
-                  for i, (v, f) in enumerate(zip(vel, d.velocity_filled))]
         self.rec.log("map/section", rr.LineStrips2D([pw * flip], colors=[255, 255, 0]))
-        self.rec.log("map/section/subsections", rr.Points2D(mid_w * flip, labels=labels, colors=[255, 255, 0],
-                                                            radii=0.05))
+        self.rec.log("map/section/subsections", rr.Points2D(mid_w * flip, colors=[255, 255, 0], radii=0.08))
         self._profile(res)
         self.rec.log("section/surface_velocity_ms", rr.BarChart(np.nan_to_num(vel)))
         self.rec.log("section/discharge_m3s", rr.BarChart(np.nan_to_num(np.asarray(d.sub_discharge_m3s, float))))
@@ -351,19 +352,18 @@ class RerunObserver(Observer):
         band = np.isfinite(b["p025_ms"]) & np.isfinite(b["p975_ms"])
         if band.any():
             lo, hi = np.c_[s[band], k * b["p025_ms"][band]], np.c_[s[band], k * b["p975_ms"][band]]
-            self.rec.log("section/profile/band", rr.LineStrips2D(
-                [lo, hi], colors=[[120, 170, 230], [120, 170, 230]], radii=0.04,
-                labels=["2.5 % of the pair fields", "97.5 % of the pair fields"]))
+            self.rec.log("section/profile/band", rr.LineStrips2D([lo, hi], colors=[[120, 170, 230], [120, 170, 230]],
+                                                                 radii=0.04))
         fin = np.isfinite(v)
         self.rec.log("section/profile/velocity", rr.LineStrips2D([np.c_[s[fin], k * v[fin]]], colors=[0, 120, 255],
-                                                                 radii=0.08, labels=["surface velocity (mean field)"]))
-        labels = [f"{st:.1f} m: {vel:.2f} m/s" + (" (filled)" if f else "")
-                  for st, vel, f in zip(s[fin], v[fin], b["filled"][fin])]
+                                                                 radii=0.08))
+        every = max(1, int(np.ceil(fin.sum() / 6)))  # at most ~6 labels: more overlap; hover shows the rest
+        labels = [(f"{st:.1f} m: {vel:.2f} m/s" + (" (filled)" if f else "")) if i % every == 0 else ""
+                  for i, (st, vel, f) in enumerate(zip(s[fin], v[fin], b["filled"][fin]))]
         self.rec.log("section/profile/subsections", rr.Points2D(np.c_[s[fin], k * v[fin]], labels=labels,
                                                                 colors=[0, 120, 255], radii=0.15))
         self.rec.log("section/profile/zero", rr.LineStrips2D([[[s.min() - 0.5, 0.0], [s.max() + 0.5, 0.0]]],
-                                                             colors=[128, 128, 128], radii=0.02,
-                                                             labels=["0 m/s"]))
+                                                             colors=[128, 128, 128], radii=0.02))
 
     def close(self, timeout_s: float = 3.0) -> None:
         """Flush what is buffered (a viewer that cannot be reached becomes a warning); in save mode
@@ -378,6 +378,17 @@ class RerunObserver(Observer):
                 self.rec.disconnect()
             except Exception as e:  # noqa: BLE001
                 self.warnings.append(f"rerun: could not finish {self.path}: {e}")
+
+
+def _map_arrow_s(XY: np.ndarray, U: np.ndarray, V: np.ndarray) -> float:
+    """Seconds of displacement per map arrow so that a fast (90th percentile) arrow spans 0.9 node spacing."""
+    from scipy.spatial import cKDTree
+
+    if len(XY) < 2:
+        return 1.0
+    spacing = float(np.median(cKDTree(XY).query(XY, k=2)[0][:, 1]))
+    ref = float(np.percentile(np.hypot(U, V), 90))
+    return 0.9 * spacing / ref if ref > 0 and spacing > 0 else 1.0
 
 
 def _interval(res) -> tuple[float, float] | None:
