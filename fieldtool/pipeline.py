@@ -173,13 +173,36 @@ def load_inputs(project: Project) -> Inputs:
     return Inputs(cs, src, lens, first)
 
 
+def detect_waterline(project: Project, inputs: Inputs) -> dict:
+    """Water edges found along the search line in the clip's first frames (processing.waterline): the
+    project's ``water_level.search_line_px``, else the section's points lengthened by 40 % each way."""
+    from .processing import waterline
+
+    wl = project.water_level
+    if wl.search_line_px:
+        line = inputs.to_working(wl.search_line_px)
+        if line.shape != (2, 2):
+            raise ParameterError("water_level.search_line_px: give two [x, y] pixel points, one on each bank")
+    else:
+        sec = np.asarray(project.section.points_px, float)
+        if sec.shape != (2, 2):
+            raise ParameterError("water_level.search_line_px: draw a line from bank to bank across the river "
+                                 "(or pick the section's water edges, which it extends)")
+        line = waterline.extend_line(*inputs.to_working(sec), 0.4, inputs.shape)
+    frames = (inputs.lens.undistort(f.image) if inputs.lens is not None else f.image for f in inputs.source)
+    return waterline.detect_water_edges(frames, line)
+
+
 def compute_level(project: Project, inputs: Inputs, mapping: ortho.OrthoMapping | None):
     """Water level by the project's method (see processing.water_level)."""
     from .processing.water_level import compute_level as _compute
 
+    detected = detect_waterline(project, inputs) if project.water_level.method == "waterline" else None
     fov = inputs.lens.fov_deg() if inputs.lens is not None else None
     return _compute(project.water_level, inputs.cross_section, root=project.root, mapping=mapping, fov_deg=fov,
-                    points_transform=inputs.to_working if inputs.lens is not None else None)
+                    points_transform=inputs.to_working if inputs.lens is not None else None,
+                    image_undistort=inputs.lens.undistort_points_in if inputs.lens is not None else None,
+                    detected=detected)
 
 
 def build_mapping(project: Project, inputs: Inputs, level_m: float | None) -> ortho.OrthoMapping:
@@ -193,6 +216,13 @@ def build_mapping(project: Project, inputs: Inputs, level_m: float | None) -> or
             raise ParameterError("ortho.gcp_px: give exactly four [x, y] pixel points P1..P4 for method = distances")
         ortho.check_in_frame(raw, shape, "ortho.gcp_px")
         return ortho.from_distances(inputs.to_working(raw), o.distances_m)
+    if o.method == "two_points":
+        raw = np.asarray(o.gcp_px, float)
+        if raw.shape != (2, 2):
+            raise ParameterError("ortho.gcp_px: give exactly two [x, y] pixel points P1, P2 for method = two_points")
+        ortho.check_in_frame(raw, shape, "ortho.gcp_px")
+        return ortho.from_two_points(inputs.to_working(raw), o.distances_m[0] if len(o.distances_m) == 1 else None,
+                                     o.gcp_world_m or None)
     if o.method == "world":
         raw = np.asarray(o.gcp_px, float)
         ortho.check_in_frame(raw.reshape(-1, 2), shape, "ortho.gcp_px")
@@ -200,36 +230,49 @@ def build_mapping(project: Project, inputs: Inputs, level_m: float | None) -> or
     if o.method == "pose":
         from .processing import pose
 
-        if inputs.lens is None:
-            raise ParameterError("ortho.method = pose needs the camera intrinsics: set calibration.path")
         if level_m is None:
             raise ParameterError("ortho.method = pose needs the water level first")
         raw = np.asarray(o.gcp_px, float)
         world = np.asarray(o.gcp_world_m, float)
-        p = pose.solve_pose(raw, world, inputs.lens.camera_matrix, inputs.lens.dist_coeffs)
+        lens_fit = None
+        if inputs.lens is None:
+            if not o.fit_lens:
+                raise ParameterError("ortho.method = pose needs the camera intrinsics: set calibration.path, or set "
+                                     "ortho.fit_lens = true to fit focal length and k1 from 8+ GCPs")
+            from .processing.calibration import LensModel
+
+            h, w = shape
+            K, dist, p, lens_fit = pose.fit_lens(raw, world, (w, h))
+            inputs.lens = LensModel(K, dist, (w, h), rms_px=lens_fit["rms_px"])  # frames are undistorted with it
+        else:
+            p = pose.solve_pose(raw, world, inputs.lens.camera_matrix, inputs.lens.dist_coeffs)
         H = pose.plane_homography(p, level_m)
         # residual in metres: each GCP's ray met on the horizontal plane at its own elevation
         und = inputs.to_working(raw)
         miss = [np.hypot(*(ortho._apply(pose.plane_homography(p, z), und[i:i + 1])[0] - world[i, :2]))
                 for i, z in enumerate(world[:, 2])]
-        return ortho.from_homography(H, "pose", float(np.sqrt(np.mean(np.square(miss)))), world[:, :2],
-                                     {"reprojection_rms_px": p.rms_px, "gcp_residual_m": [float(m) for m in miss]})
+        details = {"reprojection_rms_px": p.rms_px, "gcp_residual_m": [float(m) for m in miss]}
+        if lens_fit is not None:
+            details["lens_from_gcps"] = lens_fit
+        return ortho.from_homography(H, "pose", float(np.sqrt(np.mean(np.square(miss)))), world[:, :2], details)
     if o.method == "none":
         if level_m is None:
             raise ParameterError("ortho.method = none takes the image scale from the wetted width: the water level is needed first")
         pts = inputs.to_working(project.section.points_px)
         if pts.shape != (2, 2):
             raise ParameterError("section.points_px: give the two water edges; without GCPs they set the image scale")
+        # the picked points are the OUTER water edges, so the scale is their distance on the cross-section,
+        # not the wetted width (which leaves out islands: -8.3 % with a 1 m island in 12 m)
         length_px = float(np.hypot(*(pts[1] - pts[0])))
-        width = inputs.cross_section.wetted_width(level_m)
-        return ortho.from_scale(width / length_px)
-    raise ParameterError(f"ortho.method: {o.method!r} is not one of distances, world, pose, none")
+        left, right = inputs.cross_section.water_edges(level_m)
+        return ortho.from_scale((right - left) / length_px)
+    raise ParameterError(f"ortho.method: {o.method!r} is not one of distances, world, pose, two_points, none")
 
 
 def level_and_mapping(project: Project, inputs: Inputs):
     """Water level and image -> water-plane mapping, in the order the methods need: the image method
     measures the level on the mapping; every other method gives the level the mapping may need."""
-    if project.water_level.method == "image":
+    if project.water_level.method in ("image", "waterline"):
         mapping = build_mapping(project, inputs, None)
         level = compute_level(project, inputs, mapping)
     else:
@@ -269,7 +312,8 @@ def working_frames(project: Project, inputs: Inputs, cancel: Callable[[], bool] 
     """Stream (t_s, float32 working frame): undistorted, stabilised, filtered."""
     from .processing.filters import FilterStack
 
-    stack = FilterStack.from_config(project.filters) if project.filters else None
+    # filters work inside the ROI only (thesis 9.2.7): banks and sky do not set their statistics
+    stack = FilterStack.from_config(project.filters, roi=roi_and_mask(project, inputs)[0]) if project.filters else None
     stabilizer = None
     total = inputs.source.estimated_count()
 
@@ -353,6 +397,9 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
 
     if out_dir is not None:  # matplotlib takes ~0.6 s to import: let that overlap the PIV
         threading.Thread(target=importlib.import_module, args=("fieldtool.plots.discharge",), daemon=True).start()
+    from .validation import check
+
+    warnings += [str(w) for w in check(project)]  # every key, before any step
     obs("stage", "inputs")
     from .writers import check as check_outputs
 
@@ -406,6 +453,14 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
         stab.update(stab_cached or {})
     else:
         frames = working_frames(project, inputs, cancel, obs, stab if project.stabilize.enabled else None, progress)
+        decoded: list[float] = []
+
+        def tracked(it):
+            for t, img in it:
+                decoded[:] = [t]
+                yield t, img
+
+        frames = tracked(frames)
         n_expected = inputs.source.estimated_count()
         if n_expected:
             frames = _Sized(frames, n_expected)  # lets the ensemble plan which pairs get per-pair vectors
@@ -413,6 +468,10 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
                               progress=None, cancel=cancel, on_pair=on_pair)
         if cache_dir is not None:
             piv_cache.save(cache_dir, key, res, stab or None)
+        v, fps = project.video, getattr(getattr(inputs.source, "info", None), "fps", 0) or 0
+        if v.end_s is not None and decoded and fps > 0 and decoded[0] < v.end_s - (v.step + 1) / fps:
+            warnings.append(f"video.end_s: the clip decoded only up to {decoded[0]:.2f} s of the {v.end_s:g} s asked "
+                            f"(its container claims more); the measurement covers {v.start_s:g}-{decoded[0]:.2f} s")
     lap("frames_and_piv")
 
     obs("stage", "discharge")
@@ -446,9 +505,35 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
 
 def write_outputs(result: RunResult, project: Project, inputs: Inputs, out: Path) -> None:
     """result.json, subsections.csv, mean_field.npz/.npy and the PNG plots, each written atomically."""
+    from .outdir import Staging
+
     t0 = time.perf_counter()
-    out.mkdir(parents=True, exist_ok=True)
+    project_file_inside = out.exists() and out.resolve() in (project.root.resolve(), *project.root.resolve().parents)
+    stage = Staging(out, in_place=project_file_inside)
+    try:
+        _write_outputs(result, inputs, stage.path)
+        result.timings_s["outputs"] = round(time.perf_counter() - t0, 3)  # all but result.json itself
+        _write_result_json(result, stage.path)
+        stage.commit()
+    except BaseException:
+        stage.abort()
+        raise
     result.out_dir = out
+
+
+def _write_result_json(result: RunResult, out: Path) -> None:
+    """result.json, strict JSON: a non-finite number is written as null and named in the warnings."""
+    from .outdir import strict_json
+
+    extra: list[str] = []
+    summary = strict_json(result.summary(), extra)
+    if extra:
+        summary["warnings"] = list(summary.get("warnings") or []) + extra
+    atomic_write_bytes(out / "result.json", json.dumps(summary, indent=2, default=_json_default,
+                                                       allow_nan=False).encode())
+
+
+def _write_outputs(result: RunResult, inputs: Inputs, out: Path) -> None:
     d, p = result.discharge, result.piv
     files = result.files
     lines = ["subsection,station_from_m,station_to_m,area_m2,mean_depth_m,surface_velocity_ms,velocity_filled,discharge_m3s"]
@@ -488,8 +573,6 @@ def write_outputs(result: RunResult, project: Project, inputs: Inputs, out: Path
 
     write_standard(result, project, inputs, out)  # mean_field.nc, rectified.tif (with a CRS), video metadata
     files["result"] = "result.json"
-    result.timings_s["outputs"] = round(time.perf_counter() - t0, 3)  # all but result.json itself
-    atomic_write_bytes(out / "result.json", json.dumps(result.summary(), indent=2, default=_json_default).encode())
 
 
 def _json_default(o):

@@ -44,11 +44,10 @@ def load_result(result_dir: Path | str) -> tuple[dict, dict[str, bytes], list[di
         raise InputFileError(f"{path}: not found; give the output folder of a run (it holds result.json)") from None
     except (OSError, ValueError) as e:
         raise InputFileError(f"{path}: cannot be read as a run result ({e}); run the project again") from e
-    if not isinstance(summary, dict):
-        raise InputFileError(f"{path}: is not a run result (a JSON object with discharge_m3s); run the project again")
+    if not isinstance(summary, dict) or not isinstance(summary.get("files") or {}, dict):
+        raise InputFileError(f"{path}: is not a fieldtool run result (expected a JSON object with 'files'); run "
+                             "the project again")
     files = summary.get("files") or {}
-    if not isinstance(files, dict):
-        files = {}
     images = {}
     for key, name in files.items():
         if isinstance(name, str) and name.lower().endswith(".png"):

@@ -114,7 +114,8 @@ def parameter_rows(inputs: dict) -> list[tuple[str, str, str]]:
                  else "off"))
     o = g("ortho")
     method = {"distances": "4 GCPs and 6 taped distances", "world": "GCPs with surveyed coordinates",
-              "pose": "camera pose from 3-D GCPs", "none": "scale from the wetted width (nadir)"}
+              "pose": "camera pose from 3-D GCPs", "two_points": "2 GCPs and their distance (nadir)",
+              "none": "scale from the wetted width (nadir)"}
     rows.append(("Orthorectification", "Method", method.get(o.get("method", "distances"), str(o.get("method")))))
     if o.get("distances_m") and o.get("method", "distances") == "distances":
         rows.append(("Orthorectification", "Distances L1–L6", ", ".join(f"{d:.3f}" for d in o["distances_m"]) + " m"))
@@ -123,7 +124,8 @@ def parameter_rows(inputs: dict) -> list[tuple[str, str, str]]:
     w = g("water_level")
     wm = w.get("method", "value")
     wl = {"value": "typed value", "width": "from the wetted width", "dem": "from a bank DEM (adapted Hellebaut)",
-          "angle_height": "two images at different heights", "image": "water edges picked on the frame"}
+          "angle_height": "two images at different heights", "image": "water edges picked on the frame",
+          "waterline": "water edges found in the clip"}
     rows.append(("Water level", "Method", wl.get(wm, wm)))
     if wm == "value" and w.get("value_m") is not None:
         rows.append(("Water level", "Level", _num(w["value_m"], ".3f", "m") + (
