@@ -512,6 +512,9 @@ def write_outputs(result: RunResult, project: Project, inputs: Inputs, out: Path
     stage = Staging(out, in_place=project_file_inside)
     try:
         _write_outputs(result, inputs, stage.path)
+        from .writers import write_standard
+
+        write_standard(result, project, inputs, stage.path)  # mean_field.nc, rectified.tif (with a CRS), video metadata
         result.timings_s["outputs"] = round(time.perf_counter() - t0, 3)  # all but result.json itself
         _write_result_json(result, stage.path)
         stage.commit()
@@ -569,9 +572,6 @@ def _write_outputs(result: RunResult, inputs: Inputs, out: Path) -> None:
         files["water_level_png"] = plot_level(out / "water_level.png", inputs.cross_section, result.level).name
     except FieldToolError as e:
         result.warnings.append(f"water-level plot not written: {e}")
-    from .writers import write_standard
-
-    write_standard(result, project, inputs, out)  # mean_field.nc, rectified.tif (with a CRS), video metadata
     files["result"] = "result.json"
 
 

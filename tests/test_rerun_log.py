@@ -145,6 +145,9 @@ def test_rerun_path_is_confined_to_the_output_folder(short_scene, tmp_path, caps
     project.rerun.mode, project.rerun.path = "save", bad
     d = project_to_dict(project)
     d["rerun"]["path"] = bad
+    for table in ("video", "cross_section"):
+        if d[table].get("path"):
+            d[table]["path"] = str(project.resolve(d[table]["path"]))
     path = tmp_path / "p" / "project.toml"
     path.parent.mkdir()
     path.write_text(tomli_w.dumps(d))
