@@ -130,9 +130,39 @@ def test_no_geotiff_for_a_local_frame_and_netcdf_without_crs(short_scene, tmp_pa
     with xr.open_dataset(tmp_path / "out" / "mean_field.nc") as ds:
         assert "crs" not in ds and "grid_mapping" not in ds.surface_speed.attrs
         assert "local frame" in ds.x.attrs["long_name"] and ds.x.attrs["units"] == "m"
+        assert ds.x.attrs["standard_name"] == "projection_x_coordinate"  # CRS unknown: no grid mapping
     with pytest.raises(ParameterError):
         from fieldtool.writers import check
 
         p.ortho.crs_epsg = 4326
         p.ortho.method = "world"
         check(p)
+
+
+def _ebml(eid: int, payload: bytes, unknown_size: bool = False) -> bytes:
+    """One EBML element (id bytes as written, 8-byte size)."""
+    idb = eid.to_bytes((eid.bit_length() + 7) // 8, "big")
+    size = b"\x01\xff\xff\xff\xff\xff\xff\xff" if unknown_size else (0x01 << 56 | len(payload)).to_bytes(8, "big")
+    return idb + size + payload
+
+
+def test_recording_time_from_a_matroska_header(tmp_path):
+    """MKV/WebM: Segment/Info/DateUTC (ns since 2001-01-01 UTC), read from the headers only."""
+    from datetime import datetime, timezone
+
+    from fieldtool.records.video_meta import mkv_creation_time, recording_time
+
+    when = datetime(2024, 5, 1, 8, 30, 15, tzinfo=timezone.utc)
+    ns = int((when - datetime(2001, 1, 1, tzinfo=timezone.utc)).total_seconds()) * 10**9
+    header = _ebml(0x1A45DFA3, _ebml(0x4282, b"matroska"))
+    info = _ebml(0x1549A966, _ebml(0x2AD7B1, (1000000).to_bytes(3, "big")) + _ebml(0x4461, ns.to_bytes(8, "big")))
+    seek = _ebml(0x114D9B74, b"\x00" * 20)  # an element before Info, skipped
+    path = tmp_path / "clip.mkv"
+    path.write_bytes(header + _ebml(0x18538067, seek + info + _ebml(0x1F43B675, b"\x00" * 64), unknown_size=True))
+    assert mkv_creation_time(path) == when
+    assert recording_time(path) == ("2024-05-01T08:30:15Z", "container")
+    # no DateUTC: the file time, said so
+    path.write_bytes(header + _ebml(0x18538067, _ebml(0x1549A966, b"") + _ebml(0x1F43B675, b"\x00" * 8)))
+    assert mkv_creation_time(path) is None and recording_time(path)[1] == "file mtime"
+    (tmp_path / "not.mkv").write_bytes(b"RIFF....")
+    assert mkv_creation_time(tmp_path / "not.mkv") is None

@@ -101,7 +101,14 @@ def test_report_of_a_real_run(short_scene, tmp_path):
     html = html_path.read_text()
     assert f"Q = {r.discharge.discharge_m3s:.3f} m³/s" in html
     n_png = sum(1 for v in r.files.values() if str(v).endswith(".png"))
-    assert n_png >= 3 and html.count("data:image/png;base64,") == n_png
+    assert n_png >= 5 and html.count("data:image/png;base64,") == n_png
+    assert "plot-profile_png" in html and "plot-gcp_png" in html  # profile with its band, GCPs with residuals
+    head = html[html.index("id='header'"):html.index("id='discharge'")]
+    assert "river.mp4" in head and "1280 × 720 px" in head and "30 frames/s" in head
+    profile = (tmp_path / "out" / "section_profile.csv").read_text().splitlines()
+    assert len(profile) == 1 + len(r.discharge.area_m2)
+    rows = [list(map(float, line.split(",")[:5])) for line in profile[1:]]
+    assert all(lo <= v <= hi for _, v, _, lo, hi in rows if v > 0.3)  # the mean lies in the pairs' band
     assert html.count("<tr>") >= len(r.discharge.area_m2)
 
 

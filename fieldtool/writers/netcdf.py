@@ -2,7 +2,7 @@
 
 PIV nodes lie on a regular grid in the *image*; on the water plane (an oblique view) they do not.
 Tools that read NetCDF (QGIS through GDAL, Panoply, xarray) expect a regular grid, so the valid
-node velocities are interpolated linearly (scipy ``griddata``) onto a regular grid in the site's
+node velocities are interpolated linearly (scipy ``LinearNDInterpolator``) onto a regular grid in the site's
 coordinates: cell size = the median distance from a valid node to its nearest valid neighbour
 (at most 1000 cells a side); a cell is empty (NaN) outside the nodes' convex hull or when its nearest
 valid node is farther than that node's distance to its own nearest neighbour (and than one cell).
@@ -43,7 +43,7 @@ def regular_grid(XY: np.ndarray, values: list[np.ndarray], max_cells: int = MAX_
     -------
     x (nx,), y (ny,) cell centres (m, ascending), cell size (m), list of (ny, nx) arrays (NaN = no data)
     """
-    from scipy.interpolate import griddata
+    from scipy.interpolate import LinearNDInterpolator
     from scipy.spatial import cKDTree
 
     tree = cKDTree(XY)
@@ -61,12 +61,12 @@ def regular_grid(XY: np.ndarray, values: list[np.ndarray], max_cells: int = MAX_
     # empty where the nearest node is farther than that node's own spacing (oblique views: far nodes are sparse)
     dist, idx = tree.query(np.c_[Xg.ravel(), Yg.ravel()])
     far = (dist > np.maximum(d[idx, 1] if len(XY) > 1 else dx, dx)).reshape(Xg.shape)
-    out = []
-    for v in values:
-        g = griddata(XY, v, (Xg, Yg), method="linear") if len(XY) >= 3 else np.full(Xg.shape, np.nan)
-        g[far] = np.nan
-        out.append(g.astype(np.float32))
-    return x, y, dx, out
+    if len(XY) >= 3:  # one triangulation for every variable
+        g = LinearNDInterpolator(XY, np.stack(values, axis=-1))(Xg, Yg)
+    else:
+        g = np.full(Xg.shape + (len(values),), np.nan)
+    g[far] = np.nan
+    return x, y, dx, [g[..., k].astype(np.float32) for k in range(len(values))]
 
 
 def _flat_attrs(inputs: dict) -> dict:
@@ -110,7 +110,6 @@ def build_dataset(result, project):
         t_comment = "recording date unknown: the values are seconds from the start of the clip, not a date"
 
     crs = crs_of(project)
-    xy_std = {"standard_name": "projection_x_coordinate"} if crs is not None else {}
     frame = (f"EPSG:{project.ortho.crs_epsg}" if crs is not None else
              f"the site's local frame of the GCPs (ortho.method = {project.ortho.method})")
     common = {"grid_mapping": "crs"} if crs is not None else {}
@@ -133,9 +132,11 @@ def build_dataset(result, project):
             "time": ("time", np.array([(t0 + t1) / 2]), {"standard_name": "time", "long_name": "time of the mean field",
                                                         "axis": "T", "bounds": "time_bnds", "units": t_units,
                                                         "calendar": "standard", "comment": t_comment}),
-            "x": ("x", x, {**xy_std, "long_name": f"x in {frame}", "units": "m", "axis": "X"}),
-            "y": ("y", y, {**({"standard_name": "projection_y_coordinate"} if crs is not None else {}),
-                           "long_name": f"y in {frame}", "units": "m", "axis": "Y"}),
+            # projection coordinates also in a local frame: there is no grid mapping then (CRS unknown)
+            "x": ("x", x, {"standard_name": "projection_x_coordinate", "long_name": f"x in {frame}", "units": "m",
+                           "axis": "X"}),
+            "y": ("y", y, {"standard_name": "projection_y_coordinate", "long_name": f"y in {frame}", "units": "m",
+                           "axis": "Y"}),
         },
     )
     if crs is not None:
