@@ -196,3 +196,24 @@ def test_the_recording_holds_the_blueprint_and_named_series(logged_run):
     assert series["/discharge/final_m3s"].startswith("final Q")
     assert "95 %" in series["/discharge/final_ci95_lo_m3s"] and "95 %" in series["/discharge/final_ci95_hi_m3s"]
     assert len(set(series.values())) == len(series)
+
+
+def test_interval_and_quality_lines_follow_the_result_keys():
+    """Q's interval and the grade are read from helper quality's keys, and absent until they exist."""
+    from types import SimpleNamespace
+
+    from fieldtool.viewer.rerun_log import _interval, _quality_line
+
+    summary = {}
+    res = SimpleNamespace(summary=lambda: summary, discharge=SimpleNamespace(discharge_m3s=10.0))
+    assert _interval(res) is None and _quality_line(res) is None
+    summary["uncertainty"] = {"ci95_m3s": [9.5, 10.6]}
+    assert _interval(res) == (9.5, 10.6)
+    summary["discharge_ci95_m3s"] = [9.0, 11.0]
+    summary["quality"] = {"grade": "doubtful", "reasons": [{"code": "x", "message": "few valid vectors"}]}
+    assert _interval(res) == (9.0, 11.0)
+    text, level = _quality_line(res)
+    assert level == "WARN" and "9.000 - 11.000" in text and "doubtful" in text and "few valid vectors" in text
+    summary["discharge_ci95_m3s"] = [None, 11.0]
+    summary.pop("uncertainty")
+    assert _interval(res) is None

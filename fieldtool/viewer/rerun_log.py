@@ -326,6 +326,9 @@ class RerunObserver(Observer):
         self.rec.log("log", rr.TextLog(
             f"discharge {d.discharge_m3s:.4f} m3/s, level {d.water_level_m:.3f} m, "
             f"mean velocity {d.mean_velocity_ms:.3f} m/s, alpha {d.alpha:.2f}", level="INFO"))
+        qual = _quality_line(res)
+        if qual is not None:
+            self.rec.log("log", rr.TextLog(qual[0], level=qual[1]))
         for w in res.warnings:
             self.rec.log("log", rr.TextLog(w, level="WARN"))
 
@@ -400,6 +403,22 @@ def _interval(res) -> tuple[float, float] | None:
     except (TypeError, ValueError, AttributeError):
         return None
     return (lo, hi) if np.isfinite(lo) and np.isfinite(hi) else None
+
+
+def _quality_line(res) -> tuple[str, str] | None:
+    """("Q = … ± …, grade: reasons", log level) from helper `quality`'s keys, or None until they exist."""
+    try:
+        q = res.summary().get("quality")
+    except (TypeError, ValueError, AttributeError):
+        return None
+    if not isinstance(q, dict) or not q.get("grade"):
+        return None
+    ci = _interval(res)
+    head = f"discharge {res.discharge.discharge_m3s:.3f} m3/s" + (
+        f", 95 % interval {ci[0]:.3f} - {ci[1]:.3f}" if ci is not None else "")
+    reasons = "; ".join(str(r.get("message", r.get("code", ""))) for r in q.get("reasons") or [] if isinstance(r, dict))
+    level = {"good": "INFO", "doubtful": "WARN"}.get(str(q["grade"]), "ERROR")
+    return f"{head}: quality {q['grade']}" + (f" ({reasons})" if reasons else ""), level
 
 
 def confined_rrd_path(rel: str, out_dir: str | Path, key: str = "rerun.path") -> Path:
