@@ -109,6 +109,7 @@ class RunResult:
     quality: object | None = None  # processing.quality.Quality
     sections: list = field(default_factory=list)  # several sections: the main one first (fieldtool.sections)
     robust: dict | None = None  # facts of the robust stages (processing/surface.py, robust.py, planning.py)
+    video: dict = field(default_factory=dict)  # the clip's metadata (records.video_meta.video_info)
 
     def summary(self) -> dict:
         d = self.discharge
@@ -147,6 +148,7 @@ class RunResult:
             "piv_reused": self.piv_reused,
             "stiv": self.stiv,
             "robust": self.robust,
+            "video": self.video,
             "warnings": self.warnings + d.warnings,
             "timings_s": self.timings_s,
             "files": self.files,
@@ -459,6 +461,9 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
 
     extra_sections = parse_sections(project)
     obs("stage", "inputs")
+    from .writers import check as check_outputs
+
+    check_outputs(project)  # a wrong ortho.crs_epsg stops the run before any work
     inputs = load_inputs(project)
     lap("inputs")
 
@@ -662,6 +667,9 @@ def write_outputs(result: RunResult, project: Project, inputs: Inputs, out: Path
     stage = Staging(out, in_place=project_file_inside)
     try:
         _write_outputs(result, inputs, stage.path)
+        from .writers import write_standard
+
+        write_standard(result, project, inputs, stage.path)  # mean_field.nc, rectified.tif (with a CRS), video metadata
         result.timings_s["outputs"] = round(time.perf_counter() - t0, 3)  # all but result.json itself
         _write_result_json(result, stage.path)
         stage.commit()

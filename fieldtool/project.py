@@ -92,6 +92,7 @@ class OrthoCfg:
     resolution_m: float | None = key(None, unit="m", gt=0.0, le=100.0)  # pixel size of the rectified image (m); None = automatic
     max_residual_m: float = key(0.10, unit="m", gt=0.0, le=1e4)  # largest GCP distance / world-point residual accepted (m); above it the run stops naming the suspect
     accept_residual: bool = key(False)  # go on despite a residual above max_residual_m (the grade becomes doubtful)
+    crs_epsg: int | None = key(None, ge=1024, le=999999)  # EPSG code of gcp_world_m (method world/pose), e.g. 28992; writes rectified.tif
 
 
 @dataclass
@@ -237,6 +238,8 @@ class Project:
 
     name: str = key("measurement", max_items=200)  # a name for this measurement (station, date)
     site: str = key("", max_items=200)  # site this measurement belongs to ("" = none); see `fieldtool site`
+    operator: str = key("", max_items=200)  # who made the measurement (printed on the report)
+    station: str = key("", max_items=200)  # gauging station name or code (printed on the report)
     step: str = key("cross_section", max_items=64)  # last TUI step visited
     video: VideoCfg = field(default_factory=VideoCfg)
     cross_section: CrossSectionCfg = field(default_factory=CrossSectionCfg)
