@@ -166,6 +166,13 @@ class RerunCfg:
 
 
 @dataclass
+class ViewerCfg:
+    """[viewer] the picking web page (`fieldtool view`, the TUI's viewer)."""
+
+    port: int = 0  # TCP port on 127.0.0.1; 0 = a free port, chosen at the first launch and remembered here
+
+
+@dataclass
 class Project:
     """One measurement. ``root`` is the folder relative paths are resolved from (not saved)."""
 
@@ -183,6 +190,7 @@ class Project:
     piv: PivCfg = field(default_factory=PivCfg)
     section: SectionCfg = field(default_factory=SectionCfg)
     rerun: RerunCfg = field(default_factory=RerunCfg)
+    viewer: ViewerCfg = field(default_factory=ViewerCfg)
     root: Path = field(default=Path("."), metadata={"saved": False})
 
     def resolve(self, rel: str) -> Path:
