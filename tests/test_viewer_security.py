@@ -145,6 +145,11 @@ def test_port_is_remembered_per_project_and_a_taken_port_is_refused(tmp_path):
         c.stop()
     with pytest.raises(ParameterError, match="1024"):
         start_viewer(path, port=80)
+    d = start_viewer(path, port=0)  # 0: a free port this time, the remembered one stays
+    try:
+        assert load_project(path).viewer.port == a.port
+    finally:
+        d.stop()
 
 
 def test_ssh_hint_is_the_exact_tunnel_line():
@@ -174,3 +179,31 @@ def test_zoom_keeps_the_point_under_the_cursor():
     assert np.linalg.norm(p2 - t2) == pytest.approx(0.5 * np.linalg.norm(pos - look))
     # another point moved away from the cursor's: it is a zoom, not a no-op
     assert np.linalg.norm(pixel_at(p2, t2, (0.0, 0.0)) - pixel_at(pos, look, (0.0, 0.0))) > 10
+
+
+def test_fieldtool_view_prints_the_tunnel_line_and_the_keyed_url(tmp_path):
+    import os
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+
+    path = _tiny_project(tmp_path)
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]))
+    proc = subprocess.Popen([sys.executable, "-m", "fieldtool.cli", "view", str(path), "--port", "0"],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+    try:
+        lines, t0 = [], time.time()
+        while time.time() - t0 < 60 and not any("then open" in ln for ln in lines):
+            line = proc.stdout.readline()
+            if not line:
+                break
+            lines.append(line)
+        text = "".join(lines)
+        port = int(text.split("picking viewer at http://127.0.0.1:")[1].split("/")[0])
+        assert f"ssh -L {port}:127.0.0.1:{port} " in text
+        key = text.split(f"http://127.0.0.1:{port}/")[1].split("/")[0]
+        assert len(key) >= 20 and f"then open http://127.0.0.1:{port}/{key}/" in text
+    finally:
+        proc.terminate()
+        proc.wait(timeout=20)

@@ -150,7 +150,7 @@ def start_viewer(project_path: str | Path, host: str = "127.0.0.1", port: int | 
     host : address to bind. Anything but the loopback exposes the page to the network (warns).
     port : TCP port. None: the project's ``viewer.port`` (remembered in the project after the
         first launch; a busy remembered port falls back to the next free one, with a warning);
-        0: a free port, not remembered; N: exactly N (ParameterError when it is in use).
+        0: a free port, not remembered; N: exactly N, remembered (ParameterError when in use).
     on_pick : called as ``on_pick(field, value)`` after each saved pick, from a server thread;
         ``field`` is the dotted project key (``"ortho.gcp_px"``).
     """
@@ -189,7 +189,7 @@ def start_viewer(project_path: str | Path, host: str = "127.0.0.1", port: int | 
     try:
         viewer = _Viewer(server, path, host, host_warning, on_pick, guard)
         routes.viewer = viewer
-        if port is None and remembered == 0:
+        if got != remembered and (port is None and remembered == 0 or port is not None and port != 0):
             save_field(path, "viewer.port", got)  # remembered: the next launch (and its tunnel) uses it again
             notes.append(f"port {got} is remembered in viewer.port of {path.name}")
     except BaseException:
@@ -497,8 +497,9 @@ class _Viewer:
                     px = np.array([snapped.x, snapped.y])
             raw = self.display.from_display(px)[0] if self.display.kind in FRAME_LIKE else px
             state = self.states[self.mode]
+            before = state.value()
             msg = state.click(float(raw[0]), float(raw[1]), exact=snapped is not None)
-            if snapped is not None:
+            if snapped is not None and state.value() != before:
                 msg += (f" - snapped to the target centre ({raw[0]:.2f}, {raw[1]:.2f}) px, "
                         f"{snapped.moved_px:.1f} px from the click (Undo if wrong)")
         return self._commit(spec, state, msg)
