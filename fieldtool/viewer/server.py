@@ -579,13 +579,35 @@ class _Viewer:
             p = self.display.to_display(p)
         return pixel_to_scene(p, self.plane, lift=lift + self.plane.render_width * 1e-3)
 
-    def _lines(self, name: str, pts_raw, color, closed: bool = False, width: float = 2.5) -> None:
-        p = self._to_scene(pts_raw)
+    def _ring_px(self, active: bool) -> float:
+        """Radius of the rings around picked points, display pixels."""
+        h, w = self.display.rgb.shape[:2]
+        return max(5.0, 0.009 * max(w, h)) * (1.3 if active else 1.0)
+
+    def _lines(self, name: str, pts_raw, color, closed: bool = False, width: float = 2.5,
+               gap_px: float = 0.0) -> None:
+        """Straight segments between points; ``gap_px`` stops each segment short of its ends (the
+        rings), so the lines never cross the targets inside the rings."""
+        p = np.asarray(pts_raw, float).reshape(-1, 2)
         if len(p) < 2:
             return
         if closed:
             p = np.vstack([p, p[:1]])
-        seg = np.stack([p[:-1], p[1:]], axis=1)
+        if gap_px <= 0:
+            q = self._to_scene(p)
+            seg = np.stack([q[:-1], q[1:]], axis=1)
+        else:
+            d = self.display.to_display(p) if self.display.kind in FRAME_LIKE else p
+            a, b = d[:-1], d[1:]
+            n = np.linalg.norm(b - a, axis=1)
+            keep = n > 2.2 * gap_px
+            if not np.any(keep):
+                return
+            u = (b - a)[keep] / n[keep, None]
+            a, b = a[keep] + gap_px * u, b[keep] - gap_px * u
+            lift = self.plane.render_width * 1e-3
+            seg = np.stack([pixel_to_scene(a, self.plane, lift=lift), pixel_to_scene(b, self.plane, lift=lift)],
+                           axis=1)
         self._overlay.append(self.server.scene.add_line_segments(
             f"/overlay/{name}_lines", seg, color, thickness=width, thickness_units="screen"))
 
@@ -596,8 +618,7 @@ class _Viewer:
             return
         raw = np.array([p for _, p in labels], float)
         disp = self.display.to_display(raw) if self.display.kind in FRAME_LIKE else raw
-        h, w = self.display.rgb.shape[:2]
-        r = max(5.0, 0.009 * max(w, h)) * (1.3 if active else 1.0)
+        r = self._ring_px(active)
         th = np.linspace(0, 2 * np.pi, 25)
         circle = np.c_[np.cos(th), np.sin(th)] * r
         rings = disp[:, None, :] + circle[None]  # (N, 25, 2) display px
@@ -619,9 +640,9 @@ class _Viewer:
         color, active = COLORS[key], key == self.mode
         width = 3.5 if active else 2.0
         if key == "gcp":
-            self._lines(key, st.value(), color, closed=st.complete, width=width)
+            self._lines(key, st.value(), color, closed=st.complete, width=width, gap_px=self._ring_px(active))
         elif key in ("section", "edges", "edges1", "edges2"):
-            self._lines(key, st.value(), color, width=width)
+            self._lines(key, st.value(), color, width=width, gap_px=self._ring_px(active))
         elif key == "roi":
             if st.complete:
                 x0, y0, x1, y1 = st.value()
