@@ -36,9 +36,9 @@ def _pt(x: float, y: float, exact: bool = False) -> list[float]:
     return [round(float(x), 2), round(float(y), 2)]
 
 
-def _keep(p) -> list[float]:
-    """A point loaded from the project, kept to the last digit: loading never rewrites a pick."""
-    return [float(p[0]), float(p[1])]
+def _keep(x: float, y: float) -> list[float]:
+    """A point loaded from the project: kept exactly (only a click changes a pick)."""
+    return [float(x), float(y)]
 
 
 class PickState:
@@ -97,7 +97,7 @@ class PointsPick(PickState):
         return [list(p) for p in self.points]
 
     def load(self, value):
-        self.points = [_keep(p) for p in (value or []) if len(p) >= 2]
+        self.points = [_keep(*p[:2]) for p in (value or []) if len(p) >= 2]  # all kept (pose: 6+ GCPs)
 
     def name(self, i: int) -> str:
         """Label of point ``i``; points beyond the named ones (loaded from the file) get #n."""
@@ -149,7 +149,7 @@ class StationPick(PointsPick):
         self._loaded = None if value is None else float(value)
         if value is not None and self.axes is not None:
             mid = 0.5 * (self.axes.y_min + self.axes.y_max)
-            self.points = [_keep(self.axes.data_to_px([[value, mid]])[0])]
+            self.points = [_keep(*self.axes.data_to_px([[value, mid]])[0])]
 
 
 def _rect(a, b) -> list[float]:
@@ -182,7 +182,7 @@ class RectPick(PickState):
         return _rect(*self.corners) if self.corners else []
 
     def load(self, value):
-        self.corners = [_keep(value[:2]), _keep(value[2:])] if value and len(value) == 4 else []
+        self.corners = [_keep(value[0], value[1]), _keep(value[2], value[3])] if value and len(value) == 4 else []
 
     def labels(self):
         return [(f"C{i + 1}", p) for i, p in enumerate(self.corners)]
@@ -220,7 +220,7 @@ class RectListPick(PickState):
         return [_rect(a, b) for a, b in self.rects]
 
     def load(self, value):
-        self.rects = [[_keep(r[:2]), _keep(r[2:])] for r in (value or []) if len(r) == 4]
+        self.rects = [[_keep(r[0], r[1]), _keep(r[2], r[3])] for r in (value or []) if len(r) == 4]
         self.pending = None
 
     def labels(self):
@@ -273,7 +273,7 @@ class PolygonListPick(PickState):
         return [[list(p) for p in poly] for poly in self.closed]
 
     def load(self, value):
-        self.closed = [[_keep(p) for p in poly] for poly in (value or []) if len(poly) >= 3]
+        self.closed = [[_keep(*p[:2]) for p in poly] for poly in (value or []) if len(poly) >= 3]
         self.open = []
 
     def labels(self):
