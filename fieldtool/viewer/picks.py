@@ -332,6 +332,10 @@ MODES: dict[str, ModeSpec] = {m.key: m for m in (
              lambda axes=None: PointsPick(("E1", "E2")),
              "Click the left then the right water edge on the frame (image method).",
              legend="E1: left water edge, E2: right water edge"),
+    ModeSpec("search_line", "Water-line search line", "water_level.search_line_px", "frame",
+             lambda axes=None: PointsPick(("S1", "S2")),
+             "Water line found in the clip: click a point on one bank, then one on the other bank, across the river.",
+             legend="S1, S2: ends of the line searched for the water edges, one on each bank"),
     ModeSpec("edges1", "Water edges, image 1", "water_level.edges1_px", "image1",
              lambda axes=None: PointsPick(("E1", "E2")),
              "Angle-and-height method: click the two water edges on the first (lower) image.",
@@ -380,15 +384,12 @@ def next_mode(states: dict[str, PickState]) -> str | None:
 
 
 def save_field(project_path, path: str, value: Any) -> Any:
-    """Set one dotted field in the project file: read it fresh (keeping what other programs wrote
-    meanwhile), set the field, save atomically. Returns the project as saved. The one place the
-    viewer writes the project file."""
-    from ..project import load_project, save_project
+    """Set one dotted field in the project file, merged with what other programs saved meanwhile
+    (``project.apply_changes``: this one key, comments kept, atomic). Returns the project as
+    saved. The one place the viewer writes the project file."""
+    from ..project import apply_changes
 
-    project = load_project(project_path)
-    set_field(project, path, value)
-    save_project(project, project_path)
-    return project
+    return apply_changes(project_path, {path: value})
 
 
 def get_field(project: Any, path: str) -> Any:
