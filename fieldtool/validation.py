@@ -145,6 +145,15 @@ def _path_text_problem(text: str) -> str | None:
     return None
 
 
+def out_path_problem(text: str) -> str | None:
+    """A file fieldtool writes must stay inside the output folder: a relative path without '..'
+    (``rerun.path = "/some/file"`` or ``"../../x.rrd"`` would write outside it)."""
+    if os.path.isabs(text) or text.startswith("~") or ".." in Path(text).parts:
+        return (f"{text[:60]!r}: files are written inside the output folder; give a name such as 'run.rrd' "
+                "(no absolute path, no '..')")
+    return None
+
+
 def _fmt(x: Any) -> str:
     if isinstance(x, float):
         return repr(x) if not math.isfinite(x) else f"{x:g}"
@@ -420,6 +429,8 @@ class _Validator:
             return
         if spec.path is not None:
             msg = _path_text_problem(v)
+            if msg is None and spec.path == "out":
+                msg = out_path_problem(v)
             if msg:
                 self.err(k, msg)
             return

@@ -30,6 +30,13 @@ PLOTS = (
 )
 
 
+def _inside(folder: Path, name: str) -> bool:
+    """Whether ``name`` (from result.json) is a regular file inside the output folder: a report
+    embeds only the run's own files, never ``../../secret_plot.png`` or an absolute path."""
+    p = (folder / name).resolve()
+    return p.is_relative_to(folder.resolve()) and p.is_file()
+
+
 def load_result(result_dir: Path | str) -> tuple[dict, dict[str, bytes], list[dict]]:
     """(summary, {files key: PNG bytes}, subsection rows) from a run's output folder."""
     d = Path(result_dir)
@@ -46,11 +53,12 @@ def load_result(result_dir: Path | str) -> tuple[dict, dict[str, bytes], list[di
     files = summary.get("files") or {}
     images = {}
     for key, name in files.items():
-        if isinstance(name, str) and name.lower().endswith(".png") and (d / name).is_file():
+        if isinstance(name, str) and name.lower().endswith(".png") and _inside(d, name):
             images[key] = (d / name).read_bytes()
     rows: list[dict] = []
-    sub = d / str(files.get("subsections", "subsections.csv"))
-    if sub.is_file():
+    sub_name = str(files.get("subsections", "subsections.csv"))
+    sub = d / sub_name
+    if _inside(d, sub_name):
         with sub.open(newline="", encoding="utf-8") as fh:
             rows = list(csv.DictReader(fh))
     return summary, images, rows

@@ -298,10 +298,20 @@ def observer_from_args(project, args, out_dir: str | Path) -> RerunObserver | No
     if mode == "off":
         return None
     if mode == "save":
-        rel = getattr(args, "rerun_path", None) or cfg.path or "run.rrd"
+        flag = getattr(args, "rerun_path", None)
+        rel = flag or cfg.path or "run.rrd"
+        if not flag:  # from the project file: confined to the output folder
+            from ..validation import out_path_problem
+
+            problem = out_path_problem(rel)
+            if problem:
+                raise ParameterError(f"rerun.path: {problem}")
         p = Path(rel).expanduser()
         if not p.is_absolute():
-            p = (Path.cwd() / p) if getattr(args, "rerun_path", None) else Path(out_dir) / p
+            p = (Path.cwd() / p) if flag else Path(out_dir) / p
+        if p.exists() and not p.is_file():
+            raise ParameterError(f"{'--rerun-path' if flag else 'rerun.path'}: {p} is not a regular file; give the "
+                                 ".rrd file to write")
         return RerunObserver("save", path=p)
     if mode == "connect":
         from_flag = getattr(args, "rerun_url", None)
