@@ -64,6 +64,7 @@ class ViewerHandle:
         shown = f"[{shown}]" if ":" in shown else shown
         self.url: str = f"http://{shown}:{self.port}/{self.token}/"
         self.warning: str | None = viewer.host_warning
+        self.notes: list[str] = []  # what the launch decided about the port, for the CLI/TUI to show
 
     @property
     def ssh_hint(self) -> str:
