@@ -151,6 +151,9 @@ class PivCfg:
     median_threshold: float = key(2.0, gt=0.0, le=100.0)  # normalised local median test threshold
     std_threshold: float = key(4.0, gt=0.0, le=100.0)  # global standard-deviation test (n sigma)
     min_valid_fraction: float = key(0.3, ge=0.0, le=1.0)  # mean/median: a node valid in fewer pairs than this is dropped
+    remove_stationary: bool = key(True)  # standardise each pixel over ~1 s before PIV: glints and patterns fixed in the image go
+    frame_gap: int | None = key(None, ge=1, le=100)  # frames between the two images of a pair; None = chosen from a first look at the clip
+    reject_upstream: bool = key(True)  # subsections going upstream while the section goes downstream: rejected, filled, reported
 
 
 @dataclass
@@ -189,6 +192,7 @@ class QualityCfg:
     min_motion_px: float = key(0.1, unit="px", ge=0.0, le=1e3)  # median displacement along the section (px/frame) below which nothing moved: unusable
     max_surface_speed_ms: float = key(15.0, unit="m/s", gt=0.0, le=1e3)  # surface speed along the section (m/s) above which Q is unusable
     relative_u95_doubtful: float = key(0.2, ge=0.0, le=100.0)  # half-width of the 95 % interval / Q above which Q is doubtful
+    sections_cv_doubtful: float = key(0.1, ge=0.0, le=100.0)  # several sections: coefficient of variation of their discharges above which Q is doubtful
 
 
 @dataclass
@@ -238,6 +242,9 @@ class Project:
     filters: list[dict[str, Any]] = key(factory=list, max_items=32)  # ordered stack: [{name = "clahe", ...}]
     piv: PivCfg = field(default_factory=PivCfg)
     section: SectionCfg = field(default_factory=SectionCfg)
+    # more sections of interest on the same field: [{name = "upstream", points_px = [[x, y], [x, y]],
+    # cross_section = "upstream.csv"}, ...]; see fieldtool/sections.py
+    sections: list[dict[str, Any]] = key(factory=list, max_items=20)
     rerun: RerunCfg = field(default_factory=RerunCfg)
     quality: QualityCfg = field(default_factory=QualityCfg)
     uncertainty: UncertaintyCfg = field(default_factory=UncertaintyCfg)

@@ -360,7 +360,7 @@ class _Validator:
         for name, fn in (("video", self.video), ("cross_section", self.cross_section), ("filters", self.filters),
                          ("stabilize", self.stabilize), ("ortho", self.ortho), ("water_level", self.water_level),
                          ("roi", self.roi), ("piv", self.piv), ("section", self.section),
-                         ("calibration", self.calibration)):
+                         ("calibration", self.calibration), ("sections", self.sections)):
             self.guarded(name, fn)
         if self.files:
             self.guarded("paths", self.unused_paths)
@@ -551,6 +551,21 @@ class _Validator:
         c = self.p.calibration
         if c.path:
             self.file("calibration.path", c.path)
+
+    def sections(self) -> None:
+        """Several sections: each table's keys, its two points, and its cross-section file."""
+        if not self.ok("sections") or not isinstance(self.p.sections, list):
+            return
+        from .sections import parse
+
+        try:
+            specs = parse(self.p)
+        except FieldToolError as e:
+            self.from_error(e, "sections")
+            return
+        for sp in specs:
+            if sp.cross_section:
+                self.file(f"sections[{sp.index}].cross_section", sp.cross_section)
 
     def filters(self) -> None:
         fl = self.p.filters
