@@ -147,6 +147,8 @@ def test_click_near_a_demo_target_snaps_to_its_centre(short_scene, tmp_path, chr
                     sx, sy = _screen_of(page, handle, (x + 2.5, y - 2.0))  # a click 3 px beside the centre
                     n = len(picked)
                     page.mouse.click(float(sx), float(sy))
+                    if not _wait(lambda: len(picked) > n, 5):  # the page drops a click now and then: again
+                        page.mouse.click(float(sx), float(sy))
                     assert _wait(lambda: len(picked) > n), handle.status
                     assert "snapped to the target centre" in handle.status
                 assert _wait(lambda: "snapped" in _body(page))  # reported on the page
@@ -176,6 +178,7 @@ def _locate_markers_settled(page, handle, probe=(640.0, 360.0), timeout_s=40.0):
                 if _wait(lambda: handle.status != before and "clicked" in handle.status, 3):
                     m = re.search(r"clicked \(([-\d.]+), ([-\d.]+)\)", handle.status)
                     if m and np.hypot(float(m[1]) - probe[0], float(m[2]) - probe[1]) < 1.5:
+                        time.sleep(1.0)  # the next click is not taken for the second half of a double click
                         return
                 handle._v.set_status("")
             time.sleep(0.5)
