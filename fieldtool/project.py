@@ -233,6 +233,13 @@ class RerunCfg:
 
 
 @dataclass
+class ViewerCfg:
+    """[viewer] the picking web page (`fieldtool view`, the TUI's viewer)."""
+
+    port: int = key(0, ge=0, le=65535)  # TCP port on 127.0.0.1; 0 = chosen free at the first launch, then remembered
+
+
+@dataclass
 class Project:
     """One measurement. ``root`` is the folder relative paths are resolved from (not saved)."""
 
@@ -258,6 +265,7 @@ class Project:
     rerun: RerunCfg = field(default_factory=RerunCfg)
     quality: QualityCfg = field(default_factory=QualityCfg)
     uncertainty: UncertaintyCfg = field(default_factory=UncertaintyCfg)
+    viewer: ViewerCfg = field(default_factory=ViewerCfg)
     root: Path = field(default=Path("."), metadata={"saved": False})
 
     def resolve(self, rel: str) -> Path:
