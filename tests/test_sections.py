@@ -66,3 +66,16 @@ def test_sections_crossing_an_island(tmp_path):
     assert res.discharge.wetted_width_m == pytest.approx(10.8, abs=0.05)
     for e in res.sections:
         assert abs(e["discharge_m3s"] / truth.discharge_m3s - 1) < 0.03, e
+
+
+def test_report_lists_the_sections():
+    from fieldtool.records.report import render_html
+
+    summary = {"discharge_m3s": 10.0, "files": {}, "sections": [
+        {"name": "main", "discharge_m3s": 10.0, "discharge_ci95_m3s": [9.5, 10.5], "grade": "good"},
+        {"name": "upstream", "discharge_m3s": 10.4, "discharge_ci95_m3s": None, "grade": "doubtful"},
+        {"name": "far", "error": "section: crosses a bank"}],
+        "sections_summary": {"n": 2, "mean_m3s": 10.2, "std_m3s": 0.283, "cv": 0.0277}}
+    html = render_html(summary, {}, [])
+    assert "<h2>Sections</h2>" in html and "upstream" in html and "crosses a bank" in html
+    assert "CV 2.8" in html and "9.5000 – 10.5000" in html
