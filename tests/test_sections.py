@@ -79,3 +79,12 @@ def test_report_lists_the_sections():
     html = render_html(summary, {}, [])
     assert "<h2>Sections</h2>" in html and "upstream" in html and "crosses a bank" in html
     assert "CV 2.8" in html and "9.5000 – 10.5000" in html
+
+
+def test_tui_results_line_for_sections():
+    from fieldtool.tui.screens.results import discharge_lines
+
+    lines = discharge_lines({"discharge_m3s": 10.0, "sections": [
+        {"name": "main", "discharge_m3s": 10.0}, {"name": "up", "discharge_m3s": 10.4}],
+        "sections_summary": {"n": 2, "mean_m3s": 10.2, "std_m3s": 0.283, "cv": 0.0277}})
+    assert any("sections" in ln and "CV 2.8 %" in ln and "up 10.400" in ln for ln in lines)
