@@ -312,6 +312,10 @@ def check_interval(ev: Evidence, th: Thresholds) -> list[Reason]:
                    ev.relative_u95, th.relative_u95_doubtful)]
 
 
+#: reasons that doubt the measured velocities themselves (the interval then allows an under-read)
+VELOCITY_DOUBTS = frozenset({"stalled_subsections", "velocity_deficit", "valid_fraction", "pair_spread",
+                             "low_correlation", "displacement_limit", "no_motion", "identical_frames"})
+
 CHECKS: list[Check] = [check_motion, check_speed, check_measured_width, check_valid_fraction, check_stalled, check_deficit,
                        check_displacement, check_peak, check_pair_spread, check_angle, check_interval]
 

@@ -104,6 +104,7 @@ class McModel:
     v_pairs: np.ndarray | None = None
     suspect: np.ndarray | None = None  # (n_sub,) bool: measured velocities in doubt (e.g. stalled by glints)
     suspect_upper_ms: np.ndarray | None = None  # (n_sub,) what a suspect's velocity may reach (m/s); None = neighbours'
+    underread_max: float = 0.0  # the verdict doubts the velocities: they may be under-read by up to this fraction
 
 
 @dataclass
@@ -217,6 +218,8 @@ class _Draw:
                 vs = vs + np.where(np.isfinite(dev), dev, 0.0)
             if "velocity_sampling" in active and sig.piv_rel > 0:
                 vs = vs * (1.0 + sig.piv_rel * rng.standard_normal())
+            if "velocity_sampling" in active and m.underread_max > 0:
+                vs = vs / (1.0 - rng.uniform(0.0, min(m.underread_max, 0.95)))
         if not np.any(np.isfinite(vs)):
             return float("nan")
         suspect = m.suspect if m.suspect is not None and "filled_subsections" in active else None
@@ -272,7 +275,7 @@ def _subsection_samples(geom, x, y, U, V) -> np.ndarray:
 def _active_sources(sig: McSigmas, model: McModel, drawer: _Draw) -> list[str]:
     on = {"water_level": sig.level_m > 0, "gcp_pixels": sig.gcp_px > 0 and drawer.n_px > 0,
           "gcp_distances": sig.gcp_ref_m > 0 and drawer.n_ref > 0, "velocity_index": sig.alpha > 0,
-          "velocity_sampling": bool(sig.sampling) or sig.piv_rel > 0,
+          "velocity_sampling": bool(sig.sampling) or sig.piv_rel > 0 or model.underread_max > 0,
           "filled_subsections": sig.filled_rel > 0 or (model.suspect is not None and bool(np.any(model.suspect))),
           "cross_section": sig.bed_m > 0}
     return [s for s in SOURCES if on[s]]
