@@ -182,7 +182,7 @@ class QualityCfg:
     displacement_unusable: float = key(0.45, gt=0.0, le=1.0)  # ... unusable above
     peak_min: float = key(0.15, ge=0.0, le=1.0)  # median correlation peak (coefficient) along the section: doubtful below
     pair_spread_max: float = key(0.35, ge=0.0, le=100.0)  # half the 16-84 % spread of the per-pair discharges / Q: doubtful above
-    angle_doubtful_deg: float = key(30.0, unit="deg", ge=0.0, le=180.0)  # mean flow direction off the section normal (deg): doubtful above
+    angle_doubtful_deg: float = key(20.0, unit="deg", ge=0.0, le=180.0)  # mean flow direction off the section normal (deg): doubtful above
     angle_unusable_deg: float = key(60.0, unit="deg", ge=0.0, le=180.0)  # ... unusable above
     identical_frames_doubtful: float = key(0.05, ge=0.0, le=1.0)  # fraction of identical consecutive frames: doubtful above
     identical_frames_unusable: float = key(0.5, ge=0.0, le=1.0)  # ... unusable above

@@ -63,7 +63,7 @@ class Thresholds:
     displacement_unusable: float = 0.45
     peak_min: float = 0.15  # median correlation peak (coefficient) along the section
     pair_spread_max: float = 0.35  # robust spread of the per-pair discharges / |Q|
-    angle_doubtful_deg: float = 30.0  # mean flow direction off the section normal
+    angle_doubtful_deg: float = 20.0  # mean flow direction off the section normal
     angle_unusable_deg: float = 60.0
     identical_frames_doubtful: float = 0.05  # fraction of consecutive frames that are identical
     identical_frames_unusable: float = 0.5
