@@ -180,8 +180,8 @@ def detect_water_edges(frames, line_px, *, half_width_px: float = 4.0, max_frame
 
 def refine_on_mean(mean: np.ndarray, edges: np.ndarray, sigma: np.ndarray, *, reach: float = 15.0,
                    min_strength: float = 4.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Move each activity edge outwards to the sharpest step of the time-averaged image, when that step
-    stands out (``min_strength`` times the line's median gradient).
+    """Move each activity edge outwards to the strongest step of the time-averaged image, when that step
+    stands out (``min_strength`` times the line's median step strength).
 
     Still water at a bank (the flow slows to nothing at the edge) is not active, so the activity edge
     lies inside the water, never outside it; the banks' look (wet soil, vegetation, shadow) usually
@@ -189,8 +189,20 @@ def refine_on_mean(mean: np.ndarray, edges: np.ndarray, sigma: np.ndarray, *, re
     samples inside the activity edge to ``max(reach, 4 sigma)`` samples outside. Returns edges, 1-sigma
     (samples) and which edges were moved.
     """
-    g = np.abs(np.gradient(gaussian_filter1d(np.asarray(mean, float), 1.0, mode="nearest")))
-    typical = float(np.median(g)) + 1e-9
+    m = np.asarray(mean, float)
+    # step strength at each sample: difference of the means of the w samples on either side over their
+    # pooled spread (a t-like statistic), so one textured speck on a bank does not count as the edge
+    w = 6
+    c = np.concatenate([[0.0], np.cumsum(m)])
+    c2 = np.concatenate([[0.0], np.cumsum(m * m)])
+    g = np.zeros(len(m))
+    for j in range(w, len(m) - w):
+        l_mu = (c[j] - c[j - w]) / w
+        r_mu = (c[j + w] - c[j]) / w
+        l_var = max((c2[j] - c2[j - w]) / w - l_mu**2, 0.0)
+        r_var = max((c2[j + w] - c2[j]) / w - r_mu**2, 0.0)
+        g[j] = abs(r_mu - l_mu) / np.sqrt(0.5 * (l_var + r_var) + 1.0)
+    typical = float(np.median(g[w:-w])) + 1e-9
     out_e, out_s, moved = np.array(edges, float), np.array(sigma, float), np.zeros(2, bool)
     for k, e in enumerate(edges):
         far = max(reach, 4.0 * sigma[k])
