@@ -140,6 +140,7 @@ class _Draw:
 
     def __init__(self, m: McModel, sig: McSigmas):
         self.m, self.sig = m, sig
+        self.last_underread = 0.0  # the under-read fraction of the last draw (Q was divided by 1 - it)
         self.theta0 = np.r_[np.asarray(m.gcp_px, float).ravel(), np.asarray(m.gcp_ref, float).ravel(), m.level_m]
         self.n_px = np.asarray(m.gcp_px).size
         self.n_ref = np.asarray(m.gcp_ref).size
@@ -218,8 +219,10 @@ class _Draw:
                 vs = vs + np.where(np.isfinite(dev), dev, 0.0)
             if "velocity_sampling" in active and sig.piv_rel > 0:
                 vs = vs * (1.0 + sig.piv_rel * rng.standard_normal())
+            self.last_underread = 0.0
             if "velocity_sampling" in active and m.underread_max > 0:
-                vs = vs / (1.0 - rng.uniform(0.0, min(m.underread_max, 0.95)))
+                self.last_underread = float(rng.uniform(0.0, min(m.underread_max, 0.95)))
+                vs = vs / (1.0 - self.last_underread)  # Q scales by the same factor (it is linear in vs)
         if not np.any(np.isfinite(vs)):
             return float("nan")
         suspect = m.suspect if m.suspect is not None and "filled_subsections" in active else None
@@ -314,22 +317,29 @@ def monte_carlo_discharge(model: McModel, sigmas: McSigmas, discharge_m3s: float
     active = _active_sources(sigmas, model, drawer)
     failed = 0
 
+    base: list[float] = []
+
     def draws(act: frozenset[str], n: int) -> np.ndarray:
         nonlocal failed
         out = np.empty(n)
         for i in range(n):
             try:
                 out[i] = drawer(act, rng)
+                base.append(out[i] * (1.0 - drawer.last_underread))
             except FieldToolError:  # a draw whose level leaves the section or whose geometry degenerates
                 out[i] = np.nan
                 failed += 1
         return out[np.isfinite(out)]
 
     q_all = draws(frozenset(active), n_draws)
+    q_base = np.asarray(base, float)
+    q_base = q_base[np.isfinite(q_base)]
     if len(q_all) < 10:
         lo = hi = float("nan")
     else:
-        lo, hi = (float(v) for v in np.quantile(q_all, [0.025, 0.975]))
+        # an under-read only raises Q: the lower bound comes from the draws without it
+        lo = float(np.quantile(q_base, 0.025))
+        hi = float(np.quantile(q_all, 0.975))
         lo, hi = min(lo, discharge_m3s), max(hi, discharge_m3s)
     u = {}
     for src in SOURCES:
