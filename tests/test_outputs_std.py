@@ -64,11 +64,12 @@ def test_netcdf_is_cf_with_units_names_bounds_and_the_project(world_run):
         p = result.piv
         ok = p.valid & np.isfinite(result.world_u)
         XY = result.mapping.image_to_world(np.c_[p.x[ok], p.y[ok]])
-        got = ds.surface_velocity_x.isel(time=0).interp(x=("n", XY[:, 0]), y=("n", XY[:, 1])).values
+        got = ds.surface_velocity_x.isel(time=0).sel(x=xr.DataArray(XY[:, 0], dims="n"), y=xr.DataArray(XY[:, 1], dims="n"),
+                                                      method="nearest").values
         fin = np.isfinite(got)
-        assert fin.mean() > 0.8
+        assert fin.mean() > 0.9  # every node has data in its own cell (the edges of the hull aside)
         err = np.abs(got[fin] - result.world_u[ok][fin])
-        assert np.median(err) < 0.02 * np.abs(result.world_u[ok]).max()
+        assert np.median(err) < 0.03 * np.abs(result.world_u[ok]).max()
 
 
 def test_geotiff_has_the_crs_and_a_transform_that_puts_pixels_where_the_frame_shows_them(world_run, short_scene):
