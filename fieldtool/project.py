@@ -145,6 +145,7 @@ class PivCfg:
     std_threshold: float = 4.0  # global standard-deviation test (n sigma)
     min_valid_fraction: float = 0.3  # mean/median: a node valid in fewer pairs than this is dropped
     remove_stationary: bool = True  # standardise each pixel over ~1 s before PIV: glints and patterns fixed in the image go
+    remove_zero_peak: bool = True  # ensemble: a peak at zero displacement where the node moves is not the flow (glints)
     frame_gap: int | None = None  # frames between the two images of a pair; None = chosen from a first look at the clip
     reject_upstream: bool = True  # subsections going upstream while the section goes downstream: rejected, filled, reported
 

@@ -156,3 +156,25 @@ def test_run_reports_robust_facts(short_scene, tmp_path):
     proj.piv.remove_stationary = False
     res = run_project(proj, None)
     assert res.robust["plan"]["chosen"] == "user" and "stationary_removed" not in res.robust
+
+
+def test_zero_peak_removal_leaves_moving_texture_alone_and_blanks_planes():
+    from fieldtool.processing import piv_peaks
+
+    rng = np.random.default_rng(7)
+    frames = _stream(20, 4.0, rng, h=128, w=256)
+    off = piv.analyze(frames, replace_params(passes=2))
+    on = piv.analyze(frames, replace_params(passes=2, remove_zero_peak=True))
+    inner = np.zeros_like(on.valid)
+    inner[1:-1, 1:-1] = True
+    assert on.zero_peak_removed[inner].mean() > 0.9 and off.zero_peak_removed is None
+    np.testing.assert_allclose(on.u[inner] / FPS, off.u[inner] / FPS, atol=0.02)  # the tracers' peak untouched
+    # planes: the block around absolute zero (minus the predictor) is blanked where the node moves only
+    corr = rng.random((2, 32, 32)).astype(np.float32)
+    before = corr.copy()
+    sel = piv_peaks.blank_zero(corr, 0, np.array([0.5, 5.0]), np.array([0.0, 0.0]))
+    assert sel.tolist() == [False, True] and np.array_equal(corr[0], before[0])
+    block = corr[1][np.ix_([31, 0, 1], [26, 27, 28])]
+    assert np.all(block == np.median(before[1]))
+    corr[1][np.ix_([31, 0, 1], [26, 27, 28])] = before[1][np.ix_([31, 0, 1], [26, 27, 28])]
+    assert np.array_equal(corr[1], before[1])  # nothing else changed
