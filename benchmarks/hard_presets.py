@@ -23,7 +23,13 @@ from fieldtool.project import load_project
 from fieldtool.synthetic import presets, render_scene
 
 #: one robust stage off at a time: label -> changes to the project's [piv] table
-ABLATIONS: dict[str, dict] = {}
+ABLATIONS: dict[str, dict] = {
+    "no standardisation": {"remove_stationary": False},
+    "no zero-peak removal": {"remove_zero_peak": False},
+    "frame gap 1": {"frame_gap": 1},
+    "no upstream rejection": {"reject_upstream": False},
+    "all off (before)": {"remove_stationary": False, "remove_zero_peak": False, "frame_gap": 1, "reject_upstream": False},
+}
 
 
 def true_subsection_velocity(spec, dres) -> np.ndarray:
