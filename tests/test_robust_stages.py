@@ -113,7 +113,8 @@ def replace_params(**kw):
 
 
 def test_choose_gap_and_search():
-    assert planning.choose(1.35, 2.35, 64) == (3, None)  # slow nodes to >= 3 px, fast ones <= 16 px
+    assert planning.choose(1.35, 2.35, 64) == (2, None)  # slow nodes to >= 2.5 px, fast ones <= 16 px
+    assert planning.choose(1.35, 6.0, 64) == (2, None) and planning.choose(1.35, 9.0, 64) == (1, None)
     assert planning.choose(0.5, 1.0, 64) == (planning.MAX_GAP, None)
     gap, search = planning.choose(15.0, 24.0, 64)  # too fast for a 64 px window at one frame
     assert gap == 1 and search is not None and search >= 64 + 2 * 24 and search % 2 == 0
@@ -127,7 +128,7 @@ def test_first_look_plans_and_replays_every_frame():
     again = list(replay)
     assert len(again) == 30 and all(a[0] == b[0] for a, b in zip(again, frames))
     assert plan.fast_px_per_frame == pytest.approx(1.0, abs=0.15)
-    assert plan.frame_gap in (3, 4) and plan.chosen == "auto"  # 1 px per frame: 3 px takes 3 or 4 frames
+    assert plan.frame_gap == planning.MAX_GAP and plan.chosen == "auto"  # 1 px per frame: 2.5 px takes 3 frames
     assert json.dumps(plan.as_dict())
 
 
