@@ -587,6 +587,11 @@ class _Engine:
                 work = self._buffer(("work", k), cross)
                 np.copyto(work, cross)
             corr = _irfft2(work if keep else cross, lv.s)
+            if k == 0 and last > 0 and self.p.remove_zero_peak and self.p.frame_gap > 1:
+                from fieldtool.processing import piv_peaks  # no predictor yet: zero is not the flow (module doc)
+
+                zeros = np.zeros(lv.ny * lv.nx)
+                piv_peaks.blank_zero(corr, lv.margin, zeros, zeros, min_shift=0.0, fill="zero")
             pk = _find_peaks(corr, lv.margin, scale, second=k == last)
             dx, dy = pk.dx.reshape(lv.ny, lv.nx), pk.dy.reshape(lv.ny, lv.nx)
             if pred_x is not None:

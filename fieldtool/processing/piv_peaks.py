@@ -6,6 +6,10 @@ coordinates around the predictor, so that peak sits at minus the predictor. Wher
 moves (at least ``MIN_SHIFT_PX``), the plane supports a moving peak and a peak at absolute zero is not the
 flow: the cells around it are set to the plane's median before the peak search, so the tracers' peak wins and
 the fit of the peak never uses them (they lie at least ``MIN_SHIFT_PX - RADIUS_PX`` px from it).
+
+The first pass of a multi-pass run has no predictor; it is blanked around zero on every plane when the pairs
+are several frames apart (``frame_gap`` > 1: the first look found the slow nodes moving a few pixels per pair),
+so that a fixed pattern cannot become the predictor of the next pass.
 """
 
 from __future__ import annotations
@@ -17,7 +21,7 @@ RADIUS_PX = 1  # cells blanked around absolute zero (a (2r+1) x (2r+1) block)
 
 
 def blank_zero(corr: np.ndarray, margin: int, pred_x: np.ndarray, pred_y: np.ndarray,
-               min_shift: float = MIN_SHIFT_PX, radius: int = RADIUS_PX) -> np.ndarray:
+               min_shift: float = MIN_SHIFT_PX, radius: int = RADIUS_PX, fill: str = "median") -> np.ndarray:
     """Blank the block around absolute zero displacement in the planes of moving nodes (in place).
 
     Parameters
@@ -26,6 +30,8 @@ def blank_zero(corr: np.ndarray, margin: int, pred_x: np.ndarray, pred_y: np.nda
         ``margin == 0``, else index k = shift k - margin over the first 2 * margin + 1 cells.
     margin : the level's search margin (px).
     pred_x, pred_y : (n,) or (ny, nx) predictor of each node (px), the plane's origin.
+    fill : "median" (the plane's median, for the final peak and its second peak) or "zero" (cheaper: the
+        planes have zero mean; enough for a first pass, whose peak only predicts).
 
     Returns
     -------
@@ -46,7 +52,10 @@ def blank_zero(corr: np.ndarray, margin: int, pred_x: np.ndarray, pred_y: np.nda
     nodes = np.flatnonzero(sel)
     if nodes.size == 0:
         return sel
-    fill = np.median(corr[nodes].reshape(nodes.size, -1), axis=1).astype(corr.dtype)
+    if fill == "median":
+        fill = np.median(corr[nodes].reshape(nodes.size, -1), axis=1).astype(corr.dtype)
+    else:
+        fill = np.zeros(nodes.size, corr.dtype)
     lim = (2 * margin + 1) if margin > 0 else s
     for dy in range(-radius, radius + 1):
         for dx in range(-radius, radius + 1):
