@@ -43,7 +43,8 @@ class SurfaceStats:
     frames: int = 0
     box: tuple[int, int, int, int] | None = None  # (x0, y0, x1, y1) processed, px
     std_ref: float = float("nan")  # median temporal standard deviation over the box (grey levels)
-    specular_fraction: float = float("nan")  # share of box pixels masked as specular in the first window (glints)
+    specular_fraction: float = float("nan")  # share of box pixels whose spread exceeds 4 x std_ref (glints)
+    static: bool = False  # nothing moves or flickers in the first window: frames passed unchanged (PIV sees no motion)
 
 
 def _box(shape: tuple[int, int], roi, margin: int) -> tuple[int, int, int, int]:
@@ -103,9 +104,12 @@ def _recentre(frames: Iterator[tuple[float, np.ndarray]], stats: SurfaceStats, h
     def emit(c16, t):
         if st.updates >= _RESUM_EVERY:
             st.reset(buf)
-        mean = st.s1 * np.float32(1.0 / len(buf))
         out = np.zeros(shape, np.float32)
         x0, y0, x1, y1 = stats.box
+        if stats.static:
+            out[y0:y1, x0:x1] = c16
+            return t, out
+        mean = st.s1 * np.float32(1.0 / len(buf))
         np.subtract(c16, mean, out=out[y0:y1, x0:x1], dtype=np.float32)
         return t, out
 
@@ -155,7 +159,9 @@ def _standardize(frames, roi, *, margin: int, half: int, shrink: float, stats: S
             st.reset(buf)
         mean, sd = st.moments(len(buf))
         if ref is None:  # the box's typical spread, from the first window
-            ref = stats.std_ref = max(float(np.median(sd)), 1e-3)
+            med = float(np.median(sd))
+            stats.static = med < 1e-3
+            ref = stats.std_ref = max(med, 1e-3)
             stats.specular_fraction = float(np.mean(sd > 4.0 * ref))
         sd += ref
         return mean, sd
@@ -165,6 +171,10 @@ def _standardize(frames, roi, *, margin: int, half: int, shrink: float, stats: S
         out = np.zeros(shape, np.float32)
         x0, y0, x1, y1 = box
         o = out[y0:y1, x0:x1]
+        stats.frames += 1
+        if stats.static:
+            o[:] = c16
+            return t, out
         np.subtract(c16, mean, out=o, dtype=np.float32)
         o /= den
         if shrink > 0:
@@ -173,7 +183,6 @@ def _standardize(frames, roi, *, margin: int, half: int, shrink: float, stats: S
             mag -= tau
             np.maximum(mag, 0.0, out=mag)
             np.copysign(mag, o, out=o)
-        stats.frames += 1
         return t, out
 
     for t, img in it:  # fill the first window

@@ -63,6 +63,7 @@ class River:
     left_bank_height_m: float = 0.6  # bank top above the level
     right_bank_height_m: float = 0.8
     x_section_m: float = 0.0  # X of the surveyed section
+    island_m: tuple[float, float] | None = None  # (from, to) distance from the left water edge (m): a bar 0.15 m above the level
 
     # -- geometry ---------------------------------------------------------------------------
     @property
@@ -113,7 +114,15 @@ class River:
         inside = (u > 0) & (u < 1)
         uc = np.clip(u, 1e-300, 1 - 1e-16)
         f = uc**self.shape_a * (1 - uc) ** self.shape_b / self._fmax()
-        return np.where(inside, self.depth_m * f, 0.0)
+        return np.where(inside & ~self.on_island(s), self.depth_m * f, 0.0)
+
+    def on_island(self, s: np.ndarray | float) -> np.ndarray:
+        """True at stations (m) on the island (dry bar inside the river), if any."""
+        s = np.asarray(s, float)
+        if self.island_m is None:
+            return np.zeros(s.shape, bool)
+        a, b = self.island_m
+        return (s > self.s_left + a) & (s < self.s_left + b)
 
     def surface_velocity(self, s: np.ndarray | float) -> np.ndarray:
         """Surface velocity along +X (m/s) at station s."""
@@ -131,7 +140,7 @@ class River:
         right = s >= self.s_right
         z = np.where(left, self.level_m + self.left_bank_height_m * (self.s_left - s) / self.left_bank_m, z)
         z = np.where(right, self.level_m + self.right_bank_height_m * (s - self.s_right) / self.right_bank_m, z)
-        return z
+        return np.where(self.on_island(s), self.level_m + 0.15, z)
 
     def survey(self, spacing_m: float = 0.25) -> CrossSection:
         """Surveyed points of the bed every ``spacing_m`` (m), the water edges included."""
@@ -141,6 +150,9 @@ class River:
         if self.shape_a == 0 or self.shape_b == 0:  # vertical wall: a point just inside the water
             eps = 1e-4
             s = np.unique(np.concatenate([s, [self.s_left + eps, self.s_right - eps]]))
+        if self.island_m is not None:  # the island's vertical sides: a point on each side of each
+            a, b = self.s_left + self.island_m[0], self.s_left + self.island_m[1]
+            s = np.unique(np.concatenate([s, [a, a + 1e-4, b - 1e-4, b]]))
         return CrossSection(s, self.bed_elevation(s))
 
     # -- truth --------------------------------------------------------------------------------
@@ -149,12 +161,14 @@ class River:
         with ``scipy.integrate.quad`` on the analytic functions."""
         lo, hi = self.s_left, self.s_right
         opts = dict(limit=200, epsabs=1e-12, epsrel=1e-10)
+        if self.island_m is not None:  # the island's sides are discontinuities of the integrands
+            opts["points"] = [self.s_left + self.island_m[0], self.s_left + self.island_m[1]]
         area, _ = integrate.quad(lambda s: float(self.depth(s)), lo, hi, **opts)
         q_surf, _ = integrate.quad(lambda s: float(self.surface_velocity(s) * self.depth(s)), lo, hi, **opts)
         q = self.alpha * q_surf
         return {
             "discharge_m3s": q,
-            "wetted_width_m": self.width_m,
+            "wetted_width_m": self.width_m - (self.island_m[1] - self.island_m[0] if self.island_m else 0.0),
             "wetted_area_m2": area,
             "mean_velocity_ms": q / area,
             "surface_discharge_m3s": q_surf,
@@ -396,7 +410,7 @@ def _static_texture(spec: SceneSpec, ras: _Raster, rng: np.random.Generator) -> 
     scales_px = tuple(max(s / ras.res, 2.0) for s in scales_m)
     tex = spec.bank_gray + spec.bank_contrast * _multiscale_noise(rng, ras.ny, ras.nx, scales_px)
     X, Y = ras.xy()
-    wet_rows = (Y > r.y_right_edge) & (Y < r.y_left_edge)
+    wet_rows = (Y > r.y_right_edge) & (Y < r.y_left_edge) & ~r.on_island(r.station_of_y(Y))
     tex[wet_rows, :] = spec.water_gray
     half = spec.gcp_size_m / 2.0
     for gx, gy, _ in gcp_world(spec):
@@ -666,6 +680,10 @@ def render_scene(
     n_cls = len(spec.particle_diameters_m)
     cls = rng.integers(0, n_cls, n_part)
     amp = spec.particle_brightness * rng.uniform(0.7, 1.3, n_part)
+    if river.island_m is not None:  # no tracer on the island
+        keep = ~river.on_island(river.station_of_y(py))
+        px0, py, pu, cls, amp = px0[keep], py[keep], pu[keep], cls[keep], amp[keep]
+        n_part = int(keep.sum())
     if spec.patch_cover > 0:
         keep = _patch_keep(spec, px0, py, x_lo, x_len)
         px0, py, pu, cls, amp = px0[keep], py[keep], pu[keep], cls[keep], amp[keep]
