@@ -135,7 +135,7 @@ def path_problem(path: Path | str, key: str, *, kind: str = "file") -> str | Non
 # helpers
 
 
-def _out_name_problem(text: str) -> str | None:
+def out_path_problem(text: str) -> str | None:
     """A file written into the output folder (path = "out", e.g. rerun.path) stays inside it: no absolute
     path, no ``~``, no ``..``, not the folder itself. (rerun_log.confined_rrd_path also resolves links.)"""
     p = Path(text)
@@ -432,7 +432,7 @@ class _Validator:
                 self.err(k, f"{v[:60]!r} is not allowed; use one of {', '.join(repr(c) for c in spec.choices)}")
             return
         if spec.path is not None:
-            msg = _path_text_problem(v) or (_out_name_problem(v) if spec.path == "out" else None)
+            msg = _path_text_problem(v) or (out_path_problem(v) if spec.path == "out" else None)
             if msg:
                 self.err(k, msg)
             return

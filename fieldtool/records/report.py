@@ -149,6 +149,32 @@ def _discharge_html(summary: dict) -> list[str]:
     return out
 
 
+def _sections_html(summary: dict) -> list[str]:
+    """Several sections: each one's discharge, interval and grade, then their mean, std and CV (RIVeR's table)."""
+    secs = summary.get("sections") or []
+    if not secs:
+        return []
+    out = ["<h2>Sections</h2><table id='sections'><tr><th class='k'>section</th><th>Q (m³/s)</th>"
+           "<th>95 % interval (m³/s)</th><th class='k'>grade</th><th>wetted width (m)</th><th>mean velocity (m/s)</th></tr>"]
+    for e in secs:
+        if "error" in e:
+            out.append(f"<tr><td class='k'>{_e(e.get('name'))}</td><td colspan='5' class='warn'>{_e(e['error'])}</td></tr>")
+            continue
+        ci = e.get("discharge_ci95_m3s")
+        ci_txt = f"{_f(ci[0])} – {_f(ci[1])}" if ci else "–"
+        out.append(f"<tr><td class='k'>{_e(e.get('name'))}</td><td>{_f(e.get('discharge_m3s'))}</td><td>{ci_txt}</td>"
+                   f"<td class='k'>{_e(e.get('grade') or '–')}</td><td>{_f(e.get('wetted_width_m'), '.3f')}</td>"
+                   f"<td>{_f(e.get('mean_velocity_ms'), '.3f')}</td></tr>")
+    sm = summary.get("sections_summary") or {}
+    if sm:
+        cv = sm.get("cv")
+        out.append(f"<tr><th class='k'>mean of {sm.get('n')}</th><td>{_f(sm.get('mean_m3s'))}</td>"
+                   f"<td colspan='4'>std {_f(sm.get('std_m3s'))} m³/s, CV {_f(100 * cv if cv is not None else None, '.1f', '%')}"
+                   "</td></tr>")
+    out.append("</table>")
+    return out
+
+
 def render_html(summary: dict, images: dict[str, bytes], subsections: list[dict], *,
                 measurement: Measurement | None = None, references: list[Reference] = (),
                 title: str | None = None) -> str:
@@ -181,6 +207,8 @@ def render_html(summary: dict, images: dict[str, bytes], subsections: list[dict]
     out.append("<h2>Result</h2><table id='result'>")
     out += [f"<tr><th class='k'>{k}</th><td>{v}</td></tr>" for k, v in rows]
     out.append("</table>")
+
+    out += _sections_html(summary)
 
     if references:
         out.append("<h2>Reference discharges</h2><table><tr><th class='k'>method</th><th>Q ref (m³/s)</th>"

@@ -40,6 +40,13 @@ def discharge_lines(s: dict) -> list[str]:
                    for r in quality.get("reasons") or []]
         text = f"quality        [{style}]{escape(grade)}[/{style}]" if style else f"quality        {escape(grade)}"
         lines.append(text + (": " + escape("; ".join(reasons)) if reasons else " (no reason for doubt found)"))
+    sm = s.get("sections_summary")
+    if isinstance(sm, dict) and sm.get("n"):
+        each = ", ".join(f"{escape(str(e.get('name')))} {e['discharge_m3s']:.3f}" for e in s.get("sections") or []
+                         if isinstance(e.get("discharge_m3s"), (int, float)))
+        cv = sm.get("cv")
+        lines.append(f"sections       mean {sm['mean_m3s']:.3f} m³/s, std {sm['std_m3s']:.3f}, CV "
+                     f"{100 * cv:.1f} % ({each})" if isinstance(cv, (int, float)) else f"sections       {each}")
     return lines
 
 
