@@ -23,7 +23,13 @@ from fieldtool.project import load_project
 from fieldtool.synthetic import presets, render_scene
 
 #: one robust stage off at a time: label -> changes to the project's [piv] table
-ABLATIONS: dict[str, dict] = {}
+ABLATIONS: dict[str, dict] = {
+    "no standardisation": {"remove_stationary": False},
+    "no zero-peak removal": {"remove_zero_peak": False},
+    "frame gap 1": {"frame_gap": 1},
+    "no upstream rejection": {"reject_upstream": False},
+    "all off (before)": {"remove_stationary": False, "remove_zero_peak": False, "frame_gap": 1, "reject_upstream": False},
+}
 
 
 def true_subsection_velocity(spec, dres) -> np.ndarray:
@@ -34,7 +40,8 @@ def true_subsection_velocity(spec, dres) -> np.ndarray:
     return r.surface_velocity(s_mid) * c
 
 
-def run_one(project_path: Path, changes: dict, spec, detail: bool) -> tuple[float, str, float]:
+def run_one(project_path: Path, changes: dict, spec, detail: bool, q_true: float) -> tuple[float, str, str, float]:
+    """Discharge, grade, 95 % interval (and whether it holds the truth) and run time of one configuration."""
     proj = load_project(project_path)
     for k, v in changes.items():
         setattr(proj.piv, k, v)
@@ -42,12 +49,12 @@ def run_one(project_path: Path, changes: dict, spec, detail: bool) -> tuple[floa
     res = run_project(proj, None)
     dt = time.perf_counter() - t0
     q = res.discharge.discharge_m3s
-    grade = "-"
-    qual = getattr(res, "quality", None)
-    if isinstance(qual, dict):
-        grade = qual.get("grade", "-")
-    elif qual is not None:
-        grade = getattr(qual, "grade", "-")
+    summ = res.summary()
+    grade = (summ.get("quality") or {}).get("grade", "-")
+    ci = summ.get("discharge_ci95_m3s")
+    ci_txt = "-"
+    if ci and all(v is not None for v in ci):
+        ci_txt = f"[{ci[0]:.2f}, {ci[1]:.2f}] {'holds' if ci[0] <= q_true <= ci[1] else 'misses'}"
     if detail:
         d = res.discharge
         vt = true_subsection_velocity(spec, d)
@@ -56,7 +63,8 @@ def run_one(project_path: Path, changes: dict, spec, detail: bool) -> tuple[floa
             print(f"    {i:3d} {vm:8.3f} {v0:7.3f}  {'filled' if f else ''}")
         for w in res.warnings:
             print("    warning:", w)
-    return q, grade, dt
+        print("    robust:", res.robust)
+    return q, grade, ci_txt, dt
 
 
 def main() -> None:
@@ -70,8 +78,9 @@ def main() -> None:
     args = ap.parse_args()
     print(f"load average {os.getloadavg()[0]:.1f}; clips {args.duration:g} s")
     configs = [("default", {})] + (list(ABLATIONS.items()) if args.ablation else [])
-    print("| preset | seed | true Q (m³/s) | " + " | ".join(f"{label} error" for label, _ in configs) + " | grade | time (s) |")
-    print("|---|---|---|" + "---|" * len(configs) + "---|---|")
+    print("| preset | seed | true Q (m³/s) | " + " | ".join(f"{label} error" for label, _ in configs)
+          + " | grade (default) | 95 % interval (default) | time (s) |")
+    print("|---|---|---|" + "---|" * len(configs) + "---|---|---|")
     tmp = tempfile.TemporaryDirectory()
     root = Path(args.scenes_dir) if args.scenes_dir else Path(tmp.name)
     for name in args.presets.split(","):
@@ -84,13 +93,14 @@ def main() -> None:
                 q_true = json.loads((d / "truth.json").read_text())["discharge_m3s"]
             else:
                 q_true = render_scene(spec, d).discharge_m3s
-            cells, grade, t_def = [], "-", 0.0
+            cells, grade, ci, t_def = [], "-", "-", 0.0
             for label, changes in configs:
-                q, g, dt = run_one(d / "project.toml", changes, spec, args.detail and label == "default")
+                q, g, c, dt = run_one(d / "project.toml", changes, spec, args.detail and label == "default", q_true)
                 if label == "default":
-                    grade, t_def = g, dt
+                    grade, ci, t_def = g, c, dt
                 cells.append(f"{100 * (q - q_true) / q_true:+.1f} %")
-            print(f"| {name} | {seed} | {q_true:.3f} | " + " | ".join(cells) + f" | {grade} | {t_def:.1f} |", flush=True)
+            print(f"| {name} | {seed} | {q_true:.3f} | " + " | ".join(cells) + f" | {grade} | {ci} | {t_def:.1f} |",
+                  flush=True)
     tmp.cleanup()
 
 

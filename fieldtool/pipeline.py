@@ -429,7 +429,7 @@ def piv_params(project: Project):
     return PivParams(window_px=p.window_px, overlap_px=p.overlap_px, search_px=p.search_px, passes=p.passes,
                      snr_min=p.snr_min, averaging=p.averaging, median_threshold=p.median_threshold,
                      std_threshold=p.std_threshold, min_valid_fraction=p.min_valid_fraction, engine=p.engine,
-                     frame_gap=p.frame_gap or 1)
+                     frame_gap=p.frame_gap or 1, remove_zero_peak=p.remove_zero_peak)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -587,6 +587,9 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
     if surface_stats is not None:
         robust_facts["stationary_removed"] = {"frames": surface_stats.frames, "std_ref": surface_stats.std_ref,
                                               "specular_fraction": surface_stats.specular_fraction}
+    zr = getattr(res, "zero_peak_removed", None)
+    if zr is not None:
+        robust_facts["zero_peak_removed_nodes"] = int(np.count_nonzero(zr))
     if project.piv.reject_upstream:
         from .processing import robust
 

@@ -153,6 +153,7 @@ class PivCfg:
     std_threshold: float = key(4.0, gt=0.0, le=100.0)  # global standard-deviation test (n sigma)
     min_valid_fraction: float = key(0.3, ge=0.0, le=1.0)  # mean/median: a node valid in fewer pairs than this is dropped
     remove_stationary: bool = key(True)  # standardise each pixel over ~1 s before PIV: glints and patterns fixed in the image go
+    remove_zero_peak: bool = key(True)  # ensemble: a peak at zero displacement where the node moves is not the flow (glints)
     frame_gap: int | None = key(None, ge=1, le=100)  # frames between the two images of a pair; None = chosen from a first look at the clip
     reject_upstream: bool = key(True)  # subsections going upstream while the section goes downstream: rejected, filled, reported
 

@@ -113,7 +113,8 @@ def replace_params(**kw):
 
 
 def test_choose_gap_and_search():
-    assert planning.choose(1.35, 2.35, 64) == (3, None)  # slow nodes to >= 3 px, fast ones <= 16 px
+    assert planning.choose(1.35, 2.35, 64) == (2, None)  # slow nodes to >= 2.5 px, fast ones <= 16 px
+    assert planning.choose(1.35, 6.0, 64) == (2, None) and planning.choose(1.35, 9.0, 64) == (1, None)
     assert planning.choose(0.5, 1.0, 64) == (planning.MAX_GAP, None)
     gap, search = planning.choose(15.0, 24.0, 64)  # too fast for a 64 px window at one frame
     assert gap == 1 and search is not None and search >= 64 + 2 * 24 and search % 2 == 0
@@ -127,7 +128,7 @@ def test_first_look_plans_and_replays_every_frame():
     again = list(replay)
     assert len(again) == 30 and all(a[0] == b[0] for a, b in zip(again, frames))
     assert plan.fast_px_per_frame == pytest.approx(1.0, abs=0.15)
-    assert plan.frame_gap in (3, 4) and plan.chosen == "auto"  # 1 px per frame: 3 px takes 3 or 4 frames
+    assert plan.frame_gap == planning.MAX_GAP and plan.chosen == "auto"  # 1 px per frame: 2.5 px takes 3 frames
     assert json.dumps(plan.as_dict())
 
 
@@ -156,3 +157,25 @@ def test_run_reports_robust_facts(short_scene, tmp_path):
     proj.piv.remove_stationary = False
     res = run_project(proj, None)
     assert res.robust["plan"]["chosen"] == "user" and "stationary_removed" not in res.robust
+
+
+def test_zero_peak_removal_leaves_moving_texture_alone_and_blanks_planes():
+    from fieldtool.processing import piv_peaks
+
+    rng = np.random.default_rng(7)
+    frames = _stream(20, 4.0, rng, h=128, w=256)
+    off = piv.analyze(frames, replace_params(passes=2))
+    on = piv.analyze(frames, replace_params(passes=2, remove_zero_peak=True))
+    inner = np.zeros_like(on.valid)
+    inner[1:-1, 1:-1] = True
+    assert on.zero_peak_removed[inner].mean() > 0.9 and off.zero_peak_removed is None
+    np.testing.assert_allclose(on.u[inner] / FPS, off.u[inner] / FPS, atol=0.02)  # the tracers' peak untouched
+    # planes: the block around absolute zero (minus the predictor) is blanked where the node moves only
+    corr = rng.random((2, 32, 32)).astype(np.float32)
+    before = corr.copy()
+    sel = piv_peaks.blank_zero(corr, 0, np.array([0.5, 5.0]), np.array([0.0, 0.0]))
+    assert sel.tolist() == [False, True] and np.array_equal(corr[0], before[0])
+    block = corr[1][np.ix_([31, 0, 1], [26, 27, 28])]
+    assert np.all(block == np.median(before[1]))
+    corr[1][np.ix_([31, 0, 1], [26, 27, 28])] = before[1][np.ix_([31, 0, 1], [26, 27, 28])]
+    assert np.array_equal(corr[1], before[1])  # nothing else changed

@@ -99,6 +99,7 @@ class PivParams:
     engine: str = "fieldtool"  # fieldtool | openpiv (OpenPIV extended_search_area_piv / windef, same outputs)
     min_texture: float = 0.0  # window rms (frame units) below which a window is featureless: no vector, no ensemble weight
     frame_gap: int = 1  # pairs are frames (i, i + frame_gap) of the stream (processing/planning.py chooses it)
+    remove_zero_peak: bool = False  # ensemble, passes > 1: drop a peak at absolute zero where the node moves (piv_peaks)
 
 
 @dataclass
@@ -123,6 +124,7 @@ class PivResult:
     dt_s: np.ndarray | None = None  # (n_pairs,) time between the frames of each pair, s
     pair_index: np.ndarray | None = None  # (n_pairs,) index of each of these pairs in the clip (0 = frames 0-1)
     n_pairs: int | None = None  # pairs correlated in the clip (ensemble: more than the per-pair fields hold)
+    zero_peak_removed: np.ndarray | None = None  # (ny, nx) bool, ensemble plane's zero-displacement block blanked
 
 
 # --------------------------------------------------------------------------------------------- geometry
@@ -585,6 +587,11 @@ class _Engine:
                 work = self._buffer(("work", k), cross)
                 np.copyto(work, cross)
             corr = _irfft2(work if keep else cross, lv.s)
+            if k == 0 and last > 0 and self.p.remove_zero_peak and self.p.frame_gap > 1:
+                from fieldtool.processing import piv_peaks  # no predictor yet: zero is not the flow (module doc)
+
+                zeros = np.zeros(lv.ny * lv.nx)
+                piv_peaks.blank_zero(corr, lv.margin, zeros, zeros, min_shift=0.0, fill="zero")
             pk = _find_peaks(corr, lv.margin, scale, second=k == last)
             dx, dy = pk.dx.reshape(lv.ny, lv.nx), pk.dy.reshape(lv.ny, lv.nx)
             if pred_x is not None:
@@ -615,6 +622,10 @@ class _Engine:
         """Peaks of the ensemble correlation from the summed (weighted, normalised) cross-spectra of the final pass."""
         lv = self.levels[-1]
         return _find_peaks(_irfft2(acc, lv.s), lv.margin)
+
+    def ensemble_planes(self, acc: np.ndarray) -> np.ndarray:
+        """The ensemble correlation planes (n, s, s) of the summed cross-spectra (``acc`` is overwritten)."""
+        return _irfft2(acc, self.levels[-1].s)
 
 
 # --------------------------------------------------------------------------------------------- analyze
@@ -706,6 +717,8 @@ def analyze(
         max_speed_px_s = np.broadcast_to(np.asarray(max_speed_px_s, dtype=np.float64), (fin.ny, fin.nx))
 
     ens = _Ensemble(engine, fin, params.snr_min) if params.averaging == "ensemble" else None
+    if ens is not None:
+        ens.remove_zero = params.remove_zero_peak
     # ensemble: per-pair vectors (inverse FFT + peaks of the final pass) only on every stride-th pair
     subsample = ens is not None and getattr(engine, "spectrum_only", False)
     stride = max(1, total // ENSEMBLE_PAIRS) if subsample else 1  # clip length unknown (total 0): grown below
@@ -790,7 +803,7 @@ def analyze(
         x=X, y=Y, u=u_avg, v=v_avg, valid=valid, valid_fraction=vf, u_pairs=u_pairs, v_pairs=v_pairs,
         t_pairs=np.asarray(per_pair["t"]), snr=snr_med, params=params, peak2mean=p2m_med, peak=peak_med,
         replaced=replaced, ensemble_snr=ens_snr, dt_s=dts, pair_index=np.asarray(per_pair["index"], dtype=np.int64),
-        n_pairs=i,
+        n_pairs=i, zero_peak_removed=None if ens is None else ens.zero_removed,
     )
 
 
@@ -833,6 +846,8 @@ class _Ensemble:
         self.wdt = np.zeros(lv.ny * lv.nx)
         self.wpk = np.zeros(lv.ny * lv.nx)  # sum of the weights of the pairs with peaks
         self.npk = 0
+        self.remove_zero = False
+        self.zero_removed = None
 
     def add_fn(self, dt: float, node_mask: np.ndarray):
         def add(cross, pred_x, pred_y, pk, scale=None):
@@ -865,7 +880,16 @@ class _Ensemble:
 
     def result(self):
         lv = self.lv
-        pk = self.engine.ensemble_peaks(self.spec)
+        if self.remove_zero and type(self.engine) is _Engine and len(self.engine.levels) > 1:
+            from fieldtool.processing import piv_peaks
+
+            corr = self.engine.ensemble_planes(self.spec)
+            with np.errstate(all="ignore"):
+                self.zero_removed = piv_peaks.blank_zero(corr, lv.margin, self.px / self.wsum, self.py / self.wsum)
+            self.zero_removed = self.zero_removed.reshape(lv.ny, lv.nx)
+            pk = _find_peaks(corr, lv.margin)
+        else:
+            pk = self.engine.ensemble_peaks(self.spec)
         with np.errstate(all="ignore"):
             dt = self.wdt / self.wsum
             dx = pk.dx + self.px / self.wsum

@@ -23,9 +23,9 @@ import numpy as np
 from . import piv
 
 LOOK_PAIRS = 8  # pairs of the first look
-SLOW_TARGET_PX = 3.0  # the slow nodes (20th percentile) should move at least this far per pair
+SLOW_TARGET_PX = 2.5  # the slow nodes (20th percentile) should move at least this far per pair
 FAST_FRACTION = 0.25  # the fast nodes (95th percentile) move at most this share of the first-pass window per pair
-MAX_GAP = 6
+MAX_GAP = 3
 
 
 @dataclass

@@ -24,16 +24,14 @@ from collections import deque
 from dataclasses import dataclass
 from typing import Iterable, Iterator
 
-import cv2
 import numpy as np
 
 #: frames on each side of the centred window (30 fps: about 1 s in all)
 HALF_WINDOW = 15
 #: soft threshold in robust standard deviations of the standardised frame
 SHRINK = 3.0
-SHRINK_MODE = "soft"
-#: Gaussian smoothing (px) of the spread map: a gain with pixel-scale structure would be a fixed pattern of its own
-GAIN_BLUR_PX = 0.0
+#: subtract the centred temporal mean once more after the threshold (see _recentre)
+RECENTRE = True
 #: window rms (standardised units) below which PIV treats a window as featureless (PivParams.min_texture)
 MIN_TEXTURE = 0.05
 
@@ -46,6 +44,7 @@ class SurfaceStats:
     box: tuple[int, int, int, int] | None = None  # (x0, y0, x1, y1) processed, px
     std_ref: float = float("nan")  # median temporal standard deviation over the box (grey levels)
     specular_fraction: float = float("nan")  # share of box pixels whose spread exceeds 4 x std_ref (glints)
+    static: bool = False  # nothing moves or flickers in the first window: frames passed unchanged (PIV sees no motion)
 
 
 def _box(shape: tuple[int, int], roi, margin: int) -> tuple[int, int, int, int]:
@@ -76,24 +75,78 @@ def standardize(frames: Iterable[tuple[float, np.ndarray]], roi=None, *, margin:
     ------
     (t_s, float32 image), zero mean and unit-ish spread per pixel; same times and order as the input.
     """
+    stats = stats if stats is not None else SurfaceStats()
+    out = _standardize(frames, roi, margin=margin, half=half, shrink=shrink, stats=stats)
+    if shrink > 0 and RECENTRE:
+        out = _recentre(out, stats, half)
+    return out
+
+
+def _recentre(frames: Iterator[tuple[float, np.ndarray]], stats: SurfaceStats, half: int):
+    """Subtract each pixel's centred temporal mean again, after the soft threshold: the threshold is not
+    linear, and a pattern that flickers in place between two levels would otherwise come back with a mean of
+    its own (E[(z_a)(z_b)] > 0 at zero displacement)."""
+    n_win = 2 * half + 1
+    buf: deque = deque()
+    times: deque = deque()
+    st = _Sums()
+    shape = None
+
+    def push(t, img):
+        nonlocal shape
+        shape = img.shape
+        x0, y0, x1, y1 = stats.box
+        c = img[y0:y1, x0:x1]
+        st.add(c)
+        buf.append(c.astype(np.float16))
+        times.append(t)
+
+    def emit(c16, t):
+        if st.updates >= _RESUM_EVERY:
+            st.reset(buf)
+        out = np.zeros(shape, np.float32)
+        x0, y0, x1, y1 = stats.box
+        if stats.static:
+            out[y0:y1, x0:x1] = c16
+            return t, out
+        mean = st.s1 * np.float32(1.0 / len(buf))
+        np.subtract(c16, mean, out=out[y0:y1, x0:x1], dtype=np.float32)
+        return t, out
+
+    it = iter(frames)
+    for t, img in it:
+        push(t, img)
+        if len(buf) == n_win:
+            break
+    if not buf:
+        return
+    centre = min(half, len(buf) - 1)
+    for k in range(centre + 1):
+        yield emit(buf[k], times[k])
+    for t, img in it:
+        st.remove(buf.popleft())
+        times.popleft()
+        push(t, img)
+        yield emit(buf[half], times[half])
+    start = half + 1 if len(buf) == n_win else centre + 1
+    for j in range(start, len(buf)):
+        yield emit(buf[j], times[j])
+
+
+def _standardize(frames, roi, *, margin: int, half: int, shrink: float, stats: SurfaceStats):
     it = iter(frames)
     n_win = 2 * half + 1
     buf: deque = deque()
     times: deque = deque()
     st = _Sums()
-    box = None
-    shape = None
-    ref = None
-    static = [False]
+    box = shape = ref = None
 
     def push(t, img):
         nonlocal box, shape
         a = np.asarray(img)
         if box is None:
             shape = a.shape
-            box = _box(shape, roi, margin)
-            if stats is not None:
-                stats.box = box
+            box = stats.box = _box(shape, roi, margin)
         x0, y0, x1, y1 = box
         c = a[y0:y1, x0:x1].astype(np.float32)
         st.add(c)
@@ -107,38 +160,29 @@ def standardize(frames: Iterable[tuple[float, np.ndarray]], roi=None, *, margin:
         mean, sd = st.moments(len(buf))
         if ref is None:  # the box's typical spread, from the first window
             med = float(np.median(sd))
-            static[0] = med < 1e-3  # nothing moves or flickers: frames pass unchanged (PIV then sees no motion)
-            ref = max(med, 1e-3)
-            if stats is not None:
-                stats.std_ref = ref
-                stats.specular_fraction = float(np.mean(sd > 4.0 * ref))
-        if GAIN_BLUR_PX > 0:
-            sd = cv2.GaussianBlur(sd, (0, 0), GAIN_BLUR_PX)
+            stats.static = med < 1e-3
+            ref = stats.std_ref = max(med, 1e-3)
+            stats.specular_fraction = float(np.mean(sd > 4.0 * ref))
         sd += ref
         return mean, sd
 
-    def emit(c16: np.ndarray, t: float, mean: np.ndarray, den: np.ndarray):
+    def emit(c16: np.ndarray, t: float, mom) -> tuple[float, np.ndarray]:
+        mean, den = mom
         out = np.zeros(shape, np.float32)
         x0, y0, x1, y1 = box
         o = out[y0:y1, x0:x1]
-        if static[0]:
+        stats.frames += 1
+        if stats.static:
             o[:] = c16
-            if stats is not None:
-                stats.frames += 1
             return t, out
         np.subtract(c16, mean, out=o, dtype=np.float32)
         o /= den
         if shrink > 0:
             tau = np.float32(shrink * 1.4826 * np.median(np.abs(o[::4, ::4])))
-            if SHRINK_MODE == "hard":
-                o[np.abs(o) < tau] = 0.0
-            else:
-                mag = np.abs(o)
-                mag -= tau
-                np.maximum(mag, 0.0, out=mag)
-                np.copysign(mag, o, out=o)
-        if stats is not None:
-            stats.frames += 1
+            mag = np.abs(o)
+            mag -= tau
+            np.maximum(mag, 0.0, out=mag)
+            np.copysign(mag, o, out=o)
         return t, out
 
     for t, img in it:  # fill the first window
@@ -147,19 +191,18 @@ def standardize(frames: Iterable[tuple[float, np.ndarray]], roi=None, *, margin:
             break
     if not buf:
         return
-    mean, den = moments()
+    mom = moments()
     centre = min(half, len(buf) - 1)
     for k in range(centre + 1):  # the first frames use the first full window
-        yield emit(buf[k], times[k], mean, den)
+        yield emit(buf[k], times[k], mom)
     for t, img in it:
         st.remove(buf.popleft())
         times.popleft()
         push(t, img)
-        mean, den = moments()
-        yield emit(buf[half], times[half], mean, den)
+        yield emit(buf[half], times[half], moments())
     start = half + 1 if len(buf) == n_win else centre + 1
     for j in range(start, len(buf)):  # the last frames use the last full window
-        yield emit(buf[j], times[j], mean, den)
+        yield emit(buf[j], times[j], mom if len(buf) < n_win else moments())
 
 
 _RESUM_EVERY = 256
