@@ -422,6 +422,10 @@ class _Validator:
             msg = _path_text_problem(v)
             if msg:
                 self.err(k, msg)
+            elif spec.path == "out" and (not v.strip() or v.endswith(("/", os.sep)) or Path(v).name in ("", ".", "..")):
+                self.err(k, f"{v!r} is not a file name; give one like \"run.rrd\"")
+            elif spec.path == "out" and os.path.isabs(v) and os.path.exists(v) and not os.path.isfile(v):
+                self.err(k, f"{v}: exists and is not a regular file (a folder, pipe or device); give a file name")
             return
         limit = spec.max_items or TEXT_LIMIT
         if len(v) > limit:
