@@ -57,7 +57,14 @@ def cmd_run(args: argparse.Namespace) -> int:
             observer.close()
     end_progress_line()
     s = result.summary()
-    print(f"discharge     {s['discharge_m3s']:.4f} m3/s  (pairs 5-95 %: {s['discharge_p05_m3s']:.4f} - {s['discharge_p95_m3s']:.4f})")
+    ci = s.get("discharge_ci95_m3s")
+    if ci and None not in ci:
+        print(f"discharge     {s['discharge_m3s']:.4f} m3/s  (95 % interval {ci[0]:.4f} - {ci[1]:.4f}, Monte Carlo)")
+    else:
+        print(f"discharge     {s['discharge_m3s']:.4f} m3/s")
+    if s.get("discharge_p05_m3s") is not None:
+        print(f"single pairs  {s['discharge_p05_m3s']:.4f} - {s['discharge_p95_m3s']:.4f} m3/s  (5-95 % of the "
+              f"{s['n_pairs_with_vectors']} sampled pairs' own discharges; not an interval of Q)")
     print(f"water level   {s['water_level_m']:.3f} m  ({s['water_level_method']}, +/- {s['water_level_uncertainty_m']:.3f} m)")
     print(f"wetted area   {s['wetted_area_m2']:.3f} m2   width {s['wetted_width_m']:.3f} m")
     print(f"mean velocity {s['mean_velocity_ms']:.4f} m/s  (alpha {s['alpha']:.2f})")
@@ -71,9 +78,17 @@ def cmd_run(args: argparse.Namespace) -> int:
 
         mid = record_run(project, s, out, site=args.site or project.site, db=args.db)
         print(f"recorded      history id {mid}")
+    grade = (s.get("quality") or {}).get("grade")
+    if grade:
+        print(f"quality       {grade}")
+        for r in s["quality"]["reasons"]:
+            print(f"  {r['severity']}: {r['message']}")
     if observer is not None and observer.mode == "serve":
         print("rerun: still serving the run (listening on all interfaces); press Ctrl-C to stop", file=sys.stderr)
         threading.Event().wait()  # Ctrl-C ends it: main() catches KeyboardInterrupt
+    if grade == "unusable":
+        print("fieldtool: the measurement is unusable (reasons above); every result file was written", file=sys.stderr)
+        return 3
     return 0
 
 

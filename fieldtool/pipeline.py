@@ -104,6 +104,8 @@ class RunResult:
     stabilization: dict | None = None
     project: dict = field(default_factory=dict)
     piv_reused: bool = False  # the PIV field came from the output folder's piv_cache.npz
+    uncertainty: object | None = None  # processing.uncertainty.McResult
+    quality: object | None = None  # processing.quality.Quality
 
     def summary(self) -> dict:
         d = self.discharge
@@ -111,6 +113,12 @@ class RunResult:
         lv = self.level
         return {
             "discharge_m3s": d.discharge_m3s,
+            "discharge_ci95_m3s": (list(self.uncertainty.ci95_m3s) if self.uncertainty is not None
+                                   and np.all(np.isfinite(self.uncertainty.ci95_m3s)) else None),
+            "uncertainty": self.uncertainty.to_dict() if self.uncertainty is not None else None,
+            "quality": self.quality.to_dict() if self.quality is not None else None,
+            # spread of the discharges of single frame pairs (the sampled pairs, n_pairs_with_vectors of them):
+            # not an interval of Q, which averages every pair (see discharge_ci95_m3s)
             "discharge_p05_m3s": float(np.percentile(qp, 5)) if len(qp) else None,
             "discharge_p95_m3s": float(np.percentile(qp, 95)) if len(qp) else None,
             "discharge_pairs_median_m3s": float(np.median(qp)) if len(qp) else None,
@@ -176,14 +184,36 @@ def load_inputs(project: Project) -> Inputs:
     return Inputs(cs, src, lens, first)
 
 
+def detect_waterline(project: Project, inputs: Inputs) -> dict:
+    """Water edges found along the search line in the clip's first frames (processing.waterline): the
+    project's ``water_level.search_line_px``, else the section's points lengthened by 40 % each way."""
+    from .processing import waterline
+
+    wl = project.water_level
+    if wl.search_line_px:
+        line = inputs.to_working(wl.search_line_px)
+        if line.shape != (2, 2):
+            raise ParameterError("water_level.search_line_px: give two [x, y] pixel points, one on each bank")
+    else:
+        sec = np.asarray(project.section.points_px, float)
+        if sec.shape != (2, 2):
+            raise ParameterError("water_level.search_line_px: draw a line from bank to bank across the river "
+                                 "(or pick the section's water edges, which it extends)")
+        line = waterline.extend_line(*inputs.to_working(sec), 0.4, inputs.shape)
+    frames = (inputs.lens.undistort(f.image) if inputs.lens is not None else f.image for f in inputs.source)
+    return waterline.detect_water_edges(frames, line)
+
+
 def compute_level(project: Project, inputs: Inputs, mapping: ortho.OrthoMapping | None):
     """Water level by the project's method (see processing.water_level)."""
     from .processing.water_level import compute_level as _compute
 
+    detected = detect_waterline(project, inputs) if project.water_level.method == "waterline" else None
     fov = inputs.lens.fov_deg() if inputs.lens is not None else None
     return _compute(project.water_level, inputs.cross_section, root=project.root, mapping=mapping, fov_deg=fov,
                     points_transform=inputs.to_working if inputs.lens is not None else None,
-                    image_undistort=inputs.lens.undistort_points_in if inputs.lens is not None else None)
+                    image_undistort=inputs.lens.undistort_points_in if inputs.lens is not None else None,
+                    detected=detected)
 
 
 def build_mapping(project: Project, inputs: Inputs, level_m: float | None) -> ortho.OrthoMapping:
@@ -196,7 +226,8 @@ def build_mapping(project: Project, inputs: Inputs, level_m: float | None) -> or
         if raw.shape != (4, 2):
             raise ParameterError("ortho.gcp_px: give exactly four [x, y] pixel points P1..P4 for method = distances")
         ortho.check_in_frame(raw, shape, "ortho.gcp_px")
-        return ortho.from_distances(inputs.to_working(raw), o.distances_m)
+        return ortho.from_distances(inputs.to_working(raw), o.distances_m, max_residual_m=o.max_residual_m,
+                                    accept_residual=o.accept_residual, frame_shape=shape)
     if o.method == "two_points":
         raw = np.asarray(o.gcp_px, float)
         if raw.shape != (2, 2):
@@ -207,24 +238,40 @@ def build_mapping(project: Project, inputs: Inputs, level_m: float | None) -> or
     if o.method == "world":
         raw = np.asarray(o.gcp_px, float)
         ortho.check_in_frame(raw.reshape(-1, 2), shape, "ortho.gcp_px")
-        return ortho.from_world_points(inputs.to_working(raw), o.gcp_world_m)
+        m = ortho.from_world_points(inputs.to_working(raw), o.gcp_world_m)
+        ortho.check_gcp_residuals(m, inputs.to_working(raw), o.max_residual_m, o.accept_residual)
+        return m
     if o.method == "pose":
         from .processing import pose
 
-        if inputs.lens is None:
-            raise ParameterError("ortho.method = pose needs the camera intrinsics: set calibration.path")
         if level_m is None:
             raise ParameterError("ortho.method = pose needs the water level first")
         raw = np.asarray(o.gcp_px, float)
         world = np.asarray(o.gcp_world_m, float)
-        p = pose.solve_pose(raw, world, inputs.lens.camera_matrix, inputs.lens.dist_coeffs)
+        lens_fit = None
+        if inputs.lens is None:
+            if not o.fit_lens:
+                raise ParameterError("ortho.method = pose needs the camera intrinsics: set calibration.path, or set "
+                                     "ortho.fit_lens = true to fit focal length and k1 from 8+ GCPs")
+            from .processing.calibration import LensModel
+
+            h, w = shape
+            K, dist, p, lens_fit = pose.fit_lens(raw, world, (w, h))
+            inputs.lens = LensModel(K, dist, (w, h), rms_px=lens_fit["rms_px"])  # frames are undistorted with it
+        else:
+            p = pose.solve_pose(raw, world, inputs.lens.camera_matrix, inputs.lens.dist_coeffs)
         H = pose.plane_homography(p, level_m)
         # residual in metres: each GCP's ray met on the horizontal plane at its own elevation
         und = inputs.to_working(raw)
         miss = [np.hypot(*(ortho._apply(pose.plane_homography(p, z), und[i:i + 1])[0] - world[i, :2]))
                 for i, z in enumerate(world[:, 2])]
-        return ortho.from_homography(H, "pose", float(np.sqrt(np.mean(np.square(miss)))), world[:, :2],
-                                     {"reprojection_rms_px": p.rms_px, "gcp_residual_m": [float(m) for m in miss]})
+        details = {"reprojection_rms_px": p.rms_px, "gcp_residual_m": [float(m) for m in miss],
+                   "gcp_reprojection_px": [float(r) for r in p.reprojection_px]}
+        if lens_fit is not None:
+            details["lens_from_gcps"] = lens_fit
+        m = ortho.from_homography(H, "pose", float(np.sqrt(np.mean(np.square(miss)))), world[:, :2], details)
+        ortho.check_gcp_residuals(m, und, o.max_residual_m, o.accept_residual)
+        return m
     if o.method == "none":
         if level_m is None:
             raise ParameterError("ortho.method = none takes the image scale from the wetted width: the water level is needed first")
@@ -239,10 +286,24 @@ def build_mapping(project: Project, inputs: Inputs, level_m: float | None) -> or
     raise ParameterError(f"ortho.method: {o.method!r} is not one of distances, world, pose, two_points, none")
 
 
+def build_section(project: Project, inputs: Inputs, level_m: float, mapping: ortho.OrthoMapping,
+                  points_px=None) -> dq.SectionGeometry:
+    """The section of interest (raw-frame ``points_px``, default the project's), checked against the water
+    edges of the cross-section at ``level_m`` (see processing.discharge.check_section)."""
+    sec = project.section
+    pts = sec.points_px if points_px is None else points_px
+    if np.asarray(pts).shape == (2, 2):  # raw-frame pixels, checked before undistortion
+        ortho.check_in_frame(np.asarray(pts, float), inputs.shape, "section.points_px")
+    geom = dq.section_geometry(inputs.to_working(pts) if len(pts) else pts, mapping, inputs.cross_section,
+                               level_m, sec.n_sub, sec.station_offset_m)
+    dq.check_section(geom, inputs.cross_section, level_m, sec.min_length_fraction, sec.edge_tolerance_m)
+    return geom
+
+
 def level_and_mapping(project: Project, inputs: Inputs):
     """Water level and image -> water-plane mapping, in the order the methods need: the image method
     measures the level on the mapping; every other method gives the level the mapping may need."""
-    if project.water_level.method == "image":
+    if project.water_level.method in ("image", "waterline"):
         mapping = build_mapping(project, inputs, None)
         level = compute_level(project, inputs, mapping)
     else:
@@ -323,6 +384,21 @@ def working_frames(project: Project, inputs: Inputs, cancel: Callable[[], bool] 
         stab_report.update(stabilizer.report())
 
 
+def _count_identical(frames: Iterator[tuple[float, np.ndarray]], stats: dict) -> Iterator[tuple[float, np.ndarray]]:
+    """Pass the frames through, counting consecutive frames that are identical (duplicates, a still image)."""
+    prev = None
+    n = same = 0
+    for t, img in frames:
+        if prev is not None:
+            n += 1
+            sub = img[::4, ::4]
+            if float(np.max(np.abs(sub - prev))) < 0.5:
+                same += 1
+        prev = img[::4, ::4].astype(np.float32, copy=True)
+        stats["pairs"], stats["identical"] = n, same
+        yield t, img
+
+
 class _Sized:
     """A frame stream with the count the container claims (a plan, not a promise: it may end sooner)."""
 
@@ -380,10 +456,7 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
     lap("level_and_ortho")
 
     sec = project.section
-    if np.asarray(sec.points_px).shape == (2, 2):  # raw-frame pixels, checked before undistortion
-        ortho.check_in_frame(np.asarray(sec.points_px, float), inputs.shape, "section.points_px")
-    geom = dq.section_geometry(inputs.to_working(sec.points_px) if sec.points_px else sec.points_px, mapping, cs,
-                               level.level_m, sec.n_sub, sec.station_offset_m)
+    geom = build_section(project, inputs, level.level_m, mapping)
     roi, mask = roi_and_mask(project, inputs)
 
     params = piv_params(project)
@@ -406,6 +479,7 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
     obs("geometry", pair_q_fn(geom))
     obs("stage", "piv")
     stab: dict = {}
+    frame_stats: dict = {}
 
     def on_pair(i, t, xx, yy, u, v, valid):
         obs("pair", i, t, xx, yy, u, v, valid)
@@ -428,6 +502,7 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
                 yield t, img
 
         frames = tracked(frames)
+        frames = _count_identical(frames, frame_stats)
         n_expected = inputs.source.estimated_count()
         if n_expected:
             frames = _Sized(frames, n_expected)  # lets the ensemble plan which pairs get per-pair vectors
@@ -458,8 +533,18 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
     q_pairs = np.array([pair_q(res.x, res.y, res.u_pairs[k], res.v_pairs[k]) for k in range(len(res.u_pairs))])
     lap("discharge")
 
+    from .assess import assess_run
+
+    try:
+        unc, qual = assess_run(project, inputs, level, mapping, geom, res, U, V, dres, q_pairs, frame_stats)
+    except Exception as e:  # noqa: BLE001 - the discharge is kept; the missing verdict is said
+        unc = qual = None
+        warnings.append(f"uncertainty and quality not computed ({type(e).__name__}: {e}); please report this")
+    lap("uncertainty_and_quality")
+
     result = RunResult(dres, q_pairs, level, mapping, res, geom, U, V, None, timings_s=timings, warnings=warnings,
-                       stabilization=stab or None, project=project_to_dict(project), piv_reused=cached is not None)
+                       stabilization=stab or None, project=project_to_dict(project), piv_reused=cached is not None,
+                       uncertainty=unc, quality=qual)
     if out_dir is not None:
         write_outputs(result, project, inputs, Path(out_dir))
     obs("result", result)

@@ -88,14 +88,17 @@ class OrthoCfg:
     gcp_px: list[Point] = key(factory=list, unit="px", dim=2, ge=-1e5, le=1e5, max_items=1000)  # [[x, y], ...] pixels, P1..P4 (pose: 6+)
     distances_m: list[float] = key(factory=list, unit="m", gt=0.0, le=1e5, counts=(0, 1, 6))  # L1..L6 (method = distances); [|P1P2|] (method = two_points)
     gcp_world_m: list[list[float]] = key(factory=list, unit="m", dim=(2, 3), ge=-1e8, le=1e8, max_items=1000)  # [[X, Y], ...] or [[X, Y, Z], ...] (pose)
+    fit_lens: bool = key(False)  # pose without calibration.path: fit focal length and k1 from 8+ GCPs (X, Y, Z)
     resolution_m: float | None = key(None, unit="m", gt=0.0, le=100.0)  # pixel size of the rectified image (m); None = automatic
+    max_residual_m: float = key(0.10, unit="m", gt=0.0, le=1e4)  # largest GCP distance / world-point residual accepted (m); above it the run stops naming the suspect
+    accept_residual: bool = key(False)  # go on despite a residual above max_residual_m (the grade becomes doubtful)
 
 
 @dataclass
 class WaterLevelCfg:
     """[water_level] elevation of the water surface, in the cross-section's datum (thesis ch. 5)."""
 
-    method: str = key("value", choices=("value", "width", "dem", "angle_height", "image"))  # value | width | dem | angle_height | image
+    method: str = key("value", choices=("value", "width", "dem", "angle_height", "image", "waterline"))  # value | width | dem | angle_height | image | waterline (edges found in the clip)
     value_m: float | None = key(None, unit="m", ge=-1e5, le=1e5)  # method = value: typed level (m, datum of the cross-section, not a depth)
     uncertainty_m: float | None = key(None, unit="m", ge=0.0, le=100.0)  # method = value: 1-sigma of the typed level (m); None = 0.01 m
     width_m: float | None = key(None, unit="m", gt=0.0, le=1e5)  # method = width: measured wetted width, water edge to water edge (m)
@@ -120,6 +123,9 @@ class WaterLevelCfg:
     edges2_px: list[Point] = key(factory=list, unit="px", dim=2, counts=(0, 2), ge=-1e5, le=1e5)  # left and right water edges on image 2
     # image method: left and right water edges on the raw frame, mapped with the ortho mapping
     edges_px: list[Point] = key(factory=list, unit="px", dim=2, counts=(0, 2), ge=-1e5, le=1e5)
+    # waterline: a line from bank to bank on the raw frame along which the water edges are found; [] = the
+    # section's points lengthened by 40 % each way
+    search_line_px: list[Point] = key(factory=list, unit="px", dim=2, counts=(0, 2), ge=-1e5, le=1e5)
 
 
 @dataclass
@@ -155,6 +161,48 @@ class SectionCfg:
     n_sub: int = key(15, ge=1, le=1000)  # number of subsections
     station_offset_m: float | None = key(None, unit="m", ge=-1e6, le=1e6)  # station of the first point; None = left water edge
     alpha: float | None = key(None, gt=0.0, le=1.5)  # velocity index; None = 0.8 if mean depth < 2 m else 0.9
+    min_length_fraction: float = key(0.5, ge=0.0, le=1.0)  # a section shorter than this fraction of the wetted width is refused
+    edge_tolerance_m: float | None = key(None, unit="m", ge=0.0, le=1e4)  # largest distance of the section's ends from the water edges (m); None = 10 % of the wetted width, at least 0.3 m
+
+
+@dataclass
+class QualityCfg:
+    """[quality] limits of the measurement's grade (good / doubtful / unusable); see the README's quality section."""
+
+    measured_width_doubtful: float = key(0.8, ge=0.0, le=1.0)  # fraction of the section width with a measured (not filled) velocity below which Q is doubtful
+    measured_width_unusable: float = key(0.4, ge=0.0, le=1.0)  # ... below which Q is unusable
+    valid_fraction_doubtful: float = key(0.5, ge=0.0, le=1.0)  # mean fraction of frame pairs with a valid vector along the section: doubtful below
+    valid_fraction_unusable: float = key(0.15, ge=0.0, le=1.0)  # ... unusable below
+    stalled_ratio: float = key(0.3, ge=0.0, le=1.0)  # a subsection slower than this times the fastest on each side of it (moving downstream) is stalled
+    stalled_width_unusable: float = key(0.3, ge=0.0, le=1.0)  # stalled share of the width above which Q is unusable (any stalled: doubtful)
+    deficit_ratio: float = key(0.8, ge=0.0, le=1.0)  # a subsection below this times the velocity its depth suggests (v ~ depth^(2/3)) is in deficit
+    deficit_q_doubtful: float = key(0.03, ge=0.0, le=10.0)  # discharge the subsections in deficit may miss (up to their depth's velocity) / Q: doubtful above
+    deficit_q_unusable: float = key(0.5, ge=0.0, le=10.0)  # ... unusable above
+    displacement_doubtful: float = key(0.25, gt=0.0, le=1.0)  # 95th-percentile displacement along the section / first-pass search side: doubtful above
+    displacement_unusable: float = key(0.45, gt=0.0, le=1.0)  # ... unusable above
+    peak_min: float = key(0.15, ge=0.0, le=1.0)  # median correlation peak (coefficient) along the section: doubtful below
+    pair_spread_max: float = key(0.35, ge=0.0, le=100.0)  # half the 16-84 % spread of the per-pair discharges / Q: doubtful above
+    angle_doubtful_deg: float = key(30.0, unit="deg", ge=0.0, le=180.0)  # mean flow direction off the section normal (deg): doubtful above
+    angle_unusable_deg: float = key(60.0, unit="deg", ge=0.0, le=180.0)  # ... unusable above
+    identical_frames_doubtful: float = key(0.05, ge=0.0, le=1.0)  # fraction of identical consecutive frames: doubtful above
+    identical_frames_unusable: float = key(0.5, ge=0.0, le=1.0)  # ... unusable above
+    min_motion_px: float = key(0.1, unit="px", ge=0.0, le=1e3)  # median displacement along the section (px/frame) below which nothing moved: unusable
+    max_surface_speed_ms: float = key(15.0, unit="m/s", gt=0.0, le=1e3)  # surface speed along the section (m/s) above which Q is unusable
+    relative_u95_doubtful: float = key(0.2, ge=0.0, le=100.0)  # half-width of the 95 % interval / Q above which Q is doubtful
+
+
+@dataclass
+class UncertaintyCfg:
+    """[uncertainty] 1-sigma of the inputs the Monte Carlo interval of Q propagates (0 switches a source off)."""
+
+    gcp_px_sigma_px: float = key(1.0, unit="px", ge=0.0, le=1e3)  # each picked GCP pixel coordinate (px)
+    gcp_distance_sigma_m: float = key(0.01, unit="m", ge=0.0, le=1e3)  # each taped distance L1..L6, or each GCP world coordinate (m)
+    bed_sigma_m: float = key(0.02, unit="m", ge=0.0, le=1e3)  # each surveyed bed elevation of the cross-section (m)
+    alpha_sigma: float | None = key(None, ge=0.0, le=1.0)  # velocity index; None = 0.05 for the rule of thumb, 0.03 for a typed section.alpha
+    filled_rel_sigma: float = key(0.25, ge=0.0, le=10.0)  # velocity of a subsection filled from a neighbour (relative)
+    piv_rel_sigma: float = key(0.01, ge=0.0, le=1.0)  # systematic error of the PIV surface velocity (relative): sub-pixel bias, window averaging
+    n_draws: int = key(400, ge=20, le=100000)  # Monte Carlo draws of Q (each source's share: a quarter of that each)
+    seed: int = key(0, ge=0, le=2**31)  # seed of the draws (same inputs, same interval)
 
 
 @dataclass
@@ -184,6 +232,8 @@ class Project:
     piv: PivCfg = field(default_factory=PivCfg)
     section: SectionCfg = field(default_factory=SectionCfg)
     rerun: RerunCfg = field(default_factory=RerunCfg)
+    quality: QualityCfg = field(default_factory=QualityCfg)
+    uncertainty: UncertaintyCfg = field(default_factory=UncertaintyCfg)
     root: Path = field(default=Path("."), metadata={"saved": False})
 
     def resolve(self, rel: str) -> Path:

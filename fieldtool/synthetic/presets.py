@@ -11,7 +11,8 @@ Base scenes (a river 12 m wide, up to 1.5 m deep, ~1.2 m/s at the surface, 5 s a
 Variant flags, combinable: ``shake=True`` (random translation ~3 px + rotation ~0.3 deg per frame on a drift of 20 px/s,
 frame 0 unshaken; the project enables stabilisation on bank regions), ``distortion=True``
 (barrel k1 = -0.25, k2 = 0.03 with a rendered 9x6 checkerboard video of the same camera),
-``glints=True`` (40 static, flickering sun glints on the water near the section).
+``glints=True`` (40 static, flickering sun glints on the water near the section), ``lens_gcps=True`` (a strong
+barrel lens and 8 GCPs, to fit the lens from them).
 
 Any other keyword replaces a :class:`SceneSpec` field (``seed=3``, ``duration_s=4``); ``river__x``
 and ``camera__x`` replace a field of the river or the camera (``river__u_max_ms=0.9``).
@@ -56,8 +57,16 @@ def _far_bank() -> SceneSpec:
 _BASE = {"oblique": _oblique, "nadir": _nadir, "far_bank": _far_bank}
 
 
-def get(name: str, *, shake: bool = False, distortion: bool = False, glints: bool = False, **overrides) -> SceneSpec:
-    """The scene ``name`` (one of :data:`NAMES`) with variant flags and field overrides applied."""
+STRONG_DISTORTION = (-0.35, 0.03675, 0.0, 0.0, 0.0)
+
+
+def get(name: str, *, shake: bool = False, distortion: bool = False, glints: bool = False, lens_gcps: bool = False,
+        **overrides) -> SceneSpec:
+    """The scene ``name`` (one of :data:`NAMES`) with variant flags and field overrides applied.
+
+    ``lens_gcps=True``: a strong barrel lens (k1 -0.35, k2 0.037, 62 degrees) aimed so the section lies
+    off the image centre, and 4 more GCP targets on the banks (8 in all) to fit the lens from them.
+    """
     if name not in _BASE:
         raise ParameterError(f"synthetic scene {name!r}: choose one of {', '.join(NAMES)}")
     spec = _BASE[name]()
@@ -69,6 +78,11 @@ def get(name: str, *, shake: bool = False, distortion: bool = False, glints: boo
         # a longer focal length keeps the barrel-distorted view close to the pinhole one
         spec = replace(spec, camera=replace(spec.camera, hfov_deg=min(spec.camera.hfov_deg, 60.0), dist=DISTORTION))
         suffix.append("distortion")
+    if lens_gcps:
+        cam = spec.camera
+        target = (cam.target_m[0] - 1.5, cam.target_m[1], cam.target_m[2])
+        spec = replace(spec, camera=replace(cam, hfov_deg=62.0, dist=STRONG_DISTORTION, target_m=target), extra_gcps=4)
+        suffix.append("lens_gcps")
     if glints:
         spec = replace(spec, glints=40)
         suffix.append("glints")

@@ -202,6 +202,7 @@ class SceneSpec:
     gcp_offset_m: float = 0.8  # GCPs this far beyond the water edges, on the banks
     gcp_half_dx_m: float = 4.0  # GCPs at x_section +- this
     gcp_size_m: float = 0.4  # side of the checker target
+    extra_gcps: int = 0  # more targets on the banks beyond P1..P4, spread over the image (pose, lens fit)
     click_error_px: float = 0.3  # sd of the seeded click error on GCP pixels
     survey_spacing_m: float = 0.25
     roi_half_length_m: float = 3.0  # ROI covers the water within x_section +- this
@@ -241,8 +242,8 @@ class SceneTruth:
     R: np.ndarray
     t: np.ndarray
     dist: np.ndarray
-    gcp_world_m: np.ndarray  # (4, 3) P1..P4
-    gcp_px: np.ndarray  # (4, 2) exact projections (frame 0)
+    gcp_world_m: np.ndarray  # (4 + extra_gcps, 3) P1..P4 then the extra targets
+    gcp_px: np.ndarray  # (4 + extra_gcps, 2) exact projections (frame 0)
     section_px: np.ndarray  # (2, 2) left, right water edge at x_section (frame 0)
     video_path: Path
     project_path: Path
@@ -267,7 +268,28 @@ def gcp_world(spec: SceneSpec) -> np.ndarray:
     xs, dx = r.x_section_m, spec.gcp_half_dx_m
     yl = r.y_left_edge + spec.gcp_offset_m
     yr = r.y_right_edge - spec.gcp_offset_m
-    return np.array([[xs - dx, yl, r.level_m], [xs + dx, yl, r.level_m], [xs + dx, yr, r.level_m], [xs - dx, yr, r.level_m]])
+    base = np.array([[xs - dx, yl, r.level_m], [xs + dx, yl, r.level_m], [xs + dx, yr, r.level_m], [xs - dx, yr, r.level_m]])
+    if spec.extra_gcps <= 0:
+        return base
+    # candidates on both banks, kept where they are seen well inside the frame; the farthest from those
+    # already chosen (in the image) first, so the extra targets reach towards the corners
+    cam = spec.camera
+    cx = xs + dx * np.linspace(-4.0, 4.0, 17)
+    cand = [[x, y, r.level_m] for x in cx for y in (yl + 0.5, yl + 2.0, yl + 3.5, yr - 0.5, yr - 2.0, yr - 3.5)]
+    cand = np.array(cand)
+    depth = (cam.R @ cand.T + cam.t.reshape(3, 1))[2]
+    px = cam.project(cand)
+    m = 40.0
+    ok = (depth > 0) & (px[:, 0] > m) & (px[:, 0] < cam.width_px - m) & (px[:, 1] > m) & (px[:, 1] < cam.height_px - m)
+    cand, px = cand[ok], px[ok]
+    chosen, chosen_px = list(base), list(cam.project(base))
+    for _ in range(min(spec.extra_gcps, len(cand))):
+        d = np.min(np.linalg.norm(px[:, None, :] - np.asarray(chosen_px)[None], axis=2), axis=1)
+        k = int(np.argmax(d))
+        chosen.append(cand[k])
+        chosen_px.append(px[k])
+        px[k] = np.asarray(chosen_px)[0]  # never again
+    return np.asarray(chosen)
 
 
 def gcp_distances(p: np.ndarray) -> list[float]:
@@ -595,7 +617,7 @@ def render_scene(
     proj = Project(name=f"synthetic {spec.name}")
     proj.video = VideoCfg(path=spec.video_name)
     proj.cross_section = CrossSectionCfg(path=cs_path.name)
-    proj.ortho = OrthoCfg(method="distances", gcp_px=_r(gcp_clicked), distances_m=[round(d, 4) for d in gcp_distances(gw)])
+    proj.ortho = OrthoCfg(method="distances", gcp_px=_r(gcp_clicked[:4]), distances_m=[round(d, 4) for d in gcp_distances(gw)])
     proj.water_level = WaterLevelCfg(method="value", value_m=float(river.level_m))
     proj.section = SectionCfg(points_px=_r(sec_px), n_sub=spec.n_sub, alpha=float(river.alpha))
     proj.roi = RoiCfg(rect_px=[float(np.floor(rx0)), float(np.floor(ry0)), float(np.ceil(rx1)), float(np.ceil(ry1))])
