@@ -666,7 +666,7 @@ class _Validator:
         if not self.ok("water_level.method"):
             return
         req = {"value": ("value_m",), "width": ("width_m",), "dem": ("dem_precision_mm",),
-               "angle_height": ("dh_m",), "image": ()}[m]
+               "angle_height": ("dh_m",), "image": ()}.get(m, ())
         for name in req:
             if getattr(w, name) is None:
                 self.err(f"water_level.{name}", f"is needed for water_level.method = {m}; give it")
