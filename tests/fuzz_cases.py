@@ -213,6 +213,7 @@ def file_cases(full: bool = True) -> list[Case]:
 
     def truncated_video(d: Path, proj: Path):
         data = (d / "river.mp4").read_bytes()
+        (d / "river.mp4").unlink()  # a hard link to the scene's clip: never truncate that one
         (d / "river.mp4").write_bytes(data[: len(data) // 3])
 
     def set_xs(content: bytes):
@@ -416,14 +417,19 @@ class Runner:
     def _folder(self, case: Case) -> Path:
         self.n += 1
         d = self.work / f"{self.n:04d}"
-        shutil.copytree(self.scene, d, ignore=shutil.ignore_patterns("out", "*.rrd"))
+        # hard links: fieldtool replaces files (atomic writes, swapped folders), never edits them in place
+        shutil.copytree(self.scene, d, ignore=shutil.ignore_patterns("out", "*.rrd"), copy_function=os.link)
+        for name in ("project.toml", "cross_section.csv"):  # the cases edit these in place: own copies
+            data = (d / name).read_bytes()
+            (d / name).unlink()
+            (d / name).write_bytes(data)
         return d
 
     def run(self, case: Case) -> Outcome:
         d = self._folder(case)
         proj = d / "project.toml"
         out = d / "out"
-        shutil.copytree(self.seed_out, out)
+        shutil.copytree(self.seed_out, out, copy_function=os.link)
         if case.setup is None:
             data = with_value(self.base, case.key, case.value) if case.key else self.base
             proj.write_text(to_toml(data), encoding="utf-8")
