@@ -79,3 +79,26 @@ def test_binary_project_refused(tmp_path, capsys):
     (tmp_path / "project.toml").write_bytes(bytes(range(256)) * 4)
     assert cli.main(["run", str(tmp_path / "project.toml")]) == 2
     assert "not a text file" in capsys.readouterr().err
+
+
+def test_levels_file_encodings_and_delimiters(tmp_path):
+    import warnings
+
+    from fieldtool.errors import FieldToolWarning, InputFileError
+    from fieldtool.records.batch import read_levels
+
+    p = tmp_path / "levels.csv"
+    p.write_bytes("video;water_level_m\nclip é.mp4;1,5\n".encode("latin-1"))
+    with warnings.catch_warnings(record=True) as w:
+        warnings.simplefilter("always")
+        assert read_levels(p)["clip é.mp4"] == 1.5
+    assert any(issubclass(x.category, FieldToolWarning) and "cp1252" in str(x.message) for x in w)
+    p.write_bytes(b"videowaterlevel\nabc\n")
+    with pytest.raises(InputFileError, match="no ',' ';' or tab"):
+        read_levels(p)
+    p.write_bytes(bytes(range(256)))
+    with pytest.raises(InputFileError, match="not a text file"):
+        read_levels(p)
+    p.write_text("video,water_level_m\na.mp4,nan\n")
+    with pytest.raises(InputFileError, match="line 2"):
+        read_levels(p)
