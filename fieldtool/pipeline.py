@@ -20,7 +20,7 @@ from typing import Callable, Iterator
 
 import numpy as np
 
-from . import __version__, piv_cache
+from . import __version__, piv_cache, stiv_stage
 from .errors import Cancelled, FieldToolError, GeometryError, InputFileError, ParameterError
 from .processing import cross_section as xs
 from .processing import discharge as dq
@@ -104,8 +104,12 @@ class RunResult:
     stabilization: dict | None = None
     project: dict = field(default_factory=dict)
     piv_reused: bool = False  # the PIV field came from the output folder's piv_cache.npz
+    stiv: dict | None = None  # STIV beside PIV per subsection (stiv_stage.finish); None when [stiv] enabled = false
     uncertainty: object | None = None  # processing.uncertainty.McResult
     quality: object | None = None  # processing.quality.Quality
+    sections: list = field(default_factory=list)  # several sections: the main one first (fieldtool.sections)
+    robust: dict | None = None  # facts of the robust stages (processing/surface.py, robust.py, planning.py)
+    video: dict = field(default_factory=dict)  # the clip's metadata (records.video_meta.video_info)
 
     def summary(self) -> dict:
         d = self.discharge
@@ -117,6 +121,8 @@ class RunResult:
                                    and np.all(np.isfinite(self.uncertainty.ci95_m3s)) else None),
             "uncertainty": self.uncertainty.to_dict() if self.uncertainty is not None else None,
             "quality": self.quality.to_dict() if self.quality is not None else None,
+            "sections": self.sections or None,
+            "sections_summary": _sections_summary(self.sections),
             # spread of the discharges of single frame pairs (the sampled pairs, n_pairs_with_vectors of them):
             # not an interval of Q, which averages every pair (see discharge_ci95_m3s)
             "discharge_p05_m3s": float(np.percentile(qp, 5)) if len(qp) else None,
@@ -140,12 +146,21 @@ class RunResult:
             "ortho_details": self.mapping.details,
             "stabilization": self.stabilization,
             "piv_reused": self.piv_reused,
+            "stiv": self.stiv,
+            "robust": self.robust,
+            "video": self.video,
             "warnings": self.warnings + d.warnings,
             "timings_s": self.timings_s,
             "files": self.files,
             "fieldtool_version": __version__,
             "inputs": self.project,
         }
+
+
+def _sections_summary(entries: list) -> dict | None:
+    from .sections import summarize
+
+    return summarize(entries) if entries else None
 
 
 # ---------------------------------------------------------------------------------------------
@@ -418,7 +433,8 @@ def piv_params(project: Project):
     p = project.piv
     return PivParams(window_px=p.window_px, overlap_px=p.overlap_px, search_px=p.search_px, passes=p.passes,
                      snr_min=p.snr_min, averaging=p.averaging, median_threshold=p.median_threshold,
-                     std_threshold=p.std_threshold, min_valid_fraction=p.min_valid_fraction, engine=p.engine)
+                     std_threshold=p.std_threshold, min_valid_fraction=p.min_valid_fraction, engine=p.engine,
+                     frame_gap=p.frame_gap or 1)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -446,7 +462,13 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
     from .validation import check
 
     warnings += [str(w) for w in check(project)]  # every key, before any step
+    from .sections import parse as parse_sections
+
+    extra_sections = parse_sections(project)
     obs("stage", "inputs")
+    from .writers import check as check_outputs
+
+    check_outputs(project)  # a wrong ortho.crs_epsg stops the run before any work
     inputs = load_inputs(project)
     lap("inputs")
 
@@ -458,17 +480,25 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
     sec = project.section
     geom = build_section(project, inputs, level.level_m, mapping)
     roi, mask = roi_and_mask(project, inputs)
+    stiv_run = stiv_stage.start(project, mapping, geom, inputs.shape, roi, mask)
 
     params = piv_params(project)
+    if project.piv.remove_stationary:
+        from .processing.surface import MIN_TEXTURE
+        from dataclasses import replace
+
+        params = replace(params, min_texture=MIN_TEXTURE)
     x, y = piv_mod.grid(inputs.shape, params, roi)
     max_speed = None
     if project.piv.max_velocity_ms is not None:
         max_speed = project.piv.max_velocity_ms / mapping.scale_m_per_px(x, y)
 
-    def pair_q_fn(g: dq.SectionGeometry) -> Callable[..., float]:
-        """Discharge of one pixel-velocity field (px/s) on the section ``g``."""
-        area, depth = dq.subsection_areas(g, cs, level.level_m)
-        alpha = dq.resolve_alpha(sec.alpha, cs, level.level_m)
+    def pair_q_fn(g: dq.SectionGeometry, cs_g: xs.CrossSection | None = None) -> Callable[..., float]:
+        """Discharge of one pixel-velocity field (px/s) on the section ``g`` (cross-section ``cs_g``, default
+        the project's)."""
+        cs_g = cs if cs_g is None else cs_g
+        area, depth = dq.subsection_areas(g, cs_g, level.level_m)
+        alpha = dq.resolve_alpha(sec.alpha, cs_g, level.level_m)
 
         def q(xx, yy, u, v) -> float:
             Uw, Vw = mapping.rectify_velocity(xx, yy, u, v)
@@ -480,6 +510,12 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
     obs("stage", "piv")
     stab: dict = {}
     frame_stats: dict = {}
+    surface_stats = None
+    plan = None
+    if project.piv.remove_stationary:
+        from .processing.surface import SurfaceStats
+
+        surface_stats = SurfaceStats()
 
     def on_pair(i, t, xx, yy, u, v, valid):
         obs("pair", i, t, xx, yy, u, v, valid)
@@ -494,6 +530,8 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
         stab.update(stab_cached or {})
     else:
         frames = working_frames(project, inputs, cancel, obs, stab if project.stabilize.enabled else None, progress)
+        if stiv_run is not None:  # STIV samples its lines from the same stream (one decode)
+            frames = stiv_run.tap(frames)
         decoded: list[float] = []
 
         def tracked(it):
@@ -503,6 +541,26 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
 
         frames = tracked(frames)
         frames = _count_identical(frames, frame_stats)
+        if project.piv.remove_stationary:
+            from .processing import surface
+
+            frames = surface.standardize(frames, roi, margin=max(64, params.search_px or 0), half=surface.HALF_WINDOW,
+                                         shrink=surface.SHRINK, stats=surface_stats)
+        from dataclasses import replace as _replace
+
+        from .processing import planning
+
+        if project.piv.frame_gap is None:
+            plan, frames = planning.first_look(frames, params, roi, mask)
+            params = _replace(params, frame_gap=plan.frame_gap, search_px=params.search_px or plan.search_px)
+            if plan.frame_gap > 1 or plan.search_px:
+                warnings.append(
+                    f"piv: from a first look at {plan.pairs_looked} pairs (slow nodes {plan.slow_px_per_frame:.1f}, "
+                    f"fast nodes {plan.fast_px_per_frame:.1f} px per frame) pairs are {plan.frame_gap} frame(s) apart"
+                    + (f" and the first pass searches {plan.search_px} px" if plan.search_px else "")
+                    + "; set piv.frame_gap (and piv.search_px) to choose yourself")
+        else:
+            plan = planning.Plan(frame_gap=int(project.piv.frame_gap), search_px=params.search_px, chosen="user")
         n_expected = inputs.source.estimated_count()
         if n_expected:
             frames = _Sized(frames, n_expected)  # lets the ensemble plan which pairs get per-pair vectors
@@ -514,6 +572,7 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
         if v.end_s is not None and decoded and fps > 0 and decoded[0] < v.end_s - (v.step + 1) / fps:
             warnings.append(f"video.end_s: the clip decoded only up to {decoded[0]:.2f} s of the {v.end_s:g} s asked "
                             f"(its container claims more); the measurement covers {v.start_s:g}-{decoded[0]:.2f} s")
+    stiv_stage.ensure_sampled(stiv_run, lambda: working_frames(project, inputs, cancel))
     lap("frames_and_piv")
 
     obs("stage", "discharge")
@@ -529,8 +588,29 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
         geom.swapped = True
         v_sub = dq.subsection_velocity(geom, res.x, res.y, U, V)
         dres = dq.compute_discharge(geom, cs, level.level_m, v_sub, sec.alpha)
-    pair_q = pair_q_fn(geom)
-    q_pairs = np.array([pair_q(res.x, res.y, res.u_pairs[k], res.v_pairs[k]) for k in range(len(res.u_pairs))])
+    robust_facts: dict = {"plan": plan.as_dict() if plan is not None else None}
+    if surface_stats is not None:
+        robust_facts["stationary_removed"] = {"frames": surface_stats.frames, "std_ref": surface_stats.std_ref,
+                                              "specular_fraction": surface_stats.specular_fraction}
+    if project.piv.reject_upstream:
+        from .processing import robust
+
+        v_clean, rejected = robust.reject_upstream(v_sub)
+        robust_facts["upstream_rejected"] = [int(i) for i in np.flatnonzero(rejected)]
+        if rejected.any():
+            dres = dq.compute_discharge(geom, cs, level.level_m, v_clean, sec.alpha)
+            warnings.append(f"{int(rejected.sum())} subsection(s) went upstream while the section goes downstream "
+                            "(wind ripples, standing waves or glints); rejected and filled from their neighbours")
+    stiv_block, dres = stiv_stage.finish(stiv_run, project, geom, cs, level.level_m, dres, res, U, V)
+    from .processing.robust import width_share
+
+    robust_facts["filled_subsections"] = [int(i) for i in np.flatnonzero(dres.velocity_filled)]
+    robust_facts["filled_width_share"] = width_share(dres.station_from, dres.station_to, dres.velocity_filled)
+    def pairs_q(g: dq.SectionGeometry, cs_g: xs.CrossSection | None = None) -> np.ndarray:
+        pair_q = pair_q_fn(g, cs_g)
+        return np.array([pair_q(res.x, res.y, res.u_pairs[k], res.v_pairs[k]) for k in range(len(res.u_pairs))])
+
+    q_pairs = pairs_q(geom)
     lap("discharge")
 
     from .assess import assess_run
@@ -540,11 +620,39 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
     except Exception as e:  # noqa: BLE001 - the discharge is kept; the missing verdict is said
         unc = qual = None
         warnings.append(f"uncertainty and quality not computed ({type(e).__name__}: {e}); please report this")
+    stiv_stage.add_reason(qual, stiv_block)  # "PIV and STIV disagree ..." (doubtful)
+    section_entries = []
+    if extra_sections:
+        from . import sections as secs
+
+        main = {"name": "main", "points_px": np.asarray(sec.points_px, float).tolist(), "discharge_m3s": dres.discharge_m3s,
+                "discharge_ci95_m3s": (list(unc.ci95_m3s) if unc is not None and np.all(np.isfinite(unc.ci95_m3s))
+                                       else None), "grade": qual.grade if qual is not None else None,
+                "wetted_area_m2": dres.wetted_area_m2, "wetted_width_m": dres.wetted_width_m,
+                "mean_velocity_ms": dres.mean_velocity_ms, "subsections_filled": int(dres.velocity_filled.sum())}
+        section_entries = [main] + [secs.measure(project, inputs, s, level, mapping, res, U, V, frame_stats, pairs_q)
+                                    for s in extra_sections]
+        for e in section_entries:
+            if "error" in e:
+                warnings.append(f"section {e['name']!r}: {e['error']}")
+        summ = secs.summarize(section_entries)
+        if qual is not None and summ is not None and summ["cv"] is not None \
+                and summ["cv"] > project.quality.sections_cv_doubtful:
+            from .processing.quality import Reason
+
+            qual.reasons.append(Reason("sections_disagree", "doubtful",
+                                       f"the {summ['n']} sections' discharges differ by a coefficient of variation of "
+                                       f"{100 * summ['cv']:.1f} % (quality.sections_cv_doubtful = "
+                                       f"{100 * project.quality.sections_cv_doubtful:g} %)", summ["cv"],
+                                       project.quality.sections_cv_doubtful))
+            if qual.grade == "good":
+                qual.grade = "doubtful"
     lap("uncertainty_and_quality")
 
     result = RunResult(dres, q_pairs, level, mapping, res, geom, U, V, None, timings_s=timings, warnings=warnings,
                        stabilization=stab or None, project=project_to_dict(project), piv_reused=cached is not None,
-                       uncertainty=unc, quality=qual)
+                       uncertainty=unc, quality=qual, sections=section_entries, robust=robust_facts,
+                       stiv=stiv_block)
     if out_dir is not None:
         write_outputs(result, project, inputs, Path(out_dir))
     obs("result", result)
@@ -564,6 +672,9 @@ def write_outputs(result: RunResult, project: Project, inputs: Inputs, out: Path
     stage = Staging(out, in_place=project_file_inside)
     try:
         _write_outputs(result, inputs, stage.path)
+        from .writers import write_standard
+
+        write_standard(result, project, inputs, stage.path)  # mean_field.nc, rectified.tif (with a CRS), video metadata
         result.timings_s["outputs"] = round(time.perf_counter() - t0, 3)  # all but result.json itself
         _write_result_json(result, stage.path)
         stage.commit()
@@ -588,10 +699,11 @@ def _write_result_json(result: RunResult, out: Path) -> None:
 def _write_outputs(result: RunResult, inputs: Inputs, out: Path) -> None:
     d, p = result.discharge, result.piv
     files = result.files
-    lines = ["subsection,station_from_m,station_to_m,area_m2,mean_depth_m,surface_velocity_ms,velocity_filled,discharge_m3s"]
+    lines = ["subsection,station_from_m,station_to_m,area_m2,mean_depth_m,surface_velocity_ms,velocity_filled,discharge_m3s,stiv_velocity_ms"]
+    stiv_v = stiv_stage.stiv_column(result.stiv, len(d.area_m2))
     for i in range(len(d.area_m2)):
         lines.append(f"{i + 1},{d.station_from[i]:.4f},{d.station_to[i]:.4f},{d.area_m2[i]:.5f},{d.mean_depth_m[i]:.4f},"
-                     f"{d.surface_velocity_ms[i]:.5f},{int(d.velocity_filled[i])},{d.sub_discharge_m3s[i]:.5f}")
+                     f"{d.surface_velocity_ms[i]:.5f},{int(d.velocity_filled[i])},{d.sub_discharge_m3s[i]:.5f},{stiv_v[i]}")
     atomic_write_bytes(out / "subsections.csv", ("\n".join(lines) + "\n").encode())
     files["subsections"] = "subsections.csv"
 

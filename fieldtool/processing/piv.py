@@ -48,6 +48,7 @@ from __future__ import annotations
 
 import os
 import warnings
+from collections import deque
 from dataclasses import dataclass
 from typing import Callable, Iterable
 
@@ -96,6 +97,8 @@ class PivParams:
     std_threshold: float = 4.0  # global std test (n sigma)
     min_valid_fraction: float = 0.3  # node valid in fewer pairs than this fraction -> invalid in the average
     engine: str = "fieldtool"  # fieldtool | openpiv (OpenPIV extended_search_area_piv / windef, same outputs)
+    min_texture: float = 0.0  # window rms (frame units) below which a window is featureless: no vector, no ensemble weight
+    frame_gap: int = 1  # pairs are frames (i, i + frame_gap) of the stream (processing/planning.py chooses it)
 
 
 @dataclass
@@ -571,6 +574,9 @@ class _Engine:
             np.conjugate(a.spec_a[k], out=cross)
             cross *= spec_b
             scale = a.scale_a[k] * scale_b
+            if self.p.min_texture > 0:  # texture gate (processing/surface.py): too little texture -> featureless
+                smax = 1.0 / (self.p.min_texture * lv.w)
+                scale = np.where((a.scale_a[k] <= smax) & (scale_b <= smax), scale, np.float32(0.0))
             if k == last and not peaks:
                 ensemble(cross, pred_x, pred_y, None, scale)
                 return None, None, None
@@ -675,7 +681,7 @@ def analyze(
     """
     total = 0
     if hasattr(frames, "__len__"):
-        total = max(len(frames) - 1, 0)  # type: ignore[arg-type]
+        total = max(len(frames) - max(1, int(params.frame_gap)), 0)  # type: ignore[arg-type]
     it = iter(frames)
     try:
         t_prev, first = next(it)
@@ -704,20 +710,26 @@ def analyze(
     subsample = ens is not None and getattr(engine, "spectrum_only", False)
     stride = max(1, total // ENSEMBLE_PAIRS) if subsample else 1  # clip length unknown (total 0): grown below
     per_pair = {k: [] for k in ("u", "v", "t", "dt", "snr", "p2m", "peak", "index")}
-    prev = engine.prepare(first)
-    t_prev = float(t_prev)
+    gap = max(1, int(params.frame_gap))
+    history = deque([(engine.prepare(first), float(t_prev))], maxlen=gap)  # the last `gap` frames, oldest first
+    t_last = float(t_prev)
     i = 0
     for i_frame, (t, img) in enumerate(it, start=1):
         if cancel is not None and cancel():
             raise Cancelled(f"PIV cancelled by the user after {i} pairs")
         img = _check_frame(i_frame, img, shape)
         t = float(t)
-        dt = t - t_prev
-        if not dt > 0:
+        if not t > t_last:
             raise InputFileError(
-                f"frames: timestamps must increase; frame {i_frame} is at {t:.6f} s after {t_prev:.6f} s"
+                f"frames: timestamps must increase; frame {i_frame} is at {t:.6f} s after {t_last:.6f} s"
             )
+        t_last = t
         cur = engine.prepare(img)
+        if len(history) < gap:  # the first frames only fill the history
+            history.append((cur, t))
+            continue
+        prev, t_prev = history[0]
+        dt = t - t_prev
         cb = None
         if ens is not None:
             cb = ens.add_fn(dt, node_mask)
@@ -743,8 +755,11 @@ def analyze(
         i += 1
         if progress is not None:
             progress(i, total)
-        prev, t_prev = cur, t
+        history.append((cur, t))
     if i == 0:
+        if gap > 1:
+            raise ParameterError(f"piv.frame_gap: {gap} frames between the images of a pair, but the selected time "
+                                 "range holds no such pair; lower piv.frame_gap or widen video.start_s / video.end_s")
         raise ParameterError("video: only 1 frame in the selected time range; PIV needs at least 2 — widen "
                              "video.start_s / video.end_s or lower video.step")
 
@@ -828,6 +843,8 @@ class _Ensemble:
                 self.npk += 1
             else:
                 w = self.wpk / max(self.npk, 1)
+            if scale is not None:
+                w = np.where(scale > 0, w, 0.0)  # featureless windows (texture gate) weigh nothing
             wf = w.astype(np.float32)
             if scale is not None:  # planes not normalised yet: unit-energy factors
                 wf *= scale
