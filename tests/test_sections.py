@@ -88,3 +88,18 @@ def test_tui_results_line_for_sections():
         {"name": "main", "discharge_m3s": 10.0}, {"name": "up", "discharge_m3s": 10.4}],
         "sections_summary": {"n": 2, "mean_m3s": 10.2, "std_m3s": 0.283, "cv": 0.0277}})
     assert any("sections" in ln and "CV 2.8 %" in ln and "up 10.400" in ln for ln in lines)
+
+
+def test_viewer_section_list_pick_keeps_names():
+    from fieldtool.viewer.picks import MODES
+
+    st = MODES["sections"].make()
+    st.load([{"name": "weir", "points_px": [[1.5, 2.5], [100.25, 3.0]], "cross_section": "weir.csv"}])
+    st.click(10, 20)
+    st.click(300, 40)
+    v = st.value()
+    assert v[0] == {"name": "weir", "points_px": [[1.5, 2.5], [100.25, 3.0]], "cross_section": "weir.csv"}
+    assert v[1]["points_px"] == [[10.0, 20.0], [300.0, 40.0]] and v[1]["name"] == "section 3"
+    assert [t for t, _ in st.labels()] == ["L2", "R2", "L3", "R3"]
+    st.undo()
+    assert len(st.value()) == 1 and st.pending == [10.0, 20.0]

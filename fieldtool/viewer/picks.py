@@ -234,6 +234,55 @@ class RectListPick(PickState):
         return self.pending is None and bool(self.rects)
 
 
+class SectionListPick(PickState):
+    """More sections of interest (``sections``): two clicks each, the left then the right water edge. A section
+    loaded from the project keeps its other keys (name, cross-section file); a new one is named "section N"."""
+
+    def __init__(self):
+        self.items: list[dict] = []
+        self.pending: list[float] | None = None
+
+    def click(self, x, y, exact: bool = False):
+        if self.pending is None:
+            self.pending = _pt(x, y, exact)
+            return f"section {len(self.items) + 2}: left water edge placed; click the right one"
+        self.items.append({"name": f"section {len(self.items) + 2}", "points_px": [self.pending, _pt(x, y, exact)]})
+        self.pending = None
+        return f"section {len(self.items) + 1} added"
+
+    def undo(self):
+        if self.pending is not None:
+            self.pending = None
+            return "removed the pending left edge"
+        if not self.items:
+            return "nothing to undo"
+        self.pending = self.items.pop()["points_px"][0]
+        return f"section {len(self.items) + 2} reopened: click its right water edge again"
+
+    def value(self):
+        return [dict(it) for it in self.items]
+
+    def load(self, value):
+        self.items = []
+        for it in value or []:
+            pts = it.get("points_px") if isinstance(it, dict) else None
+            if isinstance(pts, list) and len(pts) == 2 and all(len(p) >= 2 for p in pts):
+                self.items.append({**it, "points_px": [_keep(*pts[0][:2]), _keep(*pts[1][:2])]})
+        self.pending = None
+
+    def labels(self):
+        out = []
+        for i, it in enumerate(self.items):
+            out += [(f"L{i + 2}", it["points_px"][0]), (f"R{i + 2}", it["points_px"][1])]
+        if self.pending is not None:
+            out.append((f"L{len(self.items) + 2}", self.pending))
+        return out
+
+    @property
+    def complete(self):
+        return self.pending is None and bool(self.items)
+
+
 class PolygonListPick(PickState):
     """Mask polygons: click vertices; Close (or a click on the first vertex) closes the polygon.
 
@@ -318,6 +367,10 @@ MODES: dict[str, ModeSpec] = {m.key: m for m in (
     ModeSpec("section", "Section end points", "section.points_px", "frame", lambda axes=None: PointsPick(("L", "R")),
              "Click the left then the right water edge of the section (left/right looking downstream).",
              legend="L: left water edge, R: right water edge (looking downstream)", step=2, required=True),
+    ModeSpec("sections", "More sections", "sections", "frame", lambda axes=None: SectionListPick(),
+             "Several sections (optional): for each, click its left then its right water edge; each is measured on "
+             "the same velocity field (set its own cross-section file in the project, default the main one).",
+             legend="L2/R2, L3/R3, ...: left and right water edges of the 2nd, 3rd, ... section"),
     ModeSpec("roi", "ROI rectangle", "roi.rect_px", "frame", lambda axes=None: RectPick(),
              "Click two opposite corners of the region where PIV runs.",
              legend="C1, C2: opposite corners of the region where PIV runs", step=3),
