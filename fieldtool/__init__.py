@@ -1,3 +1,11 @@
 """fieldtool: river discharge from a surface video (LSPIV) and a surveyed cross-section."""
 
 __version__ = "0.1.0"
+
+import os as _os
+
+# FFmpeg inside OpenCV prints its own lines ("moov atom not found") on stderr for a broken clip; the
+# message fieldtool gives (one line naming the file) is enough. FIELDTOOL_DEBUG=1 keeps them.
+if not _os.environ.get("FIELDTOOL_DEBUG"):
+    _os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")
+    _os.environ.setdefault("OPENCV_LOG_LEVEL", "ERROR")

@@ -206,13 +206,15 @@ def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     debug = "--debug" in argv or bool(os.environ.get("FIELDTOOL_DEBUG"))
     argv = [a for a in argv if a != "--debug"]
-    old_show = warnings.showwarning
-    warnings.showwarning = _show_warning
-    try:
-        return _main(argv, debug)
-    finally:
-        warnings.showwarning = old_show
-        end_progress_line()
+    from .errors import FieldToolWarning
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("always", FieldToolWarning)
+        warnings.showwarning = _show_warning
+        try:
+            return _main(argv, debug)
+        finally:
+            end_progress_line()
 
 
 def _main(argv: list[str], debug: bool) -> int:

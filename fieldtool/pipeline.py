@@ -21,7 +21,7 @@ from typing import Callable, Iterator
 import numpy as np
 
 from . import __version__, piv_cache, stiv_stage
-from .errors import Cancelled, FieldToolError, GeometryError, ParameterError
+from .errors import Cancelled, FieldToolError, GeometryError, InputFileError, ParameterError
 from .processing import cross_section as xs
 from .processing import discharge as dq
 from .processing import ortho
@@ -184,6 +184,11 @@ def load_inputs(project: Project) -> Inputs:
     v = project.video
     if not v.path:
         raise ParameterError("video.path: no video given; set the clip to analyse")
+    from .validation import path_problem
+
+    msg = path_problem(project.resolve(v.path), "video.path", kind="video")  # a FIFO must not block the open
+    if msg:
+        raise InputFileError(f"video.path: {msg}")
     src = FrameSource(project.resolve(v.path), v.start_s, v.end_s, v.step, v.frame_interval_s)
     lens = None
     if project.calibration.path:

@@ -435,6 +435,10 @@ class _Validator:
             msg = _path_text_problem(v) or (out_path_problem(v) if spec.path == "out" else None)
             if msg:
                 self.err(k, msg)
+            elif spec.path == "out" and (not v.strip() or v.endswith(("/", os.sep)) or Path(v).name in ("", ".", "..")):
+                self.err(k, f"{v!r} is not a file name; give one like \"run.rrd\"")
+            elif spec.path == "out" and os.path.isabs(v) and os.path.exists(v) and not os.path.isfile(v):
+                self.err(k, f"{v}: exists and is not a regular file (a folder, pipe or device); give a file name")
             return
         limit = spec.max_items or TEXT_LIMIT
         if len(v) > limit:
@@ -690,7 +694,7 @@ class _Validator:
         if not self.ok("water_level.method"):
             return
         req = {"value": ("value_m",), "width": ("width_m",), "dem": ("dem_precision_mm",),
-               "angle_height": ("dh_m",), "image": ()}[m]
+               "angle_height": ("dh_m",), "image": ()}.get(m, ())
         for name in req:
             if getattr(w, name) is None:
                 self.err(f"water_level.{name}", f"is needed for water_level.method = {m}; give it")

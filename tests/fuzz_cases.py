@@ -213,6 +213,7 @@ def file_cases(full: bool = True) -> list[Case]:
 
     def truncated_video(d: Path, proj: Path):
         data = (d / "river.mp4").read_bytes()
+        (d / "river.mp4").unlink()  # a hard link to the scene's clip: never truncate that one
         (d / "river.mp4").write_bytes(data[: len(data) // 3])
 
     def set_xs(content: bytes):
@@ -297,7 +298,7 @@ def command_cases() -> list[Case]:
         c("preview-out-dir", lambda d, p: ["preview", str(p), "--out", str(d)]),
         c("preview-out-proc", lambda d, p: ["preview", str(p), "--out", "/proc/x.png"]),
         c("report-list-json", report_json(b"[1,2]")),
-        c("report-nan-json", report_json(b'{"discharge_m3s": NaN, "files": {}}')),
+        c("report-nan-json", report_json(b'{"discharge_m3s": NaN, "files": {}}'), refuse=False),  # an old result
         c("report-binary-json", report_json(bytes(range(256)))),
         c("report-files-not-dict", report_json(b'{"files": [1]}')),
         c("report-missing", lambda d, p: ["report", str(d / "nope"), "--db", str(d / "h.db")]),
@@ -393,7 +394,7 @@ def run_in_process(argv: list[str]) -> tuple[int, str]:
     return rc, err.getvalue()
 
 
-def run_subprocess(argv: list[str], cwd: Path, timeout: float = 60.0) -> tuple[int, str, bool]:
+def run_subprocess(argv: list[str], cwd: Path, timeout: float = 240.0) -> tuple[int, str, bool]:
     env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]), FIELDTOOL_DB=str(cwd / "h.db"))
     try:
         p = subprocess.run([sys.executable, "-m", "fieldtool.cli", *argv], cwd=cwd, capture_output=True, text=True,
@@ -416,14 +417,19 @@ class Runner:
     def _folder(self, case: Case) -> Path:
         self.n += 1
         d = self.work / f"{self.n:04d}"
-        shutil.copytree(self.scene, d, ignore=shutil.ignore_patterns("out", "*.rrd"))
+        # hard links: fieldtool replaces files (atomic writes, swapped folders), never edits them in place
+        shutil.copytree(self.scene, d, ignore=shutil.ignore_patterns("out", "*.rrd"), copy_function=os.link)
+        for name in ("project.toml", "cross_section.csv"):  # the cases edit these in place: own copies
+            data = (d / name).read_bytes()
+            (d / name).unlink()
+            (d / name).write_bytes(data)
         return d
 
     def run(self, case: Case) -> Outcome:
         d = self._folder(case)
         proj = d / "project.toml"
         out = d / "out"
-        shutil.copytree(self.seed_out, out)
+        shutil.copytree(self.seed_out, out, copy_function=os.link)
         if case.setup is None:
             data = with_value(self.base, case.key, case.value) if case.key else self.base
             proj.write_text(to_toml(data), encoding="utf-8")

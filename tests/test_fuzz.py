@@ -26,7 +26,7 @@ def runner(short_scene, tmp_path_factory):
 
 
 def _sample():
-    keys = [c for c in F.key_cases(full=False) if c.must_refuse][::3]
+    keys = [c for c in F.key_cases(full=False) if c.must_refuse][::16]
     passing = [c for c in F.key_cases(full=False) if c.id in ("name=unicode", "video.start_s=zero")]
     files = [c for c in F.file_cases() if c.id in ("project-binary", "project-truncated", "video-fifo", "xs-binary")]
     cmds = [c for c in F.command_cases() if c.id in ("calibrate-square-inf", "report-list-json",

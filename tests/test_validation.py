@@ -49,6 +49,7 @@ def test_every_key_is_declared_or_generic():
     ("stabilize.regions_px", [[1.0, 2.0]], "stabilize.regions_px"),
     ("video.path", "x" * 5000, "video.path"),
     ("name", "a\nb", "name"),
+    ("rerun.path", ".", "rerun.path"),
     ("cross_section.depth_m", 1e308, "cross_section.depth_m"),
 ])
 def test_bad_values_name_their_key(proj, path, value, key):
