@@ -104,6 +104,7 @@ class RunResult:
     stabilization: dict | None = None
     project: dict = field(default_factory=dict)
     piv_reused: bool = False  # the PIV field came from the output folder's piv_cache.npz
+    piv_fast: dict | None = None  # region box and pair sampling of the fast path (see piv_region / run_piv_fast)
 
     def summary(self) -> dict:
         d = self.discharge
@@ -132,6 +133,7 @@ class RunResult:
             "ortho_details": self.mapping.details,
             "stabilization": self.stabilization,
             "piv_reused": self.piv_reused,
+            **_fast_summary(self.piv_fast, int(getattr(self.piv, "n_pairs", 0) or len(self.q_pairs))),
             "warnings": self.warnings + d.warnings,
             "timings_s": self.timings_s,
             "files": self.files,
@@ -329,6 +331,62 @@ def piv_params(project: Project):
                      std_threshold=p.std_threshold, min_valid_fraction=p.min_valid_fraction, engine=p.engine)
 
 
+def piv_region(project: Project, inputs: Inputs, params, roi, segments) -> tuple[int, int, int, int] | None:
+    """The box PIV correlates (working-image px), by ``[piv] region``: ``section`` a band around the section
+    segment(s) (list of (2, 2) working-image points) within the ROI, ``roi`` the ROI (None = whole frame),
+    ``full`` the whole frame (None)."""
+    from .processing import piv_fast
+
+    region = project.piv.region
+    if region not in piv_fast.REGIONS:
+        raise ParameterError(f"piv.region: {region!r} is not one of {', '.join(piv_fast.REGIONS)}")
+    if region == "full":
+        return None
+    if region == "roi":
+        return roi
+    margin = piv_fast.band_margin_px(params.window_px, params.overlap_px, params.passes, params.search_px)
+    w0 = params.window_px * 2 ** (params.passes - 1)
+    side = max(w0, int(params.search_px or 0)) + 2 * (params.window_px - params.overlap_px) * 2 ** (params.passes - 1)
+    return piv_fast.section_band(inputs.shape, segments, margin, roi, min_side_px=side)
+
+
+def run_piv_fast(make_frames, n_pairs: int, params, roi, mask, max_speed, cancel, on_pair, pair_q,
+                 rel_ci: float, min_pairs: int):
+    """PIV with pairs added until the discharge has converged (``processing.piv_fast.converge``), each round's
+    frames read by a background thread. Returns (PivResult, dict of pairs_used, converged, ...)."""
+    from dataclasses import asdict
+
+    from .processing import piv as piv_mod
+    from .processing import piv_fast
+
+    if not (isinstance(rel_ci, (int, float)) and np.isfinite(rel_ci) and rel_ci > 0):
+        raise ParameterError(f"piv.converge_rel_ci: {rel_ci!r} must be a number above 0 (0.005 = +-0.5 %)")
+    if isinstance(min_pairs, bool) or not isinstance(min_pairs, int) or min_pairs < 2:
+        raise ParameterError(f"piv.min_pairs: {min_pairs!r} must be a whole number of 2 or more (30 is usual)")
+
+    def run(frames, select, carry):
+        reader = piv_fast.prefetch(frames)
+        try:
+            return piv_mod.analyze(reader, params, roi=roi, mask=mask, max_speed_px_s=max_speed, cancel=cancel,
+                                   on_pair=on_pair, select=select, carry=carry)
+        finally:
+            reader.close()
+
+    res, conv, _ = piv_fast.converge(make_frames, n_pairs, run, pair_q, rel_ci=rel_ci, min_pairs=min_pairs)
+    return res, asdict(conv)
+
+
+def _fast_summary(fast: dict | None, n_pairs: int) -> dict:
+    """result.json keys of the fast path: pairs_used, converged, piv_region."""
+    fast = fast or {}
+    out = {"pairs_used": int(fast.get("pairs_used", n_pairs)), "converged": fast.get("converged")}
+    if fast:
+        out["piv_sampling"] = {k: fast.get(k) for k in ("pairs_total", "rel_ci", "threshold", "min_pairs", "rounds")
+                               if k in fast}
+        out["piv_region"] = {k: fast.get(k) for k in ("region", "box_px", "roi_px")}
+    return out
+
+
 # ---------------------------------------------------------------------------------------------
 # the whole run
 
@@ -368,6 +426,8 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
     roi, mask = roi_and_mask(project, inputs)
 
     params = piv_params(project)
+    roi_user = roi
+    roi = piv_region(project, inputs, params, roi, [geom.p_img])
     x, y = piv_mod.grid(inputs.shape, params, roi)
     max_speed = None
     if project.piv.max_velocity_ms is not None:
@@ -394,20 +454,41 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
     # the pixel-space field is reused when only the mapping, level, section or alpha changed (not while
     # streaming to an observer, who wants to see the frames and pairs)
     cache_dir = Path(out_dir) if out_dir is not None and observer is None else None
-    key = piv_cache.piv_key(project, max_speed) if cache_dir is not None else ""
-    cached = piv_cache.load(cache_dir, key) if cache_dir is not None else None
+    key = piv_cache.piv_key(project, max_speed, roi) if cache_dir is not None else ""
+    cached = piv_cache.load(cache_dir, key, with_extra=True) if cache_dir is not None else None
+    fast = {"region": project.piv.region, "box_px": None if roi is None else list(roi),
+            "roi_px": None if roi_user is None else list(roi_user)}
     if cached is not None:
-        res, stab_cached = cached
+        res, stab_cached, extra = cached
         stab.update(stab_cached or {})
+        fast.update(extra or {})
+    elif not project.piv.all_pairs and (n_exp := inputs.source.estimated_count()) > 2:
+        def frames_once():
+            return working_frames(project, inputs, cancel, obs, stab if project.stabilize.enabled else None,
+                                  progress)
+
+        res, conv = run_piv_fast(frames_once, n_exp - 1, params, roi, mask, max_speed, cancel, on_pair,
+                                 pair_q_fn(geom), project.piv.converge_rel_ci, project.piv.min_pairs)
+        fast.update(conv)
+        if cache_dir is not None:
+            piv_cache.save(cache_dir, key, res, stab or None, conv)
     else:
-        frames = working_frames(project, inputs, cancel, obs, stab if project.stabilize.enabled else None, progress)
+        from .processing.piv_fast import prefetch
+
+        reader = prefetch(working_frames(project, inputs, cancel, obs, stab if project.stabilize.enabled else None,
+                                         progress))
+        frames = reader
         n_expected = inputs.source.estimated_count()
         if n_expected:
             frames = _Sized(frames, n_expected)  # lets the ensemble plan which pairs get per-pair vectors
-        res = piv_mod.analyze(frames, params, roi=roi, mask=mask, max_speed_px_s=max_speed,
-                              progress=None, cancel=cancel, on_pair=on_pair)
+        try:
+            res = piv_mod.analyze(frames, params, roi=roi, mask=mask, max_speed_px_s=max_speed,
+                                  progress=None, cancel=cancel, on_pair=on_pair)
+        finally:
+            reader.close()
+        fast.update(pairs_used=int(res.n_pairs or 0), converged=None)
         if cache_dir is not None:
-            piv_cache.save(cache_dir, key, res, stab or None)
+            piv_cache.save(cache_dir, key, res, stab or None, fast)
     lap("frames_and_piv")
 
     obs("stage", "discharge")
@@ -428,7 +509,8 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
     lap("discharge")
 
     result = RunResult(dres, q_pairs, level, mapping, res, geom, U, V, None, timings_s=timings, warnings=warnings,
-                       stabilization=stab or None, project=project_to_dict(project), piv_reused=cached is not None)
+                       stabilization=stab or None, project=project_to_dict(project), piv_reused=cached is not None,
+                       piv_fast=fast)
     if out_dir is not None:
         write_outputs(result, project, inputs, Path(out_dir))
     obs("result", result)

@@ -144,6 +144,10 @@ class PivCfg:
     median_threshold: float = 2.0  # normalised local median test threshold
     std_threshold: float = 4.0  # global standard-deviation test (n sigma)
     min_valid_fraction: float = 0.3  # mean/median: a node valid in fewer pairs than this is dropped
+    region: str = "section"  # section (a band around the section(s), within the ROI) | roi | full (whole frame)
+    all_pairs: bool = False  # true: correlate every pair; false: add pairs until the discharge has converged
+    converge_rel_ci: float = 0.005  # stop when the 95 % interval of the mean per-pair Q is within +- this fraction
+    min_pairs: int = 30  # fewest pairs before the convergence test
 
 
 @dataclass

@@ -120,6 +120,7 @@ class PivResult:
     dt_s: np.ndarray | None = None  # (n_pairs,) time between the frames of each pair, s
     pair_index: np.ndarray | None = None  # (n_pairs,) index of each of these pairs in the clip (0 = frames 0-1)
     n_pairs: int | None = None  # pairs correlated in the clip (ensemble: more than the per-pair fields hold)
+    carry: object | None = None  # analyze(select=...): state that a later call continues (``carry=``); not saved
 
 
 # --------------------------------------------------------------------------------------------- geometry
@@ -650,6 +651,8 @@ def analyze(
     cancel: Callable[[], bool] | None = None,
     on_pair: Callable | None = None,
     backend: str = "auto",
+    select=None,
+    carry=None,
 ) -> PivResult:
     """Run PIV over consecutive frame pairs and average in time.
 
@@ -668,6 +671,11 @@ def analyze(
         in the clip; ensemble: the sampled pairs only, see the module docstring).
     backend : "auto" (GPU when CuPy with a CUDA device is importable and passes its self-check, single pass
         only; else CPU), "cpu" or "gpu". See piv_gpu (unverified on real hardware).
+    select : pair indices (0 = frames 0-1 of the stream) to correlate, or None for every pair. Frames that belong
+        to no selected pair are read but not transformed, and the stream is left after the last selected pair.
+        Every selected pair gets per-pair vectors. Used by ``piv_fast.converge`` (pairs added in rounds).
+    carry : ``PivResult.carry`` of an earlier call on the same clip, geometry and parameters: its ensemble sums
+        and per-pair fields are continued, so the result covers the pairs of all calls.
 
     Returns
     -------
@@ -701,13 +709,29 @@ def analyze(
 
     ens = _Ensemble(engine, fin, params.snr_min) if params.averaging == "ensemble" else None
     # ensemble: per-pair vectors (inverse FFT + peaks of the final pass) only on every stride-th pair
-    subsample = ens is not None and getattr(engine, "spectrum_only", False)
+    subsample = ens is not None and getattr(engine, "spectrum_only", False) and select is None
     stride = max(1, total // ENSEMBLE_PAIRS) if subsample else 1  # clip length unknown (total 0): grown below
     per_pair = {k: [] for k in ("u", "v", "t", "dt", "snr", "p2m", "peak", "index")}
-    prev = engine.prepare(first)
+    n_done = 0
+    if carry is not None:  # continue an earlier call (select=): its ensemble sums and per-pair fields
+        ens, per_pair, n_done = carry.ensemble, carry.per_pair, carry.n_pairs
+        if ens is not None:
+            ens.engine = engine
+    wanted = None if select is None else frozenset(int(k) for k in select)
+    last_wanted = max(wanted) if wanted else -1
+    prev = engine.prepare(first) if wanted is None or 0 in wanted else None
     t_prev = float(t_prev)
     i = 0
     for i_frame, (t, img) in enumerate(it, start=1):
+        if wanted is not None and i not in wanted:  # hook of ``select``: this pair is skipped
+            if i >= last_wanted:
+                break
+            img = _check_frame(i_frame, img, shape)
+            prev, t_prev = (engine.prepare(img) if i + 1 in wanted else None), float(t)
+            i += 1
+            if progress is not None:
+                progress(i, total)
+            continue
         if cancel is not None and cancel():
             raise Cancelled(f"PIV cancelled by the user after {i} pairs")
         img = _check_frame(i_frame, img, shape)
@@ -747,6 +771,10 @@ def analyze(
     if i == 0:
         raise ParameterError("video: only 1 frame in the selected time range; PIV needs at least 2 — widen "
                              "video.start_s / video.end_s or lower video.step")
+    if wanted is not None:
+        i = n_done + len(wanted & set(range(i)))
+        if not per_pair["u"]:
+            raise ParameterError("video: none of the selected pairs is in the clip; PIV needs at least 2 frames")
 
     u_pairs, v_pairs = np.stack(per_pair["u"]), np.stack(per_pair["v"])
     n_valid = np.sum(np.isfinite(u_pairs), axis=0)
@@ -775,8 +803,17 @@ def analyze(
         x=X, y=Y, u=u_avg, v=v_avg, valid=valid, valid_fraction=vf, u_pairs=u_pairs, v_pairs=v_pairs,
         t_pairs=np.asarray(per_pair["t"]), snr=snr_med, params=params, peak2mean=p2m_med, peak=peak_med,
         replaced=replaced, ensemble_snr=ens_snr, dt_s=dts, pair_index=np.asarray(per_pair["index"], dtype=np.int64),
-        n_pairs=i,
+        n_pairs=i, carry=_Carry(ens, per_pair, i) if wanted is not None else None,
     )
+
+
+@dataclass
+class _Carry:
+    """What ``analyze(select=...)`` hands to its next call: the ensemble sums, per-pair fields, pairs done."""
+
+    ensemble: object | None
+    per_pair: dict
+    n_pairs: int
 
 
 def _nanmedian_t(stack: np.ndarray) -> np.ndarray:
