@@ -786,7 +786,7 @@ def analyze(
     dts = np.asarray(per_pair["dt"])
     ens_snr = None
     if ens is not None:
-        u_avg, v_avg, ens_ok, ens_snr = ens.result()
+        u_avg, v_avg, ens_ok, ens_snr = ens.result(keep=wanted is not None)
     else:
         if params.averaging == "mean":
             with np.errstate(all="ignore"):
@@ -883,9 +883,10 @@ class _Ensemble:
 
         return add
 
-    def result(self):
+    def result(self, keep: bool = False):
+        """Time-averaged field; ``keep``: leave the sums usable for more pairs (the inverse FFT works in place)."""
         lv = self.lv
-        pk = self.engine.ensemble_peaks(self.spec)
+        pk = self.engine.ensemble_peaks(self.spec.copy() if keep else self.spec)
         with np.errstate(all="ignore"):
             dt = self.wdt / self.wsum
             dx = pk.dx + self.px / self.wsum
