@@ -265,18 +265,28 @@ def roi_and_mask(project: Project, inputs: Inputs) -> tuple[tuple[int, int, int,
 
 def working_frames(project: Project, inputs: Inputs, cancel: Callable[[], bool] | None = None,
                    observer: _Guarded | None = None, stab_report: dict | None = None,
-                   progress: Progress | None = None, stage: str = "frames") -> Iterator[tuple[float, np.ndarray]]:
-    """Stream (t_s, float32 working frame): undistorted, stabilised, filtered."""
+                   progress: Progress | None = None, stage: str = "frames",
+                   want: Callable[[int], bool] | None = None) -> Iterator[tuple[float, np.ndarray]]:
+    """Stream (t_s, float32 working frame): undistorted, stabilised, filtered.
+
+    ``want(k)``: frames at stream positions k that fail it come as (t_s, None), decoded past but not converted
+    (the fast path's rounds need only their own pairs' frames). Ignored with stabilisation, which tracks every
+    frame, and with a filter stack marked ``temporal``."""
     from .processing.filters import FilterStack
 
     stack = FilterStack.from_config(project.filters) if project.filters else None
+    if project.stabilize.enabled or getattr(stack, "temporal", False):
+        want = None
     stabilizer = None
     total = inputs.source.estimated_count()
 
     def corrected() -> Iterator[tuple[int, float, np.ndarray]]:
         nonlocal stabilizer
-        for fr in inputs.source:
+        for fr in (inputs.source if want is None else inputs.source.iter_wanted(want)):
             img = fr.image
+            if img is None:
+                yield fr.index, fr.t_s, None
+                continue
             if inputs.lens is not None:
                 img = inputs.lens.undistort(img)
             if project.stabilize.enabled:
@@ -293,12 +303,19 @@ def working_frames(project: Project, inputs: Inputs, cancel: Callable[[], bool] 
             yield fr.index, fr.t_s, img
 
     if stack is not None and stack.needs_prepass:
+        want, want_later = None, want
         stack.prepass(img for _, _, img in corrected())
+        want = want_later
         stabilizer = None  # registered again on the second pass, identically
     log_every = max(1, total // 20) if total else 10
     for k, (idx, t, img) in enumerate(corrected()):
         if cancel is not None and cancel():
             raise Cancelled("cancelled by the user")
+        if img is None:
+            if progress is not None:
+                progress(stage, k + 1, total)
+            yield t, None
+            continue
         out = stack.apply(img) if stack is not None else img.astype(np.float32)
         if observer is not None and k % log_every == 0:
             observer("frame", idx, t, img, out)
@@ -463,9 +480,9 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
         stab.update(stab_cached or {})
         fast.update(extra or {})
     elif not project.piv.all_pairs and (n_exp := inputs.source.estimated_count()) > 2:
-        def frames_once():
+        def frames_once(want=None):
             return working_frames(project, inputs, cancel, obs, stab if project.stabilize.enabled else None,
-                                  progress)
+                                  progress, want=want)
 
         res, conv = run_piv_fast(frames_once, n_exp - 1, params, roi, mask, max_speed, cancel, on_pair,
                                  pair_q_fn(geom), project.piv.converge_rel_ci, project.piv.min_pairs)

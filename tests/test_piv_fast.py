@@ -66,12 +66,13 @@ def test_select_leaves_the_stream_after_the_last_pair_and_transforms_only_needed
     seen = []
 
     def frames():
-        for k, fr in enumerate(clip):
+        for k, (t, img) in enumerate(clip):
             seen.append(k)
-            yield fr
+            yield t, (img if k in (0, 1, 2, 3, 4) else None)  # frames of no selected pair need not be decoded
 
     res = analyze(frames(), PivParams(window_px=16, overlap_px=8, passes=1), select=[1, 3])
     assert res.n_pairs == 2 and max(seen) <= 5  # pair 3 = frames 3-4; frame 5 read, then the stream is left
+    assert list(res.pair_index) == [1, 3]
 
 
 def test_converge_stops_at_min_pairs_when_the_pairs_agree_and_uses_all_when_they_do_not(clip):
@@ -83,10 +84,10 @@ def test_converge_stops_at_min_pairs_when_the_pairs_agree_and_uses_all_when_they
     def q_mean_u(x, y, u, v):
         return float(np.nanmean(u))
 
-    res, info, q = piv_fast.converge(lambda: iter(clip), 8, run, q_mean_u, rel_ci=0.05, min_pairs=3)
+    res, info, q = piv_fast.converge(lambda want: iter(clip), 8, run, q_mean_u, rel_ci=0.05, min_pairs=3)
     assert info.converged and info.pairs_used == 3 and info.rounds == 1 and len(q) == 3
     noisy = iter(np.random.default_rng(0).normal(1.0, 0.8, 100))
-    res, info, q = piv_fast.converge(lambda: iter(clip), 8, run, lambda *a: next(noisy), rel_ci=0.01, min_pairs=3)
+    res, info, q = piv_fast.converge(lambda want: iter(clip), 8, run, lambda *a: next(noisy), rel_ci=0.01, min_pairs=3)
     assert not info.converged and info.pairs_used == 8 and info.rounds >= 2 and res.carry is None
 
 
@@ -156,3 +157,16 @@ def test_pipeline_band_and_convergence_keys_and_cache(scene):
 
     with pytest.raises(ParameterError, match="piv.region"):
         run_project(proj, scene / "out")
+
+
+def test_frame_source_decodes_past_unwanted_frames_with_the_same_times(short_scene):
+    from fieldtool.processing.frames import FrameSource
+
+    src = FrameSource(short_scene.video_path, step=2)
+    full = list(src)
+    part = list(src.iter_wanted(lambda k: k % 3 == 0))
+    assert [f.t_s for f in part] == [f.t_s for f in full] and [f.index for f in part] == [f.index for f in full]
+    for k, (a, b) in enumerate(zip(full, part)):
+        assert (b.image is not None) == (k % 3 == 0)
+        if b.image is not None:
+            assert np.array_equal(a.image, b.image)

@@ -726,8 +726,11 @@ def analyze(
         if wanted is not None and i not in wanted:  # hook of ``select``: this pair is skipped
             if i >= last_wanted:
                 break
-            img = _check_frame(i_frame, img, shape)
-            prev, t_prev = (engine.prepare(img) if i + 1 in wanted else None), float(t)
+            if i + 1 in wanted:  # frames of no selected pair may come as None (not decoded)
+                prev = engine.prepare(_check_frame(i_frame, img, shape))
+            else:
+                prev = None
+            t_prev = float(t)
             i += 1
             if progress is not None:
                 progress(i, total)

@@ -127,7 +127,9 @@ def converge(make_frames: Callable[[], Iterator], n_pairs_total: int, run: Calla
 
     Parameters
     ----------
-    make_frames : () -> a fresh stream of (t_s, frame) over the whole clip (read once per round).
+    make_frames : (want) -> a fresh stream of (t_s, frame) over the whole clip (read once per round); a frame at
+        stream position k with ``want(k)`` false may come as (t_s, None) (not decoded: no pair of the round
+        needs it). Position 0 is always wanted (it sets the frame size).
     n_pairs_total : pairs in the clip (frames - 1), from the container.
     run : run(frames, select, carry) -> piv.PivResult; ``piv.analyze`` with its other arguments bound.
     pair_q : pair_q(x, y, u_px_s, v_px_s) -> discharge (m³/s) of one pair's field.
@@ -147,7 +149,8 @@ def converge(make_frames: Callable[[], Iterator], n_pairs_total: int, run: Calla
     res, q, rel = None, [], None
     while True:
         sel = np.sort(order[done:target])
-        res = run(make_frames(), sel, None if res is None else res.carry)
+        need = frozenset(sel.tolist()) | frozenset((sel + 1).tolist()) | {0}
+        res = run(make_frames(need.__contains__), sel, None if res is None else res.carry)
         rounds += 1
         q.extend(pair_q(res.x, res.y, res.u_pairs[k], res.v_pairs[k]) for k in range(len(q), len(res.u_pairs)))
         done = target
