@@ -61,7 +61,9 @@ def cmd_preview(args: argparse.Namespace) -> int:
         first = next(iter(inputs.source)).image
         if inputs.lens is not None:
             first = inputs.lens.undistort(first)
-        out = preview(project.filters, first)
+        from .pipeline import roi_and_mask
+
+        out = preview(project.filters, first, roi=roi_and_mask(project, inputs)[0])
     ok, buf = cv2.imencode(".png", out)
     if not ok:
         raise ParameterError("filters: the preview could not be encoded as PNG")

@@ -83,9 +83,9 @@ class OrthoCfg:
     |P1P3|, |P2P4|.
     """
 
-    method: str = "distances"  # distances | world | pose | none
+    method: str = "distances"  # distances | world | pose | two_points (nadir, P1 P2 + |P1P2|) | none
     gcp_px: list[Point] = field(default_factory=list)  # [[x, y], ...] pixels, P1..P4 (pose: 6+)
-    distances_m: list[float] = field(default_factory=list)  # L1..L6 (method = distances)
+    distances_m: list[float] = field(default_factory=list)  # L1..L6 (method = distances); [|P1P2|] (method = two_points)
     gcp_world_m: list[list[float]] = field(default_factory=list)  # [[X, Y], ...] or [[X, Y, Z], ...] (pose)
     resolution_m: float | None = None  # pixel size of the rectified image (m); None = automatic
 
@@ -100,7 +100,7 @@ class WaterLevelCfg:
     width_m: float | None = None  # method = width: measured wetted width, water edge to water edge (m)
     width_uncertainty_m: float | None = None  # method = width: 1-sigma of that width (m); None = 0.02 m
     # adapted Hellebaut (DEM of one bank, x across the river = cross-section station, y along the shore)
-    dem_path: str = ""  # TIFF of elevations (m, datum of the cross-section); row 0 = y_max
+    dem_path: str = ""  # raster of elevations, any GDAL format (GeoTIFF, .asc, ...; m, datum of the cross-section); row 0 = y_max
     dem_x_m: list[float] = field(default_factory=list)  # [x_min, x_max] of the DEM domain (m, = station)
     dem_y_m: list[float] = field(default_factory=list)  # [y_min, y_max] of the DEM domain (m)
     dem_precision_mm: float | None = None  # DEM pixel size (mm/pixel); checked against domain / size

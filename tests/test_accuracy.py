@@ -26,10 +26,31 @@ def test_discharge_within_3_percent(name, tmp_path):
     assert summary["discharge_p05_m3s"] <= summary["discharge_p95_m3s"]
 
 
+@pytest.fixture(scope="module")
+def nadir_scene(tmp_path_factory):
+    return render_scene(presets.get("nadir", duration_s=2.0), tmp_path_factory.mktemp("nadir"))
+
+
 @pytest.mark.slow
-def test_nadir_without_gcps_scale_from_wetted_width(tmp_path):
+def test_nadir_with_two_gcps(nadir_scene, tmp_path):
+    """Drone clip, simplest ortho: two GCPs across the river (P1, P3) and their taped distance."""
+    import numpy as np
+
+    truth = nadir_scene
+    proj = load_project(truth.project_path)
+    proj.ortho.method = "two_points"
+    proj.ortho.gcp_px = [proj.ortho.gcp_px[0], proj.ortho.gcp_px[2]]
+    proj.ortho.distances_m = [float(np.linalg.norm(truth.gcp_world_m[0] - truth.gcp_world_m[2]))]
+    result = run_project(proj, None)
+    assert result.mapping.method == "two_points"
+    err = (result.discharge.discharge_m3s - truth.discharge_m3s) / truth.discharge_m3s
+    assert abs(err) < 0.03, f"{100 * err:+.2f} %"
+
+
+@pytest.mark.slow
+def test_nadir_without_gcps_scale_from_wetted_width(nadir_scene):
     """Thesis 8.2: no orthorectification; the image scale is the wetted width over the section's pixel length."""
-    truth = render_scene(presets.get("nadir", duration_s=2.0), tmp_path / "scene")
+    truth = nadir_scene
     proj = load_project(truth.project_path)
     proj.ortho.method = "none"
     result = run_project(proj, None)

@@ -194,3 +194,25 @@ def test_preview():
         preview([{"name": "background"}], img)
     frames = _glint_clip(n=6)
     assert preview([{"name": "background"}], frames[2], frames=frames).dtype == np.uint8
+
+
+def test_filters_work_inside_the_roi_only():
+    """Thesis 9.2.7 / PIVlab: a bright sky outside the ROI must not set the capping limit or the
+    high-pass gain; outside the ROI the frame is left as it was."""
+    from fieldtool.processing.filters import FilterStack
+
+    rng = np.random.default_rng(0)
+    img = np.full((120, 160), 40.0, np.float32) + rng.normal(0, 5, (120, 160)).astype(np.float32)
+    img[:40] = 250.0  # sky
+    roi = (20, 60, 140, 110)
+    items = [{"name": "capping"}, {"name": "highpass", "kernel_px": 7}]
+    whole = FilterStack.from_config(items)
+    whole.apply(img)
+    inside = FilterStack.from_config(items, roi=roi)
+    out = inside.apply(img)
+    crop_only = FilterStack.from_config(items)
+    ref = crop_only.apply(img[60:110, 20:140].copy())
+    np.testing.assert_allclose(out[60:110, 20:140], ref)
+    np.testing.assert_array_equal(out[:60], img[:60])
+    lim_roi, lim_whole = inside.resolved()[0]["limit"], whole.resolved()[0]["limit"]
+    assert lim_roi < 70 < lim_whole  # the sky raised the whole-frame limit far above the water's

@@ -76,3 +76,51 @@ def test_rectified_image_axes():
     X, Y = m.image_to_world(np.array([[20.0, 10.0]]))[0]
     col, row = (A @ [X, Y, 1])[:2]
     assert out[int(round(row)), int(round(col))] == 255
+
+
+def test_two_points_similarity():
+    """Two GCPs: scale, rotation and shift recovered exactly; the world frame puts P1 at 0 and P2 on +X."""
+    from fieldtool.processing.ortho import from_two_points
+
+    ang, scale = np.radians(30.0), 0.02  # m/px
+    R = np.array([[np.cos(ang), -np.sin(ang)], [np.sin(ang), np.cos(ang)]])
+    px = np.array([[100.0, 200.0], [700.0, 500.0], [400.0, 100.0]])
+    world = (scale * (R @ (px * [1, -1]).T)).T + [5.0, -3.0]
+    m = from_two_points(px[:2], gcp_world=world[:2])
+    np.testing.assert_allclose(m.image_to_world(px), world, atol=1e-9)
+    d = float(np.linalg.norm(world[1] - world[0]))
+    m2 = from_two_points(px[:2], d)
+    w2 = m2.image_to_world(px)
+    np.testing.assert_allclose(w2[0], [0, 0], atol=1e-9)
+    np.testing.assert_allclose(w2[1], [d, 0], atol=1e-9)
+    assert m2.details["m_per_px"] == pytest.approx(scale)
+    # velocities: 10 px/s along the image x axis is 0.2 m/s whatever the rotation
+    U, V = m2.rectify_velocity(np.array([300.0]), np.array([300.0]), np.array([10.0]), np.array([0.0]))
+    assert np.hypot(U, V)[0] == pytest.approx(10 * scale)
+    with pytest.raises(GeometryError, match="apart"):
+        from_two_points([[10, 10], [12, 11]], 5.0)
+    with pytest.raises(ParameterError, match="distances_m"):
+        from_two_points(px[:2], None)
+
+
+def test_scale_without_gcps_spans_the_outer_water_edges():
+    """Thesis 8.2 with an island: the two picked points are the outer water edges, so the image scale is
+    their distance on the cross-section (12 m), not the wetted width (11 m, island left out), which
+    would make every velocity 8.3 % too low."""
+    from types import SimpleNamespace
+
+    from fieldtool.pipeline import Inputs, build_mapping
+    from fieldtool.processing.cross_section import CrossSection
+    from fieldtool.project import Project
+
+    cs = CrossSection(np.array([0, 2, 7.5, 8, 8.5, 9, 9.5, 14, 16.0]), np.array([11, 10, 8, 10, 10.4, 10, 8, 10, 11.0]))
+    assert cs.wetted_width(10.0) == pytest.approx(11.0)
+    left, right = cs.water_edges(10.0)
+    assert right - left == pytest.approx(12.0)
+    p = Project()
+    p.ortho.method = "none"
+    p.section.points_px = [[40.0, 300.0], [1240.0, 300.0]]  # 1200 px between the outer edges
+    inputs = Inputs(cs, SimpleNamespace(shape=(720, 1280)), None, None)
+    m = build_mapping(p, inputs, 10.0)
+    assert m.details["m_per_px"] == pytest.approx(12.0 / 1200.0)
+    assert 11.0 / 1200.0 / m.details["m_per_px"] - 1 == pytest.approx(-0.0833, abs=1e-3)  # the old scale's error

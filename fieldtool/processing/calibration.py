@@ -101,6 +101,20 @@ class LensModel:
             )
         return cv2.remap(img, self._maps[0], self._maps[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
 
+    def undistort_points_in(self, pts: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+        """Undistort (N, 2) pixels of an image of ``shape`` (H, W) taken with this lens at another
+        resolution of the same sensor (e.g. a drone photo): scaled to the calibrated size, undistorted,
+        scaled back. ParameterError when the aspect ratio differs (another crop of the sensor)."""
+        h, w = shape
+        W, H = self.image_size
+        sx, sy = w / W, h / H
+        if abs(sx / sy - 1.0) > 0.01:
+            raise ParameterError(f"image of {w}x{h} px has not the aspect ratio of the calibrated {W}x{H} frames: "
+                                 "another crop of the sensor; calibrate it, or give water_level.fov_deg without a "
+                                 "calibration")
+        p = np.asarray(pts, dtype=np.float64).reshape(-1, 2) / [sx, sy]
+        return self.undistort_points(p) * [sx, sy]
+
     def undistort_points(self, pts: np.ndarray) -> np.ndarray:
         """(N, 2) raw (distorted) pixel positions -> (N, 2) undistorted pixel positions, same K."""
         pts = np.asarray(pts, dtype=np.float64).reshape(-1, 2)

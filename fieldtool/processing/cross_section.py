@@ -169,45 +169,168 @@ def from_shape(
 # ---------------------------------------------------------------------------------------------
 # files
 
-_SPLIT = re.compile(r"[,;\s]+")
+# Units a header may name for a column, with their factor to metres.
+_UNITS = {"m": 1.0, "metre": 1.0, "meter": 1.0, "metres": 1.0, "meters": 1.0, "cm": 0.01, "mm": 0.001,
+          "ft": 0.3048, "feet": 0.3048}
+_STATION_NAMES = ("station", "distance", "dist", "chainage", "abscissa", "offset", "x", "s", "afstand", "abscisse")
+_ELEVATION_NAMES = ("elevation", "elev", "z", "height", "altitude", "level", "bed", "cote", "hoogte", "niveau")
+_DECIMAL_COMMA = re.compile(r"^[+-]?\d+,\d+(?:[eE][+-]?\d+)?$")
+_NUMBER = re.compile(r"^[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?$")
 
 
-def parse_xy_text(text: str, source: str = "cross-section") -> CrossSection:
-    """Parse rows of "station, elevation" (comma, semicolon or whitespace; header optional;
-    '#' comments ignored)."""
-    rows = []
-    for lineno, raw in enumerate(text.splitlines(), 1):
-        line = raw.split("#", 1)[0].strip()
-        if not line:
+def _split_fields(lines: list[str]) -> tuple[str, bool]:
+    """Field separator (';', tab, ',' or whitespace) and whether commas are decimal marks.
+
+    Spreadsheets in the European style write ``0,5;10,2`` (semicolons between fields, decimal commas);
+    tab-separated exports may carry decimal commas too. A comma is a field separator only when no
+    semicolon or tab separates the fields.
+    """
+    sample = [ln for ln in lines if ln.strip()][:50]
+    if any(";" in ln for ln in sample):
+        sep = ";"
+    elif any("\t" in ln for ln in sample):
+        sep = "\t"
+    elif any("," in ln for ln in sample):
+        sep = ","
+    else:
+        sep = " "
+    comma_decimal = sep in (";", "\t", " ") and any(_DECIMAL_COMMA.match(f.strip()) for ln in sample
+                                                      for f in _fields(ln, sep))
+    return sep, comma_decimal
+
+
+def _fields(line: str, sep: str) -> list[str]:
+    if sep == " ":
+        return line.split()
+    out = []
+    for f in line.split(sep):
+        parts = f.split()
+        # tabs and spaces mixed in a data row ("0 5<TAB>1"): numbers split on any white space
+        if sep == "\t" and len(parts) > 1 and all(_NUMBER.match(p.replace(",", ".")) for p in parts):
+            out += parts
+        else:
+            out.append(f.strip())
+    return out
+
+
+def _number(cell: str, comma_decimal: bool) -> float | None:
+    c = cell.strip().strip('"').strip("'")
+    if comma_decimal:
+        c = c.replace(",", ".")
+    if not _NUMBER.match(c):
+        return None
+    return float(c)
+
+
+def _header_columns(cells: list[str], source: str, lineno: int) -> tuple[int, int, float, float]:
+    """Columns of station and elevation, and their unit factors, named by a header line."""
+    names = [c.strip().strip('"').lower() for c in cells]
+    unit = []
+    for n in names:
+        m = re.search(r"[\(\[]\s*([a-z]+)\s*[\)\]]|[_ ]([a-z]+)$", n)
+        u = (m.group(1) or m.group(2)) if m else None
+        if u is not None and u not in _UNITS and m.group(1):
+            raise InputFileError(f"{source}, line {lineno}: unit {u!r} in the header is not one of m, cm, mm, ft")
+        unit.append(_UNITS.get(u, 1.0) if u else 1.0)
+    words = [re.split(r"[\s_\(\[]+", n)[0] for n in names]
+    if any(w.startswith("depth") or w in ("diepte", "profondeur") for w in words) and not any(w in _ELEVATION_NAMES for w in words):
+        raise InputFileError(f"{source}, line {lineno}: the header names a depth column; give bed elevations "
+                             "(m, in the datum of the water level), not depths")
+    si = next((i for i, w in enumerate(words) if w in _STATION_NAMES), 0)
+    zi = next((i for i, w in enumerate(words) if w in _ELEVATION_NAMES and i != si), 1 if si == 0 else 0)
+    return si, zi, unit[si] if si < len(unit) else 1.0, unit[zi] if zi < len(unit) else 1.0
+
+
+def parse_rows(rows: list[tuple[int, list[str]]], source: str, comma_decimal: bool = False) -> CrossSection:
+    """Cross-section from rows of cells ``(line_number, [cell, ...])``: header lines optional (they may
+    name the columns and their units, e.g. ``Station (m); Elevation (cm)``); one "station, elevation"
+    pair per data row. Raises InputFileError naming the line of the first row it cannot read."""
+    pts = []
+    si, zi, fs, fz = 0, 1, 1.0, 1.0
+    width = None
+    for lineno, cells in rows:
+        cells = [c for c in cells if c.strip() != ""] if len(cells) > 2 else cells
+        if not cells:
             continue
-        parts = [p for p in _SPLIT.split(line) if p]
-        try:
-            vals = [float(p) for p in parts]
-        except ValueError:
-            if not rows:  # a header line
+        vals = [_number(c, comma_decimal) for c in cells]
+        if any(v is None for v in vals):
+            if not pts and not any(v is not None for v in vals):  # a header line
+                si, zi, fs, fz = _header_columns(cells, source, lineno)
                 continue
-            raise InputFileError(f"{source}, line {lineno}: {raw.strip()!r} is not two numbers 'station, elevation'") from None
-        if len(vals) < 2:
-            raise InputFileError(f"{source}, line {lineno}: expected two numbers 'station, elevation', got {raw.strip()!r}")
-        rows.append(vals[:2])
-    if len(rows) < 2:
-        raise InputFileError(f"{source}: {len(rows)} data row(s); a cross-section needs at least 2 rows of 'station, elevation' in metres")
-    arr = np.asarray(rows)
+            bad = next(c for c, v in zip(cells, vals) if v is None)
+            hint = " (use a decimal point, or ';' between fields when the decimals are commas)" if "," in bad else ""
+            raise InputFileError(f"{source}, line {lineno}: {bad!r} is not a number; expected 'station, elevation' "
+                                 f"in metres{hint}")
+        if len(vals) < 2 or max(si, zi) >= len(vals):
+            raise InputFileError(f"{source}, line {lineno}: expected two numbers 'station, elevation', got "
+                                 f"{' '.join(cells)!r}")
+        if width is None:
+            width = len(vals)
+        elif len(vals) != width:
+            raise InputFileError(f"{source}, line {lineno}: {len(vals)} fields where the rows above have {width}; "
+                                 "check the separators (a decimal comma in a comma-separated file splits a number)")
+        pts.append((vals[si] * fs, vals[zi] * fz))
+    if len(pts) < 2:
+        raise InputFileError(f"{source}: {len(pts)} data row(s); a cross-section needs at least 2 rows of "
+                             "'station, elevation' in metres")
+    arr = np.asarray(pts)
     try:
         return CrossSection(arr[:, 0], arr[:, 1])
     except GeometryError as e:
         raise InputFileError(f"{source}: {e}") from e
 
 
+def parse_xy_text(text: str, source: str = "cross-section") -> CrossSection:
+    """Parse rows of "station, elevation" text in the styles spreadsheets export: comma, semicolon,
+    tab or whitespace between fields; decimal commas with ';' or tab separators; a header line
+    (optional) that may name the columns and their units (m, cm, mm, ft); '#' comments ignored."""
+    lines = [raw.split("#", 1)[0] for raw in text.splitlines()]
+    sep, comma_decimal = _split_fields(lines)
+    rows = [(i, _fields(ln, sep)) for i, ln in enumerate(lines, 1) if ln.strip()]
+    return parse_rows(rows, source, comma_decimal)
+
+
+def _spreadsheet_rows(path: Path) -> list[tuple[int, list[str]]]:
+    """Cells of the first sheet of an .xlsx/.ods workbook as text rows (row numbers from 1)."""
+    import pandas as pd
+
+    engine = "odf" if path.suffix.lower() == ".ods" else "openpyxl"
+    try:
+        df = pd.read_excel(path, sheet_name=0, header=None, dtype=str, engine=engine)
+    except Exception as e:  # noqa: BLE001 - any reader failure is a bad file for the user
+        raise InputFileError(f"{path}: cannot be read as a {path.suffix} workbook ({type(e).__name__}: {e})") from e
+    rows = []
+    for i, rec in enumerate(df.itertuples(index=False), 1):
+        cells = ["" if (c is None or (isinstance(c, float) and np.isnan(c))) else str(c) for c in rec]
+        while cells and cells[-1] == "":
+            cells.pop()
+        if cells:
+            rows.append((i, cells))
+    return rows
+
+
 def load_cross_section(path: Path | str) -> CrossSection:
-    """Read a cross-section text/CSV file."""
+    """Read a cross-section file: text/CSV in any of the styles :func:`parse_xy_text` reads (UTF-8,
+    else Windows-1252), or the first sheet of an .xlsx/.ods workbook."""
     path = Path(path)
     if not path.is_file():
         raise InputFileError(f"{path}: cross-section file not found; give a CSV of 'station, elevation' rows in metres")
+    if path.suffix.lower() in (".xlsx", ".xlsm", ".ods"):
+        return parse_rows(_spreadsheet_rows(path), str(path))
     try:
-        text = path.read_text(encoding="utf-8", errors="replace")
+        data = path.read_bytes()
     except OSError as e:
         raise InputFileError(f"{path}: cannot be read ({e.strerror})") from e
+    if b"\0" in data[:4096] and not data.startswith((b"\xff\xfe", b"\xfe\xff")):
+        raise InputFileError(f"{path}: a binary file, not a text file of 'station, elevation' rows")
+    for enc in ("utf-8-sig", "utf-16") if data.startswith((b"\xff\xfe", b"\xfe\xff")) else ("utf-8-sig", "cp1252"):
+        try:
+            text = data.decode(enc)
+            break
+        except UnicodeDecodeError:
+            continue
+    else:
+        text = data.decode("latin-1")
     return parse_xy_text(text, str(path))
 
 

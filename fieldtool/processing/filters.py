@@ -308,13 +308,21 @@ class FilterStack:
     :meth:`prepass` once before :meth:`apply`.
     """
 
-    def __init__(self, filters: list[Filter]) -> None:
+    def __init__(self, filters: list[Filter], roi: tuple[int, int, int, int] | None = None) -> None:
         self.filters = filters
         self.needs_prepass = any(isinstance(f, Background) for f in filters)
         self._prepassed = False
+        self.roi = roi  # (x0, y0, x1, y1) px: filter only there, as the thesis (9.2.7) and PIVlab do
+
+    def _crop(self, x: np.ndarray) -> np.ndarray:
+        if self.roi is None:
+            return x
+        x0, y0, x1, y1 = self.roi
+        return x[y0:y1, x0:x1]
 
     @classmethod
-    def from_config(cls, items: list[dict], key: str = "filters") -> "FilterStack":
+    def from_config(cls, items: list[dict], key: str = "filters",
+                    roi: tuple[int, int, int, int] | None = None) -> "FilterStack":
         """Stack from the project's ``filters`` list; ParameterError names e.g. ``filters[2].gamma``."""
         if items is None:
             items = []
@@ -334,7 +342,7 @@ class FilterStack:
                     raise ParameterError(f"{k}: background subtraction is already in the stack at {key}[{bg_at}]; keep one")
                 bg_at = i
             filters.append(FILTERS[name](item, k))
-        return cls(filters)
+        return cls(filters, roi)
 
     def prepass(self, frames: Iterable[np.ndarray], cancel: Callable[[], bool] | None = None) -> None:
         """Compute the background from the clip (streamed; one frame in memory for the mean).
@@ -353,7 +361,7 @@ class FilterStack:
         for frame in frames:
             if cancel is not None and cancel():
                 raise Cancelled("filter pre-pass cancelled")
-            x = np.asarray(frame, dtype=np.float32)
+            x = self._crop(np.asarray(frame, dtype=np.float32))
             if shape is None:
                 shape = x.shape
             elif x.shape != shape:
@@ -367,15 +375,25 @@ class FilterStack:
         self._prepassed = True
 
     def apply(self, gray: np.ndarray) -> np.ndarray:
-        """One gray frame (uint8 or float, 0-255) through the stack -> float32 (0-255)."""
+        """One gray frame (uint8 or float, 0-255) through the stack -> float32 (0-255).
+
+        With a ``roi`` only that rectangle is filtered (its statistics alone set the image-based
+        defaults, so banks and sky do not); the rest of the frame is returned unfiltered.
+        """
         if self.needs_prepass and not self._prepassed:
             raise RuntimeError("FilterStack.apply() before prepass(): the background needs the clip first")
-        x = np.asarray(gray, dtype=np.float32)
-        if x.ndim != 2:
-            raise ParameterError(f"filters: expected a gray frame (H x W), got shape {x.shape}")
+        full = np.asarray(gray, dtype=np.float32)
+        if full.ndim != 2:
+            raise ParameterError(f"filters: expected a gray frame (H x W), got shape {full.shape}")
+        x = self._crop(full)
         for f in self.filters:
             x = f(x)
-        return x
+        if self.roi is None:
+            return x
+        out = full.copy()
+        x0, y0, x1, y1 = self.roi
+        out[y0:y1, x0:x1] = x
+        return out
 
     def resolved(self) -> list[dict[str, Any]]:
         """The stack as applied: every parameter, with the image-based defaults filled in.
@@ -389,12 +407,14 @@ class FilterStack:
         return out
 
 
-def preview(items: list[dict], gray: np.ndarray, frames: Iterable[np.ndarray] | None = None) -> np.ndarray:
-    """One frame through the stack ``items``, as uint8 for a PNG.
+def preview(items: list[dict], gray: np.ndarray, frames: Iterable[np.ndarray] | None = None,
+            roi: tuple[int, int, int, int] | None = None) -> np.ndarray:
+    """One frame through the stack ``items`` (filtered inside ``roi`` only, as the pipeline does), as
+    uint8 for a PNG.
 
     ``frames`` (the clip) is needed only when the stack holds background subtraction.
     """
-    stack = FilterStack.from_config(items)
+    stack = FilterStack.from_config(items, roi=roi)
     if stack.needs_prepass:
         if frames is None:
             raise ParameterError("filters: the preview of background subtraction needs the clip (it averages all frames)")

@@ -218,6 +218,40 @@ def from_world_points(gcp_px, gcp_world, image_shape: tuple[int, int] | None = N
     return OrthoMapping(H, "world", float(np.sqrt(np.mean(np.sum(res**2, axis=1)))), wd)
 
 
+def from_two_points(gcp_px, distance_m: float | None = None, gcp_world=None) -> OrthoMapping:
+    """Similarity (scale + rotation + shift) from two GCPs, for a camera looking straight down.
+
+    ``gcp_px`` (2, 2) working-image pixels of P1, P2; either the taped ``distance_m`` = |P1P2| (m), giving
+    P1 at (0, 0) and P2 on +X, or ``gcp_world`` (2, 2+) their plane coordinates [X, Y] (m). The image is
+    seen from above with y flipped (world Y up). Exactly determined: no residual, so a nadir view is
+    assumed, not checked (a tilted camera needs 4 GCPs).
+    """
+    px = np.asarray(gcp_px, float)
+    if px.shape != (2, 2) or not np.all(np.isfinite(px)):
+        raise ParameterError("ortho.gcp_px: give exactly two [x, y] pixel points P1, P2 for method = two_points")
+    z1, z2 = complex(px[0, 0], -px[0, 1]), complex(px[1, 0], -px[1, 1])
+    if abs(z2 - z1) < 10.0:
+        raise GeometryError(f"ortho.gcp_px: P1 and P2 are {abs(z2 - z1):.1f} px apart; pick two points at least 10 px "
+                            "apart (far apart is better: the scale error is the pick error over this distance)")
+    if gcp_world is not None and len(gcp_world):
+        wd = np.asarray(gcp_world, float)
+        if wd.ndim != 2 or wd.shape[0] != 2 or wd.shape[1] < 2:
+            raise ParameterError("ortho.gcp_world_m: give two [X, Y] points (m) for P1, P2")
+        w1, w2 = complex(wd[0, 0], wd[0, 1]), complex(wd[1, 0], wd[1, 1])
+        if abs(w2 - w1) <= 0:
+            raise GeometryError("ortho.gcp_world_m: P1 and P2 are the same point")
+    else:
+        if distance_m is None or not np.isfinite(distance_m) or not distance_m > 0:
+            raise ParameterError("ortho.distances_m: give the taped distance |P1P2| in metres as distances_m = [D]")
+        w1, w2 = 0j, complex(float(distance_m), 0.0)
+    a = (w2 - w1) / (z2 - z1)
+    b = w1 - a * z1
+    # world = a * (x - i y) + b  ->  X = Re(a) x + Im(a) y + Re(b), Y = Im(a) x - Re(a) y + Im(b)
+    H = np.array([[a.real, a.imag, b.real], [a.imag, -a.real, b.imag], [0.0, 0.0, 1.0]])
+    world = _apply(H, px)
+    return OrthoMapping(H, "two_points", 0.0, world, {"m_per_px": abs(a), "rotation_deg": float(np.degrees(np.angle(a)))})
+
+
 def from_scale(m_per_px: float) -> OrthoMapping:
     """Uniform scale for a nadir view without GCPs (thesis 8.2): world = scale * (x, -y)."""
     if not m_per_px > 0:

@@ -278,26 +278,30 @@ def _from_width(cs: CrossSection, width_m: float, width_sigma_m: float, method: 
 # adapted Hellebaut (DEM)
 
 
+MAX_DEM_CELLS = 200_000_000  # 1.6 GB as float64: a bank DEM larger than this is to be cropped first
+
+
 def read_dem(path: Path) -> np.ndarray:
-    """Elevations (m) of a TIFF DEM as float, no-data (GDAL tag or non-finite) as NaN; first band."""
-    import tifffile
+    """Elevations (m) of a DEM in any raster format GDAL reads (GeoTIFF, ASCII grid, IMG, VRT, ...), as
+    float, its no-data value and non-finite cells as NaN; first band. The size is checked from the header
+    before any cell is read."""
+    import warnings
+
+    import rasterio
+    from rasterio.errors import NotGeoreferencedWarning, RasterioIOError
 
     if not path.is_file():
-        raise InputFileError(f"{path}: DEM file not found (water_level.dem_path); give a TIFF of elevations in metres")
+        raise InputFileError(f"{path}: DEM file not found (water_level.dem_path); give a raster of elevations in metres")
     try:
-        with tifffile.TiffFile(path) as tif:
-            page = tif.pages[0]
-            arr = page.asarray().astype(float)
-            tag = page.tags.get(42113)  # GDAL_NODATA
-            nodata = float(str(tag.value).strip("\x00 ")) if tag is not None else None
-    except (tifffile.TiffFileError, ValueError, OSError) as e:
-        raise InputFileError(f"{path}: cannot read this DEM as a TIFF ({e}); export it as a GeoTIFF of elevations") from e
-    if arr.ndim == 3:
-        arr = arr[..., 0] if arr.shape[-1] <= 4 else arr[0]
-    if arr.ndim != 2:
-        raise InputFileError(f"{path}: a DEM must be one 2-D band of elevations, got shape {arr.shape}")
-    if nodata is not None:
-        arr[arr == nodata] = np.nan
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", NotGeoreferencedWarning)
+            with rasterio.open(path) as ds:
+                if ds.width * ds.height > MAX_DEM_CELLS:
+                    raise InputFileError(f"{path}: the DEM header says {ds.width}x{ds.height} cells, more than "
+                                         f"{MAX_DEM_CELLS:,}; crop it to the bank near the section")
+                arr = ds.read(1, masked=True).astype(float).filled(np.nan)
+    except RasterioIOError as e:
+        raise InputFileError(f"{path}: cannot read this DEM as a raster ({e}); export it as a GeoTIFF of elevations") from e
     arr[~np.isfinite(arr)] = np.nan
     return arr
 
@@ -611,7 +615,8 @@ def image_width(edges_px, mapping: OrthoMapping, pixel_sigma_px: float,
 
 def compute_level(cfg: WaterLevelCfg, cs: CrossSection, *, root: Path, mapping: OrthoMapping | None = None,
                   fov_deg: tuple[float, float, float] | None = None,
-                  points_transform: Callable[[np.ndarray], np.ndarray] | None = None) -> LevelResult:
+                  points_transform: Callable[[np.ndarray], np.ndarray] | None = None,
+                  image_undistort: Callable[[np.ndarray, tuple[int, int]], np.ndarray] | None = None) -> LevelResult:
     """Water level by ``cfg.method`` (see module docstring).
 
     Parameters
@@ -624,6 +629,8 @@ def compute_level(cfg: WaterLevelCfg, cs: CrossSection, *, root: Path, mapping: 
         None, ``cfg.fov_deg`` is used.
     points_transform : raw-frame pixels -> working-image pixels (lens undistortion), applied to
         ``cfg.edges_px`` (method = image).
+    image_undistort : ``(pts, (H, W)) -> pts`` lens undistortion of pixels of an image of that size
+        (angle_height: the pinhole formulas of thesis 5.2.1 need undistorted edges).
     """
     root = Path(root)
     m = cfg.method
@@ -658,10 +665,14 @@ def compute_level(cfg: WaterLevelCfg, cs: CrossSection, *, root: Path, mapping: 
                                  "(calibration.path) or give water_level.fov_deg = [x, y, diagonal] in degrees")
         shape1 = _read_shape(_resolve(root, cfg.image1), "water_level.image1")
         shape2 = _read_shape(_resolve(root, cfg.image2), "water_level.image2")
-        r = angle_height_width(cfg.edges1_px, cfg.edges2_px, shape1, shape2, cfg.dh_m, fov,
+        e1, e2 = cfg.edges1_px, cfg.edges2_px
+        if image_undistort is not None and np.shape(e1) == (2, 2) and np.shape(e2) == (2, 2):
+            e1, e2 = image_undistort(np.asarray(e1, float), shape1), image_undistort(np.asarray(e2, float), shape2)
+        r = angle_height_width(e1, e2, shape1, shape2, cfg.dh_m, fov,
                                dh_sigma_m=cfg.dh_uncertainty_m, pixel_sigma_px=cfg.pixel_uncertainty_px,
                                fov_sigma_deg=cfg.fov_uncertainty_deg)
         r["fov_source"] = "calibration" if fov_deg is not None else "water_level.fov_deg"
+        r["edges_undistorted"] = image_undistort is not None
         return _from_width(cs, r["width_m"], r["width_sigma_m"], "angle_height", r)
     if m == "image":
         if mapping is None:

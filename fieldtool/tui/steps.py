@@ -176,7 +176,8 @@ def calibration_fields(ui: dict) -> list[Field]:
 # orthorectification
 
 ORTHO_METHODS = (("4 GCPs and 6 distances", "distances"), ("GCPs with world coordinates", "world"),
-                 ("camera pose (6+ GCPs, lens)", "pose"), ("skip (scale from wetted width)", "none"))
+                 ("camera pose (6+ GCPs, lens)", "pose"), ("nadir: 2 GCPs and their distance", "two_points"),
+                 ("skip (scale from wetted width)", "none"))
 
 
 def _om(p: Project) -> str:
@@ -195,6 +196,11 @@ def _world_pts(v, p):
     return None
 
 
+def _gcp_shown(i: int, dist: bool = False) -> Callable[[Project], bool]:
+    """GCP P(i+1) or distance L(i+1) is asked for: all four/six for 'distances', P1, P2 and L1 for 'two_points'."""
+    return lambda p: _om(p) == "distances" or (_om(p) == "two_points" and i < (1 if dist else 2))
+
+
 _GCP_NAMES = ("P1 (bank 1)", "P2 (bank 1)", "P3 (bank 2)", "P4 (bank 2)")
 _DIST_NAMES = ("L1 = |P1P2|", "L2 = |P2P3|", "L3 = |P3P4|", "L4 = |P4P1|", "L5 = |P1P3|", "L6 = |P2P4|")
 
@@ -205,10 +211,10 @@ ORTHO = [
     *[Field(f"ortho.gcp_px[{i}]", name, "px", "point",
             "pixel of this ground control point 'x, y' (type it, or pick it in the viewer); "
             "P1, P2 on one bank, P3, P4 on the other, going round (fig. 7.13)",
-            required=lambda p: _om(p) == "distances", show=lambda p: _om(p) == "distances", pickable=True)
+            required=_gcp_shown(i), show=_gcp_shown(i), pickable=True)
       for i, name in enumerate(_GCP_NAMES)],
     *[Field(f"ortho.distances_m[{i}]", name, "m", "float", "tape-measured distance between the two GCPs",
-            required=lambda p: _om(p) == "distances", show=lambda p: _om(p) == "distances", check=positive)
+            required=_gcp_shown(i, dist=True), show=_gcp_shown(i, dist=True), check=positive)
       for i, name in enumerate(_DIST_NAMES)],
     Field("ortho.gcp_px", "GCP pixels", "px", "points",
           "GCP pixels 'x, y; x, y; ...' (4 or more; pose: 6 or more), picked or typed",

@@ -137,8 +137,8 @@ class FiltersScreen(StepScreen):
             frames = None
             if FilterStack.from_config(self.project.filters).needs_prepass:
                 frames = (self.lens(inputs, f.image) for f in inputs.source)
-            # the pipeline filters whole frames (image-based defaults come from the whole frame)
-            after = self.crop(preview(self.project.filters, gray, frames), roi)
+            # as the pipeline: filtered inside the ROI only (image-based defaults come from the ROI)
+            after = self.crop(preview(self.project.filters, gray, frames, roi), roi)
         except FieldToolError as e:
             self.show_errors([str(e)])
             return

@@ -46,20 +46,24 @@ class OrthoScreen(StepScreen):
 
     def step_check(self) -> None:
         m = self.project.ortho.method
-        if m in ("distances", "world"):
+        if m in ("distances", "world", "two_points"):
             self.mapping()
         elif m == "pose" and not self.project.calibration.path:
             raise ParameterError("ortho.method = pose needs the camera intrinsics: calibrate or load a lens in step 3")
 
     def action_run(self) -> None:
         info = self.query_one("#ortho-info", Static)
-        if self.project.ortho.method not in ("distances", "world"):
+        if self.project.ortho.method not in ("distances", "world", "two_points"):
             self.refresh_view()
             return
         try:
             mp = self.mapping()
         except FieldToolError as e:
             info.update(f"[red]{escape(str(e))}[/red]")
+            return
+        if mp.method == "two_points":
+            info.update(f"scale {mp.details['m_per_px'] * 1000:.2f} mm/px, rotation {mp.details['rotation_deg']:.1f}°; "
+                        "two points: exact, a straight-down view is assumed, not checked")
             return
         res = f"{mp.residual_m * 1000:.1f} mm" if mp.residual_m is not None else "n/a"
         info.update(f"GCP geometry solved: residual of the distances {res}")
