@@ -490,11 +490,14 @@ class _Engine:
             img[self.mask_crop] = fill
         return img
 
-    def prepare(self, frame: np.ndarray) -> _Frame:
-        """Crop, fill the mask with the frame mean, and compute the window spectra of all levels."""
+    def prepare(self, frame: np.ndarray, as_a: bool = True) -> _Frame:
+        """Crop, fill the mask with the frame mean, and compute the window spectra of all levels.
+
+        ``as_a=False``: the frame is only the second frame of a pair (``analyze(select=...)``): the A-window
+        spectra of the later passes, which only a first frame needs, are not computed."""
         img = self._masked_crop(frame)
         spec_a, scale_a = [], []
-        for lv in self.levels:
+        for lv in (self.levels if as_a else self.levels[:1]):
             oy, ox = self._offsets(lv)
             sp, sc = _window_spectra(img, oy, ox, lv, lv.w)
             spec_a.append(sp)
@@ -744,7 +747,10 @@ def analyze(
             raise InputFileError(
                 f"frames: timestamps must increase; frame {i_frame} is at {t:.6f} s after {t_prev:.6f} s"
             )
-        cur = engine.prepare(img)
+        if wanted is None or i + 1 in wanted or type(engine).prepare is not _Engine.prepare:
+            cur = engine.prepare(img)
+        else:  # hook of ``select``: the next pair is not correlated, so this frame is only a pair's second frame
+            cur = engine.prepare(img, as_a=False)
         cb = None
         if ens is not None:
             cb = ens.add_fn(dt, node_mask)
