@@ -119,8 +119,9 @@ def peers_python() -> Path:
     return py
 
 
-def timed(cmd: list[str], env: dict | None = None) -> tuple[float, int, str]:
-    """Run ``cmd``; (wall s, peak resident memory MiB of that process, stdout)."""
+def timed(cmd: list[str], env: dict | None = None) -> tuple[float, int, str, float]:
+    """Run ``cmd``; (wall s, peak resident memory MiB of that process, stdout, CPU s of that process and its
+    threads: user + system, which a shared machine's load inflates far less than the wall time)."""
     t0 = time.perf_counter()
     with tempfile.TemporaryFile() as out, tempfile.TemporaryFile() as err:
         p = subprocess.Popen(cmd, stdout=out, stderr=err, env=env, cwd=REPO)
@@ -132,23 +133,23 @@ def timed(cmd: list[str], env: dict | None = None) -> tuple[float, int, str]:
         text, etext = out.read().decode(errors="replace"), err.read().decode(errors="replace")
     if p.returncode not in (0,):
         raise RuntimeError(f"{cmd[:4]} exited {p.returncode}: {etext[-800:]}")
-    return wall, int(ru.ru_maxrss / 1024), text
+    return wall, int(ru.ru_maxrss / 1024), text, ru.ru_utime + ru.ru_stime
 
 
 def run_fieldtool(toml: Path, scratch: Path) -> dict:
     out = Path(tempfile.mkdtemp(dir=scratch))
     env = dict(os.environ, PYTHONPATH=str(REPO))
-    wall, mem, _ = timed([sys.executable, "-m", "fieldtool.cli", "run", str(toml), "--out", str(out)], env)
+    wall, mem, _, cpu = timed([sys.executable, "-m", "fieldtool.cli", "run", str(toml), "--out", str(out)], env)
     res = json.loads((out / "result.json").read_text())
     shutil.rmtree(out, ignore_errors=True)
-    return {"s": wall, "mib": mem, "q": res["discharge_m3s"], "pairs": res.get("pairs_used"),
+    return {"s": wall, "cpu": cpu, "mib": mem, "q": res["discharge_m3s"], "pairs": res.get("pairs_used"),
             "converged": res.get("converged"), "piv_s": res["timings_s"].get("frames_and_piv")}
 
 
 def run_pyorc(job: Path) -> dict:
-    wall, mem, text = timed([str(peers_python()), str(HERE / "peers" / "pyorc_run.py"), str(job)])
+    wall, mem, text, cpu = timed([str(peers_python()), str(HERE / "peers" / "pyorc_run.py"), str(job)])
     res = json.loads(text.strip().splitlines()[-1])
-    return {"s": wall, "mib": mem, "q": res["discharge_m3s"], "pairs": None}
+    return {"s": wall, "cpu": cpu, "mib": mem, "q": res["discharge_m3s"], "pairs": None}
 
 
 def end_to_end(cs: list[dict], repeats: int, with_pyorc: bool, scratch: Path, reference: bool = True) -> None:
@@ -166,8 +167,8 @@ def end_to_end(cs: list[dict], repeats: int, with_pyorc: bool, scratch: Path, re
         load1 = os.getloadavg()
         print(f"\n== {c['name']}: {c['truth']['n_frames']} frames, true Q {truth:.4f} m³/s; "
               f"{os.cpu_count()} cores, load average {load0[0]:.2f} before, {load1[0]:.2f} after")
-        print(f"{'contestant':34s} {'median s':>9s} {'runs s':>26s} {'Q m³/s':>9s} {'error %':>8s} {'pairs':>6s} "
-              f"{'peak MiB':>9s}")
+        print(f"{'contestant':34s} {'median s':>9s} {'runs s':>26s} {'CPU s':>7s} {'Q m³/s':>9s} {'error %':>8s} "
+              f"{'pairs':>6s} {'peak MiB':>9s}")
         rows = ([("fieldtool full frame, all pairs", [ref])] if ref else []) + [(k, v) for k, v in runs.items() if v]
         med = {}
         for name, rs in rows:
@@ -175,7 +176,8 @@ def end_to_end(cs: list[dict], repeats: int, with_pyorc: bool, scratch: Path, re
             q = float(np.median([r["q"] for r in rs]))
             med[name] = float(np.median(t))
             pairs = rs[-1]["pairs"]
-            print(f"{name:34s} {med[name]:9.2f} {' '.join(f'{v:.1f}' for v in t):>26s} {q:9.4f} {err(q):+8.2f} "
+            cpu = float(np.median([r["cpu"] for r in rs]))
+            print(f"{name:34s} {med[name]:9.2f} {' '.join(f'{v:.1f}' for v in t):>26s} {cpu:7.1f} {q:9.4f} {err(q):+8.2f} "
                   f"{'' if pairs is None else pairs:>6} {max(r['mib'] for r in rs):9d}")
         fq = float(np.median([r["q"] for r in runs["fieldtool"]]))
         if ref:
@@ -185,8 +187,9 @@ def end_to_end(cs: list[dict], repeats: int, with_pyorc: bool, scratch: Path, re
               f"clip")
         if runs["pyorc"]:
             per = np.median([p["s"] / f["s"] for p, f in zip(runs["pyorc"], runs["fieldtool"])])
+            cpu_ratio = np.median([r["cpu"] for r in runs["pyorc"]]) / np.median([r["cpu"] for r in runs["fieldtool"]])
             print(f"pyorc / fieldtool: {med['pyorc'] / med['fieldtool']:.2f}x (ratio of medians), "
-                  f"{per:.2f}x (median of per-run ratios)")
+                  f"{per:.2f}x (median of per-run ratios), {cpu_ratio:.2f}x in CPU seconds")
 
 
 # --------------------------------------------------------------------------------------------- engines
