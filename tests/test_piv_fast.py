@@ -89,6 +89,7 @@ def test_converge_stops_at_min_pairs_when_the_pairs_agree_and_uses_all_when_they
     noisy = iter(np.random.default_rng(0).normal(1.0, 0.8, 100))
     res, info, q = piv_fast.converge(lambda want: iter(clip), 8, run, lambda *a: next(noisy), rel_ci=0.01, min_pairs=3)
     assert not info.converged and info.pairs_used == 8 and info.rounds >= 2 and res.carry is None
+    assert list(res.pair_index) == list(range(8)) and np.all(np.diff(res.t_pairs) > 0)
 
 
 def test_prefetch_passes_items_errors_and_stops_on_close():

@@ -141,7 +141,7 @@ def converge(make_frames: Callable[[], Iterator], n_pairs_total: int, run: Calla
     Returns
     -------
     (PivResult, Convergence, q_pairs) : the field over all pairs used, how it ended, and the per-pair
-    discharges (m³/s, in the order of ``PivResult.u_pairs``).
+    discharges (m³/s, in the order of ``PivResult.u_pairs``: clip order, as ``pair_index``).
     """
     order = pair_order(n_pairs_total)
     n_total = len(order)
@@ -164,6 +164,10 @@ def converge(make_frames: Callable[[], Iterator], n_pairs_total: int, run: Calla
         want = done * (rel / rel_ci) ** 2 * 1.1 if rel is not None else 2 * done
         target = int(min(n_total, max(math.ceil(want), math.ceil(1.5 * done))))
     res.carry = None
+    order_t = np.argsort(res.pair_index, kind="stable")  # rounds interleave: per-pair fields back in clip order
+    for name in ("u_pairs", "v_pairs", "t_pairs", "dt_s", "pair_index"):
+        setattr(res, name, getattr(res, name)[order_t])
+    q = list(np.asarray(q, float)[order_t])
     info = Convergence(pairs_used=int(res.n_pairs or done), pairs_total=n_total, converged=bool(converged),
                        rel_ci=None if rel is None else float(rel), rounds=rounds, threshold=float(rel_ci),
                        min_pairs=int(min_pairs))
