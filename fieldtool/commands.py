@@ -4,10 +4,10 @@
 from __future__ import annotations
 
 import argparse
-import sys
+import math
 from pathlib import Path
 
-from .errors import ParameterError
+from .errors import InputFileError, ParameterError
 
 
 def _corners(text: str) -> tuple[int, int]:
@@ -21,12 +21,24 @@ def _corners(text: str) -> tuple[int, int]:
 def cmd_calibrate(args: argparse.Namespace) -> int:
     from .processing.calibration import calibrate_video, save_calibration
 
-    def progress(done: int, total: int) -> None:
-        print(f"\r  frames searched: {done}/{total}", end="", file=sys.stderr, flush=True)
+    from .console import end_progress_line, progress_line
+    from .validation import path_problem
 
+    def progress(done: int, total: int) -> None:
+        progress_line(f"frames searched: {done}/{total}")
+
+    if not (math.isfinite(args.square_mm) and 0 < args.square_mm <= 10000):
+        raise ParameterError(f"--square-mm: {args.square_mm:g} is not a square size; give the side of one square "
+                             "in mm (e.g. 25)")
+    if not 1 <= args.frames <= 1000:
+        raise ParameterError(f"--frames: {args.frames} is out of range; give 1 to 1000 (e.g. 20)")
+    msg = path_problem(Path(args.video), "video", kind="video")
+    if msg:
+        raise InputFileError(msg)
+    _check_out_file(args.out, "--out")
     model = calibrate_video(args.video, corners=args.corners, square_mm=args.square_mm, n_frames=args.frames,
                             progress=progress)
-    print(file=sys.stderr)
+    end_progress_line()
     save_calibration(model, args.out)
     fx, fy = model.camera_matrix[0, 0], model.camera_matrix[1, 1]
     fov = model.fov_deg()
@@ -36,11 +48,9 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     print(f"FOV x / y / diag   {fov[0]:.2f} / {fov[1]:.2f} / {fov[2]:.2f} deg")
     print(f"saved              {args.out}")
     if args.project:
-        from .project import load_project, save_project
+        from .project import apply_changes
 
-        proj = load_project(args.project)
-        proj.calibration.path = str(Path(args.out).resolve())
-        save_project(proj, args.project)
+        apply_changes(args.project, {"calibration.path": str(Path(args.out).resolve())})  # only this key
         print(f"project            {args.project}: calibration.path set")
     return 0
 
@@ -52,7 +62,11 @@ def cmd_preview(args: argparse.Namespace) -> int:
     from .processing.filters import preview
     from .project import atomic_write_bytes, load_project
 
+    from .validation import check
+
     project = load_project(args.project)
+    _check_out_file(args.out, "--out")
+    check(project)
     inputs = load_inputs(project)
     if project.filters and any(f.get("name") == "background" for f in project.filters):
         _, frame = next(iter(working_frames(project, inputs)))  # background needs the whole clip
@@ -70,6 +84,16 @@ def cmd_preview(args: argparse.Namespace) -> int:
     atomic_write_bytes(Path(args.out), buf.tobytes())
     print(f"wrote {args.out}")
     return 0
+
+
+def _check_out_file(out: str | Path, what: str) -> None:
+    """Refuse an output file name that is a folder, or whose folder is a file or is missing."""
+    p = Path(out)
+    if p.is_dir():
+        raise InputFileError(f"{what} {p}: is a folder; give a file name (e.g. {p / 'out.png'})")
+    parent = p.parent if str(p.parent) else Path(".")
+    if parent.exists() and not parent.is_dir():
+        raise InputFileError(f"{what} {p}: {parent} is a file, not a folder")
 
 
 def register(sub) -> None:

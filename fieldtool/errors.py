@@ -23,3 +23,7 @@ class GeometryError(FieldToolError):
 
 class Cancelled(FieldToolError):
     """The user cancelled a long computation."""
+
+
+class FieldToolWarning(UserWarning):
+    """Something the user should know that does not stop the work (the CLI prints it as one line)."""

@@ -104,6 +104,10 @@ class RunResult:
     stabilization: dict | None = None
     project: dict = field(default_factory=dict)
     piv_reused: bool = False  # the PIV field came from the output folder's piv_cache.npz
+    uncertainty: object | None = None  # processing.uncertainty.McResult
+    quality: object | None = None  # processing.quality.Quality
+    sections: list = field(default_factory=list)  # several sections: the main one first (fieldtool.sections)
+    robust: dict | None = None  # facts of the robust stages (processing/surface.py, robust.py, planning.py)
     piv_fast: dict | None = None  # region box and pair sampling of the fast path (see piv_region / run_piv_fast)
 
     def summary(self) -> dict:
@@ -112,6 +116,14 @@ class RunResult:
         lv = self.level
         return {
             "discharge_m3s": d.discharge_m3s,
+            "discharge_ci95_m3s": (list(self.uncertainty.ci95_m3s) if self.uncertainty is not None
+                                   and np.all(np.isfinite(self.uncertainty.ci95_m3s)) else None),
+            "uncertainty": self.uncertainty.to_dict() if self.uncertainty is not None else None,
+            "quality": self.quality.to_dict() if self.quality is not None else None,
+            "sections": self.sections or None,
+            "sections_summary": _sections_summary(self.sections),
+            # spread of the discharges of single frame pairs (the sampled pairs, n_pairs_with_vectors of them):
+            # not an interval of Q, which averages every pair (see discharge_ci95_m3s)
             "discharge_p05_m3s": float(np.percentile(qp, 5)) if len(qp) else None,
             "discharge_p95_m3s": float(np.percentile(qp, 95)) if len(qp) else None,
             "discharge_pairs_median_m3s": float(np.median(qp)) if len(qp) else None,
@@ -133,6 +145,7 @@ class RunResult:
             "ortho_details": self.mapping.details,
             "stabilization": self.stabilization,
             "piv_reused": self.piv_reused,
+            "robust": self.robust,
             **_fast_summary(self.piv_fast, int(getattr(self.piv, "n_pairs", 0) or len(self.q_pairs))),
             "warnings": self.warnings + d.warnings,
             "timings_s": self.timings_s,
@@ -140,6 +153,12 @@ class RunResult:
             "fieldtool_version": __version__,
             "inputs": self.project,
         }
+
+
+def _sections_summary(entries: list) -> dict | None:
+    from .sections import summarize
+
+    return summarize(entries) if entries else None
 
 
 # ---------------------------------------------------------------------------------------------
@@ -173,14 +192,36 @@ def load_inputs(project: Project) -> Inputs:
     return Inputs(cs, src, lens, first)
 
 
+def detect_waterline(project: Project, inputs: Inputs) -> dict:
+    """Water edges found along the search line in the clip's first frames (processing.waterline): the
+    project's ``water_level.search_line_px``, else the section's points lengthened by 40 % each way."""
+    from .processing import waterline
+
+    wl = project.water_level
+    if wl.search_line_px:
+        line = inputs.to_working(wl.search_line_px)
+        if line.shape != (2, 2):
+            raise ParameterError("water_level.search_line_px: give two [x, y] pixel points, one on each bank")
+    else:
+        sec = np.asarray(project.section.points_px, float)
+        if sec.shape != (2, 2):
+            raise ParameterError("water_level.search_line_px: draw a line from bank to bank across the river "
+                                 "(or pick the section's water edges, which it extends)")
+        line = waterline.extend_line(*inputs.to_working(sec), 0.4, inputs.shape)
+    frames = (inputs.lens.undistort(f.image) if inputs.lens is not None else f.image for f in inputs.source)
+    return waterline.detect_water_edges(frames, line)
+
+
 def compute_level(project: Project, inputs: Inputs, mapping: ortho.OrthoMapping | None):
     """Water level by the project's method (see processing.water_level)."""
     from .processing.water_level import compute_level as _compute
 
+    detected = detect_waterline(project, inputs) if project.water_level.method == "waterline" else None
     fov = inputs.lens.fov_deg() if inputs.lens is not None else None
     return _compute(project.water_level, inputs.cross_section, root=project.root, mapping=mapping, fov_deg=fov,
                     points_transform=inputs.to_working if inputs.lens is not None else None,
-                    image_undistort=inputs.lens.undistort_points_in if inputs.lens is not None else None)
+                    image_undistort=inputs.lens.undistort_points_in if inputs.lens is not None else None,
+                    detected=detected)
 
 
 def build_mapping(project: Project, inputs: Inputs, level_m: float | None) -> ortho.OrthoMapping:
@@ -193,7 +234,8 @@ def build_mapping(project: Project, inputs: Inputs, level_m: float | None) -> or
         if raw.shape != (4, 2):
             raise ParameterError("ortho.gcp_px: give exactly four [x, y] pixel points P1..P4 for method = distances")
         ortho.check_in_frame(raw, shape, "ortho.gcp_px")
-        return ortho.from_distances(inputs.to_working(raw), o.distances_m)
+        return ortho.from_distances(inputs.to_working(raw), o.distances_m, max_residual_m=o.max_residual_m,
+                                    accept_residual=o.accept_residual, frame_shape=shape)
     if o.method == "two_points":
         raw = np.asarray(o.gcp_px, float)
         if raw.shape != (2, 2):
@@ -204,24 +246,40 @@ def build_mapping(project: Project, inputs: Inputs, level_m: float | None) -> or
     if o.method == "world":
         raw = np.asarray(o.gcp_px, float)
         ortho.check_in_frame(raw.reshape(-1, 2), shape, "ortho.gcp_px")
-        return ortho.from_world_points(inputs.to_working(raw), o.gcp_world_m)
+        m = ortho.from_world_points(inputs.to_working(raw), o.gcp_world_m)
+        ortho.check_gcp_residuals(m, inputs.to_working(raw), o.max_residual_m, o.accept_residual)
+        return m
     if o.method == "pose":
         from .processing import pose
 
-        if inputs.lens is None:
-            raise ParameterError("ortho.method = pose needs the camera intrinsics: set calibration.path")
         if level_m is None:
             raise ParameterError("ortho.method = pose needs the water level first")
         raw = np.asarray(o.gcp_px, float)
         world = np.asarray(o.gcp_world_m, float)
-        p = pose.solve_pose(raw, world, inputs.lens.camera_matrix, inputs.lens.dist_coeffs)
+        lens_fit = None
+        if inputs.lens is None:
+            if not o.fit_lens:
+                raise ParameterError("ortho.method = pose needs the camera intrinsics: set calibration.path, or set "
+                                     "ortho.fit_lens = true to fit focal length and k1 from 8+ GCPs")
+            from .processing.calibration import LensModel
+
+            h, w = shape
+            K, dist, p, lens_fit = pose.fit_lens(raw, world, (w, h))
+            inputs.lens = LensModel(K, dist, (w, h), rms_px=lens_fit["rms_px"])  # frames are undistorted with it
+        else:
+            p = pose.solve_pose(raw, world, inputs.lens.camera_matrix, inputs.lens.dist_coeffs)
         H = pose.plane_homography(p, level_m)
         # residual in metres: each GCP's ray met on the horizontal plane at its own elevation
         und = inputs.to_working(raw)
         miss = [np.hypot(*(ortho._apply(pose.plane_homography(p, z), und[i:i + 1])[0] - world[i, :2]))
                 for i, z in enumerate(world[:, 2])]
-        return ortho.from_homography(H, "pose", float(np.sqrt(np.mean(np.square(miss)))), world[:, :2],
-                                     {"reprojection_rms_px": p.rms_px, "gcp_residual_m": [float(m) for m in miss]})
+        details = {"reprojection_rms_px": p.rms_px, "gcp_residual_m": [float(m) for m in miss],
+                   "gcp_reprojection_px": [float(r) for r in p.reprojection_px]}
+        if lens_fit is not None:
+            details["lens_from_gcps"] = lens_fit
+        m = ortho.from_homography(H, "pose", float(np.sqrt(np.mean(np.square(miss)))), world[:, :2], details)
+        ortho.check_gcp_residuals(m, und, o.max_residual_m, o.accept_residual)
+        return m
     if o.method == "none":
         if level_m is None:
             raise ParameterError("ortho.method = none takes the image scale from the wetted width: the water level is needed first")
@@ -236,10 +294,24 @@ def build_mapping(project: Project, inputs: Inputs, level_m: float | None) -> or
     raise ParameterError(f"ortho.method: {o.method!r} is not one of distances, world, pose, two_points, none")
 
 
+def build_section(project: Project, inputs: Inputs, level_m: float, mapping: ortho.OrthoMapping,
+                  points_px=None) -> dq.SectionGeometry:
+    """The section of interest (raw-frame ``points_px``, default the project's), checked against the water
+    edges of the cross-section at ``level_m`` (see processing.discharge.check_section)."""
+    sec = project.section
+    pts = sec.points_px if points_px is None else points_px
+    if np.asarray(pts).shape == (2, 2):  # raw-frame pixels, checked before undistortion
+        ortho.check_in_frame(np.asarray(pts, float), inputs.shape, "section.points_px")
+    geom = dq.section_geometry(inputs.to_working(pts) if len(pts) else pts, mapping, inputs.cross_section,
+                               level_m, sec.n_sub, sec.station_offset_m)
+    dq.check_section(geom, inputs.cross_section, level_m, sec.min_length_fraction, sec.edge_tolerance_m)
+    return geom
+
+
 def level_and_mapping(project: Project, inputs: Inputs):
     """Water level and image -> water-plane mapping, in the order the methods need: the image method
     measures the level on the mapping; every other method gives the level the mapping may need."""
-    if project.water_level.method == "image":
+    if project.water_level.method in ("image", "waterline"):
         mapping = build_mapping(project, inputs, None)
         level = compute_level(project, inputs, mapping)
     else:
@@ -337,6 +409,24 @@ def working_frames(project: Project, inputs: Inputs, cancel: Callable[[], bool] 
         stab_report.update(stabilizer.report())
 
 
+def _count_identical(frames: Iterator[tuple[float, np.ndarray]], stats: dict) -> Iterator[tuple[float, np.ndarray]]:
+    """Pass the frames through, counting consecutive frames that are identical (duplicates, a still image)."""
+    prev = None
+    n = same = 0
+    for t, img in frames:
+        if img is None:  # a frame the fast path did not decode (working_frames(want=...))
+            yield t, img
+            continue
+        if prev is not None:
+            n += 1
+            sub = img[::4, ::4]
+            if float(np.max(np.abs(sub - prev))) < 0.5:
+                same += 1
+        prev = img[::4, ::4].astype(np.float32, copy=True)
+        stats["pairs"], stats["identical"] = n, same
+        yield t, img
+
+
 class _Sized:
     """A frame stream with the count the container claims (a plan, not a promise: it may end sooner)."""
 
@@ -356,7 +446,8 @@ def piv_params(project: Project):
     p = project.piv
     return PivParams(window_px=p.window_px, overlap_px=p.overlap_px, search_px=p.search_px, passes=p.passes,
                      snr_min=p.snr_min, averaging=p.averaging, median_threshold=p.median_threshold,
-                     std_threshold=p.std_threshold, min_valid_fraction=p.min_valid_fraction, engine=p.engine)
+                     std_threshold=p.std_threshold, min_valid_fraction=p.min_valid_fraction, engine=p.engine,
+                     frame_gap=p.frame_gap or 1)
 
 
 def piv_region(project: Project, inputs: Inputs, params, roi, segments) -> tuple[int, int, int, int] | None:
@@ -378,7 +469,7 @@ def piv_region(project: Project, inputs: Inputs, params, roi, segments) -> tuple
     return piv_fast.section_band(inputs.shape, segments, margin, roi, min_side_px=side)
 
 
-def run_piv_fast(make_frames, n_pairs: int, params, roi, mask, max_speed, cancel, on_pair, pair_q,
+def run_piv_fast(make_frames, n_pairs: int, gap: int, params, roi, mask, max_speed, cancel, on_pair, pair_q,
                  rel_ci: float, min_pairs: int):
     """PIV with pairs added until the discharge has converged (``processing.piv_fast.converge``), each round's
     frames read by a background thread. Returns (PivResult, dict of pairs_used, converged, ...)."""
@@ -400,7 +491,8 @@ def run_piv_fast(make_frames, n_pairs: int, params, roi, mask, max_speed, cancel
         finally:
             reader.close()
 
-    res, conv, _ = piv_fast.converge(make_frames, n_pairs, run, pair_q, rel_ci=rel_ci, min_pairs=min_pairs)
+    res, conv, _ = piv_fast.converge(make_frames, n_pairs, run, pair_q, rel_ci=rel_ci, min_pairs=min_pairs,
+                                     frame_gap=gap)
     return res, asdict(conv)
 
 
@@ -437,6 +529,12 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
 
     if out_dir is not None:  # matplotlib takes ~0.6 s to import: let that overlap the PIV
         threading.Thread(target=importlib.import_module, args=("fieldtool.plots.discharge",), daemon=True).start()
+    from .validation import check
+
+    warnings += [str(w) for w in check(project)]  # every key, before any step
+    from .sections import parse as parse_sections
+
+    extra_sections = parse_sections(project)
     obs("stage", "inputs")
     inputs = load_inputs(project)
     lap("inputs")
@@ -447,24 +545,29 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
     lap("level_and_ortho")
 
     sec = project.section
-    if np.asarray(sec.points_px).shape == (2, 2):  # raw-frame pixels, checked before undistortion
-        ortho.check_in_frame(np.asarray(sec.points_px, float), inputs.shape, "section.points_px")
-    geom = dq.section_geometry(inputs.to_working(sec.points_px) if sec.points_px else sec.points_px, mapping, cs,
-                               level.level_m, sec.n_sub, sec.station_offset_m)
+    geom = build_section(project, inputs, level.level_m, mapping)
     roi, mask = roi_and_mask(project, inputs)
 
     params = piv_params(project)
+    if project.piv.remove_stationary:
+        from .processing.surface import MIN_TEXTURE
+        from dataclasses import replace
+
+        params = replace(params, min_texture=MIN_TEXTURE)
     roi_user = roi
-    roi = piv_region(project, inputs, params, roi, [geom.p_img])
+    segments = [geom.p_img] + [inputs.to_working(s.points_px) for s in extra_sections if len(s.points_px)]
+    roi = piv_region(project, inputs, params, roi, segments)
     x, y = piv_mod.grid(inputs.shape, params, roi)
     max_speed = None
     if project.piv.max_velocity_ms is not None:
         max_speed = project.piv.max_velocity_ms / mapping.scale_m_per_px(x, y)
 
-    def pair_q_fn(g: dq.SectionGeometry) -> Callable[..., float]:
-        """Discharge of one pixel-velocity field (px/s) on the section ``g``."""
-        area, depth = dq.subsection_areas(g, cs, level.level_m)
-        alpha = dq.resolve_alpha(sec.alpha, cs, level.level_m)
+    def pair_q_fn(g: dq.SectionGeometry, cs_g: xs.CrossSection | None = None) -> Callable[..., float]:
+        """Discharge of one pixel-velocity field (px/s) on the section ``g`` (cross-section ``cs_g``, default
+        the project's)."""
+        cs_g = cs if cs_g is None else cs_g
+        area, depth = dq.subsection_areas(g, cs_g, level.level_m)
+        alpha = dq.resolve_alpha(sec.alpha, cs_g, level.level_m)
 
         def q(xx, yy, u, v) -> float:
             Uw, Vw = mapping.rectify_velocity(xx, yy, u, v)
@@ -475,6 +578,13 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
     obs("geometry", pair_q_fn(geom))
     obs("stage", "piv")
     stab: dict = {}
+    frame_stats: dict = {}
+    surface_stats = None
+    plan = None
+    if project.piv.remove_stationary:
+        from .processing.surface import SurfaceStats
+
+        surface_stats = SurfaceStats()
 
     def on_pair(i, t, xx, yy, u, v, valid):
         obs("pair", i, t, xx, yy, u, v, valid)
@@ -486,29 +596,73 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
     cached = piv_cache.load(cache_dir, key, with_extra=True) if cache_dir is not None else None
     fast = {"region": project.piv.region, "box_px": None if roi is None else list(roi),
             "roi_px": None if roi_user is None else list(roi_user)}
+    decoded: list[float] = []
+    from dataclasses import replace as _replace
+
+    from .processing import planning
+
+    def piv_stream(want=None):
+        """The frames PIV reads: working frames, duplicate count, stationary-pattern removal (which needs every
+        frame of its time window: then ``want`` is not used)."""
+        if project.piv.remove_stationary:
+            want = None
+        frames = working_frames(project, inputs, cancel, obs, stab if project.stabilize.enabled else None, progress,
+                                want=want)
+
+        def tracked(it):
+            for t, img in it:
+                decoded[:] = [t]
+                yield t, img
+
+        frames = _count_identical(tracked(frames), frame_stats)
+        if project.piv.remove_stationary:
+            from .processing import surface
+
+            frames = surface.standardize(frames, roi, margin=max(64, params.search_px or 0), half=surface.HALF_WINDOW,
+                                         shrink=surface.SHRINK, stats=surface_stats)
+        return frames
+
+    def plan_pairs(frames):
+        nonlocal params, plan
+        if project.piv.frame_gap is None:
+            plan, frames = planning.first_look(frames, params, roi, mask)
+            params = _replace(params, frame_gap=plan.frame_gap, search_px=params.search_px or plan.search_px)
+            if plan.frame_gap > 1 or plan.search_px:
+                warnings.append(
+                    f"piv: from a first look at {plan.pairs_looked} pairs (slow nodes {plan.slow_px_per_frame:.1f}, "
+                    f"fast nodes {plan.fast_px_per_frame:.1f} px per frame) pairs are {plan.frame_gap} frame(s) apart"
+                    + (f" and the first pass searches {plan.search_px} px" if plan.search_px else "")
+                    + "; set piv.frame_gap (and piv.search_px) to choose yourself")
+        else:
+            plan = planning.Plan(frame_gap=int(project.piv.frame_gap), search_px=params.search_px, chosen="user")
+        return frames
+
+    n_exp = inputs.source.estimated_count()
     if cached is not None:
         res, stab_cached, extra = cached
         stab.update(stab_cached or {})
         fast.update(extra or {})
-    elif not project.piv.all_pairs and (n_exp := inputs.source.estimated_count()) > 2:
-        def frames_once(want=None):
-            return working_frames(project, inputs, cancel, obs, stab if project.stabilize.enabled else None,
-                                  progress, want=want)
-
-        res, conv = run_piv_fast(frames_once, n_exp - 1, params, roi, mask, max_speed, cancel, on_pair,
-                                 pair_q_fn(geom), project.piv.converge_rel_ci, project.piv.min_pairs)
-        fast.update(conv)
+    elif not project.piv.all_pairs and n_exp > 2:
+        plan_pairs(piv_stream(want=lambda k: k <= planning.LOOK_PAIRS))  # the first look reads the first frames
+        gap = max(1, int(params.frame_gap))
+        if n_exp - gap >= 2:
+            res, conv = run_piv_fast(piv_stream, n_exp - gap, gap, params, roi, mask, max_speed, cancel, on_pair,
+                                     pair_q_fn(geom), project.piv.converge_rel_ci, project.piv.min_pairs)
+            fast.update(conv)
+        else:
+            res = piv_mod.analyze(piv_stream(), params, roi=roi, mask=mask, max_speed_px_s=max_speed, cancel=cancel,
+                                  on_pair=on_pair)
+            fast.update(pairs_used=int(res.n_pairs or 0), converged=None)
         if cache_dir is not None:
-            piv_cache.save(cache_dir, key, res, stab or None, conv)
+            piv_cache.save(cache_dir, key, res, stab or None, fast)
     else:
         from .processing.piv_fast import prefetch
 
-        reader = prefetch(working_frames(project, inputs, cancel, obs, stab if project.stabilize.enabled else None,
-                                         progress))
+        frames = plan_pairs(piv_stream())
+        reader = prefetch(frames)
         frames = reader
-        n_expected = inputs.source.estimated_count()
-        if n_expected:
-            frames = _Sized(frames, n_expected)  # lets the ensemble plan which pairs get per-pair vectors
+        if n_exp:
+            frames = _Sized(frames, n_exp)  # lets the ensemble plan which pairs get per-pair vectors
         try:
             res = piv_mod.analyze(frames, params, roi=roi, mask=mask, max_speed_px_s=max_speed,
                                   progress=None, cancel=cancel, on_pair=on_pair)
@@ -517,6 +671,10 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
         fast.update(pairs_used=int(res.n_pairs or 0), converged=None)
         if cache_dir is not None:
             piv_cache.save(cache_dir, key, res, stab or None, fast)
+        v, fps = project.video, getattr(getattr(inputs.source, "info", None), "fps", 0) or 0
+        if v.end_s is not None and decoded and fps > 0 and decoded[0] < v.end_s - (v.step + 1) / fps:
+            warnings.append(f"video.end_s: the clip decoded only up to {decoded[0]:.2f} s of the {v.end_s:g} s asked "
+                            f"(its container claims more); the measurement covers {v.start_s:g}-{decoded[0]:.2f} s")
     lap("frames_and_piv")
 
     obs("stage", "discharge")
@@ -532,13 +690,68 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
         geom.swapped = True
         v_sub = dq.subsection_velocity(geom, res.x, res.y, U, V)
         dres = dq.compute_discharge(geom, cs, level.level_m, v_sub, sec.alpha)
-    pair_q = pair_q_fn(geom)
-    q_pairs = np.array([pair_q(res.x, res.y, res.u_pairs[k], res.v_pairs[k]) for k in range(len(res.u_pairs))])
+    robust_facts: dict = {"plan": plan.as_dict() if plan is not None else None}
+    if surface_stats is not None:
+        robust_facts["stationary_removed"] = {"frames": surface_stats.frames, "std_ref": surface_stats.std_ref,
+                                              "specular_fraction": surface_stats.specular_fraction}
+    if project.piv.reject_upstream:
+        from .processing import robust
+
+        v_clean, rejected = robust.reject_upstream(v_sub)
+        robust_facts["upstream_rejected"] = [int(i) for i in np.flatnonzero(rejected)]
+        if rejected.any():
+            dres = dq.compute_discharge(geom, cs, level.level_m, v_clean, sec.alpha)
+            warnings.append(f"{int(rejected.sum())} subsection(s) went upstream while the section goes downstream "
+                            "(wind ripples, standing waves or glints); rejected and filled from their neighbours")
+    from .processing.robust import width_share
+
+    robust_facts["filled_subsections"] = [int(i) for i in np.flatnonzero(dres.velocity_filled)]
+    robust_facts["filled_width_share"] = width_share(dres.station_from, dres.station_to, dres.velocity_filled)
+    def pairs_q(g: dq.SectionGeometry, cs_g: xs.CrossSection | None = None) -> np.ndarray:
+        pair_q = pair_q_fn(g, cs_g)
+        return np.array([pair_q(res.x, res.y, res.u_pairs[k], res.v_pairs[k]) for k in range(len(res.u_pairs))])
+
+    q_pairs = pairs_q(geom)
     lap("discharge")
+
+    from .assess import assess_run
+
+    try:
+        unc, qual = assess_run(project, inputs, level, mapping, geom, res, U, V, dres, q_pairs, frame_stats)
+    except Exception as e:  # noqa: BLE001 - the discharge is kept; the missing verdict is said
+        unc = qual = None
+        warnings.append(f"uncertainty and quality not computed ({type(e).__name__}: {e}); please report this")
+    section_entries = []
+    if extra_sections:
+        from . import sections as secs
+
+        main = {"name": "main", "points_px": np.asarray(sec.points_px, float).tolist(), "discharge_m3s": dres.discharge_m3s,
+                "discharge_ci95_m3s": (list(unc.ci95_m3s) if unc is not None and np.all(np.isfinite(unc.ci95_m3s))
+                                       else None), "grade": qual.grade if qual is not None else None,
+                "wetted_area_m2": dres.wetted_area_m2, "wetted_width_m": dres.wetted_width_m,
+                "mean_velocity_ms": dres.mean_velocity_ms, "subsections_filled": int(dres.velocity_filled.sum())}
+        section_entries = [main] + [secs.measure(project, inputs, s, level, mapping, res, U, V, frame_stats, pairs_q)
+                                    for s in extra_sections]
+        for e in section_entries:
+            if "error" in e:
+                warnings.append(f"section {e['name']!r}: {e['error']}")
+        summ = secs.summarize(section_entries)
+        if qual is not None and summ is not None and summ["cv"] is not None \
+                and summ["cv"] > project.quality.sections_cv_doubtful:
+            from .processing.quality import Reason
+
+            qual.reasons.append(Reason("sections_disagree", "doubtful",
+                                       f"the {summ['n']} sections' discharges differ by a coefficient of variation of "
+                                       f"{100 * summ['cv']:.1f} % (quality.sections_cv_doubtful = "
+                                       f"{100 * project.quality.sections_cv_doubtful:g} %)", summ["cv"],
+                                       project.quality.sections_cv_doubtful))
+            if qual.grade == "good":
+                qual.grade = "doubtful"
+    lap("uncertainty_and_quality")
 
     result = RunResult(dres, q_pairs, level, mapping, res, geom, U, V, None, timings_s=timings, warnings=warnings,
                        stabilization=stab or None, project=project_to_dict(project), piv_reused=cached is not None,
-                       piv_fast=fast)
+                       uncertainty=unc, quality=qual, sections=section_entries, robust=robust_facts, piv_fast=fast)
     if out_dir is not None:
         write_outputs(result, project, inputs, Path(out_dir))
     obs("result", result)
@@ -551,9 +764,35 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
 
 def write_outputs(result: RunResult, project: Project, inputs: Inputs, out: Path) -> None:
     """result.json, subsections.csv, mean_field.npz/.npy and the PNG plots, each written atomically."""
+    from .outdir import Staging
+
     t0 = time.perf_counter()
-    out.mkdir(parents=True, exist_ok=True)
+    project_file_inside = out.exists() and out.resolve() in (project.root.resolve(), *project.root.resolve().parents)
+    stage = Staging(out, in_place=project_file_inside)
+    try:
+        _write_outputs(result, inputs, stage.path)
+        result.timings_s["outputs"] = round(time.perf_counter() - t0, 3)  # all but result.json itself
+        _write_result_json(result, stage.path)
+        stage.commit()
+    except BaseException:
+        stage.abort()
+        raise
     result.out_dir = out
+
+
+def _write_result_json(result: RunResult, out: Path) -> None:
+    """result.json, strict JSON: a non-finite number is written as null and named in the warnings."""
+    from .outdir import strict_json
+
+    extra: list[str] = []
+    summary = strict_json(result.summary(), extra)
+    if extra:
+        summary["warnings"] = list(summary.get("warnings") or []) + extra
+    atomic_write_bytes(out / "result.json", json.dumps(summary, indent=2, default=_json_default,
+                                                       allow_nan=False).encode())
+
+
+def _write_outputs(result: RunResult, inputs: Inputs, out: Path) -> None:
     d, p = result.discharge, result.piv
     files = result.files
     lines = ["subsection,station_from_m,station_to_m,area_m2,mean_depth_m,surface_velocity_ms,velocity_filled,discharge_m3s"]
@@ -590,8 +829,6 @@ def write_outputs(result: RunResult, project: Project, inputs: Inputs, out: Path
     except FieldToolError as e:
         result.warnings.append(f"water-level plot not written: {e}")
     files["result"] = "result.json"
-    result.timings_s["outputs"] = round(time.perf_counter() - t0, 3)  # all but result.json itself
-    atomic_write_bytes(out / "result.json", json.dumps(result.summary(), indent=2, default=_json_default).encode())
 
 
 def _json_default(o):

@@ -41,6 +41,8 @@ def piv_key(project: Project, max_speed_px_s: np.ndarray | None, box_px=None) ->
     parts["video_file"] = _stat(project.resolve(project.video.path))
     if project.calibration.path:
         parts["calibration_file"] = _stat(project.resolve(project.calibration.path))
+    elif project.ortho.method == "pose" and project.ortho.fit_lens:  # the lens (frames' undistortion) comes from the GCPs
+        parts["lens_from_gcps"] = [project.ortho.gcp_px, project.ortho.gcp_world_m]
     if max_speed_px_s is not None:
         parts["max_speed"] = hashlib.sha256(np.ascontiguousarray(max_speed_px_s, dtype=np.float64)).hexdigest()
     if box_px is not None:

@@ -116,3 +116,43 @@ def test_geul_pose():
     for p, q in zip(und, dst):
         xy = cv2.perspectiveTransform(p.reshape(1, 1, 2), plane_homography(pose, q[2])).ravel()
         assert np.linalg.norm(xy - q[:2]) < 0.3
+
+
+@pytest.mark.slow
+def test_lens_fitted_from_eight_gcps(tmp_path):
+    """No checkerboard: focal length and distortion fitted from 8 GCPs (X, Y, Z) on a strong barrel lens
+    whose uncorrected discharge is ~+4.7 % off (benchmarks/lens_from_gcps.py); fx within 2 %, Q within 3 %."""
+    from fieldtool.pipeline import run_project
+    from fieldtool.project import load_project
+    from fieldtool.synthetic import presets, render_scene
+
+    truth = render_scene(presets.get("oblique", lens_gcps=True, duration_s=2.0, checkerboard_frames=2), tmp_path / "s")
+    p = load_project(truth.project_path)
+    p.calibration.checkerboard_video = ""
+    rng = np.random.default_rng(1)
+    p.ortho.method, p.ortho.fit_lens = "pose", True
+    p.ortho.gcp_px = (truth.gcp_px + rng.normal(0, 0.3, truth.gcp_px.shape)).tolist()
+    p.ortho.gcp_world_m = truth.gcp_world_m.tolist()
+    r = run_project(p, None)
+    fit = r.mapping.details["lens_from_gcps"]
+    assert abs(fit["f_px"] / truth.K[0, 0] - 1) < 0.02, fit
+    err = r.discharge.discharge_m3s / truth.discharge_m3s - 1
+    assert abs(err) < 0.03, f"{100 * err:+.2f} %"
+    # six GCPs cannot give the lens: refused, with the reason
+    p.ortho.gcp_px, p.ortho.gcp_world_m = p.ortho.gcp_px[:6], p.ortho.gcp_world_m[:6]
+    with pytest.raises(ParameterError, match="at least 8 GCPs"):
+        run_project(p, None)
+
+
+def test_lens_fit_refuses_gcps_near_the_centre():
+    """GCPs bunched near the image centre leave the distortion unknown: refused with the numbers."""
+    K = np.array([[1000.0, 0, 639.5], [0, 1000.0, 359.5], [0, 0, 1]])
+    dist = np.array([-0.3, 0.05, 0, 0, 0])
+    rng = np.random.default_rng(0)
+    world = np.c_[rng.uniform(-1, 1, (9, 2)), rng.uniform(0, 0.3, 9)]
+    rvec, tvec = np.array([0.1, 0.0, 0.0]), np.array([0.0, 0.0, 20.0])
+    px, _ = cv2.projectPoints(world, rvec, tvec, K, dist)
+    from fieldtool.processing.pose import fit_lens
+
+    with pytest.raises(GeometryError, match="cannot constrain the lens"):
+        fit_lens(px.reshape(-1, 2), world, (1280, 720))

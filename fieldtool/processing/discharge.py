@@ -215,3 +215,41 @@ def compute_discharge(geom: SectionGeometry, cs: CrossSection, level: float, sur
         mean_depth_m=mean_depth, surface_velocity_ms=v, velocity_filled=filled, sub_discharge_m3s=q_sub,
         warnings=warnings,
     )
+
+
+def check_section(geom: SectionGeometry, cs: CrossSection, level: float, min_length_fraction: float = 0.5,
+                  edge_tolerance_m: float | None = None) -> None:
+    """GeometryError, with the measured numbers, unless the section spans the water at ``level``.
+
+    The section's length on the water plane (from the ortho mapping) is compared with the wetted width of
+    the cross-section: shorter than ``min_length_fraction`` of it (a double click) is refused; and its ends
+    must land within ``edge_tolerance_m`` (m; None = 10 % of the wetted width, at least 0.3 m) of the water
+    edges (stations from ``station_offset_m`` when given, else the left and right water edges); a section
+    reaching further crosses a bank.
+    """
+    left, right = cs.water_edges(level)
+    width = right - left
+    L = geom.length_m
+    if L < min_length_fraction * width:
+        raise GeometryError(
+            f"section.points_px: the section is {L:.2f} m long on the water but the river is {width:.2f} m wide at "
+            f"level {level:.3f} m ({100 * L / width:.0f} %, less than section.min_length_fraction = "
+            f"{min_length_fraction:g}); pick P1 on the left water edge and P2 on the right one")
+    tol = max(0.3, 0.1 * width) if edge_tolerance_m is None else float(edge_tolerance_m)
+    s0, s1 = float(geom.station_edges[0]), float(geom.station_edges[-1])
+    if abs(s1 - s0 - L) > 1e-6:  # stations run from edge to edge: compare the length with the width
+        off = L - width
+        if abs(off) > tol:
+            where = ("reaches beyond the water edges over a bank" if off > 0 else "stops short of the water edges")
+            raise GeometryError(
+                f"section.points_px: the section is {L:.2f} m long but the water is {width:.2f} m wide at level "
+                f"{level:.3f} m: it {where} by {abs(off):.2f} m (tolerance {tol:.2f} m, section.edge_tolerance_m); "
+                "put P1 and P2 on the water edges")
+        return
+    bad = [(name, s, e) for name, s, e in (("P1", s0, left), ("P2", s1, right)) if abs(s - e) > tol]
+    over = s0 < left - tol or s1 > right + tol
+    if bad:
+        txt = "; ".join(f"{n} at station {s:.2f} m, water edge at {e:.2f} m" for n, s, e in bad)
+        raise GeometryError(
+            f"section: {txt} (tolerance {tol:.2f} m, section.edge_tolerance_m){' — the section crosses a bank' if over else ''}; "
+            "check section.points_px and section.station_offset_m")

@@ -21,7 +21,7 @@ import cv2
 import numpy as np
 from scipy.optimize import least_squares
 
-from ..errors import GeometryError, ParameterError
+from ..errors import FieldToolError, GeometryError, ParameterError
 
 PAIRS = ((0, 1), (1, 2), (2, 3), (3, 0), (0, 2), (1, 3))  # L1..L6 as index pairs of P1..P4
 NAMES = ("L1=|P1P2|", "L2=|P2P3|", "L3=|P3P4|", "L4=|P4P1|", "L5=|P1P3|", "L6=|P2P4|")
@@ -188,17 +188,178 @@ def check_in_frame(pts: np.ndarray, shape: tuple[int, int] | None, key: str) -> 
         raise GeometryError(f"{key}[{i}] = ({pts[i][0]:g}, {pts[i][1]:g}) px is outside the {w}x{h} frame")
 
 
-def from_distances(gcp_px, distances, image_shape: tuple[int, int] | None = None) -> OrthoMapping:
-    """Mapping from 4 GCP pixels and the six distances L1..L6 (m)."""
+def from_distances(gcp_px, distances, image_shape: tuple[int, int] | None = None, *,
+                   max_residual_m: float | None = None, accept_residual: bool = False,
+                   frame_shape: tuple[int, int] | None = None) -> OrthoMapping:
+    """Mapping from 4 GCP pixels and the six distances L1..L6 (m).
+
+    Checked before anything else (see :func:`check_gcp_order`, :func:`check_distance_scale`): the picked
+    points must go round a convex quadrilateral, and the distances must be metres. When the largest
+    distance residual exceeds ``max_residual_m`` (m) a GeometryError names the distance(s) that most
+    likely disagree (see :func:`suspect_distances`; ``frame_shape`` (H, W) puts the principal point at the
+    frame centre for that test), unless ``accept_residual``: then ``details["residual_accepted"]`` is set.
+    """
     px = np.asarray(gcp_px, float)
     if px.shape != (4, 2):
         raise ParameterError("ortho.gcp_px: give exactly four [x, y] pixel points P1..P4 for method = distances")
     check_in_frame(px, image_shape, "ortho.gcp_px")
+    check_distance_scale(distances)
+    check_gcp_order(px, distances)
     world, rms, worst = gcp_world_from_distances(px, distances)
     H, _ = cv2.findHomography(px, world, 0)
     if H is None:
         raise GeometryError("ortho.gcp_px: no homography fits these points (are three of them on one line?)")
-    return OrthoMapping(H, "distances", rms, world, {"max_distance_residual_m": worst})
+    details = {"max_distance_residual_m": worst}
+    if max_residual_m is not None and worst > max_residual_m:
+        sus = suspect_distances(px, distances, world, frame_shape)
+        details["suspect_distances"] = sus
+        if not accept_residual:
+            raise GeometryError(_residual_message(distances, worst, max_residual_m, sus))
+        details["residual_accepted"] = True
+    return OrthoMapping(H, "distances", rms, world, details)
+
+
+# ---------------------------------------------------------------------------------------------
+# plausibility of the picked GCPs and the taped distances (before any PIV)
+
+
+def _cross(o: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
+    return float((a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0]))
+
+
+def _segments_cross(a, b, c, d) -> bool:
+    """Proper intersection of segments ab and cd."""
+    d1, d2 = _cross(c, d, a), _cross(c, d, b)
+    d3, d4 = _cross(a, b, c), _cross(a, b, d)
+    return d1 * d2 < 0 and d3 * d4 < 0
+
+
+def _lsq_residual(px: np.ndarray, distances) -> float:
+    try:
+        return gcp_world_from_distances(px, distances)[2]
+    except FieldToolError:
+        return float("inf")
+
+
+def check_gcp_order(gcp_px, distances=None) -> None:
+    """GeometryError unless P1..P4 go round a convex quadrilateral, as any plane quadrilateral seen by a camera.
+
+    A crossed (bow-tie) pick names the two points that look swapped: of the two swaps that uncross it
+    (e.g. P3/P4 or P1/P2), the one whose distances fit best, or both when the distances cannot tell.
+    A point inside the triangle of the other three is named too.
+    """
+    p = np.asarray(gcp_px, float)
+    turns = [_cross(p[k], p[(k + 1) % 4], p[(k + 2) % 4]) for k in range(4)]
+    if all(t > 0 for t in turns) or all(t < 0 for t in turns):
+        return
+    order = "; pick them in the order of ortho.distances_m (L1=|P1P2|, L2=|P2P3|, L3=|P3P4|, L4=|P4P1|)"
+    cands = None
+    if _segments_cross(p[1], p[2], p[3], p[0]):
+        what, cands = "the sides P2-P3 and P4-P1 cross", [(2, 3), (0, 1)]
+    elif _segments_cross(p[0], p[1], p[2], p[3]):
+        what, cands = "the sides P1-P2 and P3-P4 cross", [(1, 2), (3, 0)]
+    if cands is None:
+        # concave: the vertex whose turn has the minority sign lies inside the others' triangle
+        signs = np.sign(turns)
+        minority = 1.0 if np.sum(signs > 0) < np.sum(signs < 0) else -1.0
+        k = int(np.nonzero(signs == minority)[0][0])
+        bad = (k + 1) % 4
+        raise GeometryError(
+            f"ortho.gcp_px: P{bad + 1} = ({p[bad][0]:.0f}, {p[bad][1]:.0f}) px lies inside the triangle of the other "
+            "three GCPs; four points on the water plane seen by a camera always form a convex quadrilateral: "
+            f"re-pick P{bad + 1}")
+    fits = []
+    for i, j in cands:
+        q = p.copy()
+        q[[i, j]] = q[[j, i]]
+        fits.append(_lsq_residual(q, distances) if distances is not None else float("inf"))
+    (a1, b1), (a2, b2) = cands
+    if np.isfinite(fits[0]) and np.isfinite(fits[1]) and abs(fits[0] - fits[1]) > 0.05 + 0.5 * min(fits):
+        i, j = cands[int(np.argmin(fits))]
+        swap = f"P{i + 1} and P{j + 1} look swapped"
+    else:
+        swap = f"P{a1 + 1} and P{b1 + 1} look swapped (or P{a2 + 1} and P{b2 + 1})"
+    raise GeometryError(f"ortho.gcp_px: the picked points P1..P4 do not go round the quadrilateral ({what}, a "
+                        f"bow-tie): {swap}{order}")
+
+
+def check_distance_scale(distances, max_m: float = 1000.0) -> None:
+    """GeometryError when the distances look typed in millimetres (or centimetres) rather than metres."""
+    L = np.asarray(distances, float).ravel()
+    if len(L) and np.all(np.isfinite(L)) and float(np.max(L)) > max_m:
+        raise GeometryError(f"ortho.distances_m: the longest distance is {np.max(L):g} m; GCPs around a river "
+                            f"section are less than {max_m:g} m apart. Were they typed in millimetres? Give metres "
+                            f"(e.g. {np.max(L) / 1000:g})")
+
+
+def _camera_misfit(H: np.ndarray, pp: np.ndarray, scale: float) -> float:
+    """How far world -> image homography columns are from a pinhole camera with square pixels and its principal
+    point at ``pp``, over focal lengths 0.1..10 x ``scale`` (0 = a perfect rigid camera). Dimensionless."""
+    G = np.linalg.inv(H)
+    G = np.array([[1, 0, -pp[0]], [0, 1, -pp[1]], [0, 0, 1.0]]) @ G
+    f = scale * np.logspace(-1, 1, 400)[:, None]
+    g1 = np.c_[np.broadcast_to(G[0, 0], f.shape) / f, np.broadcast_to(G[1, 0], f.shape) / f,
+               np.full(f.shape, G[2, 0])]
+    g2 = np.c_[np.broadcast_to(G[0, 1], f.shape) / f, np.broadcast_to(G[1, 1], f.shape) / f,
+               np.full(f.shape, G[2, 1])]
+    n1, n2 = np.linalg.norm(g1, axis=1), np.linalg.norm(g2, axis=1)
+    mis = np.abs(np.sum(g1 * g2, axis=1)) / (n1 * n2) + np.abs(n1 - n2) / (n1 + n2)
+    return float(mis.min())
+
+
+def suspect_distances(gcp_px, distances, world: np.ndarray | None = None,
+                      frame_shape: tuple[int, int] | None = None) -> list[dict]:
+    """Which distance(s) most likely disagree, best suspect first.
+
+    Six distances fix four plane points with one to spare, so the distances alone cannot tell which one is
+    wrong. The picture can: for each Li, the quadrilateral is solved from the other five and its homography
+    is compared with a pinhole camera (square pixels, principal point at the frame centre, any focal length);
+    the distance whose removal gives the most camera-like quadrilateral is the suspect.
+
+    Returns
+    -------
+    list of {"name": "L5=|P1P3|", "index": 4, "typed_m": x, "implied_m": y, "camera_misfit": m} sorted by misfit.
+    """
+    px = np.asarray(gcp_px, float)
+    L = np.asarray(distances, float)
+    if world is None:
+        world = gcp_world_from_distances(px, L)[0]
+    if frame_shape is not None:
+        pp = np.array([frame_shape[1] - 1, frame_shape[0] - 1], float) / 2.0
+        scale = float(max(frame_shape))
+    else:
+        pp = px.mean(axis=0)
+        scale = float(np.ptp(px, axis=0).max() * 2 + 1)
+    x0 = np.r_[world[0, 1], world[1], world[2]]
+    out = []
+    for k in range(6):
+        keep = [i for i in range(6) if i != k]
+
+        def resid(params, keep=keep):
+            q = np.array([[0.0, params[0]], params[1:3], params[3:5], [0.0, 0.0]])
+            return np.array([np.hypot(*(q[PAIRS[i][1]] - q[PAIRS[i][0]])) for i in keep]) - L[keep]
+
+        sol = least_squares(resid, x0)
+        q = np.array([[0.0, sol.x[0]], sol.x[1:3], sol.x[3:5], [0.0, 0.0]])
+        i, j = PAIRS[k]
+        implied = float(np.hypot(*(q[j] - q[i])))
+        H, _ = cv2.findHomography(px, q, 0)
+        mis = _camera_misfit(H, pp, scale) if H is not None else float("inf")
+        out.append({"name": NAMES[k], "index": k, "typed_m": float(L[k]), "implied_m": implied,
+                    "camera_misfit": mis + float(np.sqrt(np.mean(sol.fun ** 2)))})
+    out.sort(key=lambda d: d["camera_misfit"])
+    return out
+
+
+def _residual_message(distances, worst: float, limit: float, sus: list[dict]) -> str:
+    best = sus[0]
+    clear = len(sus) > 1 and best["camera_misfit"] < 0.5 * sus[1]["camera_misfit"]
+    named = [best] if clear else sus[:2]
+    parts = [f"{d['name']} (typed {d['typed_m']:g} m, the other five and the picture give {d['implied_m']:.3f} m)"
+             for d in named]
+    lead = "the suspect is " + parts[0] if clear else "the suspects are " + " or ".join(parts)
+    return (f"ortho.distances_m: the six distances disagree by up to {worst:.3f} m (limit ortho.max_residual_m = "
+            f"{limit:g} m); {lead}. Check the tape and the order L1..L6, or set ortho.accept_residual = true to go on")
 
 
 def from_world_points(gcp_px, gcp_world, image_shape: tuple[int, int] | None = None) -> OrthoMapping:
@@ -263,3 +424,35 @@ def from_scale(m_per_px: float) -> OrthoMapping:
 def from_homography(H: np.ndarray, method: str, residual_m: float = 0.0, gcp_world=None, details=None) -> OrthoMapping:
     """Wrap a homography computed elsewhere (e.g. from a full camera pose)."""
     return OrthoMapping(np.asarray(H, float), method, residual_m, gcp_world, details or {})
+
+
+def check_gcp_residuals(mapping: OrthoMapping, gcp_px, max_residual_m: float | None,
+                        accept_residual: bool = False) -> None:
+    """World / pose methods: each GCP's miss on the water plane (m) and in the image (px), the worst named.
+
+    Raises GeometryError when the worst miss exceeds ``max_residual_m`` (m) unless ``accept_residual``
+    (then ``mapping.details["residual_accepted"]`` is set). Also refuses a mapping that puts a GCP behind
+    the camera's horizon. Fills ``details["gcp_residual_m"]`` and ``details["gcp_reprojection_px"]``.
+    """
+    px = np.asarray(gcp_px, float).reshape(-1, 2)
+    world = np.asarray(mapping.gcp_world, float)[:, :2]
+    q = np.c_[px, np.ones(len(px))] @ mapping.H.T
+    if not (np.all(q[:, 2] > 0) or np.all(q[:, 2] < 0)):
+        i = int(np.argmin(np.abs(q[:, 2])))
+        raise GeometryError(f"ortho.gcp_px: GCP {i + 1} falls beyond the horizon of the others; check the order of "
+                            "ortho.gcp_px against ortho.gcp_world_m")
+    miss_m = np.hypot(*(mapping.image_to_world(px) - world).T)
+    if "gcp_residual_m" in mapping.details:  # pose: each GCP met on the plane at its own elevation
+        miss_m = np.asarray(mapping.details["gcp_residual_m"], float)
+    miss_px = np.hypot(*(mapping.world_to_image(world) - px).T)
+    mapping.details.setdefault("gcp_residual_m", [float(v) for v in miss_m])
+    mapping.details.setdefault("gcp_reprojection_px", [float(v) for v in miss_px])
+    i = int(np.argmax(miss_m))
+    if max_residual_m is not None and miss_m[i] > max_residual_m:
+        if accept_residual:
+            mapping.details["residual_accepted"] = True
+            return
+        raise GeometryError(
+            f"ortho.gcp_world_m: GCP {i + 1} misses by {miss_m[i]:.3f} m on the water plane ({miss_px[i]:.1f} px in the "
+            f"image; limit ortho.max_residual_m = {max_residual_m:g} m); check its pick ortho.gcp_px[{i}] and its "
+            "coordinates, or set ortho.accept_residual = true to go on")

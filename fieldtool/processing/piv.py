@@ -48,6 +48,7 @@ from __future__ import annotations
 
 import os
 import warnings
+from collections import deque
 from dataclasses import dataclass
 from typing import Callable, Iterable
 
@@ -96,6 +97,8 @@ class PivParams:
     std_threshold: float = 4.0  # global std test (n sigma)
     min_valid_fraction: float = 0.3  # node valid in fewer pairs than this fraction -> invalid in the average
     engine: str = "fieldtool"  # fieldtool | openpiv (OpenPIV extended_search_area_piv / windef, same outputs)
+    min_texture: float = 0.0  # window rms (frame units) below which a window is featureless: no vector, no ensemble weight
+    frame_gap: int = 1  # pairs are frames (i, i + frame_gap) of the stream (processing/planning.py chooses it)
 
 
 @dataclass
@@ -575,6 +578,9 @@ class _Engine:
             np.conjugate(a.spec_a[k], out=cross)
             cross *= spec_b
             scale = a.scale_a[k] * scale_b
+            if self.p.min_texture > 0:  # texture gate (processing/surface.py): too little texture -> featureless
+                smax = 1.0 / (self.p.min_texture * lv.w)
+                scale = np.where((a.scale_a[k] <= smax) & (scale_b <= smax), scale, np.float32(0.0))
             if k == last and not peaks:
                 ensemble(cross, pred_x, pred_y, None, scale)
                 return None, None, None
@@ -686,7 +692,7 @@ def analyze(
     """
     total = 0
     if hasattr(frames, "__len__"):
-        total = max(len(frames) - 1, 0)  # type: ignore[arg-type]
+        total = max(len(frames) - max(1, int(params.frame_gap)), 0)  # type: ignore[arg-type]
     it = iter(frames)
     try:
         t_prev, first = next(it)
@@ -720,37 +726,50 @@ def analyze(
         ens, per_pair, n_done = carry.ensemble, carry.per_pair, carry.n_pairs
         if ens is not None:
             ens.engine = engine
+    gap = max(1, int(params.frame_gap))
     wanted = None if select is None else frozenset(int(k) for k in select)
     last_wanted = max(wanted) if wanted else -1
-    prev = engine.prepare(first) if wanted is None or 0 in wanted else None
-    t_prev = float(t_prev)
+
+    def prep(k: int, img):
+        """Frame k's spectra; with ``select``: None when no selected pair uses it (it may come undecoded),
+        and only what a pair's second frame needs when it is not the first frame of a selected pair."""
+        if wanted is None:
+            return engine.prepare(img)
+        if k not in wanted and k - gap not in wanted:
+            return None
+        img = _check_frame(k, img, shape)
+        if k in wanted or type(engine).prepare is not _Engine.prepare:
+            return engine.prepare(img)
+        return engine.prepare(img, as_a=False)
+
+    history = deque([(prep(0, first), float(t_prev))], maxlen=gap)  # the last `gap` frames, oldest first
+    t_last = float(t_prev)
     i = 0
     for i_frame, (t, img) in enumerate(it, start=1):
+        if wanted is not None and i_frame - gap > last_wanted:  # hook of ``select``: no selected pair left
+            break
+        if cancel is not None and cancel():
+            raise Cancelled(f"PIV cancelled by the user after {i} pairs")
+        if wanted is None:
+            img = _check_frame(i_frame, img, shape)
+        t = float(t)
+        if not t > t_last:
+            raise InputFileError(
+                f"frames: timestamps must increase; frame {i_frame} is at {t:.6f} s after {t_last:.6f} s"
+            )
+        t_last = t
+        cur = prep(i_frame, img)
+        if len(history) < gap:  # the first frames only fill the history
+            history.append((cur, t))
+            continue
+        prev, t_prev = history[0]
+        dt = t - t_prev
         if wanted is not None and i not in wanted:  # hook of ``select``: this pair is skipped
-            if i >= last_wanted:
-                break
-            if i + 1 in wanted:  # frames of no selected pair may come as None (not decoded)
-                prev = engine.prepare(_check_frame(i_frame, img, shape))
-            else:
-                prev = None
-            t_prev = float(t)
             i += 1
             if progress is not None:
                 progress(i, total)
+            history.append((cur, t))
             continue
-        if cancel is not None and cancel():
-            raise Cancelled(f"PIV cancelled by the user after {i} pairs")
-        img = _check_frame(i_frame, img, shape)
-        t = float(t)
-        dt = t - t_prev
-        if not dt > 0:
-            raise InputFileError(
-                f"frames: timestamps must increase; frame {i_frame} is at {t:.6f} s after {t_prev:.6f} s"
-            )
-        if wanted is None or i + 1 in wanted or type(engine).prepare is not _Engine.prepare:
-            cur = engine.prepare(img)
-        else:  # hook of ``select``: the next pair is not correlated, so this frame is only a pair's second frame
-            cur = engine.prepare(img, as_a=False)
         cb = None
         if ens is not None:
             cb = ens.add_fn(dt, node_mask)
@@ -776,8 +795,11 @@ def analyze(
         i += 1
         if progress is not None:
             progress(i, total)
-        prev, t_prev = cur, t
+        history.append((cur, t))
     if i == 0:
+        if gap > 1:
+            raise ParameterError(f"piv.frame_gap: {gap} frames between the images of a pair, but the selected time "
+                                 "range holds no such pair; lower piv.frame_gap or widen video.start_s / video.end_s")
         raise ParameterError("video: only 1 frame in the selected time range; PIV needs at least 2 — widen "
                              "video.start_s / video.end_s or lower video.step")
     if wanted is not None:
@@ -874,6 +896,8 @@ class _Ensemble:
                 self.npk += 1
             else:
                 w = self.wpk / max(self.npk, 1)
+            if scale is not None:
+                w = np.where(scale > 0, w, 0.0)  # featureless windows (texture gate) weigh nothing
             wf = w.astype(np.float32)
             if scale is not None:  # planes not normalised yet: unit-energy factors
                 wf *= scale

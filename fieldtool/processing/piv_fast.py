@@ -122,7 +122,7 @@ class Convergence:
 
 
 def converge(make_frames: Callable[[], Iterator], n_pairs_total: int, run: Callable, pair_q: Callable,
-             rel_ci: float = 0.005, min_pairs: int = 30, seed: int = 0):
+             rel_ci: float = 0.005, min_pairs: int = 30, seed: int = 0, frame_gap: int = 1):
     """Add pairs in rounds until the discharge's sampling uncertainty is small enough (module docstring).
 
     Parameters
@@ -137,6 +137,7 @@ def converge(make_frames: Callable[[], Iterator], n_pairs_total: int, run: Calla
         relative to that mean (0.005 = +-0.5 %).
     min_pairs : fewest pairs before the threshold is tested.
     seed : bootstrap seed (reproducible runs).
+    frame_gap : frames between the two images of a pair (``PivParams.frame_gap``): pair k = frames k, k + gap.
 
     Returns
     -------
@@ -149,7 +150,7 @@ def converge(make_frames: Callable[[], Iterator], n_pairs_total: int, run: Calla
     res, q, rel = None, [], None
     while True:
         sel = np.sort(order[done:target])
-        need = frozenset(sel.tolist()) | frozenset((sel + 1).tolist()) | {0}
+        need = frozenset(sel.tolist()) | frozenset((sel + int(frame_gap)).tolist()) | {0}
         res = run(make_frames(need.__contains__), sel, None if res is None else res.carry)
         rounds += 1
         q.extend(pair_q(res.x, res.y, res.u_pairs[k], res.v_pairs[k]) for k in range(len(q), len(res.u_pairs)))

@@ -168,3 +168,118 @@ def plane_homography(pose: Pose, level_z: float) -> np.ndarray:
     T = np.array([[1.0, 0.0, pose.origin[0]], [0.0, 1.0, pose.origin[1]], [0.0, 0.0, 1.0]])
     H = T @ np.linalg.inv(G)
     return H / H[2, 2]
+
+
+MIN_GCPS_LENS = 8
+
+
+def fit_lens(gcp_px: np.ndarray, gcp_world: np.ndarray, image_size: tuple[int, int], *,
+             pixel_sigma_px: float = 1.0, max_rel_sigma_f: float = 0.03, max_sigma_shift_px: float = 3.0) -> tuple[np.ndarray, np.ndarray, Pose, dict]:
+    """Focal length and first radial distortion from 8+ GCPs, with the pose (as pyorc's
+    ``optimize_intrinsic``), for a camera that has no checkerboard calibration.
+
+    Model: square pixels, principal point at the image centre, ``dist = (k1, k2, 0, 0, 0)``; k2 is fitted
+    only from 10 GCPs on (else 0). The focal length is first searched over fields of view of 20-140
+    degrees with an undistorted pose, then focal length, distortion and the pose are refined together by
+    least squares on the reprojection.
+
+    Parameters
+    ----------
+    gcp_px : (N, 2) GCP pixels in the raw (distorted) frame.
+    gcp_world : (N, 3) surveyed X, Y, Z (m).
+    image_size : (width, height) of the frame (px).
+    pixel_sigma_px : 1-sigma of a GCP pick (px), a floor for the fit's own residual.
+    max_rel_sigma_f, max_sigma_shift_px : the fit is refused when the GCPs leave the focal length
+        (relative 1-sigma) or the distortion's radial shift at the outermost GCP (1-sigma, px) less
+        constrained than this.
+
+    Returns
+    -------
+    (K (3, 3) px, dist (5,), Pose, report) with report ``f_px, k1, k2, sigma_f_px,
+    sigma_shift_px, gcp_radius_px, rms_px, reprojection_px`` (per GCP).
+
+    Raises
+    ------
+    ParameterError : fewer than 8 GCPs, shapes.
+    GeometryError : no pose, or the GCPs cannot constrain the lens (e.g. all near the image centre).
+    """
+    from scipy.optimize import least_squares
+
+    px = _as_points(gcp_px, 2, "ortho.gcp_px")
+    world = _as_points(gcp_world, 3, "ortho.gcp_world_m")
+    if len(px) != len(world):
+        raise ParameterError(f"ortho.gcp_px has {len(px)} points but ortho.gcp_world_m has {len(world)}; give one X, Y, Z per pixel")
+    if len(px) < MIN_GCPS_LENS:
+        raise ParameterError(f"ortho.fit_lens: fitting the lens needs at least {MIN_GCPS_LENS} GCPs with X, Y, Z, got "
+                             f"{len(px)}; calibrate with a checkerboard video instead (calibration.path)")
+    w, h = int(image_size[0]), int(image_size[1])
+    cx, cy = (w - 1) / 2.0, (h - 1) / 2.0
+    origin = world.mean(axis=0)
+    obj = (world - origin).reshape(-1, 1, 3)
+
+    def K_of(f: float) -> np.ndarray:
+        return np.array([[f, 0.0, cx], [0.0, f, cy], [0.0, 0.0, 1.0]])
+
+    best = None
+    for fov in np.arange(20.0, 141.0, 5.0):
+        f0 = (w / 2.0) / np.tan(np.radians(fov) / 2.0)
+        try:
+            ok, rvec, tvec = cv2.solvePnP(obj, px.reshape(-1, 1, 2), K_of(f0), np.zeros(5), flags=cv2.SOLVEPNP_SQPNP)
+        except cv2.error:
+            continue
+        if not ok:
+            continue
+        err = _reprojection(obj, px, rvec, tvec, K_of(f0), np.zeros(5))
+        rms = float(np.sqrt(np.mean(err**2)))
+        if best is None or rms < best[0]:
+            best = (rms, np.r_[f0, 0.0, rvec.ravel(), tvec.ravel()])
+    if best is None:
+        raise GeometryError("ortho.fit_lens: no camera pose fits these GCPs; check that each pixel is paired with its X, Y, Z")
+
+    with_k2 = len(px) >= 10
+
+    def unpack(q: np.ndarray) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
+        dist = np.array([q[1], q[8] if with_k2 else 0.0, 0, 0, 0])
+        return q[0], dist, q[2:5], q[5:8]
+
+    def resid(q: np.ndarray) -> np.ndarray:
+        f, dist, rv, tv = unpack(q)
+        proj, _ = cv2.projectPoints(obj, rv, tv, K_of(f), dist)
+        return (proj.reshape(-1, 2) - px).ravel()
+
+    q0 = np.r_[best[1], 0.0] if with_k2 else best[1]
+    scale = np.r_[best[1][0], 0.1, np.ones(6), [0.1] if with_k2 else []]
+    sol = least_squares(resid, q0, x_scale=scale, method="lm")
+    q = sol.x
+    r = resid(q).reshape(-1, 2)
+    err = np.linalg.norm(r, axis=1)
+    rms = float(np.sqrt(np.mean(err**2)))
+    n_obs, n_par = r.size, len(q)
+    sigma = max(float(np.sqrt(np.sum(r**2) / max(n_obs - n_par, 1))), float(pixel_sigma_px))
+    J = sol.jac
+    f, dist, rv, tv = unpack(q)
+    f, k1 = float(f), float(dist[0])
+    # how well the distortion is known over the part of the frame the GCPs span: its radial shift (px)
+    # at the farthest GCP from the centre (beyond it the fit is an extrapolation, and says so)
+    rc = float(np.max(np.hypot(px[:, 0] - cx, px[:, 1] - cy))) / f
+    g = np.r_[f * rc**3, f * rc**5] if with_k2 else np.r_[f * rc**3]
+    k_idx = [1, 8] if with_k2 else [1]
+    try:
+        cov = np.linalg.inv(J.T @ J) * sigma**2
+        sf = float(np.sqrt(cov[0, 0]))
+        s_edge = float(np.sqrt(g @ cov[np.ix_(k_idx, k_idx)] @ g))
+    except np.linalg.LinAlgError:
+        sf, s_edge = float("inf"), float("inf")
+    report = {"f_px": f, "k1": k1, "k2": float(dist[1]), "sigma_f_px": sf, "sigma_shift_px": s_edge, "gcp_radius_px": float(rc * f),
+              "rms_px": rms, "reprojection_px": [float(e) for e in err], "n_gcps": int(len(px))}
+    if not (f > 0) or not np.isfinite(sf) or sf / f > max_rel_sigma_f or s_edge > max_sigma_shift_px:
+        raise GeometryError(
+            f"ortho.fit_lens: these {len(px)} GCPs cannot constrain the lens (focal length {f:.0f} ± {sf:.0f} px, "
+            f"distortion at the outermost GCP known to ± {s_edge:.1f} px; needed: ± {100 * max_rel_sigma_f:.0f} % and "
+            f"± {max_sigma_shift_px:g} px); add GCPs near the image corners and at several distances, or calibrate "
+            "with a checkerboard video")
+    depth = (cv2.Rodrigues(rv)[0] @ obj.reshape(-1, 3).T + tv.reshape(3, 1))[2]
+    if np.any(depth <= 0):
+        raise GeometryError("ortho.fit_lens: the fitted camera has GCPs behind it; check the GCP pairing")
+    K = K_of(f)
+    return K, dist, Pose(rv.copy(), tv.copy(), K, dist, err, rms, origin), report

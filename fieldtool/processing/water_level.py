@@ -57,7 +57,7 @@ def _argrelextrema(*args, **kwargs):
     return argrelextrema(*args, **kwargs)
 
 
-METHODS = ("value", "width", "dem", "angle_height", "image")
+METHODS = ("value", "width", "dem", "angle_height", "image", "waterline")
 DEFAULT_LEVEL_SIGMA_M = 0.01  # method = value, when water_level.uncertainty_m is not given
 DEFAULT_WIDTH_SIGMA_M = 0.02  # method = width, when water_level.width_uncertainty_m is not given
 FLAT_SLOPE = 0.01  # width changing less than 1 cm per metre of level: the width cannot give the level
@@ -616,7 +616,8 @@ def image_width(edges_px, mapping: OrthoMapping, pixel_sigma_px: float,
 def compute_level(cfg: WaterLevelCfg, cs: CrossSection, *, root: Path, mapping: OrthoMapping | None = None,
                   fov_deg: tuple[float, float, float] | None = None,
                   points_transform: Callable[[np.ndarray], np.ndarray] | None = None,
-                  image_undistort: Callable[[np.ndarray, tuple[int, int]], np.ndarray] | None = None) -> LevelResult:
+                  image_undistort: Callable[[np.ndarray, tuple[int, int]], np.ndarray] | None = None,
+                  detected: dict | None = None) -> LevelResult:
     """Water level by ``cfg.method`` (see module docstring).
 
     Parameters
@@ -631,6 +632,8 @@ def compute_level(cfg: WaterLevelCfg, cs: CrossSection, *, root: Path, mapping: 
         ``cfg.edges_px`` (method = image).
     image_undistort : ``(pts, (H, W)) -> pts`` lens undistortion of pixels of an image of that size
         (angle_height: the pinhole formulas of thesis 5.2.1 need undistorted edges).
+    detected : method = waterline: :func:`processing.waterline.detect_water_edges`' result (edges in
+        working-image pixels and their 1-sigma), measured on the clip by the caller.
     """
     root = Path(root)
     m = cfg.method
@@ -679,4 +682,15 @@ def compute_level(cfg: WaterLevelCfg, cs: CrossSection, *, root: Path, mapping: 
             raise ParameterError("water_level.method = image needs the orthorectification (ortho.* GCPs) first")
         w, sw, world = image_width(cfg.edges_px, mapping, cfg.pixel_uncertainty_px, points_transform)
         return _from_width(cs, w, sw, "image", {"edges_world_m": world.tolist(), "mapping_residual_m": float(mapping.residual_m)})
+    if m == "waterline":
+        if mapping is None or detected is None:
+            raise ParameterError("water_level.method = waterline needs the orthorectification and the clip")
+        sig = float(np.max(detected["sigma_px"]))
+        w, sw, world = image_width(detected["edges_px"], mapping, sig, None)
+        return _from_width(cs, w, sw, "waterline", {
+            "edges_px": np.asarray(detected["edges_px"]).tolist(), "edge_sigma_px": np.asarray(detected["sigma_px"]).tolist(),
+            "edges_world_m": world.tolist(), "search_line_px": np.asarray(detected["line_px"]).tolist(),
+            "contrast": detected["contrast"], "n_frames": detected["n_frames"],
+            "refined_on_mean_image": detected.get("refined_on_mean_image"),
+            "mapping_residual_m": float(mapping.residual_m)})
     raise ParameterError(f"water_level.method: {m!r} is not one of {', '.join(METHODS)}")

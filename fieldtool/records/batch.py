@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import csv
 import json
+import math
 import multiprocessing as mp
 import os
 import sys
@@ -93,11 +94,15 @@ def read_levels(path: Path | str) -> dict[str, float]:
     ``name``) and a level column (``water_level_m``, ``level_m`` or ``level``); comma or semicolon.
     Keys are video file names (as written, and their stem)."""
     path = Path(path)
+    from ..textfile import read_text
+
+    text = read_text(path, "levels file")
+    head = text.splitlines()[0] if text.strip() else ""
     try:
-        text = path.read_text(encoding="utf-8-sig")
-    except OSError as e:
-        raise InputFileError(f"{path}: cannot read the levels file ({e.strerror})") from e
-    dialect = csv.Sniffer().sniff(text.splitlines()[0] if text.strip() else ",", delimiters=",;\t")
+        dialect = csv.Sniffer().sniff(head or ",", delimiters=",;\t")
+    except csv.Error:
+        raise InputFileError(f"{path}: the header {head[:60]!r} has no ',' ';' or tab between columns; write "
+                             "'video,water_level_m' and one line per video") from None
     rows = list(csv.DictReader(text.splitlines(), dialect=dialect))
     if not rows:
         raise InputFileError(f"{path}: no rows; write a header 'video,water_level_m' and one line per video")
@@ -115,6 +120,8 @@ def read_levels(path: Path | str) -> dict[str, float]:
             level = float((r.get(lcol) or "").strip().replace(",", "."))
         except ValueError:
             raise InputFileError(f"{path}, line {i}: water level {r.get(lcol)!r} of {name} is not a number (m)") from None
+        if not math.isfinite(level) or abs(level) > 1e5:
+            raise InputFileError(f"{path}, line {i}: water level {r.get(lcol)!r} of {name} is not a level in metres")
         out[name] = level
         out.setdefault(Path(name).stem, level)
     return out
@@ -177,10 +184,9 @@ def plan_projects(paths: list[Path | str], *, out_root: Path | str | None = None
 def read_list(path: Path | str) -> list[str]:
     """Project files listed one per line in a text file ('#' comments; relative to the list's folder)."""
     path = Path(path)
-    try:
-        lines = path.read_text(encoding="utf-8").splitlines()
-    except OSError as e:
-        raise InputFileError(f"{path}: cannot read the list of projects ({e.strerror})") from e
+    from ..textfile import read_text
+
+    lines = read_text(path, "list of projects").splitlines()
     out = []
     for ln in lines:
         ln = ln.split("#", 1)[0].strip()
@@ -320,6 +326,20 @@ def _run_dask(items: list[BatchItem], scheduler: str, emit: Callable[[ItemResult
         client.close()
 
 
+def check_distinct_outputs(items: list[BatchItem]) -> None:
+    """Refuse two items writing into the same output folder (the second would replace the first's
+    results while both are recorded as done)."""
+    seen: dict[str, BatchItem] = {}
+    for it in items:
+        if not it.out_dir or it.error:
+            continue
+        k = str(Path(it.out_dir).resolve())
+        if k in seen:
+            raise ParameterError(f"{seen[k].label} and {it.label} both write into {k}; give each project its own "
+                                 "output folder (or use --out ROOT, which makes one per project)")
+        seen[k] = it
+
+
 def run_batch(items: list[BatchItem], *, history: History | None = None, workers: int | None = None,
               scheduler: str | None = None, skip_existing: bool = False, reports: bool = False,
               on_done: OnDone | None = None) -> BatchResult:
@@ -339,6 +359,7 @@ def run_batch(items: list[BatchItem], *, history: History | None = None, workers
     -------
     BatchResult, results in the order of ``items``.
     """
+    check_distinct_outputs(items)
     t0 = time.perf_counter()
     total = len(items)
     by_item: dict[int, ItemResult] = {}

@@ -40,6 +40,9 @@ def load_result(result_dir: Path | str) -> tuple[dict, dict[str, bytes], list[di
         raise InputFileError(f"{path}: not found; give the output folder of a run (it holds result.json)") from None
     except (OSError, ValueError) as e:
         raise InputFileError(f"{path}: cannot be read as a run result ({e}); run the project again") from e
+    if not isinstance(summary, dict) or not isinstance(summary.get("files") or {}, dict):
+        raise InputFileError(f"{path}: is not a fieldtool run result (expected a JSON object with 'files'); run "
+                             "the project again")
     files = summary.get("files") or {}
     images = {}
     for key, name in files.items():

@@ -63,6 +63,7 @@ class River:
     left_bank_height_m: float = 0.6  # bank top above the level
     right_bank_height_m: float = 0.8
     x_section_m: float = 0.0  # X of the surveyed section
+    island_m: tuple[float, float] | None = None  # (from, to) distance from the left water edge (m): a bar 0.15 m above the level
 
     # -- geometry ---------------------------------------------------------------------------
     @property
@@ -113,7 +114,15 @@ class River:
         inside = (u > 0) & (u < 1)
         uc = np.clip(u, 1e-300, 1 - 1e-16)
         f = uc**self.shape_a * (1 - uc) ** self.shape_b / self._fmax()
-        return np.where(inside, self.depth_m * f, 0.0)
+        return np.where(inside & ~self.on_island(s), self.depth_m * f, 0.0)
+
+    def on_island(self, s: np.ndarray | float) -> np.ndarray:
+        """True at stations (m) on the island (dry bar inside the river), if any."""
+        s = np.asarray(s, float)
+        if self.island_m is None:
+            return np.zeros(s.shape, bool)
+        a, b = self.island_m
+        return (s > self.s_left + a) & (s < self.s_left + b)
 
     def surface_velocity(self, s: np.ndarray | float) -> np.ndarray:
         """Surface velocity along +X (m/s) at station s."""
@@ -131,7 +140,7 @@ class River:
         right = s >= self.s_right
         z = np.where(left, self.level_m + self.left_bank_height_m * (self.s_left - s) / self.left_bank_m, z)
         z = np.where(right, self.level_m + self.right_bank_height_m * (s - self.s_right) / self.right_bank_m, z)
-        return z
+        return np.where(self.on_island(s), self.level_m + 0.15, z)
 
     def survey(self, spacing_m: float = 0.25) -> CrossSection:
         """Surveyed points of the bed every ``spacing_m`` (m), the water edges included."""
@@ -141,6 +150,9 @@ class River:
         if self.shape_a == 0 or self.shape_b == 0:  # vertical wall: a point just inside the water
             eps = 1e-4
             s = np.unique(np.concatenate([s, [self.s_left + eps, self.s_right - eps]]))
+        if self.island_m is not None:  # the island's vertical sides: a point on each side of each
+            a, b = self.s_left + self.island_m[0], self.s_left + self.island_m[1]
+            s = np.unique(np.concatenate([s, [a, a + 1e-4, b - 1e-4, b]]))
         return CrossSection(s, self.bed_elevation(s))
 
     # -- truth --------------------------------------------------------------------------------
@@ -149,12 +161,14 @@ class River:
         with ``scipy.integrate.quad`` on the analytic functions."""
         lo, hi = self.s_left, self.s_right
         opts = dict(limit=200, epsabs=1e-12, epsrel=1e-10)
+        if self.island_m is not None:  # the island's sides are discontinuities of the integrands
+            opts["points"] = [self.s_left + self.island_m[0], self.s_left + self.island_m[1]]
         area, _ = integrate.quad(lambda s: float(self.depth(s)), lo, hi, **opts)
         q_surf, _ = integrate.quad(lambda s: float(self.surface_velocity(s) * self.depth(s)), lo, hi, **opts)
         q = self.alpha * q_surf
         return {
             "discharge_m3s": q,
-            "wetted_width_m": self.width_m,
+            "wetted_width_m": self.width_m - (self.island_m[1] - self.island_m[0] if self.island_m else 0.0),
             "wetted_area_m2": area,
             "mean_velocity_ms": q / area,
             "surface_discharge_m3s": q_surf,
@@ -202,6 +216,7 @@ class SceneSpec:
     gcp_offset_m: float = 0.8  # GCPs this far beyond the water edges, on the banks
     gcp_half_dx_m: float = 4.0  # GCPs at x_section +- this
     gcp_size_m: float = 0.4  # side of the checker target
+    extra_gcps: int = 0  # more targets on the banks beyond P1..P4, spread over the image (pose, lens fit)
     click_error_px: float = 0.3  # sd of the seeded click error on GCP pixels
     survey_spacing_m: float = 0.25
     roi_half_length_m: float = 3.0  # ROI covers the water within x_section +- this
@@ -210,6 +225,24 @@ class SceneSpec:
     piv_overlap_px: int = 16
     video_name: str = "river.mp4"
     fourcc: str = "mp4v"
+    # hard-scene variants (all off by default, so the base scenes render byte for byte as before;
+    # their random draws come from generators of their own, never from the base one)
+    patch_cover: float = 0.0  # > 0: seeding kept only in patches covering this share of the water
+    patch_scale_m: float = 1.5  # size of the seeding patches (m)
+    empty_band_m: tuple[float, float] = (0.0, 0.0)  # band of stations (m from the left water edge) that empties
+    empty_after_s: float = 0.0  # ... at this time (s), fading out over 0.2 s
+    section_glints: int = 0  # sun glints flickering in place on part of the section
+    section_glint_span: tuple[float, float] = (0.25, 0.75)  # ... between these fractions of the width
+    section_glint_half_m: float = 1.2  # ... within this distance (m) up/downstream of the section
+    glint_duty: float = 0.35  # probability that a glint group is lit in a frame
+    ripple_amp: float = 0.0  # wind ripples: brightness amplitude (0..1) of the slope pattern
+    ripple_dir_deg: float = 160.0  # mean direction they travel, from +X (flow) towards +Y (left bank)
+    ripple_spread_deg: float = 40.0  # directional spread (+-)
+    ripple_lambda_m: tuple[float, float] = (0.08, 0.5)  # wavelength range (m)
+    ripple_waves: int = 12  # number of wave components
+    section_skew_deg: float = 0.0  # surveyed section at this angle to the channel's normal (flow stays along +X)
+    jpeg_quality: int = 0  # 1..100: each frame goes through JPEG at this quality before the video codec
+    drop_fraction: float = 0.0  # > 0: variable-frame-rate Matroska (MJPEG) with this share of frames dropped
 
     @property
     def n_frames(self) -> int:
@@ -241,8 +274,8 @@ class SceneTruth:
     R: np.ndarray
     t: np.ndarray
     dist: np.ndarray
-    gcp_world_m: np.ndarray  # (4, 3) P1..P4
-    gcp_px: np.ndarray  # (4, 2) exact projections (frame 0)
+    gcp_world_m: np.ndarray  # (4 + extra_gcps, 3) P1..P4 then the extra targets
+    gcp_px: np.ndarray  # (4 + extra_gcps, 2) exact projections (frame 0)
     section_px: np.ndarray  # (2, 2) left, right water edge at x_section (frame 0)
     video_path: Path
     project_path: Path
@@ -267,7 +300,28 @@ def gcp_world(spec: SceneSpec) -> np.ndarray:
     xs, dx = r.x_section_m, spec.gcp_half_dx_m
     yl = r.y_left_edge + spec.gcp_offset_m
     yr = r.y_right_edge - spec.gcp_offset_m
-    return np.array([[xs - dx, yl, r.level_m], [xs + dx, yl, r.level_m], [xs + dx, yr, r.level_m], [xs - dx, yr, r.level_m]])
+    base = np.array([[xs - dx, yl, r.level_m], [xs + dx, yl, r.level_m], [xs + dx, yr, r.level_m], [xs - dx, yr, r.level_m]])
+    if spec.extra_gcps <= 0:
+        return base
+    # candidates on both banks, kept where they are seen well inside the frame; the farthest from those
+    # already chosen (in the image) first, so the extra targets reach towards the corners
+    cam = spec.camera
+    cx = xs + dx * np.linspace(-4.0, 4.0, 17)
+    cand = [[x, y, r.level_m] for x in cx for y in (yl + 0.5, yl + 2.0, yl + 3.5, yr - 0.5, yr - 2.0, yr - 3.5)]
+    cand = np.array(cand)
+    depth = (cam.R @ cand.T + cam.t.reshape(3, 1))[2]
+    px = cam.project(cand)
+    m = 40.0
+    ok = (depth > 0) & (px[:, 0] > m) & (px[:, 0] < cam.width_px - m) & (px[:, 1] > m) & (px[:, 1] < cam.height_px - m)
+    cand, px = cand[ok], px[ok]
+    chosen, chosen_px = list(base), list(cam.project(base))
+    for _ in range(min(spec.extra_gcps, len(cand))):
+        d = np.min(np.linalg.norm(px[:, None, :] - np.asarray(chosen_px)[None], axis=2), axis=1)
+        k = int(np.argmax(d))
+        chosen.append(cand[k])
+        chosen_px.append(px[k])
+        px[k] = np.asarray(chosen_px)[0]  # never again
+    return np.asarray(chosen)
 
 
 def gcp_distances(p: np.ndarray) -> list[float]:
@@ -356,7 +410,7 @@ def _static_texture(spec: SceneSpec, ras: _Raster, rng: np.random.Generator) -> 
     scales_px = tuple(max(s / ras.res, 2.0) for s in scales_m)
     tex = spec.bank_gray + spec.bank_contrast * _multiscale_noise(rng, ras.ny, ras.nx, scales_px)
     X, Y = ras.xy()
-    wet_rows = (Y > r.y_right_edge) & (Y < r.y_left_edge)
+    wet_rows = (Y > r.y_right_edge) & (Y < r.y_left_edge) & ~r.on_island(r.station_of_y(Y))
     tex[wet_rows, :] = spec.water_gray
     half = spec.gcp_size_m / 2.0
     for gx, gy, _ in gcp_world(spec):
@@ -437,6 +491,140 @@ def _glint_layers(spec: SceneSpec, rng: np.random.Generator, water_quad_px: np.n
 
 
 # ---------------------------------------------------------------------------------------------
+# hard-scene variants
+
+
+def _aux_rng(spec: SceneSpec, k: int) -> np.random.Generator:
+    """A generator of its own for variant ``k``, so base scenes keep their draws."""
+    return np.random.default_rng([spec.seed, 7919, k])
+
+
+def frame_times(spec: SceneSpec) -> list[float]:
+    """Times (s) of the frames written: ``i / fps``; with ``drop_fraction`` > 0 the frames kept from a
+    nominal ``fps`` clip after dropping runs of 1-4 frames, jittered by +-2 ms as a phone's
+    variable-frame-rate recording, on the container's 10 µs grid (so the timestamps are exact)."""
+    n = spec.n_frames
+    if spec.drop_fraction <= 0:
+        return [i / spec.fps for i in range(n)]
+    from .mkv import TIMECODE_SCALE_NS, ticks_of
+
+    rng = _aux_rng(spec, 1)
+    f = min(max(spec.drop_fraction, 0.0), 0.8)
+    p_start = f / (2.5 * (1.0 - f))  # runs of 1-4 frames (mean 2.5)
+    keep = np.ones(n, bool)
+    i = 2
+    while i < n - 1:
+        if rng.uniform() < p_start:
+            run = int(rng.integers(1, 5))
+            keep[i : min(i + run, n - 1)] = False
+            i += run + 1
+        else:
+            i += 1
+    t = np.nonzero(keep)[0] / spec.fps
+    t[1:] += rng.uniform(-0.002, 0.002, len(t) - 1)
+    return [ticks_of(v) * TIMECODE_SCALE_NS * 1e-9 for v in t]
+
+
+def _patch_keep(spec: SceneSpec, x: np.ndarray, y: np.ndarray, x_lo: float, x_len: float) -> np.ndarray:
+    """Particles (initial X, Y in m) that lie in the seeding patches: smooth noise of scale
+    ``patch_scale_m`` thresholded so that ``patch_cover`` of the water is seeded."""
+    rng = _aux_rng(spec, 2)
+    r = spec.river
+    g = spec.patch_scale_m / 3.0
+    nx = int(np.ceil(x_len / g)) + 2
+    ny = int(np.ceil(r.width_m / g)) + 2
+    field_ = cv2.GaussianBlur(rng.standard_normal((ny, nx)).astype(np.float32), (0, 0), 1.5, borderType=cv2.BORDER_REFLECT)
+    thr = np.quantile(field_, 1.0 - spec.patch_cover)
+    ci = np.clip(((x - x_lo) / g).astype(int), 0, nx - 1)
+    ri = np.clip(((r.y_left_edge - y) / g).astype(int), 0, ny - 1)
+    return field_[ri, ci] > thr
+
+
+def _section_glint_layers(spec: SceneSpec) -> tuple[np.ndarray, tuple[int, int, int, int]]:
+    """Sun glints fixed in the image on part of the section: ``spec.section_glints`` saturating,
+    elongated blobs (sigma 1-2.5 px) in 12 groups that flicker on and off independently.
+    Returns the layers (12, h, w) cropped to their bounding box and that box (x0, y0, x1, y1)."""
+    rng = _aux_rng(spec, 3)
+    cam, r = spec.camera, spec.river
+    h, w = cam.height_px, cam.width_px
+    k = 12
+    s0, s1 = spec.section_glint_span
+    n = spec.section_glints
+    X = r.x_section_m + rng.uniform(-spec.section_glint_half_m, spec.section_glint_half_m, n)
+    Y = r.y_left_edge - rng.uniform(s0, s1, n) * r.width_m
+    px = cam.project(np.column_stack([X, Y, np.full(n, r.level_m)]))
+    x0, y0 = np.maximum(np.floor(px.min(axis=0)) - 12, 0).astype(int)
+    x1, y1 = np.minimum(np.ceil(px.max(axis=0)) + 13, [w, h]).astype(int)
+    layers = np.zeros((k, max(y1 - y0, 1), max(x1 - x0, 1)), np.float32)
+    yy, xx = np.mgrid[-10:11, -10:11].astype(np.float32)
+    for j, (x, y) in enumerate(px):
+        sy = rng.uniform(1.0, 2.5)
+        sx = sy * rng.uniform(1.5, 3.0)
+        blob = rng.uniform(0.9, 1.4) * np.exp(-0.5 * ((xx / sx) ** 2 + (yy / sy) ** 2))
+        xi, yi = int(round(x)) - x0, int(round(y)) - y0
+        a0, a1 = max(xi - 10, 0), min(xi + 11, layers.shape[2])
+        b0, b1 = max(yi - 10, 0), min(yi + 11, layers.shape[1])
+        if a1 > a0 and b1 > b0:
+            layers[j % k, b0:b1, a0:a1] += blob[b0 - yi + 10 : b1 - yi + 10, a0 - xi + 10 : a1 - xi + 10]
+    return layers, (int(x0), int(y0), int(x1), int(y1))
+
+
+@dataclass
+class _Ripples:
+    idx: np.ndarray  # flat canvas indices of the water pixels
+    base: np.ndarray  # (k, n) phase at t = 0 (rad)
+    rate: np.ndarray  # (k, n) phase rate (rad/s): dispersion + Doppler shift by the flow
+    amp: np.ndarray  # (k, n) brightness amplitude after the pixel's integration (0..1)
+
+
+def _ripples(spec: SceneSpec, offset: tuple[int, int], canvas: tuple[int, int]) -> _Ripples:
+    """Wind ripples on the water, drawn on the ideal canvas: ``ripple_waves`` gravity-capillary
+    waves (c² = g/k + σk/ρ) travelling at ``ripple_dir_deg`` +- ``ripple_spread_deg`` relative to the
+    water, advected by the flow, with an rms brightness ``ripple_amp``. Each wave is attenuated by the
+    pixel's integration where it is finer than the pixels (gone beyond Nyquist)."""
+    rng = _aux_rng(spec, 4)
+    cam, r = spec.camera, spec.river
+    cw, ch = canvas
+    gx, gy = np.meshgrid(np.arange(cw, dtype=float) - offset[0], np.arange(ch, dtype=float) - offset[1])
+    pts, ok = _world_of_pixels(cam, r.level_m, np.column_stack([gx.ravel(), gy.ravel()]))
+    X, Y = pts[:, 0].reshape(ch, cw), pts[:, 1].reshape(ch, cw)
+    dXy, dXx = np.gradient(X)
+    dYy, dYx = np.gradient(Y)
+    water = (ok.reshape(ch, cw) & (Y > r.y_right_edge) & (Y < r.y_left_edge)).ravel()
+    idx = np.flatnonzero(water)
+    Xw, Yw = X.ravel()[idx], Y.ravel()[idx]
+    a, b, c, d = dXx.ravel()[idx], dXy.ravel()[idx], dYx.ravel()[idx], dYy.ravel()[idx]
+    u = r.surface_velocity_y(Yw)
+    k_n = spec.ripple_waves
+    lam = np.exp(rng.uniform(np.log(spec.ripple_lambda_m[0]), np.log(spec.ripple_lambda_m[1]), k_n))
+    th = np.radians(spec.ripple_dir_deg + rng.uniform(-spec.ripple_spread_deg, spec.ripple_spread_deg, k_n))
+    phi = rng.uniform(0.0, 2 * np.pi, k_n)
+    wgt = rng.uniform(0.5, 1.0, k_n)
+    wgt *= spec.ripple_amp / np.sqrt(0.5 * np.sum(wgt**2))
+    kk = 2 * np.pi / lam
+    omega = kk * np.sqrt(9.81 / kk + 0.074 / 1000.0 * kk)
+    base = np.empty((k_n, idx.size), np.float32)
+    rate = np.empty_like(base)
+    amp = np.empty_like(base)
+    for j in range(k_n):
+        kx, ky = kk[j] * np.cos(th[j]), kk[j] * np.sin(th[j])
+        base[j] = kx * Xw + ky * Yw + phi[j]
+        rate[j] = -(omega[j] + kx * u)
+        kap = np.hypot(kx * a + ky * c, kx * b + ky * d)  # rad per pixel
+        amp[j] = wgt[j] * np.exp(-0.5 * (0.6 * kap) ** 2) * (kap < np.pi)
+    return _Ripples(idx, base, rate, amp)
+
+
+def _ripple_image(rp: _Ripples, t: float, canvas: tuple[int, int]) -> np.ndarray:
+    out = np.zeros(canvas[1] * canvas[0], np.float32)
+    acc = np.zeros(rp.idx.size, np.float32)
+    for j in range(rp.base.shape[0]):
+        acc += rp.amp[j] * np.cos(rp.base[j] + np.float32(t) * rp.rate[j])
+    out[rp.idx] = acc
+    return out.reshape(canvas[1], canvas[0])
+
+
+# ---------------------------------------------------------------------------------------------
 # rendering
 
 
@@ -492,11 +680,23 @@ def render_scene(
     n_cls = len(spec.particle_diameters_m)
     cls = rng.integers(0, n_cls, n_part)
     amp = spec.particle_brightness * rng.uniform(0.7, 1.3, n_part)
+    if river.island_m is not None:  # no tracer on the island
+        keep = ~river.on_island(river.station_of_y(py))
+        px0, py, pu, cls, amp = px0[keep], py[keep], pu[keep], cls[keep], amp[keep]
+        n_part = int(keep.sum())
+    if spec.patch_cover > 0:
+        keep = _patch_keep(spec, px0, py, x_lo, x_len)
+        px0, py, pu, cls, amp = px0[keep], py[keep], pu[keep], cls[keep], amp[keep]
+        n_part = int(keep.sum())
     sig_t = [d / 2.355 / ras.res for d in spec.particle_diameters_m]
     weight = amp * np.array([2 * np.pi * s * s for s in sig_t])[cls]
     v_rows = (y_layer_top - py) / ras.res  # fixed: particles move along X only
     vi = np.floor(v_rows).astype(np.int64)
     fv = v_rows - vi
+    band = None
+    if spec.empty_after_s > 0 and spec.empty_band_m[1] > spec.empty_band_m[0]:
+        s_edge = river.y_left_edge - py
+        band = (s_edge >= spec.empty_band_m[0]) & (s_edge <= spec.empty_band_m[1])
 
     shake = _shake_matrices(spec, rng)
     shaken = spec.shake_px > 0 or spec.shake_deg > 0
@@ -507,7 +707,8 @@ def render_scene(
 
     # section geometry on frame 0 (through the lens)
     xs = river.x_section_m
-    sec_world = np.array([[xs, river.y_left_edge, river.level_m], [xs, river.y_right_edge, river.level_m]])
+    skew = np.tan(np.radians(spec.section_skew_deg)) * river.width_m / 2.0
+    sec_world = np.array([[xs + skew, river.y_left_edge, river.level_m], [xs - skew, river.y_right_edge, river.level_m]])
     sec_px = cam.project(sec_world)
     gw = gcp_world(spec)
     g_px = cam.project(gw)
@@ -518,31 +719,42 @@ def render_scene(
         quad_w = np.array([[xs - L, river.y_left_edge - 0.3, river.level_m], [xs + L, river.y_left_edge - 0.3, river.level_m],
                            [xs + L, river.y_right_edge + 0.3, river.level_m], [xs - L, river.y_right_edge + 0.3, river.level_m]])
         glint_layers = _glint_layers(spec, rng, cam.project(quad_w))
+    sec_glints = _section_glint_layers(spec) if spec.section_glints > 0 else None
+    flicker_rng = _aux_rng(spec, 5)
+    ripples = _ripples(spec, offset, canvas) if spec.ripple_amp > 0 else None
 
     video_path = out / spec.video_name
-    writer = _open_writer(video_path, spec.fourcc, spec.fps, (w, h))
-    n = spec.n_frames
+    times = frame_times(spec)
+    if spec.drop_fraction > 0:
+        from .mkv import MkvWriter
+
+        writer = MkvWriter(video_path, (w, h), quality=95)
+        write = writer.write
+    else:
+        writer = _open_writer(video_path, spec.fourcc, spec.fps, (w, h))
+        write = lambda img, _t: writer.write(img)  # noqa: E731
+    n = len(times)
     layer_size = ly * lx
     noise = np.empty((h, w), np.float32)
     t_start = time.perf_counter()
     try:
-        for i in range(n):
+        for i, t in enumerate(times):
             if cancel is not None and cancel():
                 raise Cancelled("scene rendering cancelled")
-            t = i / spec.fps
             x = x_lo + np.mod(px0 - x_lo + pu * t, x_len)
             u_cols = (x - ras.x0) / ras.res
             ui = np.floor(u_cols).astype(np.int64)
             fu = u_cols - ui
             img = np.zeros((canvas[1], canvas[0]), np.float32)
             Hs = shake[i] if (shaken and not cam.has_distortion) else np.eye(3)
+            w_now = weight if band is None else np.where(band, weight * np.clip((spec.empty_after_s + 0.2 - t) / 0.2, 0, 1), weight)
             for c in range(n_cls):
                 sel = cls == c
                 acc = np.zeros(layer_size, np.float64)
                 for du, dv, wt in ((0, 0, (1 - fu) * (1 - fv)), (1, 0, fu * (1 - fv)), (0, 1, (1 - fu) * fv), (1, 1, fu * fv)):
                     cc = np.clip(ui[sel] + du, 0, lx - 1)
                     rr = np.clip(vi[sel] + dv, 0, ly - 1)
-                    acc += np.bincount(rr * lx + cc, weights=(wt[sel] * weight[sel]), minlength=layer_size)
+                    acc += np.bincount(rr * lx + cc, weights=(wt[sel] * w_now[sel]), minlength=layer_size)
                 layer = cv2.GaussianBlur(acc.reshape(ly, lx).astype(np.float32), (0, 0), sig_t[c])
                 img += cv2.warpPerspective(layer, Hs @ H_layer, canvas, flags=cv2.INTER_LINEAR,
                                            borderMode=cv2.BORDER_CONSTANT, borderValue=0)
@@ -551,6 +763,9 @@ def render_scene(
                                            borderMode=cv2.BORDER_CONSTANT, borderValue=0.5)
             else:
                 img += static_img
+            if ripples is not None:
+                rip = _ripple_image(ripples, t, canvas)
+                img += cv2.warpPerspective(rip, Hs, canvas) if shaken and not cam.has_distortion else rip
             if cam.has_distortion:
                 img = cv2.remap(img, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0.5)
                 if shaken:
@@ -559,12 +774,19 @@ def render_scene(
             if glint_layers is not None:
                 flick = 0.7 + 0.3 * rng.uniform(size=2)
                 img += flick[0] * glint_layers[0] + flick[1] * glint_layers[1]
+            if sec_glints is not None:
+                layers, (gx0, gy0, gx1, gy1) = sec_glints
+                lit = (flicker_rng.uniform(size=len(layers)) < spec.glint_duty) * flicker_rng.uniform(0.6, 1.2, len(layers))
+                img[gy0:gy1, gx0:gx1] += np.tensordot(lit.astype(np.float32), layers, axes=1)
             img *= 255.0
             if spec.noise_sigma > 0:
                 noise[:] = rng.standard_normal((h, w), dtype=np.float32)
                 img += spec.noise_sigma * noise
             frame = np.clip(img + 0.5, 0, 255).astype(np.uint8)
-            writer.write(cv2.cvtColor(frame, cv2.COLOR_GRAY2BGR))
+            if spec.jpeg_quality > 0:
+                enc = cv2.imencode(".jpg", frame, [cv2.IMWRITE_JPEG_QUALITY, int(spec.jpeg_quality)])[1]
+                frame = cv2.imdecode(enc, cv2.IMREAD_GRAYSCALE)
+            write(cv2.cvtColor(frame, cv2.COLOR_GRAY2BGR), t)
             if progress is not None:
                 progress(i + 1, n)
     finally:
@@ -573,6 +795,8 @@ def render_scene(
 
     # ---- what the hydrologist enters ----
     cs = river.survey(spec.survey_spacing_m)
+    if spec.section_skew_deg:  # surveyed along the skewed line: stations stretched by 1 / cos
+        cs = CrossSection(cs.station / np.cos(np.radians(spec.section_skew_deg)), cs.elevation)
     cs_path = out / "cross_section.csv"
     atomic_write_bytes(cs_path, to_csv_text(cs).encode("utf-8"))
     click = rng.normal(0.0, spec.click_error_px, g_px.shape)
@@ -595,7 +819,7 @@ def render_scene(
     proj = Project(name=f"synthetic {spec.name}")
     proj.video = VideoCfg(path=spec.video_name)
     proj.cross_section = CrossSectionCfg(path=cs_path.name)
-    proj.ortho = OrthoCfg(method="distances", gcp_px=_r(gcp_clicked), distances_m=[round(d, 4) for d in gcp_distances(gw)])
+    proj.ortho = OrthoCfg(method="distances", gcp_px=_r(gcp_clicked[:4]), distances_m=[round(d, 4) for d in gcp_distances(gw)])
     proj.water_level = WaterLevelCfg(method="value", value_m=float(river.level_m))
     proj.section = SectionCfg(points_px=_r(sec_px), n_sub=spec.n_sub, alpha=float(river.alpha))
     proj.roi = RoiCfg(rect_px=[float(np.floor(rx0)), float(np.floor(ry0)), float(np.ceil(rx1)), float(np.ceil(ry1))])
@@ -635,7 +859,8 @@ def render_scene(
         "scene": spec.name,
         "n_frames": n,
         "fps": spec.fps,
-        "timestamps": "frame i at i / fps seconds",
+        "timestamps": ("container timestamps (Matroska, 10 µs ticks), listed in frame_times_s" if spec.drop_fraction > 0
+                       else "frame i at i / fps seconds"),
         "camera": {"K": cam.K.tolist(), "R": cam.R.tolist(), "t": cam.t.tolist(), "rvec": cam.rvec.tolist(),
                    "dist": cam.dist_array.tolist(), "position_m": list(cam.position_m), "target_m": list(cam.target_m)},
         "gcp_world_m": gw.tolist(),
@@ -646,12 +871,24 @@ def render_scene(
         "raster_res_m": ras.res,
         "n_particles": n_part,
         "seconds_per_frame": spf,
-        "codec": spec.fourcc,
+        "codec": "MJPEG in Matroska (variable frame rate)" if spec.drop_fraction > 0 else spec.fourcc,
         "checkerboard_video": cb_path.name if cb_path else None,
-        "spec": _jsonable(asdict(spec)),
+        "spec": _jsonable({k: v for k, v in asdict(spec).items() if k not in _VARIANT_DEFAULTS or v != _VARIANT_DEFAULTS[k]}),
     }
+    if spec.drop_fraction > 0:
+        truth_doc["frame_times_s"] = times
+    if spec.section_skew_deg:
+        truth_doc["section_note"] = (f"section surveyed at {spec.section_skew_deg:g} deg to the flow's normal; "
+                                     "cross-section stations run along it")
     atomic_write_bytes(res.truth_path, json.dumps(truth_doc, indent=2).encode("utf-8"))
     return res
+
+
+_VARIANT_FIELDS = ("patch_cover", "patch_scale_m", "empty_band_m", "empty_after_s", "section_glints", "section_glint_span",
+                   "section_glint_half_m", "glint_duty", "ripple_amp", "ripple_dir_deg", "ripple_spread_deg",
+                   "ripple_lambda_m", "ripple_waves", "section_skew_deg", "jpeg_quality", "drop_fraction")
+# truth.json lists a variant field only when it is set, so the base scenes' files stay as they were
+_VARIANT_DEFAULTS = {k: SceneSpec.__dataclass_fields__[k].default for k in _VARIANT_FIELDS}
 
 
 def _bank_mask(spec: SceneSpec, ras: _Raster) -> np.ndarray:

@@ -9,15 +9,16 @@ project is closed and opened again.
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from ..errors import FieldToolError, InputFileError
-from ..project import Project, load_project, project_to_dict, save_project
+from ..project import Project, apply_changes, flat_changes, load_project, project_to_dict, save_project
 from .fields import field_errors
-from .steps import PIV_TABLES, STEP_IDS, STEPS, calibration_mode, fields_for
+from .steps import PIV_TABLES, STEP_IDS, STEPS, calibration_mode, fields_for, step_problems
 
 IGNORED_KEYS = ("name", "step", "rerun")
 
@@ -37,6 +38,7 @@ class Session:
         self.path = Path(path).resolve()
         if self.path.exists():
             self.project = load_project(self.path)
+            self._saved = project_to_dict(self.project)
         else:
             self.project = Project(name=self.path.parent.name or "measurement", root=self.path.parent)
             self.save()
@@ -50,7 +52,35 @@ class Session:
 
     # -- file --------------------------------------------------------------------------------
     def save(self) -> None:
-        save_project(self.project, self.path)
+        """Write the keys changed in this session since the last save into the file as it is on disk
+        now (``apply_changes``): keys other processes saved meanwhile (``fieldtool calibrate
+        --project``, the viewer) are kept, and taken into this session's project."""
+        now = project_to_dict(self.project)
+        saved = getattr(self, "_saved", None)
+        if saved is None or not self.path.exists():
+            save_project(self.project, self.path)
+        else:
+            changes = flat_changes(saved, now)
+            try:
+                merged = apply_changes(self.path, changes)
+            except FieldToolError:  # the file on disk no longer parses: this session's project wins
+                save_project(self.project, self.path)
+            else:
+                self._adopt(merged)
+        self._saved = project_to_dict(self.project)
+
+    def _adopt(self, merged: Project) -> None:
+        """Take every value of ``merged`` into ``self.project`` in place (widgets keep their object)."""
+        for f in dataclasses.fields(Project):
+            if not f.metadata.get("saved", True):
+                continue
+            new = getattr(merged, f.name)
+            if dataclasses.is_dataclass(new):
+                cur = getattr(self.project, f.name)
+                for sf in dataclasses.fields(new):
+                    setattr(cur, sf.name, getattr(new, sf.name))
+            else:
+                setattr(self.project, f.name, new)
 
     @property
     def out_dir(self) -> Path:
@@ -142,7 +172,9 @@ class Session:
             if not errs and self.calibration_state() != "current":
                 errs.append("calibration: run the calibration (ctrl+r) so the lens file exists and matches the settings")
             return errs
-        return field_errors(fields_for(step, self.ui), self.project)
+        errs = field_errors(fields_for(step, self.ui), self.project)
+        return errs + [str(pr) for pr in step_problems(step, self.project)
+                       if pr.severity == "error" and not any(e.startswith(pr.key) for e in errs)]
 
     def step_marks(self) -> dict[str, str]:
         """Sidebar mark per step: "ok", "todo" (something to fix/enter), "stale" (changed since

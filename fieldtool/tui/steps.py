@@ -236,7 +236,7 @@ ORTHO = [
 
 LEVEL_METHODS = (("set the value", "value"), ("from a wetted width", "width"),
                  ("adapted Hellebaut (bank DEM)", "dem"), ("angle and height (2 images)", "angle_height"),
-                 ("image method (rectified frame)", "image"))
+                 ("image method (rectified frame)", "image"), ("water line found in the clip", "waterline"))
 
 
 def _wm(m: str) -> Callable[[Project], bool]:
@@ -305,6 +305,9 @@ WATER_LEVEL = [
     Field("water_level.edges_px", "Water edges", "px", "points",
           "left then right water edge on the raw frame 'x, y; x, y' (rectified with the GCP mapping)",
           required=_wm("image"), show=_wm("image"), check=_two_points, pickable=True),
+    Field("water_level.search_line_px", "Search line", "px", "points",
+          "a line from bank to bank 'x, y; x, y' along which the water edges are found; empty = the section's "
+          "points lengthened by 40 % each way", show=_wm("waterline"), check=_two_points, pickable=True),
 ]
 
 # ---------------------------------------------------------------------------------------------
@@ -423,3 +426,11 @@ def fields_for(step: str, ui: dict) -> list[Field]:
         "piv": PIV,
         "section": SECTION,
     }.get(step, [])
+
+
+def step_problems(step: str, project: Project, *, files: bool = True):
+    """Problems of the validation layer (``fieldtool.validation``) on the tables a step edits."""
+    from ..validation import validate
+
+    tables = STEP_BY_ID[step].tables if step in STEP_BY_ID else ()
+    return [p for p in validate(project, files=files) if p.key.split(".")[0].split("[")[0] in tables]

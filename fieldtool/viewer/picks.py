@@ -29,7 +29,13 @@ from .mapping import PlotAxes
 
 
 def _pt(x: float, y: float) -> list[float]:
+    """A clicked point, rounded to 1/100 px."""
     return [round(float(x), 2), round(float(y), 2)]
+
+
+def _keep(x: float, y: float) -> list[float]:
+    """A point loaded from the project: kept exactly (only a click changes a pick)."""
+    return [float(x), float(y)]
 
 
 class PickState:
@@ -88,7 +94,7 @@ class PointsPick(PickState):
         return [list(p) for p in self.points]
 
     def load(self, value):
-        self.points = [_pt(*p[:2]) for p in (value or [])][: len(self.names)]
+        self.points = [_keep(*p[:2]) for p in (value or [])][: len(self.names)]
 
     def labels(self):
         return [(n, p) for n, p in zip(self.names, self.points)]
@@ -155,7 +161,7 @@ class RectPick(PickState):
         return _rect(*self.corners) if self.corners else []
 
     def load(self, value):
-        self.corners = [_pt(value[0], value[1]), _pt(value[2], value[3])] if value and len(value) == 4 else []
+        self.corners = [_keep(value[0], value[1]), _keep(value[2], value[3])] if value and len(value) == 4 else []
 
     def labels(self):
         return [(f"C{i + 1}", p) for i, p in enumerate(self.corners)]
@@ -193,7 +199,7 @@ class RectListPick(PickState):
         return [_rect(a, b) for a, b in self.rects]
 
     def load(self, value):
-        self.rects = [[_pt(r[0], r[1]), _pt(r[2], r[3])] for r in (value or []) if len(r) == 4]
+        self.rects = [[_keep(r[0], r[1]), _keep(r[2], r[3])] for r in (value or []) if len(r) == 4]
         self.pending = None
 
     def labels(self):
@@ -246,7 +252,7 @@ class PolygonListPick(PickState):
         return [[list(p) for p in poly] for poly in self.closed]
 
     def load(self, value):
-        self.closed = [[_pt(*p[:2]) for p in poly] for poly in (value or []) if len(poly) >= 3]
+        self.closed = [[_keep(*p[:2]) for p in poly] for poly in (value or []) if len(poly) >= 3]
         self.open = []
 
     def labels(self):
@@ -286,6 +292,9 @@ MODES: dict[str, ModeSpec] = {m.key: m for m in (
     ModeSpec("edges", "Water edges (image method)", "water_level.edges_px", "frame",
              lambda axes=None: PointsPick(("E1", "E2")),
              "Click the left then the right water edge on the frame (image method)."),
+    ModeSpec("search_line", "Water-line search line", "water_level.search_line_px", "frame",
+             lambda axes=None: PointsPick(("S1", "S2")),
+             "Water line found in the clip: click a point on one bank, then one on the other bank, across the river."),
     ModeSpec("edges1", "Water edges, image 1", "water_level.edges1_px", "image1",
              lambda axes=None: PointsPick(("E1", "E2")),
              "Angle-and-height method: click the two water edges on the first (lower) image."),

@@ -22,10 +22,10 @@ from typing import Any, Callable
 import numpy as np
 
 from ..errors import FieldToolError
-from ..project import load_project, save_project
+from ..project import apply_changes, load_project
 from .images import FRAME_LIKE, KINDS, Display, lens_of, load_display, load_field
 from .mapping import ImagePlane, camera_pose, fit_plane, inside, pixel_to_scene, ray_to_pixel
-from .picks import MODES, PickState, get_field, set_field
+from .picks import MODES, PickState, get_field
 
 LOOPBACK = ("127.0.0.1", "localhost", "::1")
 FOV_RAD = np.deg2rad(50.0)
@@ -342,8 +342,7 @@ class _Viewer:
                 try:
                     project = load_project(self.path)  # fresh: keeps what the TUI saved meanwhile
                     if value != get_field(project, spec.field):
-                        set_field(project, spec.field, value)
-                        save_project(project, self.path)
+                        project = apply_changes(self.path, {spec.field: value})  # this one key, merged
                         saved = True
                     self.project = project
                 except (FieldToolError, OSError) as e:

@@ -21,14 +21,11 @@ class SectionScreen(StepScreen):
         yield Static("", id="section-info")
 
     def geometry(self):
-        from ...processing import discharge as dq
-        from ...pipeline import level_and_mapping
+        from ...pipeline import build_section, level_and_mapping
 
         inputs = self.session.inputs()
         level, mapping = level_and_mapping(self.project, inputs)
-        sec = self.project.section
-        geom = dq.section_geometry(inputs.to_working(sec.points_px), mapping, inputs.cross_section, level.level_m,
-                                   sec.n_sub, sec.station_offset_m, inputs.shape)
+        geom = build_section(self.project, inputs, level.level_m, mapping)  # same checks as `fieldtool run`
         return geom, level, inputs.cross_section
 
     def step_check(self) -> None:

@@ -1,0 +1,142 @@
+"""Uncertainty and quality of one run, from the Project's [uncertainty] and [quality] keys.
+
+The thin glue between the pipeline and the pure ``processing.uncertainty`` / ``processing.quality``:
+it reads the keys, rebuilds the mapping the way the run did for each Monte Carlo draw, and gathers the
+evidence the quality checks read.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from .processing import quality as ql
+from .processing import uncertainty as un
+from .processing.ortho import OrthoMapping
+
+
+def thresholds(project) -> ql.Thresholds:
+    """The [quality] keys as processing thresholds."""
+    q = project.quality
+    return ql.Thresholds(**{f.name: getattr(q, f.name) for f in dataclasses.fields(ql.Thresholds)})
+
+
+def sigmas(project, level) -> un.McSigmas:
+    """1-sigma of each source from the [uncertainty] keys and the level's own uncertainty."""
+    u = project.uncertainty
+    alpha_sigma = u.alpha_sigma
+    if alpha_sigma is None:
+        alpha_sigma = un.ALPHA_SIGMA_DEFAULT if project.section.alpha is None else un.ALPHA_SIGMA_GIVEN
+    return un.McSigmas(level_m=float(level.uncertainty_m or 0.0), gcp_px=u.gcp_px_sigma_px,
+                       gcp_ref_m=u.gcp_distance_sigma_m, alpha=alpha_sigma, bed_m=u.bed_sigma_m,
+                       filled_rel=u.filled_rel_sigma, piv_rel=u.piv_rel_sigma)
+
+
+def _mapping_fn(project, inputs, mapping: OrthoMapping):
+    """(gcp_px working, gcp_ref, level) -> H, rebuilt as the run's method did; with the GCP inputs."""
+    from .processing import ortho
+
+    o = project.ortho
+    if o.method == "distances":
+        px = inputs.to_working(np.asarray(o.gcp_px, float))
+        ref = np.asarray(o.distances_m, float)
+
+        def fn(g, r, level):
+            world = ortho.gcp_world_from_distances(g, r)[0]
+            return ortho.cv2.findHomography(g, world, 0)[0]
+
+        return fn, px, ref
+    if o.method == "world":
+        px = inputs.to_working(np.asarray(o.gcp_px, float))
+        world = np.asarray(o.gcp_world_m, float)[:, :2]
+
+        def fn(g, r, level):
+            return ortho.cv2.findHomography(g, r.reshape(-1, 2), 0)[0]
+
+        return fn, px, world.ravel()
+    if o.method == "pose":
+        from .processing import pose
+
+        raw = np.asarray(o.gcp_px, float)
+        world = np.asarray(o.gcp_world_m, float)
+        lens = inputs.lens
+
+        def fn(g, r, level):
+            p = pose.solve_pose(g, r.reshape(-1, 3), lens.camera_matrix, lens.dist_coeffs)
+            return pose.plane_homography(p, level)
+
+        return fn, raw, world.ravel()
+    if o.method == "two_points":
+        px = inputs.to_working(np.asarray(o.gcp_px, float))
+        if o.gcp_world_m:
+            ref = np.asarray(o.gcp_world_m, float)[:, :2].ravel()
+
+            def fn(g, r, level):
+                return ortho.from_two_points(g, None, r.reshape(-1, 2)).H
+        else:
+            ref = np.asarray(o.distances_m[:1], float)
+
+            def fn(g, r, level):
+                return ortho.from_two_points(g, float(r[0])).H
+
+        return fn, px, ref
+    # method none: the scale comes from the outer water edges at the level
+    cs = inputs.cross_section
+    pts = inputs.to_working(project.section.points_px)
+    length_px = float(np.hypot(*(pts[1] - pts[0])))
+
+    def fn(g, r, level):
+        left, right = cs.water_edges(level)
+        s = (right - left) / length_px
+        return np.diag([s, -s, 1.0])
+
+    return fn, np.zeros((0, 2)), np.zeros(0)
+
+
+def _suspect(dres, th: ql.Thresholds) -> tuple[np.ndarray, np.ndarray]:
+    """Subsections whose measured velocity is in doubt (stalled while the neighbours move, or far below what
+    their depth suggests), and the velocity each may reach (the depth envelope)."""
+    v = np.where(dres.velocity_filled, np.nan, dres.surface_velocity_ms)
+    out = np.zeros(len(v), bool)
+    out[ql.stalled_subsections(v, th.stalled_ratio)] = True
+    out[ql.deficit_subsections(v, dres.mean_depth_m, th.deficit_ratio)] = True
+    return out, ql.depth_envelope(v, dres.mean_depth_m)
+
+
+def assess_run(project, inputs, level, mapping, geom, res, U, V, dres, q_pairs, frame_stats: dict):
+    """(McResult, Quality) of a finished run; never raises for a draw that fails (it is counted)."""
+    sig = sigmas(project, level)
+    th = thresholds(project)
+    suspect, upper = _suspect(dres, th)
+    fn, px, ref = _mapping_fn(project, inputs, mapping)
+    model = un.McModel(cross_section=inputs.cross_section, level_m=level.level_m, section_px=geom.p_img,
+                       n_sub=len(geom.station_edges) - 1, station_offset_m=project.section.station_offset_m,
+                       alpha=dres.alpha, mapping_fn=fn, method=mapping.method, gcp_px=px, gcp_ref=ref,
+                       x=res.x, y=res.y, u=res.u, v=res.v, u_pairs=res.u_pairs, v_pairs=res.v_pairs,
+                       suspect=suspect, suspect_upper_ms=upper)
+    u = project.uncertainty
+    mc = un.monte_carlo_discharge(model, sig, dres.discharge_m3s, n_draws=u.n_draws,
+                                  n_draws_source=max(u.n_draws // 4, 20), seed=u.seed)
+    dt = float(np.median(res.dt_s)) if res.dt_s is not None and len(res.dt_s) else 1.0
+    p = res.params
+    first = p.window_px * 2 ** (max(p.passes, 1) - 1)
+    v_meas = np.where(dres.velocity_filled, np.nan, dres.surface_velocity_ms)
+    ev = ql.Evidence(subsection_width_m=np.diff(geom.station_edges), subsection_velocity_ms=v_meas,
+                     subsection_depth_m=dres.mean_depth_m,
+                     discharge_m3s=dres.discharge_m3s, first_window_px=first, search_px=p.search_px or first,
+                     q_pairs_m3s=q_pairs, relative_u95=mc.relative_u95,
+                     **ql.section_evidence(geom.sample_img, geom.normal, res.x, res.y, res.u, res.v, U, V, dt,
+                                           res.valid_fraction, res.peak))
+    if frame_stats.get("pairs"):
+        ev.identical_frames = frame_stats["identical"] / frame_stats["pairs"]
+        ev.n_frame_pairs = frame_stats["pairs"]
+    extra = []
+    if mapping.details.get("residual_accepted"):
+        r = mapping.residual_m
+        extra.append(ql.Reason("gcp_residual", "doubtful",
+                               f"the GCP residual ({mapping.details.get('max_distance_residual_m', r):.3f} m) exceeds "
+                               f"ortho.max_residual_m = {project.ortho.max_residual_m:g} m and was accepted "
+                               "(ortho.accept_residual)", float(mapping.details.get('max_distance_residual_m', r)),
+                               project.ortho.max_residual_m))
+    return mc, ql.assess(ev, th, extra)

@@ -1,0 +1,103 @@
+"""Frame separation and search area from a first look at the clip.
+
+Correlation is most accurate when the displacement of a pair is a few pixels and at most about a quarter of
+the window (the anchors' rule of thumb: RIVeR, pyorc, PIVlab). Slow flow seen from afar moves a fraction of a
+pixel per frame, where the sub-pixel error is a large share of the displacement; fast flow near the camera can
+move a third of the first-pass window. A quick single-pass ensemble over the first few pairs measures the
+displacement per frame of every node; the frame gap is then the largest that keeps the fast nodes within a
+quarter of the first-pass window, and no larger than needed to bring the slow nodes to a few pixels. Flow too
+fast for the window at one frame gets a larger first-pass search area instead.
+
+The frames looked at are kept and replayed, so the stream is read once.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from dataclasses import dataclass, replace
+from typing import Iterable, Iterator
+
+import numpy as np
+
+from . import piv
+
+LOOK_PAIRS = 8  # pairs of the first look
+SLOW_TARGET_PX = 3.0  # the slow nodes (20th percentile) should move at least this far per pair
+FAST_FRACTION = 0.25  # the fast nodes (95th percentile) move at most this share of the first-pass window per pair
+MAX_GAP = 6
+
+
+@dataclass
+class Plan:
+    """What the first look chose (px per frame are displacements between consecutive frames)."""
+
+    frame_gap: int
+    search_px: int | None
+    chosen: str  # "auto" or "user"
+    slow_px_per_frame: float = float("nan")  # 20th percentile of |d| over the moving nodes
+    fast_px_per_frame: float = float("nan")  # 95th percentile
+    pairs_looked: int = 0
+
+    def as_dict(self) -> dict:
+        def f(x):
+            return None if not math.isfinite(x) else round(float(x), 3)
+
+        return {"frame_gap": self.frame_gap, "search_px": self.search_px, "chosen": self.chosen,
+                "slow_px_per_frame": f(self.slow_px_per_frame), "fast_px_per_frame": f(self.fast_px_per_frame),
+                "pairs_looked": self.pairs_looked}
+
+
+def choose(slow_px: float, fast_px: float, first_window_px: int) -> tuple[int, int | None]:
+    """Frame gap (>= 1) and first-pass search side (px, None = the window) for these displacements per frame."""
+    if not (math.isfinite(slow_px) and math.isfinite(fast_px)) or fast_px <= 0:
+        return 1, None
+    cap = FAST_FRACTION * first_window_px
+    gap_fast = max(1, int(cap // fast_px))
+    gap_slow = max(1, math.ceil(SLOW_TARGET_PX / max(slow_px, 1e-6)))
+    gap = int(min(gap_fast, gap_slow, MAX_GAP))
+    search = None
+    if fast_px > 1.2 * cap:  # too fast even at one frame: widen the first pass' search area
+        search = first_window_px + 2 * math.ceil(1.3 * fast_px)
+        search += search % 2
+    return gap, search
+
+
+def first_look(frames: Iterable[tuple[float, np.ndarray]], params: piv.PivParams, roi=None,
+               mask: np.ndarray | None = None) -> tuple[Plan, Iterator[tuple[float, np.ndarray]]]:
+    """Look at the first :data:`LOOK_PAIRS` pairs and plan the frame gap and search area.
+
+    Parameters
+    ----------
+    frames : (t_s, image) stream, as ``piv.analyze`` takes it.
+    params : the run's PIV parameters (their first-pass window is the one planned for).
+    roi, mask : as ``piv.analyze``.
+
+    Returns
+    -------
+    plan : :class:`Plan` (``chosen = "auto"``).
+    frames : the same stream, from its first frame (the frames looked at are replayed).
+    """
+    it = iter(frames)
+    head = list(itertools.islice(it, LOOK_PAIRS + 1))
+    replay = itertools.chain(head, it)
+    w0 = params.window_px * 2 ** (params.passes - 1)
+    plan = Plan(frame_gap=1, search_px=None, chosen="auto", pairs_looked=max(len(head) - 1, 0))
+    if len(head) < 3:
+        return plan, replay
+    look = replace(params, passes=1, window_px=w0, overlap_px=w0 // 2, search_px=None, averaging="ensemble",
+                   frame_gap=1)
+    try:
+        res = piv.analyze(head, look, roi=roi, mask=mask)
+    except Exception:  # noqa: BLE001 (a first look that fails leaves the defaults; the run reports its own error)
+        return plan, replay
+    dt = float(np.median(res.dt_s)) if res.dt_s is not None and len(res.dt_s) else 0.0
+    d = np.hypot(res.u, res.v)[res.valid & ~res.replaced] * dt if res.replaced is not None else np.hypot(res.u, res.v)[res.valid] * dt
+    d = d[np.isfinite(d)]
+    if d.size < 4:
+        return plan, replay
+    moving = d[d >= 0.2 * np.median(d)]
+    plan.slow_px_per_frame = float(np.percentile(moving, 20))
+    plan.fast_px_per_frame = float(np.percentile(d, 95))
+    plan.frame_gap, plan.search_px = choose(plan.slow_px_per_frame, plan.fast_px_per_frame, w0)
+    return plan, replay

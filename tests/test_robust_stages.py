@@ -1,0 +1,158 @@
+"""Robust velocimetry stages: temporal standardisation (glints in place), texture gate, frame gap, first-look
+planning, rejection of upstream subsections."""
+
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+from fieldtool.processing import piv, planning, robust, surface
+
+FPS = 30.0
+
+
+def _texture(rng, h, w, density=0.02, sigma=1.2):
+    """Particle image: Gaussian blobs (grey levels 0..~120) on 0."""
+    img = np.zeros((h, w), np.float32)
+    n = int(density * h * w)
+    ys, xs = rng.integers(0, h, n), rng.integers(0, w, n)
+    img[ys, xs] = rng.uniform(600, 1200, n)
+    return cv2.GaussianBlur(img, (0, 0), sigma)
+
+
+def _stream(n, shift_px, rng, glints=0, glint_amp=250.0, h=96, w=256, static_amp=0.0, tracer_gain=1.0):
+    """Frames of a texture moving by ``shift_px`` (x) per frame, with static texture and glints that flicker in
+    place (independently each frame) over the middle."""
+    big = tracer_gain * _texture(rng, h, w + int(np.ceil(shift_px * n)) + 8)
+    static = static_amp * cv2.GaussianBlur(rng.standard_normal((h, w)).astype(np.float32), (0, 0), 1.5)
+    gl = np.zeros((glints, h, w), np.float32)
+    for k in range(glints):
+        y, x = rng.integers(10, h - 10), rng.integers(w // 4, 3 * w // 4)
+        gl[k, y - 2 : y + 3, x - 3 : x + 4] = glint_amp
+    frames = []
+    for i in range(n):
+        off = shift_px * i
+        m = np.float32([[1, 0, off], [0, 1, 0]])
+        img = cv2.warpAffine(big, m, (big.shape[1], h), flags=cv2.INTER_CUBIC)[:, :w] + 40.0 + static
+        if glints:
+            lit = rng.uniform(size=glints) < 0.35
+            img = img + np.tensordot(lit.astype(np.float32), gl, axes=1)
+        frames.append((i / FPS, np.clip(img, 0, 255).astype(np.float32)))
+    return frames
+
+
+def _median_dx(res, dt):
+    return float(np.nanmedian(res.u * dt))  # warpAffine with +off moves the texture to +x
+
+
+PARAMS = piv.PivParams(window_px=32, overlap_px=16, passes=1, averaging="ensemble")
+
+
+def test_standardize_keeps_times_order_and_removes_the_static_pattern():
+    rng = np.random.default_rng(1)
+    frames = _stream(40, 1.5, rng, static_amp=60.0)
+    stats = surface.SurfaceStats()
+    out = list(surface.standardize(frames, None, half=5, shrink=0.0, stats=stats))
+    assert [t for t, _ in out] == [t for t, _ in frames] and stats.frames == 40
+    # a pixel's series over the window has zero mean: what is fixed in the image is gone
+    stack = np.array([o for _, o in out[5:16]])
+    assert abs(float(stack.mean(axis=0).mean())) < 0.05
+    assert np.all(np.isfinite(stack))
+
+
+def test_standardize_short_clip_and_empty():
+    rng = np.random.default_rng(2)
+    frames = _stream(4, 1.0, rng)
+    assert len(list(surface.standardize(frames, None, half=15))) == 4
+    assert list(surface.standardize([], None)) == []
+
+
+def test_flickering_glints_in_place_no_longer_pull_piv_to_zero():
+    rng = np.random.default_rng(3)
+    frames = _stream(60, 2.0, rng, glints=60, glint_amp=250.0, tracer_gain=0.2)  # faint tracers, as at sunset
+    raw = piv.analyze(frames, PARAMS)
+    std = piv.analyze(list(surface.standardize(frames, None, half=10)), PARAMS)
+    dt = 1 / FPS
+    assert abs(_median_dx(raw, dt) - 2.0) > 0.5  # the glints win on the raw frames ...
+    assert _median_dx(std, dt) == pytest.approx(2.0, abs=0.1)  # ... not once standardised
+
+
+def test_texture_gate_makes_empty_windows_featureless():
+    rng = np.random.default_rng(4)
+    frames = _stream(20, 1.0, rng)
+    # blank the right half: nothing but a frozen pattern of weak noise (a codec's skipped blocks)
+    frozen = rng.normal(0, 1.0, (96, 128)).astype(np.float32)
+    frames = [(t, np.concatenate([f[:, :128], 40.0 + frozen], axis=1)) for t, f in frames]
+    z = list(surface.standardize(frames, None, half=5))
+    res = piv.analyze(z, piv.PivParams(window_px=32, overlap_px=16, passes=1, averaging="ensemble",
+                                       min_texture=surface.MIN_TEXTURE))
+    right = res.x > 128 + 16
+    assert not res.valid[right & ~res.replaced].any()  # no (zero) vector from the frozen noise
+    assert np.isfinite(res.u[~right]).mean() > 0.8
+
+
+def test_frame_gap_pairs_frames_further_apart():
+    rng = np.random.default_rng(5)
+    frames = _stream(24, 1.25, rng)
+    one = piv.analyze(frames, replace_params(frame_gap=1, averaging="median"))
+    three = piv.analyze(frames, replace_params(frame_gap=3, averaging="median"))
+    np.testing.assert_allclose(three.dt_s, 3 / FPS, rtol=1e-9)
+    assert three.n_pairs == 21 and one.n_pairs == 23
+    assert np.nanmedian(three.u) == pytest.approx(np.nanmedian(one.u), rel=0.02)  # px/s, same velocity
+    with pytest.raises(Exception, match="piv.frame_gap"):
+        piv.analyze(frames[:3], replace_params(frame_gap=3))
+
+
+def replace_params(**kw):
+    from dataclasses import replace
+
+    return replace(PARAMS, **kw)
+
+
+def test_choose_gap_and_search():
+    assert planning.choose(1.35, 2.35, 64) == (3, None)  # slow nodes to >= 3 px, fast ones <= 16 px
+    assert planning.choose(0.5, 1.0, 64) == (planning.MAX_GAP, None)
+    gap, search = planning.choose(15.0, 24.0, 64)  # too fast for a 64 px window at one frame
+    assert gap == 1 and search is not None and search >= 64 + 2 * 24 and search % 2 == 0
+    assert planning.choose(float("nan"), 1.0, 64) == (1, None)
+
+
+def test_first_look_plans_and_replays_every_frame():
+    rng = np.random.default_rng(6)
+    frames = _stream(30, 1.0, rng)
+    plan, replay = planning.first_look(iter(frames), replace_params(passes=2))
+    again = list(replay)
+    assert len(again) == 30 and all(a[0] == b[0] for a, b in zip(again, frames))
+    assert plan.fast_px_per_frame == pytest.approx(1.0, abs=0.15)
+    assert plan.frame_gap in (3, 4) and plan.chosen == "auto"  # 1 px per frame: 3 px takes 3 or 4 frames
+    assert json.dumps(plan.as_dict())
+
+
+def test_reject_upstream():
+    v, rej = robust.reject_upstream(np.array([0.1, -0.3, 0.8, 1.0, np.nan, 0.9, 0.02]))
+    assert rej.tolist() == [False, True, False, False, False, False, False]
+    assert np.isnan(v[1]) and np.isnan(v[4]) and v[6] == 0.02  # slow near a bank is not upstream
+    v, rej = robust.reject_upstream(np.array([-0.5, -0.8, -0.2, 0.1]))  # the section goes upstream: left alone
+    assert not rej.any()
+    assert robust.width_share(np.array([0, 1, 3]), np.array([1, 3, 4]), np.array([True, False, True])) == 0.5
+
+
+def test_run_reports_robust_facts(short_scene, tmp_path):
+    from fieldtool.pipeline import run_project
+    from fieldtool.project import load_project
+
+    proj = load_project(short_scene.project_path)
+    res = run_project(proj, tmp_path / "out")
+    doc = json.loads((tmp_path / "out" / "result.json").read_text())
+    r = doc["robust"]
+    assert r["plan"]["chosen"] == "auto" and r["plan"]["frame_gap"] >= 1
+    assert r["stationary_removed"]["frames"] == short_scene.n_frames
+    assert 0.0 <= r["filled_width_share"] <= 1.0 and isinstance(r["upstream_rejected"], list)
+    assert res.piv.params.frame_gap == r["plan"]["frame_gap"]
+    proj.piv.frame_gap = 1
+    proj.piv.remove_stationary = False
+    res = run_project(proj, None)
+    assert res.robust["plan"]["chosen"] == "user" and "stationary_removed" not in res.robust
