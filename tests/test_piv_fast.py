@@ -135,6 +135,7 @@ def test_pipeline_band_and_convergence_keys_and_cache(scene):
     proj = load_project(scene / "project.toml")
     proj.roi.rect_px = []
     proj.piv.min_pairs = 10
+    proj.piv.frame_gap = 1  # pairs of consecutive frames: 35 in the 36-frame clip
     fast = run_project(proj, scene / "out")
     d = json.loads((scene / "out" / "result.json").read_text())
     assert d["pairs_used"] == fast.piv.n_pairs and 10 <= d["pairs_used"] <= 35 and isinstance(d["converged"], bool)
