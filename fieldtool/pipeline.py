@@ -20,7 +20,7 @@ from typing import Callable, Iterator
 
 import numpy as np
 
-from . import __version__, piv_cache
+from . import __version__, piv_cache, stiv_stage
 from .errors import Cancelled, FieldToolError, GeometryError, ParameterError
 from .processing import cross_section as xs
 from .processing import discharge as dq
@@ -104,11 +104,13 @@ class RunResult:
     stabilization: dict | None = None
     project: dict = field(default_factory=dict)
     piv_reused: bool = False  # the PIV field came from the output folder's piv_cache.npz
+    stiv: dict | None = None  # STIV beside PIV per subsection (stiv_stage.finish); None when [stiv] enabled = false
     uncertainty: object | None = None  # processing.uncertainty.McResult
     quality: object | None = None  # processing.quality.Quality
     sections: list = field(default_factory=list)  # several sections: the main one first (fieldtool.sections)
     robust: dict | None = None  # facts of the robust stages (processing/surface.py, robust.py, planning.py)
     piv_fast: dict | None = None  # region box and pair sampling of the fast path (see piv_region / run_piv_fast)
+    video: dict = field(default_factory=dict)  # the clip's metadata (records.video_meta.video_info)
 
     def summary(self) -> dict:
         d = self.discharge
@@ -145,8 +147,10 @@ class RunResult:
             "ortho_details": self.mapping.details,
             "stabilization": self.stabilization,
             "piv_reused": self.piv_reused,
+            "stiv": self.stiv,
             "robust": self.robust,
             **_fast_summary(self.piv_fast, int(getattr(self.piv, "n_pairs", 0) or len(self.q_pairs))),
+            "video": self.video,
             "warnings": self.warnings + d.warnings,
             "timings_s": self.timings_s,
             "files": self.files,
@@ -536,6 +540,9 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
 
     extra_sections = parse_sections(project)
     obs("stage", "inputs")
+    from .writers import check as check_outputs
+
+    check_outputs(project)  # a wrong ortho.crs_epsg stops the run before any work
     inputs = load_inputs(project)
     lap("inputs")
 
@@ -547,6 +554,7 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
     sec = project.section
     geom = build_section(project, inputs, level.level_m, mapping)
     roi, mask = roi_and_mask(project, inputs)
+    stiv_run = stiv_stage.start(project, mapping, geom, inputs.shape, roi, mask)
 
     params = piv_params(project)
     if project.piv.remove_stationary:
@@ -601,13 +609,15 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
 
     from .processing import planning
 
-    def piv_stream(want=None):
+    def piv_stream(want=None, tap: bool = False):
         """The frames PIV reads: working frames, duplicate count, stationary-pattern removal (which needs every
-        frame of its time window: then ``want`` is not used)."""
+        frame of its time window: then ``want`` is not used). ``tap``: STIV samples its lines from this stream."""
         if project.piv.remove_stationary:
             want = None
         frames = working_frames(project, inputs, cancel, obs, stab if project.stabilize.enabled else None, progress,
                                 want=want)
+        if tap and stiv_run is not None:  # STIV samples its lines from the same stream (one decode)
+            frames = stiv_run.tap(frames)
 
         def tracked(it):
             for t, img in it:
@@ -642,7 +652,7 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
         res, stab_cached, extra = cached
         stab.update(stab_cached or {})
         fast.update(extra or {})
-    elif not project.piv.all_pairs and n_exp > 2:
+    elif not project.piv.all_pairs and n_exp > 2 and stiv_run is None:  # STIV needs every frame, once
         plan_pairs(piv_stream(want=lambda k: k <= planning.LOOK_PAIRS))  # the first look reads the first frames
         gap = max(1, int(params.frame_gap))
         if n_exp - gap >= 2:
@@ -658,7 +668,7 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
     else:
         from .processing.piv_fast import prefetch
 
-        frames = plan_pairs(piv_stream())
+        frames = plan_pairs(piv_stream(tap=True))
         reader = prefetch(frames)
         frames = reader
         if n_exp:
@@ -675,6 +685,7 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
         if v.end_s is not None and decoded and fps > 0 and decoded[0] < v.end_s - (v.step + 1) / fps:
             warnings.append(f"video.end_s: the clip decoded only up to {decoded[0]:.2f} s of the {v.end_s:g} s asked "
                             f"(its container claims more); the measurement covers {v.start_s:g}-{decoded[0]:.2f} s")
+    stiv_stage.ensure_sampled(stiv_run, lambda: working_frames(project, inputs, cancel))
     lap("frames_and_piv")
 
     obs("stage", "discharge")
@@ -703,6 +714,7 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
             dres = dq.compute_discharge(geom, cs, level.level_m, v_clean, sec.alpha)
             warnings.append(f"{int(rejected.sum())} subsection(s) went upstream while the section goes downstream "
                             "(wind ripples, standing waves or glints); rejected and filled from their neighbours")
+    stiv_block, dres = stiv_stage.finish(stiv_run, project, geom, cs, level.level_m, dres, res, U, V)
     from .processing.robust import width_share
 
     robust_facts["filled_subsections"] = [int(i) for i in np.flatnonzero(dres.velocity_filled)]
@@ -721,6 +733,7 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
     except Exception as e:  # noqa: BLE001 - the discharge is kept; the missing verdict is said
         unc = qual = None
         warnings.append(f"uncertainty and quality not computed ({type(e).__name__}: {e}); please report this")
+    stiv_stage.add_reason(qual, stiv_block)  # "PIV and STIV disagree ..." (doubtful)
     section_entries = []
     if extra_sections:
         from . import sections as secs
@@ -751,7 +764,8 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
 
     result = RunResult(dres, q_pairs, level, mapping, res, geom, U, V, None, timings_s=timings, warnings=warnings,
                        stabilization=stab or None, project=project_to_dict(project), piv_reused=cached is not None,
-                       uncertainty=unc, quality=qual, sections=section_entries, robust=robust_facts, piv_fast=fast)
+                       uncertainty=unc, quality=qual, sections=section_entries, robust=robust_facts,
+                       stiv=stiv_block, piv_fast=fast)
     if out_dir is not None:
         write_outputs(result, project, inputs, Path(out_dir))
     obs("result", result)
@@ -771,6 +785,9 @@ def write_outputs(result: RunResult, project: Project, inputs: Inputs, out: Path
     stage = Staging(out, in_place=project_file_inside)
     try:
         _write_outputs(result, inputs, stage.path)
+        from .writers import write_standard
+
+        write_standard(result, project, inputs, stage.path)  # mean_field.nc, rectified.tif (with a CRS), video metadata
         result.timings_s["outputs"] = round(time.perf_counter() - t0, 3)  # all but result.json itself
         _write_result_json(result, stage.path)
         stage.commit()
@@ -795,10 +812,11 @@ def _write_result_json(result: RunResult, out: Path) -> None:
 def _write_outputs(result: RunResult, inputs: Inputs, out: Path) -> None:
     d, p = result.discharge, result.piv
     files = result.files
-    lines = ["subsection,station_from_m,station_to_m,area_m2,mean_depth_m,surface_velocity_ms,velocity_filled,discharge_m3s"]
+    lines = ["subsection,station_from_m,station_to_m,area_m2,mean_depth_m,surface_velocity_ms,velocity_filled,discharge_m3s,stiv_velocity_ms"]
+    stiv_v = stiv_stage.stiv_column(result.stiv, len(d.area_m2))
     for i in range(len(d.area_m2)):
         lines.append(f"{i + 1},{d.station_from[i]:.4f},{d.station_to[i]:.4f},{d.area_m2[i]:.5f},{d.mean_depth_m[i]:.4f},"
-                     f"{d.surface_velocity_ms[i]:.5f},{int(d.velocity_filled[i])},{d.sub_discharge_m3s[i]:.5f}")
+                     f"{d.surface_velocity_ms[i]:.5f},{int(d.velocity_filled[i])},{d.sub_discharge_m3s[i]:.5f},{stiv_v[i]}")
     atomic_write_bytes(out / "subsections.csv", ("\n".join(lines) + "\n").encode())
     files["subsections"] = "subsections.csv"
 

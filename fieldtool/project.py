@@ -92,6 +92,7 @@ class OrthoCfg:
     resolution_m: float | None = key(None, unit="m", gt=0.0, le=100.0)  # pixel size of the rectified image (m); None = automatic
     max_residual_m: float = key(0.10, unit="m", gt=0.0, le=1e4)  # largest GCP distance / world-point residual accepted (m); above it the run stops naming the suspect
     accept_residual: bool = key(False)  # go on despite a residual above max_residual_m (the grade becomes doubtful)
+    crs_epsg: int | None = key(None, ge=1024, le=999999)  # EPSG code of gcp_world_m (method world/pose), e.g. 28992; writes rectified.tif
 
 
 @dataclass
@@ -170,6 +171,19 @@ class SectionCfg:
     alpha: float | None = key(None, gt=0.0, le=1.5)  # velocity index; None = 0.8 if mean depth < 2 m else 0.9
     min_length_fraction: float = key(0.5, ge=0.0, le=1.0)  # a section shorter than this fraction of the wetted width is refused
     edge_tolerance_m: float | None = key(None, unit="m", ge=0.0, le=1e4)  # largest distance of the section's ends from the water edges (m); None = 10 % of the wetted width, at least 0.3 m
+    velocity_source: str = key("piv", choices=("piv", "stiv", "combined"))  # piv | stiv | combined (confidence-weighted per subsection); see [stiv]
+
+
+@dataclass
+class StivCfg:
+    """[stiv] space-time image velocimetry on search lines across the section: a second estimator."""
+
+    enabled: bool = key(True)  # sample the lines during the PIV's frame stream and report STIV beside PIV
+    method: str = key("fft", choices=("fft", "tensor"))  # fft (2-D autocorrelation of the space-time image) | tensor (structure tensor)
+    line_length_m: float = key(3.0, unit="m", gt=0.0, le=1e3)  # length of each search line along the flow, centred on the section (m)
+    lines_per_sub: int = key(2, ge=1, le=20)  # search lines per subsection
+    angles_deg: list[float] = key(factory=lambda: [-30.0, -20.0, -10.0, 0.0, 10.0, 20.0, 30.0], unit="deg", ge=-80.0, le=80.0, counts=tuple(range(1, 37)))  # line turns from the section normal (deg), all sampled; the one nearest the PIV flow direction is analysed
+    min_confidence: float = key(0.1, ge=0.0, le=1.0)  # lines below this confidence (0..1) are not used
 
 
 @dataclass
@@ -223,11 +237,20 @@ class RerunCfg:
 
 
 @dataclass
+class ViewerCfg:
+    """[viewer] the picking web page (`fieldtool view`, the TUI's viewer)."""
+
+    port: int = key(0, ge=0, le=65535)  # TCP port on 127.0.0.1; 0 = chosen free at the first launch, then remembered
+
+
+@dataclass
 class Project:
     """One measurement. ``root`` is the folder relative paths are resolved from (not saved)."""
 
     name: str = key("measurement", max_items=200)  # a name for this measurement (station, date)
     site: str = key("", max_items=200)  # site this measurement belongs to ("" = none); see `fieldtool site`
+    operator: str = key("", max_items=200)  # who made the measurement (printed on the report)
+    station: str = key("", max_items=200)  # gauging station name or code (printed on the report)
     step: str = key("cross_section", max_items=64)  # last TUI step visited
     video: VideoCfg = field(default_factory=VideoCfg)
     cross_section: CrossSectionCfg = field(default_factory=CrossSectionCfg)
@@ -239,12 +262,14 @@ class Project:
     filters: list[dict[str, Any]] = key(factory=list, max_items=32)  # ordered stack: [{name = "clahe", ...}]
     piv: PivCfg = field(default_factory=PivCfg)
     section: SectionCfg = field(default_factory=SectionCfg)
+    stiv: StivCfg = field(default_factory=StivCfg)
     # more sections of interest on the same field: [{name = "upstream", points_px = [[x, y], [x, y]],
     # cross_section = "upstream.csv"}, ...]; see fieldtool/sections.py
     sections: list[dict[str, Any]] = key(factory=list, max_items=20)
     rerun: RerunCfg = field(default_factory=RerunCfg)
     quality: QualityCfg = field(default_factory=QualityCfg)
     uncertainty: UncertaintyCfg = field(default_factory=UncertaintyCfg)
+    viewer: ViewerCfg = field(default_factory=ViewerCfg)
     root: Path = field(default=Path("."), metadata={"saved": False})
 
     def resolve(self, rel: str) -> Path:

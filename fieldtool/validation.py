@@ -135,6 +135,19 @@ def path_problem(path: Path | str, key: str, *, kind: str = "file") -> str | Non
 # helpers
 
 
+def out_path_problem(text: str) -> str | None:
+    """A file written into the output folder (path = "out", e.g. rerun.path) stays inside it: no absolute
+    path, no ``~``, no ``..``, not the folder itself. (rerun_log.confined_rrd_path also resolves links.)"""
+    p = Path(text)
+    if not text:
+        return None  # not given: the default name
+    if text.strip() in (".", "..") or p.name in ("", ".", ".."):
+        return f"{text!r} is not a file name; give one such as run.rrd (written in the output folder)"
+    if p.is_absolute() or text.startswith("~") or ".." in p.parts:
+        return f"{text!r} points outside the output folder; give a file name such as run.rrd"
+    return None
+
+
 def _path_text_problem(text: str) -> str | None:
     if _CONTROL.search(text):
         return f"{text[:60]!r}: contains a control character (newline, tab, ...); remove it"
@@ -419,7 +432,7 @@ class _Validator:
                 self.err(k, f"{v[:60]!r} is not allowed; use one of {', '.join(repr(c) for c in spec.choices)}")
             return
         if spec.path is not None:
-            msg = _path_text_problem(v)
+            msg = _path_text_problem(v) or (out_path_problem(v) if spec.path == "out" else None)
             if msg:
                 self.err(k, msg)
             return

@@ -46,14 +46,14 @@ def test_html_has_discharge_plots_table_and_is_self_contained(tmp_path):
     fake_result(tmp_path / "res")
     summary, images, rows = load_result(tmp_path / "res")
     html = render_html(summary, images, rows)
-    assert re.search(r"Q = 12\.3456 m³/s", html)
-    assert "11.5000 – 13.2500 m³/s" in html and "29 frame pairs" in html
+    assert re.search(r"Q = 12\.346 m³/s", html)
+    assert "11.500 – 13.250 m³/s" in html and "29 frame pairs" in html
     embedded = re.findall(r"src='data:image/png;base64,([A-Za-z0-9+/=]+)'", html)
     assert sorted(base64.b64decode(e) for e in embedded) == sorted(png(i) for i in range(3))
     assert html.index("plot-vectors_png") < html.index("plot-rectified_png") < html.index("plot-section_png")
     table = html[html.index("id='subsections'"):]
     assert table[:table.index("</table>")].count("<tr>") == 5
-    assert "window_px" in html and "48" in html
+    assert "Interrogation window" in html and "48 px" in html and "window_px" not in html
     # nothing external, and user text escaped
     assert not re.search(r"(src|href)=['\"](?!data:)", html)
     assert "<b>x</b>" not in html and "river &lt;b&gt;x&lt;/b&gt;" in html
@@ -65,7 +65,7 @@ def test_write_report_html_pdf_and_cli(tmp_path, capsys):
     paths = write_report(tmp_path / "res", pdf=True)
     assert [p.name for p in paths] == ["report.html", "report.pdf"]
     assert paths[1].read_bytes()[:5] == b"%PDF-"
-    assert "12.3456" in paths[0].read_text()
+    assert "12.346" in paths[0].read_text()
 
     # from the history: site, time and the reference with its error
     db = tmp_path / "h.sqlite"
@@ -77,7 +77,7 @@ def test_write_report_html_pdf_and_cli(tmp_path, capsys):
     out = tmp_path / "r.html"
     assert main(["report", "--id", str(mid), "--db", str(db), "--out", str(out)]) == 0
     html = out.read_text()
-    assert "bridge" in html and "2024-05-01T08:00:00Z" in html and "adcp" in html
+    assert "bridge" in html and "2024-05-01 08:00:00 UTC (from the video container)" in html and "adcp" in html
     assert "+2.88" in html  # (12.3456 - 12) / 12
     # by folder: the history entry is found by its output folder
     assert main(["report", str(tmp_path / "res"), "--db", str(db)]) == 0
@@ -99,7 +99,71 @@ def test_report_of_a_real_run(short_scene, tmp_path):
     r = run_project(load_project(short_scene.project_path), tmp_path / "out")
     (html_path,) = write_report(tmp_path / "out")
     html = html_path.read_text()
-    assert f"Q = {r.discharge.discharge_m3s:.4f} m³/s" in html
+    assert f"Q = {r.discharge.discharge_m3s:.3f} m³/s" in html
     n_png = sum(1 for v in r.files.values() if str(v).endswith(".png"))
-    assert n_png >= 3 and html.count("data:image/png;base64,") == n_png
+    assert n_png >= 5 and html.count("data:image/png;base64,") == n_png
+    assert "plot-profile_png" in html and "plot-gcp_png" in html  # profile with its band, GCPs with residuals
+    head = html[html.index("id='header'"):html.index("id='discharge'")]
+    assert "river.mp4" in head and "1280 × 720 px" in head and "30 frames/s" in head
+    profile = (tmp_path / "out" / "section_profile.csv").read_text().splitlines()
+    assert len(profile) == 1 + len(r.discharge.area_m2)
+    rows = [list(map(float, line.split(",")[:5])) for line in profile[1:]]
+    assert all(lo <= v <= hi for _, v, _, lo, hi in rows if v > 0.3)  # the mean lies in the pairs' band
     assert html.count("<tr>") >= len(r.discharge.area_m2)
+
+
+def test_report_embeds_only_images_inside_the_result_folder(tmp_path):
+    """result.json "files" naming ../../secret_plot.png, an absolute path or a link out is not embedded."""
+    secret = png(99)
+    (tmp_path / "secret_plot.png").write_bytes(secret)
+    res = tmp_path / "a" / "res"
+    summary = fake_result(res)
+    (res / "out_link.png").symlink_to(tmp_path / "secret_plot.png")
+    summary["files"].update({"secret_png": "../../secret_plot.png", "abs_png": str(tmp_path / "secret_plot.png"),
+                             "link_png": "out_link.png", "subsections": "../../../etc/passwd"})
+    (res / "result.json").write_text(json.dumps(summary))
+    _, images, rows = load_result(res)
+    assert set(images) == {"vectors_png", "section_png", "rectified_png"}
+    assert secret not in images.values() and rows == []
+    (html_path,) = write_report(res)
+    assert base64.b64encode(secret).decode() not in html_path.read_text()
+
+
+@pytest.mark.parametrize("content", ["[1, 2]", '"x"', "null"])
+def test_a_result_that_is_not_an_object_is_refused(tmp_path, content):
+    (tmp_path / "result.json").write_text(content)
+    with pytest.raises(InputFileError, match="result.json"):
+        load_result(tmp_path)
+
+
+def test_header_interval_grade_reasons_and_readable_parameters(tmp_path):
+    """The quality helper's keys are shown (Q ± 95 %, grade, reasons); internal keys are not."""
+    s = fake_result(tmp_path / "res")
+    s["inputs"].update({"operator": "A. Hydro", "station": "L-0042", "site": "weir",
+                        "water_level": {"method": "image", "edges_px": [[1.0, 2.0], [3.0, 4.0]]},
+                        "rerun": {"mode": "off", "path": "run.rrd"}, "step": "results"})
+    s["video"] = {"file": "clip.mp4", "recorded_utc": "2024-05-01T08:00:00Z", "recorded_source": "container",
+                  "width_px": 1920, "height_px": 1080, "fps": 29.97, "n_frames": 300, "duration_s": 10.01,
+                  "start_s": 0.0, "end_s": 8.0}
+    s["discharge_ci95_m3s"] = [11.8, 12.9]
+    s["quality"] = {"grade": "doubtful", "reasons": [{"code": "filled", "severity": "doubtful",
+                    "message": "4 of 15 subsections filled from neighbours", "value": 0.27, "threshold": 0.2}]}
+    html = render_html(s, {}, [])
+    head = html[html.index("id='header'"):html.index("id='discharge'")]
+    for text in ("weir", "L-0042", "A. Hydro", "clip.mp4", "2024-05-01 08:00:00 UTC (from the video container)",
+                 "10.01 s", "1920 × 1080 px", "29.97 frames/s"):
+        assert text in head, text
+    box = html[html.index("id='discharge'"):html.index("<h2>")]
+    assert "95 % interval 11.800 – 12.900 m³/s (± 4.5 %)" in box
+    assert ">doubtful<" in box and "4 of 15 subsections filled from neighbours (value 0.27, limit 0.2)" in box
+    for internal in ("edges_px", "rerun", "run.rrd", "results"):
+        assert internal not in html[html.index("id='inputs'"):], internal
+    assert "water edges picked on the frame" in html
+    # the interval from the uncertainty block alone, and nothing when neither exists
+    del s["discharge_ci95_m3s"]
+    s["uncertainty"] = {"ci95_m3s": [11.0, 13.0], "budget": [{"source": "water_level", "share": 0.6, "u_m3s": 0.3}]}
+    html = render_html(s, {}, [])
+    assert "11.000 – 13.000 m³/s" in html and "water level" in html[html.index("id='budget'"):]
+    s.pop("uncertainty"), s.pop("quality")
+    html = render_html(s, {}, [])
+    assert "no 95 % interval in this result" in html and "no quality grade" in html

@@ -66,3 +66,40 @@ def test_sections_crossing_an_island(tmp_path):
     assert res.discharge.wetted_width_m == pytest.approx(10.8, abs=0.05)
     for e in res.sections:
         assert abs(e["discharge_m3s"] / truth.discharge_m3s - 1) < 0.03, e
+
+
+def test_report_lists_the_sections():
+    from fieldtool.records.report import render_html
+
+    summary = {"discharge_m3s": 10.0, "files": {}, "sections": [
+        {"name": "main", "discharge_m3s": 10.0, "discharge_ci95_m3s": [9.5, 10.5], "grade": "good"},
+        {"name": "upstream", "discharge_m3s": 10.4, "discharge_ci95_m3s": None, "grade": "doubtful"},
+        {"name": "far", "error": "section: crosses a bank"}],
+        "sections_summary": {"n": 2, "mean_m3s": 10.2, "std_m3s": 0.283, "cv": 0.0277}}
+    html = render_html(summary, {}, [])
+    assert "<h2>Sections</h2>" in html and "upstream" in html and "crosses a bank" in html
+    assert "CV 2.8" in html and "9.5000 – 10.5000" in html
+
+
+def test_tui_results_line_for_sections():
+    from fieldtool.tui.screens.results import discharge_lines
+
+    lines = discharge_lines({"discharge_m3s": 10.0, "sections": [
+        {"name": "main", "discharge_m3s": 10.0}, {"name": "up", "discharge_m3s": 10.4}],
+        "sections_summary": {"n": 2, "mean_m3s": 10.2, "std_m3s": 0.283, "cv": 0.0277}})
+    assert any("sections" in ln and "CV 2.8 %" in ln and "up 10.400" in ln for ln in lines)
+
+
+def test_viewer_section_list_pick_keeps_names():
+    from fieldtool.viewer.picks import MODES
+
+    st = MODES["sections"].make()
+    st.load([{"name": "weir", "points_px": [[1.5, 2.5], [100.25, 3.0]], "cross_section": "weir.csv"}])
+    st.click(10, 20)
+    st.click(300, 40)
+    v = st.value()
+    assert v[0] == {"name": "weir", "points_px": [[1.5, 2.5], [100.25, 3.0]], "cross_section": "weir.csv"}
+    assert v[1]["points_px"] == [[10.0, 20.0], [300.0, 40.0]] and v[1]["name"] == "section 3"
+    assert [t for t, _ in st.labels()] == ["L2", "R2", "L3", "R3"]
+    st.undo()
+    assert len(st.value()) == 1 and st.pending == [10.0, 20.0]

@@ -7,6 +7,7 @@ the step that was left.
 
 import asyncio
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -79,9 +80,9 @@ def test_walkthrough_by_keys_gives_the_pipeline_discharge(project_path, tmp_path
             assert isinstance(app.screen, PivScreen)
             await pilot.press("ctrl+r")
             await pilot.pause()
-            # the run is under way (progress panel shown), or already done with a result on a fast machine
+            # the run is under way (status line shown), or already done with a result on a fast machine
             if app.job is not None:
-                assert app.screen.query_one("#job").display
+                assert app.screen.query_one("#status").display
             else:
                 assert "discharge_m3s" in app.last_job.get("piv", {}), (
                     app.last_job, str(app.screen.query_one("#step-errors").render()))
@@ -190,7 +191,7 @@ def test_cancel_during_piv_keeps_the_ui_and_writes_no_result(project_path, monke
             await pilot.press("escape")
             await wait_job(app, pilot)
             assert "cancelled" in app.last_job["piv"]
-            label = str(app.screen.query_one("#job-label").render())
+            label = str(app.screen.query_one("#status").render())
             assert "cancelled" in label
             await pilot.press("ctrl+n")  # still responsive
             await pilot.pause()
@@ -273,3 +274,114 @@ def test_kill_mid_piv_leaves_a_valid_project_file(project_path, tmp_path):
     assert q.video.path == p.video.path and q.ortho.gcp_px == p.ortho.gcp_px
     leftovers = [f.name for f in Path(project_path).parent.iterdir() if f.name.endswith(".tmp")]
     assert leftovers == []
+
+
+def _slow_frames(monkeypatch, delay=0.05):
+    """50 ms a frame: a run outlasts a few key presses and screen reads, whatever the CPU."""
+    import fieldtool.pipeline as pipeline
+
+    streamed = pipeline.working_frames
+
+    def slow_frames(*args, **kwargs):
+        for item in streamed(*args, **kwargs):
+            time.sleep(delay)
+            yield item
+
+    monkeypatch.setattr(pipeline, "working_frames", slow_frames)
+
+
+def screen_lines(app) -> list[str]:
+    return [strip.text for strip in app.screen._compositor.render_strips()]
+
+
+def test_piv_progress_line_is_on_screen_at_80x24(project_path, monkeypatch):
+    """Defect: the PIV progress bar was below the fold (only "esc Cancel" in the footer showed a run).
+    The status line above the footer shows the job, its progress, elapsed/remaining time and the
+    cancel key, on the 80 x 24 screen, and stays when the operator moves to another step."""
+    _slow_frames(monkeypatch)
+
+    async def run():
+        p = load_project(project_path)
+        p.step = "piv"
+        save_project(p, project_path)
+        app = FieldToolApp(project_path)
+        async with app.run_test(size=SIZE) as pilot:
+            await pilot.pause()
+            await pilot.press("ctrl+r")
+            t0 = time.monotonic()
+            while app.job is None or app.job.done < 2:
+                assert time.monotonic() - t0 < 60
+                await pilot.pause(0.05)
+            await pilot.pause(0.3)
+            lines = screen_lines(app)
+            assert len(lines) == SIZE[1]
+            status = lines[-2]  # the line above the footer
+            assert re.search(r"▶ PIV and discharge: .* \d+/\d+ · \d+:\d\d elapsed · (\d+:\d\d|--:--) left · esc cancels",
+                             status), status
+            await pilot.press("ctrl+b")  # another step: the run is still shown
+            await pilot.pause(0.3)
+            assert "▶ PIV and discharge" in screen_lines(app)[-2]
+            await pilot.press("escape")
+            await wait_job(app, pilot)
+            assert "cancelled" in screen_lines(app)[-2]
+
+    asyncio.run(run())
+
+
+def test_piv_without_a_section_is_kept_when_quitting(project_path, tmp_path):
+    """Defect: a finished PIV was lost when the user quit before a section existed. The PIV-only run
+    saves the field in the PIV cache at once: a new session finds it (PIV marked done), and the
+    discharge run reuses it instead of running PIV again."""
+    section = load_project(project_path).section.points_px
+
+    async def first():
+        p = load_project(project_path)
+        p.step = "piv"
+        p.section.points_px = []
+        save_project(p, project_path)
+        app = FieldToolApp(project_path)
+        async with app.run_test(size=SIZE) as pilot:
+            await pilot.pause()
+            await pilot.press("ctrl+r")
+            await pilot.pause()
+            await wait_job(app, pilot)
+            assert "stats" in app.last_job["piv"], app.last_job
+            await pilot.press("ctrl+q")
+
+    asyncio.run(first())
+    assert (project_path.parent / "out" / "piv_cache.npz").is_file()
+    from fieldtool.tui.session import Session
+
+    s = Session(project_path)
+    assert s.piv_state() == "current"
+    assert s.step_marks()["piv"] == "ok"
+    p = load_project(project_path)
+    ref = load_project(project_path)
+    p.section.points_px = ref.section.points_px = section
+    res = run_project(p, project_path.parent / "out")
+    assert res.piv_reused
+    fresh = run_project(ref, tmp_path / "fresh")
+    assert not fresh.piv_reused
+    assert res.discharge.discharge_m3s == pytest.approx(fresh.discharge.discharge_m3s, rel=1e-12)
+
+
+def test_results_screen_says_it_is_computing(project_path, monkeypatch):
+    """Defect: the results screen said "no result yet: ctrl+r computes" while it was computing."""
+    _slow_frames(monkeypatch)
+
+    async def run():
+        p = load_project(project_path)
+        p.step = "results"
+        save_project(p, project_path)
+        app = FieldToolApp(project_path)
+        async with app.run_test(size=SIZE) as pilot:
+            await pilot.pause(0.3)
+            assert app.job is not None  # computing on arrival
+            text = "\n".join(screen_lines(app))
+            assert "computing the discharge" in text and "no result yet" not in text
+            await wait_job(app, pilot)
+            await pilot.pause(0.3)
+            assert "computing" not in "\n".join(screen_lines(app))
+            assert f"{app.session.last_result().summary['discharge_m3s']:.4f}" in "\n".join(screen_lines(app))
+
+    asyncio.run(run())

@@ -44,8 +44,9 @@ def make_project(root, step: str, **changes) -> FieldToolApp:
     return p
 
 
-def fake_result(root, p: Project) -> None:
-    """result.json and subsections.csv as a run writes them (numbers made up, inputs current)."""
+def fake_result(root, p: Project, n: int = 5, quality: bool = False) -> None:
+    """result.json and subsections.csv as a run writes them (numbers made up, inputs current);
+    ``quality``: with the 95 % interval and the quality verdict."""
     out = root / "out"
     out.mkdir()
     summary = {"discharge_m3s": 1.2345, "discharge_p05_m3s": 1.1, "discharge_p95_m3s": 1.35,
@@ -54,24 +55,53 @@ def fake_result(root, p: Project) -> None:
                "alpha_default": True, "n_pairs": 7, "valid_fraction_mean": 0.9, "warnings": [],
                "files": {"result": "result.json", "subsections": "subsections.csv", "section_png": "section.png"},
                "inputs": project_to_dict(p)}
+    if quality:
+        summary["discharge_ci95_m3s"] = [1.069, 1.4]
+        summary["quality"] = {"grade": "doubtful", "reasons": [
+            {"code": "valid_fraction", "severity": "doubtful", "message": "few valid vectors (38 % < 50 %)",
+             "value": 0.38, "threshold": 0.5}]}
     (out / "result.json").write_text(json.dumps(summary))
     rows = ["subsection,station_from_m,station_to_m,area_m2,mean_depth_m,surface_velocity_ms,velocity_filled,"
             "discharge_m3s"]
-    for i in range(5):
-        rows.append(f"{i + 1},{0.3 + 0.88 * i:.4f},{0.3 + 0.88 * (i + 1):.4f},0.84,0.95,0.37,{int(i == 4)},0.25")
+    w = 4.4 / n
+    for i in range(n):
+        rows.append(f"{i + 1},{0.3 + w * i:.4f},{0.3 + w * (i + 1):.4f},0.84,0.95,0.37,{int(i == n - 1)},0.25")
     (out / "subsections.csv").write_text("\n".join(rows) + "\n")
 
 
 @pytest.mark.parametrize("step", [s for s in STEP_IDS if s != "results"])
 def test_screen(step, tmp_path, snap_compare):
     make_project(tmp_path / "m", step)
-    press = ["ctrl+r", "_"] if step == "filters" else []  # the filter preview
-    assert snap_compare(FieldToolApp(tmp_path / "m" / "project.toml"), press=press, terminal_size=SIZE)
+    assert snap_compare(FieldToolApp(tmp_path / "m" / "project.toml"), terminal_size=SIZE)
+
+
+def test_filter_preview(tmp_path, snap_compare):
+    """ctrl+r on the filters step: before / after at the size of the terminal."""
+    make_project(tmp_path / "m", "filters")
+    assert snap_compare(FieldToolApp(tmp_path / "m" / "project.toml"), press=["ctrl+r", "_"], terminal_size=SIZE)
 
 
 def test_results_screen(tmp_path, snap_compare):
     p = make_project(tmp_path / "m", "results")
     fake_result(tmp_path / "m", p)
+    assert snap_compare(FieldToolApp(tmp_path / "m" / "project.toml"), terminal_size=SIZE)
+
+
+def test_results_with_interval_grade_and_15_subsections(tmp_path, snap_compare):
+    p = make_project(tmp_path / "m", "results")
+    fake_result(tmp_path / "m", p, n=15, quality=True)
+    assert snap_compare(FieldToolApp(tmp_path / "m" / "project.toml"), terminal_size=SIZE)
+
+
+def test_ortho_with_empty_gcps(tmp_path, snap_compare):
+    """Missing entries take no line: red label and "✗ required" in the input; L1-L6 stay on screen."""
+    make_project(tmp_path / "m", "ortho", ortho__gcp_px=[])
+    assert snap_compare(FieldToolApp(tmp_path / "m" / "project.toml"), terminal_size=SIZE)
+
+
+def test_sidebar_with_a_wrong_step(tmp_path, snap_compare):
+    """Start 10 s past the end of a 1 s clip: ✗ and the reason under the video step."""
+    make_project(tmp_path / "m", "cross_section", video__start_s=10.0, video__end_s=None)
     assert snap_compare(FieldToolApp(tmp_path / "m" / "project.toml"), terminal_size=SIZE)
 
 

@@ -81,13 +81,16 @@ def cmd_site_list(args) -> int:
     from .sites import list_sites, sites_dir
 
     root = sites_dir(args.sites)
-    sites = list_sites(root)
-    if not sites:
+    broken: list = []
+    sites = list_sites(root, broken)
+    if not sites and not broken:
         print(f"no sites in {root}; create one with `fieldtool site create NAME --from PROJECT.toml`")
         return 0
-    w = max(len(s.name) for s in sites)
+    w = max(len(s.name) for s in [*sites, *broken])
     for s in sites:
         print(f"{s.name:<{w}}  {s.updated_at or s.created_at:<20}  {s.description}")
+    for b in broken:
+        print(f"{b.name!r:<{w}}  BROKEN                {b.reason}")
     return 0
 
 

@@ -214,12 +214,26 @@ class History:
             raise InputFileError(f"{self.path}: no history database yet; it is created by the first recorded run "
                                  "(or give another one with --db / FIELDTOOL_DB)")
         self._key = str(self.path.resolve())
+        #: True when the file (or its folder) cannot be written: reading works, writing raises
+        self.readonly = exists and not _writable(self.path)
         if exists and not _OPEN.get(self._key):
-            # checked once per process: a read-only check beside an open read-write connection of
-            # the same process can misread a WAL database that another process is writing
+            # every check is made on a read-only connection, before anything may write to the file:
+            # a foreign, newer or damaged file is refused byte-identical. Checked once per process: a
+            # read-only check beside an open read-write connection of the same process can misread
+            # a WAL database that another process is writing.
             _check_existing(self.path)
         elif not exists:
-            self.path.parent.mkdir(parents=True, exist_ok=True)
+            try:
+                self.path.parent.mkdir(parents=True, exist_ok=True)
+            except OSError as e:
+                raise InputFileError(f"{self.path.parent}: cannot create the history's folder ({e.strerror}); "
+                                     "give another path with --db or FIELDTOOL_DB") from e
+        if self.readonly:
+            self.conn = _connect_readonly(self.path)
+            self.conn.row_factory = sqlite3.Row
+            _OPEN[self._key] = _OPEN.get(self._key, 0) + 1
+            self._closed = False
+            return
         try:
             self.conn = sqlite3.connect(str(self.path), timeout=BUSY_TIMEOUT_S, isolation_level=None)
         except sqlite3.Error as e:
@@ -229,6 +243,12 @@ class History:
             self.conn.execute("PRAGMA foreign_keys = ON")
             self._ensure_wal()
             self._migrate()
+        except sqlite3.OperationalError as e:
+            self.conn.close()
+            if "readonly" in str(e) or "read-only" in str(e):
+                raise InputFileError(f"{self.path}: the history database is read-only ({e}); it cannot be "
+                                     "created here. Give a writable path with --db or FIELDTOOL_DB") from e
+            raise InputFileError(f"{self.path}: cannot open the history database ({e})") from e
         except BaseException:
             self.conn.close()
             raise
@@ -265,7 +285,12 @@ class History:
     @contextmanager
     def write(self) -> Iterator[sqlite3.Connection]:
         """A write transaction: ``BEGIN IMMEDIATE`` (waits up to BUSY_TIMEOUT_S for another
-        writer), committed on success and rolled back on any error."""
+        writer), committed on success and rolled back on any error. A read-only database raises
+        InputFileError saying so."""
+        if self.readonly:
+            raise InputFileError(f"{self.path}: the history database is read-only (no write permission on the file "
+                                 "or its folder, or a read-only disk): it can be listed and exported, not changed. "
+                                 "Copy it somewhere writable and give that path with --db or FIELDTOOL_DB")
         try:
             self.conn.execute("BEGIN IMMEDIATE")
         except sqlite3.OperationalError as e:
@@ -445,8 +470,35 @@ def _num(v: Any) -> float | None:
     return f if math.isfinite(f) else None
 
 
+def _writable(path: Path) -> bool:
+    """Whether this process may write the database and create its -wal/-shm beside it (a
+    read-only disk answers no even to root)."""
+    return os.access(path, os.W_OK) and os.access(path.parent if str(path.parent) else Path("."), os.W_OK)
+
+
+def _ro_uri(path: Path, immutable: bool = False) -> str:
+    return path.resolve().as_uri() + ("?immutable=1" if immutable else "?mode=ro")
+
+
+def _connect_readonly(path: Path) -> sqlite3.Connection:
+    """A read-only connection that never writes the file nor creates files beside it when it
+    cannot: a WAL database in a folder this process cannot write (a read-only mount) is opened as
+    immutable, since no one can change it there."""
+    immutable = not _writable(path)
+    try:
+        conn = sqlite3.connect(_ro_uri(path, immutable), uri=True, timeout=BUSY_TIMEOUT_S)
+        conn.execute("SELECT count(*) FROM sqlite_master").fetchone()
+        return conn
+    except sqlite3.OperationalError as e:
+        if immutable:
+            raise InputFileError(f"{path}: cannot read the history database ({e})") from e
+        raise
+
+
 def _check_existing(path: Path) -> None:
-    """Refuse a file that is not a healthy SQLite database, without writing to it."""
+    """Refuse a file that is not a healthy fieldtool history of a schema this version knows,
+    without writing to it: header bytes, then on a read-only connection ``PRAGMA quick_check``,
+    the schema version and the tables. Nothing beside the file is left behind either."""
     if path.is_dir():
         raise InputFileError(f"{path}: is a folder; give the history database file with --db or FIELDTOOL_DB")
     try:
@@ -461,7 +513,7 @@ def _check_existing(path: Path) -> None:
     if head != _SQLITE_MAGIC:
         raise InputFileError(f"{path}: is not a SQLite database (damaged, or another kind of file); {advice}")
     # a read-only look at a WAL database makes SQLite create the -wal/-shm side files: remove the
-    # ones this check created when it refuses the file, so that nothing beside it changes either
+    # ones this check created, so that nothing beside it changes either
     sides = [path.with_name(path.name + s) for s in ("-wal", "-shm")]
     existed = [p.exists() for p in sides]
 
@@ -471,10 +523,37 @@ def _check_existing(path: Path) -> None:
                 if not had:
                     p.unlink(missing_ok=True)
 
-    problem = _quick_check(path)
-    if problem is not None:
+    try:
+        problem = _quick_check(path)
+        if problem is not None:
+            problem = f"{problem}; {advice}"
+        else:
+            problem = _schema_problem(path)
+    finally:
         tidy()
-        raise InputFileError(f"{path}: {problem}; {advice}")
+    if problem is not None:
+        raise InputFileError(f"{path}: {problem}")
+
+
+def _schema_problem(path: Path) -> str | None:
+    """None when the file is a fieldtool history this version can use (or an empty database);
+    else why it is refused. Read-only."""
+    conn = _connect_readonly(path)
+    try:
+        version = int(conn.execute("PRAGMA user_version").fetchone()[0])
+        tables = {r[0] for r in conn.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
+    finally:
+        conn.close()
+    if version > SCHEMA_VERSION:
+        return (f"history written by a newer fieldtool (schema {version}, this one knows up to {SCHEMA_VERSION}); "
+                "it was left untouched: update fieldtool or use another --db")
+    if version == 0 and tables:
+        return ("this SQLite file holds other tables, not a fieldtool history; it was left untouched: give another "
+                "path with --db or FIELDTOOL_DB")
+    if version >= 1 and not {"measurements", "reference_discharges"} <= tables:
+        return ("this SQLite file says it is a fieldtool history but lacks its tables; it was left untouched: "
+                "give another path with --db or FIELDTOOL_DB")
+    return None
 
 
 # primary SQLite result codes of a file being written by another connection at that moment
@@ -487,7 +566,7 @@ def _quick_check(path: Path) -> str | None:
 
     A read-only reader can meet a short read or a lock while another process writes (WAL); such
     results are retried for a few seconds before the file is called unreadable."""
-    uri = path.resolve().as_uri() + "?mode=ro"
+    uri = _ro_uri(path, immutable=not _writable(path))  # a read-only disk: nothing can change the file
     last = ""
     for attempt in range(8):
         if attempt:

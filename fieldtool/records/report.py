@@ -19,15 +19,19 @@ from .. import __version__
 from ..errors import InputFileError
 from ..project import atomic_write_bytes
 from .history import Measurement, Reference
+from .report_content import budget_rows, discharge_text, header_rows, parameter_rows
 
 # plots of result.json "files", in report order, with captions
 PLOTS = (
+    ("profile_png", "Surface velocity along the section, with the spread of the frame-pair fields"),
     ("vectors_png", "Surface velocity vectors on the first frame"),
     ("rectified_png", "Rectified image with the velocity field (world metres)"),
     ("section_png", "Cross-section, water level and subsection velocities / discharges"),
+    ("gcp_png", "Ground control points with the taped distances and their residuals"),
     ("water_level_png", "Water level determination"),
     ("stabilization_png", "Stabilisation"),
 )
+GRADE_COLOURS = {"good": "#1a7f37", "doubtful": "#9a6700", "unusable": "#cf222e"}
 
 
 def load_result(result_dir: Path | str) -> tuple[dict, dict[str, bytes], list[dict]]:
@@ -46,14 +50,29 @@ def load_result(result_dir: Path | str) -> tuple[dict, dict[str, bytes], list[di
     files = summary.get("files") or {}
     images = {}
     for key, name in files.items():
-        if isinstance(name, str) and name.lower().endswith(".png") and (d / name).is_file():
-            images[key] = (d / name).read_bytes()
+        if isinstance(name, str) and name.lower().endswith(".png"):
+            f = inside(d, name)
+            if f is not None and f.is_file():
+                images[key] = f.read_bytes()
     rows: list[dict] = []
-    sub = d / str(files.get("subsections", "subsections.csv"))
-    if sub.is_file():
+    sub = inside(d, str(files.get("subsections", "subsections.csv")))
+    if sub is not None and sub.is_file():
         with sub.open(newline="", encoding="utf-8") as fh:
             rows = list(csv.DictReader(fh))
     return summary, images, rows
+
+
+def inside(folder: Path, name: str) -> Path | None:
+    """``folder / name`` when it stays inside ``folder`` (no absolute path, no ``..``, no link out), else None.
+
+    ``result.json`` may have been edited by anyone: the report embeds only files of its own folder.
+    """
+    p = Path(name)
+    if not name or p.is_absolute() or ".." in p.parts:
+        return None
+    root = folder.resolve()
+    target = (root / p).resolve()
+    return target if root in target.parents else None
 
 
 def _f(v, fmt: str = ".4f", unit: str = "") -> str:
@@ -70,15 +89,90 @@ def _e(v) -> str:
 
 
 _CSS = """
-body{font-family:system-ui,-apple-system,Segoe UI,Roboto,sans-serif;margin:2em auto;max-width:1100px;color:#222;padding:0 1em}
-h1{font-size:1.5em;margin-bottom:.2em} h2{font-size:1.15em;border-bottom:1px solid #ccc;padding-bottom:.2em;margin-top:1.6em}
-.q{font-size:1.6em;font-weight:600;margin:.4em 0} .muted{color:#666;font-size:.9em}
-table{border-collapse:collapse;font-size:.9em} td,th{border:1px solid #ccc;padding:.25em .6em;text-align:right}
-th{background:#f3f3f3} td.k,th.k{text-align:left} .warn{color:#8a4b00}
-figure{margin:1em 0} figure img{max-width:100%;border:1px solid #ddd} figcaption{font-size:.9em;color:#555}
-pre{background:#f6f6f6;padding:.6em;overflow-x:auto;font-size:.85em}
-@media print{body{margin:0;max-width:none} figure{page-break-inside:avoid}}
+body{font-family:"DejaVu Sans",system-ui,-apple-system,"Segoe UI",Roboto,sans-serif;margin:1.5em auto;max-width:1000px;
+color:#1f2328;padding:0 1.2em;line-height:1.4}
+h1{font-size:1.45em;margin:.2em 0} h2{font-size:1.1em;border-bottom:1px solid #d0d7de;padding-bottom:.2em;margin-top:1.5em}
+.head{display:grid;grid-template-columns:max-content 1fr max-content 1fr;gap:.15em 1.2em;font-size:.95em}
+.head dt{color:#57606a} .head dd{margin:0;font-weight:600}
+.qbox{border:2px solid #d0d7de;border-radius:8px;padding:.8em 1.1em;margin:1em 0;display:flex;gap:2em;align-items:center;
+flex-wrap:wrap} .q{font-size:1.7em;font-weight:700} .ci{font-size:1.05em}
+.grade{display:inline-block;padding:.2em .7em;border-radius:1em;color:#fff;font-weight:700;text-transform:uppercase;
+letter-spacing:.04em} .reasons{margin:.4em 0 0 1.2em;padding:0} .reasons li{margin:.15em 0}
+.muted{color:#57606a;font-size:.88em}
+table{border-collapse:collapse;font-size:.9em;margin:.4em 0} td,th{border:1px solid #d0d7de;padding:.25em .6em;text-align:right}
+th{background:#f6f8fa} td.k,th.k{text-align:left} .warn{color:#9a6700}
+figure{margin:1em 0;page-break-inside:avoid} figure img{max-width:100%;border:1px solid #d0d7de}
+figcaption{font-size:.88em;color:#57606a}
+@media print{body{margin:0;max-width:none;font-size:10pt} h2{page-break-after:avoid} .qbox{page-break-inside:avoid}}
 """
+
+
+def _header_html(summary: dict, measurement: Measurement | None) -> list[str]:
+    rows = header_rows(summary, measurement)
+    out = ["<dl class='head' id='header'>"]
+    out += [f"<dt>{_e(k)}</dt><dd>{_e(v)}</dd>" for k, v in rows]
+    out.append("</dl>")
+    return out
+
+
+def _discharge_html(summary: dict) -> list[str]:
+    t = discharge_text(summary)
+    out = ["<div class='qbox' id='discharge'>", f"<div><div class='q'>Q = {_e(t['q'])}</div>"]
+    if t["ci"]:
+        out.append(f"<div class='ci' id='interval'>95 % interval {_e(t['ci'])} ({_e(t['rel'])})</div></div>")
+    else:
+        out.append("<div class='ci muted' id='interval'>no 95 % interval in this result (computed by newer "
+                   "fieldtool runs)</div></div>")
+    if t["grade"]:
+        colour = GRADE_COLOURS.get(t["grade"], "#57606a")
+        out.append(f"<div id='quality'><span class='grade' style='background:{colour}'>{_e(t['grade'])}</span>")
+        if t["reasons"]:
+            out.append("<ul class='reasons'>" + "".join(f"<li><b>{_e(sev)}</b>: {_e(msg)}</li>"
+                                                       for sev, msg in t["reasons"]) + "</ul>")
+        else:
+            out.append("<div class='muted'>no reason for doubt found</div>")
+        out.append("</div>")
+    else:
+        out.append("<div id='quality' class='muted'>no quality grade in this result</div>")
+    out.append("</div>")
+    lo, hi = summary.get("discharge_p05_m3s"), summary.get("discharge_p95_m3s")
+    if lo is not None and hi is not None:
+        out.append(f"<p class='muted' id='spread'>Spread of the discharge of single frame pairs (not an interval "
+                   f"of Q): 5–95 % {_f(lo, '.3f')} – {_f(hi, '.3f')} m³/s over {summary.get('n_pairs', '?')} "
+                   "frame pairs.</p>")
+    budget = budget_rows(summary)
+    if budget:
+        out.append("<table id='budget'><tr><th class='k'>uncertainty source</th><th>share of variance</th>"
+                   "<th>u (m³/s)</th></tr>")
+        out += [f"<tr><td class='k'>{_e(a)}</td><td>{_e(b)}</td><td>{_e(c)}</td></tr>" for a, b, c in budget]
+        out.append("</table>")
+    return out
+
+
+def _sections_html(summary: dict) -> list[str]:
+    """Several sections: each one's discharge, interval and grade, then their mean, std and CV (RIVeR's table)."""
+    secs = summary.get("sections") or []
+    if not secs:
+        return []
+    out = ["<h2>Sections</h2><table id='sections'><tr><th class='k'>section</th><th>Q (m³/s)</th>"
+           "<th>95 % interval (m³/s)</th><th class='k'>grade</th><th>wetted width (m)</th><th>mean velocity (m/s)</th></tr>"]
+    for e in secs:
+        if "error" in e:
+            out.append(f"<tr><td class='k'>{_e(e.get('name'))}</td><td colspan='5' class='warn'>{_e(e['error'])}</td></tr>")
+            continue
+        ci = e.get("discharge_ci95_m3s")
+        ci_txt = f"{_f(ci[0])} – {_f(ci[1])}" if ci else "–"
+        out.append(f"<tr><td class='k'>{_e(e.get('name'))}</td><td>{_f(e.get('discharge_m3s'))}</td><td>{ci_txt}</td>"
+                   f"<td class='k'>{_e(e.get('grade') or '–')}</td><td>{_f(e.get('wetted_width_m'), '.3f')}</td>"
+                   f"<td>{_f(e.get('mean_velocity_ms'), '.3f')}</td></tr>")
+    sm = summary.get("sections_summary") or {}
+    if sm:
+        cv = sm.get("cv")
+        out.append(f"<tr><th class='k'>mean of {sm.get('n')}</th><td>{_f(sm.get('mean_m3s'))}</td>"
+                   f"<td colspan='4'>std {_f(sm.get('std_m3s'))} m³/s, CV {_f(100 * cv if cv is not None else None, '.1f', '%')}"
+                   "</td></tr>")
+    out.append("</table>")
+    return out
 
 
 def render_html(summary: dict, images: dict[str, bytes], subsections: list[dict], *,
@@ -89,41 +183,32 @@ def render_html(summary: dict, images: dict[str, bytes], subsections: list[dict]
     name = title or inputs.get("name") or "measurement"
     q = summary.get("discharge_m3s")
     out = ["<!DOCTYPE html>", "<html lang='en'><head><meta charset='utf-8'>",
+           "<meta name='viewport' content='width=device-width, initial-scale=1'>",
            f"<title>fieldtool report — {_e(name)}</title><style>{_CSS}</style></head><body>",
            f"<h1>Discharge measurement — {_e(name)}</h1>"]
-    sub = []
-    if measurement is not None:
-        sub.append(f"site <b>{_e(measurement.site or '–')}</b>")
-        if measurement.video_time:
-            sub.append(f"video taken {_e(measurement.video_time)} ({_e(measurement.video_time_source)})")
-        sub.append(f"history id {measurement.id}")
-    sub.append(f"fieldtool {_e(summary.get('fieldtool_version', '?'))}")
-    out.append(f"<p class='muted'>{' · '.join(sub)}</p>")
-
-    out.append(f"<p class='q' id='discharge'>Q = {_f(q, '.4f')} m³/s</p>")
-    lo, hi = summary.get("discharge_p05_m3s"), summary.get("discharge_p95_m3s")
-    if lo is not None and hi is not None:
-        out.append(f"<p id='spread'>spread over {summary.get('n_pairs', '?')} frame pairs (5–95 %): "
-                   f"{_f(lo)} – {_f(hi)} m³/s; median of pairs {_f(summary.get('discharge_pairs_median_m3s'))} m³/s</p>")
+    out += _header_html(summary, measurement)
+    out += _discharge_html(summary)
 
     rows = [
-        ("Water level", f"{_f(summary.get('water_level_m'), '.3f', 'm')} ({_e(summary.get('water_level_method', '?'))}, "
-                        f"± {_f(summary.get('water_level_uncertainty_m'), '.3f', 'm')})"),
+        ("Water level", f"{_f(summary.get('water_level_m'), '.3f', 'm')} ± "
+                        f"{_f(summary.get('water_level_uncertainty_m'), '.3f', 'm')}"),
         ("Wetted area", _f(summary.get("wetted_area_m2"), ".3f", "m²")),
         ("Wetted width", _f(summary.get("wetted_width_m"), ".3f", "m")),
-        ("Mean velocity", _f(summary.get("mean_velocity_ms"), ".4f", "m/s")),
-        ("Velocity index α", _f(summary.get("alpha"), ".3f") + (" (default for the mean depth)"
+        ("Mean velocity", _f(summary.get("mean_velocity_ms"), ".3f", "m/s")),
+        ("Velocity index α", _f(summary.get("alpha"), ".2f") + (" (default for the mean depth)"
                                                                  if summary.get("alpha_default") else " (given)")),
         ("Section length", _f(summary.get("section_length_m"), ".3f", "m")),
         ("Frame pairs", _e(summary.get("n_pairs", "–"))),
-        ("Mean valid vector fraction", _f(summary.get("valid_fraction_mean"), ".3f")),
+        ("Mean valid vector fraction", _f(summary.get("valid_fraction_mean"), ".2f")),
         ("Subsections with filled velocity", _e(summary.get("subsections_filled", "–"))),
-        ("Orthorectification", f"{_e(summary.get('ortho_method', '?'))}, residual "
-                               f"{_f(summary.get('ortho_residual_m'), '.4f', 'm')}"),
+        ("GCP fit residual (RMS)", _f(1000 * summary["ortho_residual_m"], ".1f", "mm")
+         if isinstance(summary.get("ortho_residual_m"), (int, float)) else "–"),
     ]
-    out.append("<h2>Result</h2><table>")
+    out.append("<h2>Result</h2><table id='result'>")
     out += [f"<tr><th class='k'>{k}</th><td>{v}</td></tr>" for k, v in rows]
     out.append("</table>")
+
+    out += _sections_html(summary)
 
     if references:
         out.append("<h2>Reference discharges</h2><table><tr><th class='k'>method</th><th>Q ref (m³/s)</th>"
@@ -138,7 +223,7 @@ def render_html(summary: dict, images: dict[str, bytes], subsections: list[dict]
     if warnings:
         out.append("<h2>Warnings</h2><ul>" + "".join(f"<li class='warn'>{_e(w)}</li>" for w in warnings) + "</ul>")
 
-    out.append("<h2>Plots</h2>")
+    out.append("<h2>Figures</h2>")
     captions = dict(PLOTS)
     order = [k for k, _ in PLOTS if k in images] + sorted(k for k in images if k not in captions)
     if not order:
@@ -151,87 +236,112 @@ def render_html(summary: dict, images: dict[str, bytes], subsections: list[dict]
 
     if subsections:
         cols = list(subsections[0].keys())
-        out.append("<h2>Subsections</h2><table id='subsections'><tr>" + "".join(f"<th>{_e(c)}</th>" for c in cols)
-                   + "</tr>")
+        out.append("<h2>Subsections</h2><table id='subsections'><tr>"
+                   + "".join(f"<th>{_e(_COLUMN_NAMES.get(c, c))}</th>" for c in cols) + "</tr>")
         for r in subsections:
             out.append("<tr>" + "".join(f"<td>{_e(r.get(c, ''))}</td>" for c in cols) + "</tr>")
         out.append("</table>")
 
-    out.append("<h2>Inputs and parameters</h2>")
-    out += _inputs_html(inputs)
+    out.append("<h2>Parameters</h2><table id='inputs'><tr><th class='k'>step</th><th class='k'>parameter</th>"
+               "<th class='k'>value</th></tr>")
+    out += [f"<tr><td class='k'>{_e(a)}</td><td class='k'>{_e(b)}</td><td class='k'>{_e(c)}</td></tr>"
+            for a, b, c in parameter_rows(inputs)]
+    out.append("</table>")
     if measurement is not None and measurement.input_hash:
-        out.append(f"<p class='muted'>input hash (SHA-256 of parameters and input files): "
-                   f"<code>{_e(measurement.input_hash)}</code></p>")
-    if summary.get("stabilization"):
-        out.append("<h3>Stabilisation</h3><pre>" + _e(json.dumps(summary["stabilization"], indent=2)) + "</pre>")
-    if summary.get("timings_s"):
-        t = summary["timings_s"]
-        out.append("<p class='muted'>timings: " + ", ".join(f"{_e(k)} {_f(v, '.2f')} s" for k, v in t.items()) + "</p>")
+        out.append(f"<p class='muted'>history id {measurement.id}; input hash (SHA-256 of parameters and input "
+                   f"files): <code>{_e(measurement.input_hash)}</code></p>")
     now = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
-    out.append(f"<p class='muted'>report written {now} by fieldtool {_e(__version__)}</p></body></html>")
+    out.append(f"<p class='muted'>report written {now} by fieldtool {_e(__version__)}; the run used fieldtool "
+               f"{_e(summary.get('fieldtool_version', '?'))}. Every value of the run: result.json.</p></body></html>")
     return "\n".join(out)
 
 
-def _inputs_html(inputs: dict) -> list[str]:
-    out = ["<table id='inputs'>"]
-    scalars = {k: v for k, v in inputs.items() if not isinstance(v, (dict, list))}
-    for k, v in scalars.items():
-        out.append(f"<tr><th class='k'>{_e(k)}</th><td class='k' colspan='2'>{_e(v)}</td></tr>")
-    for table, content in inputs.items():
-        if isinstance(content, dict):
-            for i, (k, v) in enumerate(content.items()):
-                head = f"<th class='k' rowspan='{len(content)}'>[{_e(table)}]</th>" if i == 0 else ""
-                val = json.dumps(v) if isinstance(v, (list, dict)) else v
-                out.append(f"<tr>{head}<td class='k'>{_e(k)}</td><td class='k'>{_e(val)}</td></tr>")
-        elif isinstance(content, list):
-            out.append(f"<tr><th class='k'>[{_e(table)}]</th><td class='k' colspan='2'>{_e(json.dumps(content))}</td></tr>")
-    out.append("</table>")
-    return out
+_COLUMN_NAMES = {"subsection": "#", "station_from_m": "from (m)", "station_to_m": "to (m)", "area_m2": "area (m²)",
+                 "mean_depth_m": "mean depth (m)", "surface_velocity_ms": "surface velocity (m/s)",
+                 "velocity_filled": "filled", "discharge_m3s": "Q (m³/s)"}
+
+
+def _pdf_text_page(fig, summary, measurement, references) -> None:
+    """Page 1 of the PDF: header, Q with interval and grade, result and parameters."""
+    inputs = summary.get("inputs") or {}
+    t = discharge_text(summary)
+    y = 0.955
+    fig.text(0.06, y, f"Discharge measurement — {inputs.get('name', 'measurement')}", fontsize=15, weight="bold")
+    y -= 0.035
+    for k, v in header_rows(summary, measurement):
+        fig.text(0.06, y, k, fontsize=9, color="0.35")
+        fig.text(0.24, y, v, fontsize=9, weight="bold")
+        y -= 0.018
+    y -= 0.015
+    fig.text(0.06, y, f"Q = {t['q']}", fontsize=18, weight="bold")
+    if t["grade"]:
+        fig.text(0.62, y + 0.004, f" {t['grade'].upper()} ", fontsize=12, weight="bold", color="white",
+                 bbox={"boxstyle": "round,pad=0.3", "fc": GRADE_COLOURS.get(t["grade"], "0.4"), "lw": 0})
+    y -= 0.025
+    fig.text(0.06, y, f"95 % interval {t['ci']} ({t['rel']})" if t["ci"] else "no 95 % interval in this result",
+             fontsize=10)
+    y -= 0.02
+    for sev, msg in t["reasons"][:8]:
+        fig.text(0.08, y, f"• {sev}: {msg}"[:130], fontsize=8.5)
+        y -= 0.016
+    if summary.get("discharge_p05_m3s") is not None:
+        fig.text(0.06, y, f"spread of single frame pairs (5–95 %): {_f(summary.get('discharge_p05_m3s'), '.3f')} – "
+                          f"{_f(summary.get('discharge_p95_m3s'), '.3f')} m³/s over {summary.get('n_pairs', '?')} pairs",
+                 fontsize=8, color="0.35")
+        y -= 0.02
+    y -= 0.01
+    res = [("Water level", f"{_f(summary.get('water_level_m'), '.3f', 'm')} ± {_f(summary.get('water_level_uncertainty_m'), '.3f', 'm')}"),
+           ("Wetted area / width", f"{_f(summary.get('wetted_area_m2'), '.3f', 'm²')} / {_f(summary.get('wetted_width_m'), '.3f', 'm')}"),
+           ("Mean velocity, α", f"{_f(summary.get('mean_velocity_ms'), '.3f', 'm/s')}, α = {_f(summary.get('alpha'), '.2f')}")]
+    res += [(f"Reference ({r.method})", f"{_f(r.discharge_m3s, '.3f')} m³/s") for r in references]
+    for k, v in res:
+        fig.text(0.06, y, k, fontsize=9, color="0.35")
+        fig.text(0.30, y, v, fontsize=9)
+        y -= 0.017
+    y -= 0.012
+    fig.text(0.06, y, "Parameters", fontsize=11, weight="bold")
+    y -= 0.02
+    for a, b, c in parameter_rows(inputs):
+        if y < 0.04:
+            break
+        fig.text(0.06, y, a, fontsize=8, color="0.35")
+        fig.text(0.26, y, b, fontsize=8)
+        fig.text(0.50, y, c[:70], fontsize=8)
+        y -= 0.0155
 
 
 def render_pdf(summary: dict, images: dict[str, bytes], subsections: list[dict], *,
                measurement: Measurement | None = None, references: list[Reference] = ()) -> bytes:
-    """The report as PDF bytes: a summary page, then one page per plot (matplotlib)."""
+    """The report as PDF bytes (A4): a summary page, then the figures two per page (matplotlib)."""
     import matplotlib.image as mpimg
     from matplotlib.backends.backend_pdf import PdfPages
     from matplotlib.figure import Figure
 
-    inputs = summary.get("inputs") or {}
-    q = summary.get("discharge_m3s")
-    lines = [f"Discharge measurement — {inputs.get('name', 'measurement')}"]
-    if measurement is not None:
-        lines.append(f"site {measurement.site or '-'}, video {measurement.video_time or '?'}, history id {measurement.id}")
-    lines += ["",
-              f"Q = {_f(q)} m³/s   (5–95 % of pairs: {_f(summary.get('discharge_p05_m3s'))} – "
-              f"{_f(summary.get('discharge_p95_m3s'))} m³/s)",
-              f"water level {_f(summary.get('water_level_m'), '.3f')} m ({summary.get('water_level_method', '?')})",
-              f"wetted area {_f(summary.get('wetted_area_m2'), '.3f')} m²,  width {_f(summary.get('wetted_width_m'), '.3f')} m",
-              f"mean velocity {_f(summary.get('mean_velocity_ms'))} m/s,  alpha {_f(summary.get('alpha'), '.3f')}",
-              f"fieldtool {summary.get('fieldtool_version', '?')}"]
-    for r in references:
-        lines.append(f"reference {r.method}: {_f(r.discharge_m3s)} m³/s")
-    for w in summary.get("warnings") or []:
-        lines.append(f"warning: {w}")
     buf = io.BytesIO()
     with PdfPages(buf) as pdf:
         fig = Figure(figsize=(8.27, 11.69))
-        fig.text(0.06, 0.96, "\n".join(lines), va="top", family="sans-serif", fontsize=10, wrap=True)
-        if subsections:
-            cols = ["subsection", "station_from_m", "station_to_m", "area_m2", "surface_velocity_ms", "discharge_m3s"]
-            cols = [c for c in cols if c in subsections[0]]
-            ax = fig.add_axes([0.06, 0.05, 0.88, 0.55])
-            ax.axis("off")
-            tab = ax.table(cellText=[[r[c] for c in cols] for r in subsections], colLabels=cols, loc="upper center")
-            tab.auto_set_font_size(False)
-            tab.set_fontsize(7)
+        _pdf_text_page(fig, summary, measurement, references)
         pdf.savefig(fig)
         captions = dict(PLOTS)
-        for key, png in images.items():
-            fig = Figure(figsize=(11.69, 8.27))
-            ax = fig.add_axes([0.02, 0.06, 0.96, 0.88])
-            ax.imshow(mpimg.imread(io.BytesIO(png), format="png"))
+        order = [k for k, _ in PLOTS if k in images] + sorted(k for k in images if k not in captions)
+        for first in range(0, len(order), 2):
+            fig = Figure(figsize=(8.27, 11.69))
+            for slot, key in enumerate(order[first:first + 2]):
+                ax = fig.add_axes([0.06, 0.53 - 0.47 * slot, 0.88, 0.42])
+                ax.imshow(mpimg.imread(io.BytesIO(images[key]), format="png"))
+                ax.axis("off")
+                fig.text(0.5, 0.51 - 0.47 * slot, captions.get(key, key), ha="center", fontsize=9)
+            pdf.savefig(fig)
+        if subsections:
+            fig = Figure(figsize=(8.27, 11.69))
+            cols = [c for c in _COLUMN_NAMES if c in subsections[0]]
+            ax = fig.add_axes([0.06, 0.05, 0.88, 0.85])
             ax.axis("off")
-            fig.text(0.5, 0.02, captions.get(key, key), ha="center")
+            ax.set_title("Subsections", loc="left")
+            tab = ax.table(cellText=[[r[c] for c in cols] for r in subsections],
+                           colLabels=[_COLUMN_NAMES[c] for c in cols], loc="upper center")
+            tab.auto_set_font_size(False)
+            tab.set_fontsize(7.5)
             pdf.savefig(fig)
     return buf.getvalue()
 

@@ -31,7 +31,7 @@ from . import user_data_dir
 from .history import utc_now
 
 SITE_FILE = "site.toml"
-_NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$")
+_NAME_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}")  # used with fullmatch: "$" lets a final newline in
 
 # (table, key, stored file stem): input files that belong to the site and are copied with it
 SITE_FILES = (("cross_section", "path", "cross_section"), ("calibration", "path", "calibration"),
@@ -84,25 +84,50 @@ def sites_dir(arg: str | Path | None = None) -> Path:
 
 
 def check_name(name: str) -> str:
-    if not _NAME_RE.match(name or ""):
+    """The name when it can be a site (and folder) name; else ParameterError naming the fault."""
+    bad = [c for c in (name or "") if ord(c) < 32 or ord(c) == 127]
+    if bad:
+        raise ParameterError(f"site name {name!r}: contains a control character ({bad[0]!r}); use 1-64 letters, "
+                             "digits, '.', '_' or '-'")
+    if not _NAME_RE.fullmatch(name or ""):
         raise ParameterError(f"site name {name!r}: use 1-64 letters, digits, '.', '_' or '-', starting with a letter "
                              "or digit (it becomes a folder name)")
     return name
 
 
-def list_sites(root: Path | str) -> list[Site]:
-    """Every site in the sites folder, by name. Unreadable ones raise, naming the file."""
+@dataclass
+class BrokenSite:
+    """A site folder whose ``site.toml`` cannot be used, and why."""
+
+    name: str
+    folder: Path
+    reason: str
+
+
+def list_sites(root: Path | str, broken: list[BrokenSite] | None = None) -> list[Site]:
+    """Every readable site in the sites folder, by name. A site whose ``site.toml`` is damaged
+    (or whose folder name cannot be a site name) is left out of the list and, when ``broken`` is
+    given, appended to it with the reason; it never hides the other sites."""
     root = Path(root)
     if not root.is_dir():
         return []
-    return [load_site(p.name, root) for p in sorted(root.iterdir()) if (p / SITE_FILE).is_file()]
+    out = []
+    for p in sorted(root.iterdir()):
+        if not (p / SITE_FILE).is_file():
+            continue
+        try:
+            out.append(load_site(p.name, root))
+        except (ParameterError, InputFileError) as e:
+            if broken is not None:
+                broken.append(BrokenSite(p.name, p, str(e)))
+    return out
 
 
 def load_site(name: str, root: Path | str) -> Site:
     """Read one site. An unknown name raises ParameterError listing the known ones."""
     root = Path(root)
     path = root / name / SITE_FILE
-    if not _NAME_RE.match(name or "") or not path.is_file():
+    if not _NAME_RE.fullmatch(name or "") or not path.is_file():
         known = sorted(p.name for p in root.iterdir() if (p / SITE_FILE).is_file()) if root.is_dir() else []
         hint = f"known sites: {', '.join(known)}" if known else f"no sites in {root} yet"
         raise ParameterError(f"site {name!r} not found ({hint}); create it with "

@@ -30,6 +30,7 @@ from .screens.video import VideoScreen
 from .screens.water_level import WaterLevelScreen
 from .session import Session, open_session
 from .steps import STEP_IDS, STEPS
+from .viewer_link import ssh_line
 
 SCREENS_BY_STEP: dict[str, type[StepScreen]] = {
     s.STEP: s for s in (CrossSectionScreen, VideoScreen, CalibrationScreen, OrthoScreen, WaterLevelScreen, RoiScreen,
@@ -52,6 +53,7 @@ class FieldToolApp(App):
         self.viewer = None
         self.viewer_url: str | None = None
         self.last_job: dict[str, Any] = {}  # name -> (result or error text), for tests and the panel
+        self.status: tuple[str, bool] = ("no run in progress", False)  # the status line when idle: text, error
 
     # -- screens ---------------------------------------------------------------------------------
     def on_mount(self) -> None:
@@ -87,7 +89,19 @@ class FieldToolApp(App):
 
     def _tick(self) -> None:
         if self.job is not None and isinstance(self.screen, StepScreen):
-            self.screen.job_panel().show_job(self.job)
+            line = self.screen.status_line()
+            if line is not None:
+                line.show_job(self.job)
+
+    def show_status(self, screen: StepScreen) -> None:
+        """Fill the status line of a screen: the running job, or how the last one ended."""
+        line = screen.status_line()
+        if line is None:
+            return
+        if self.job is not None:
+            line.show_job(self.job)
+        else:
+            line.show_message(*self.status)
 
     def on_worker_state_changed(self, event: Worker.StateChanged) -> None:
         if event.worker.group != "jobs" or self.job is None:
@@ -107,15 +121,17 @@ class FieldToolApp(App):
             text, is_error = describe_error(job.title, error, took)
             self.last_job[job.name] = text
         self.refresh_bindings()
+        self.status = (text, is_error)
         screen = self.screen
         if isinstance(screen, StepScreen):
-            screen.job_panel().show_message(text, error=is_error)
+            self.show_status(screen)
             screen.on_job_finished(job.name, self.last_job[job.name])
-        self.notify(text, severity="error" if is_error else "information", timeout=6)
+        if is_error:  # the status line already says it; a toast only for what must not be missed
+            self.notify(text, severity="error", timeout=8)
 
     def _store_result(self, name: str, result: Any) -> None:
         s = self.session
-        if name == "piv" and "stats" in result:
+        if name == "piv" and isinstance(result, dict) and "stats" in result:
             s.piv_preview = result
         elif name == "calibration":
             s.calibration_run = result
@@ -150,7 +166,7 @@ class FieldToolApp(App):
     # -- viewer (clicks in a browser) ----------------------------------------------------------------
     def action_viewer(self) -> None:
         if self.viewer is not None:
-            self.notify(f"viewer at {self.viewer_url} (127.0.0.1 only; over SSH forward the port: ssh -L)")
+            self.notify(f"viewer at {self.viewer_url} · over SSH: {ssh_line(self.viewer)}", timeout=10)
             return
         try:
             from ..viewer.server import start_viewer
@@ -165,7 +181,24 @@ class FieldToolApp(App):
         self.viewer_url = self.viewer.url
         if isinstance(self.screen, StepScreen):
             self.screen.update_title()
-        self.notify(f"viewer at {self.viewer_url}: focus a pixel field here, click in the browser", timeout=10)
+        self.status = (f"viewer over SSH: {ssh_line(self.viewer)}", False)  # the URL is in the title bar
+        if isinstance(self.screen, StepScreen):
+            self.show_status(self.screen)
+        self.notify(f"viewer at {self.viewer_url}: focus a pixel field here, click in the browser; "
+                    f"over SSH first run on your computer: {ssh_line(self.viewer)}", timeout=12)
+
+    def show_in_viewer(self, kind: str) -> None:
+        """Show an image (``viewer.images.KINDS``, e.g. "filtered") in the viewer, started if needed."""
+        if self.viewer is None:
+            self.action_viewer()
+        if self.viewer is None:
+            return
+        try:
+            self.viewer.show_image(kind)
+        except Exception as e:  # noqa: BLE001 - the viewer is a help, never a stop
+            self.notify(f"the viewer cannot show it: {e}", severity="warning")
+            return
+        self.notify(f"shown in the viewer at {self.viewer_url}", timeout=6)
 
     def _pick_from_viewer(self, key: str, value: Any) -> None:
         """Called from the viewer's thread after it saved a pick."""

@@ -56,7 +56,15 @@ def fmt_polygons(polys) -> str:
     return " | ".join(fmt_points(p) for p in polys)
 
 
+_DECIMAL_COMMA = re.compile(r"^[+-]?\d*,\d+$")
+_HAS_DECIMAL_COMMA = re.compile(r"\d,\d")
+DECIMAL_HINT = "use a decimal point (2.5, not 2,5) and ', ' or '; ' between numbers"
+
+
 def _number(text: str, what: str) -> float:
+    """A finite number; a single decimal comma ("2,5") is read as a decimal point."""
+    if _DECIMAL_COMMA.match(text):
+        text = text.replace(",", ".")
     try:
         v = float(text)
     except ValueError:
@@ -70,7 +78,8 @@ def parse_floats(text: str, n: int | None = None, what: str = "numbers") -> list
     parts = [p for p in _SEP.split(text.strip()) if p]
     vals = [_number(p, "") for p in parts]
     if n is not None and len(vals) != n:
-        raise Invalid(f"give {n} {what} separated by commas, got {len(vals)}")
+        hint = f"; {DECIMAL_HINT}" if _HAS_DECIMAL_COMMA.search(text) else ""
+        raise Invalid(f"give {n} {what} separated by commas, got {len(vals)}{hint}")
     return vals
 
 
@@ -217,7 +226,8 @@ class Field:
             try:
                 return int(t)
             except ValueError:
-                raise Invalid(f"{t!r} is not a whole number") from None
+                hint = f"; {DECIMAL_HINT}" if _HAS_DECIMAL_COMMA.search(t) else ""
+                raise Invalid(f"{t!r} is not a whole number{hint}") from None
         if k == "point":
             return parse_point(t)
         if k == "points":
@@ -296,7 +306,8 @@ class Field:
         elif d not in (None, "", []):
             dtext = f" Default: {self.format(d)}{' ' + self.unit if self.unit else ''}."
         unit = f" [{self.unit}]" if self.unit else ""
-        return f"{self.key}{unit}: {self.help}{dtext}"
+        text = self.help if self.help.endswith((".", ")")) or not dtext else self.help + "."
+        return f"{self.key}{unit}: {text}{dtext}"
 
 
 def field_errors(fields: list[Field], project: Project) -> list[str]:

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .. import piv_cache
 from ..errors import GeometryError, ParameterError
 from ..project import Project, project_to_dict
 
@@ -65,28 +66,36 @@ def run_full(project: Project, out_dir: Path, job: Job) -> dict:
     return res.summary()
 
 
-def run_piv_only(project: Project, job: Job) -> dict:
-    """PIV on the project's clip (before a section of interest exists): field statistics.
+def _piv_setup(project: Project, inputs):
+    """What the PIV of ``project`` needs besides the frames, as pipeline.run_project sets it up:
+    (mapping or None, roi, mask, params, speed limit in px/s or None, cache key or None).
 
-    The level and mapping are used when they can be computed (speed limit, m/s statistics)."""
+    The key is the PIV cache's (``piv_cache.piv_key``), so a field computed here is the one the
+    discharge run reuses; it is None when a speed limit is set but the mapping cannot be built yet."""
     from ..errors import FieldToolError
-    from ..pipeline import level_and_mapping, load_inputs, piv_params, roi_and_mask, working_frames
+    from ..pipeline import level_and_mapping, piv_params, roi_and_mask
     from ..processing import piv as piv_mod
 
-    job.progress("inputs", 0, 0)
-    inputs = load_inputs(project)
     try:
         _, mapping = level_and_mapping(project, inputs)
     except FieldToolError:
         mapping = None
     roi, mask = roi_and_mask(project, inputs)
     params = piv_params(project)
-    x, y = piv_mod.grid(inputs.shape, params, roi)
     max_speed = None
-    if project.piv.max_velocity_ms is not None and mapping is not None:
-        max_speed = project.piv.max_velocity_ms / mapping.scale_m_per_px(x, y)
-    frames = working_frames(project, inputs, job.cancelled, None, None, job.progress)
-    res = piv_mod.analyze(frames, params, roi=roi, mask=mask, max_speed_px_s=max_speed, cancel=job.cancelled)
+    key = None
+    if project.piv.max_velocity_ms is not None:
+        if mapping is not None:
+            x, y = piv_mod.grid(inputs.shape, params, roi)
+            max_speed = project.piv.max_velocity_ms / mapping.scale_m_per_px(x, y)
+            key = piv_cache.piv_key(project, max_speed)
+    else:
+        key = piv_cache.piv_key(project, None)
+    return mapping, roi, mask, params, max_speed, key
+
+
+def _preview(project: Project, res, mapping) -> dict:
+    """The PIV step's summary of a field: {"inputs": project tables, "stats": {...}}."""
     speed = np.hypot(res.u, res.v)
     stats = {
         "nodes": int(res.u.size),
@@ -100,6 +109,48 @@ def run_piv_only(project: Project, job: Job) -> dict:
         stats["median_speed_ms"] = float(np.nanmedian(sp)) if np.isfinite(sp).any() else None
     stats["field"] = (res.x, res.y, res.u, res.v)
     return {"inputs": project_to_dict(project), "stats": stats}
+
+
+def run_piv_only(project: Project, job: Job, out_dir: Path | None = None) -> dict:
+    """PIV on the project's clip (before a section of interest exists): field statistics.
+
+    The level and mapping are used when they can be computed (speed limit, m/s statistics). The
+    field is saved at once in ``out_dir``'s PIV cache, where the discharge run finds it: quitting
+    before a section exists loses nothing."""
+    from ..pipeline import _Sized, load_inputs, working_frames
+    from ..processing import piv as piv_mod
+
+    job.progress("inputs", 0, 0)
+    inputs = load_inputs(project)
+    mapping, roi, mask, params, max_speed, key = _piv_setup(project, inputs)
+    stab: dict = {}
+    frames = working_frames(project, inputs, job.cancelled, None, stab if project.stabilize.enabled else None,
+                            job.progress)
+    n_expected = inputs.source.estimated_count()
+    if n_expected:
+        frames = _Sized(frames, n_expected)  # the same pair plan as the discharge run
+    res = piv_mod.analyze(frames, params, roi=roi, mask=mask, max_speed_px_s=max_speed, cancel=job.cancelled)
+    if out_dir is not None and key is not None:
+        Path(out_dir).mkdir(parents=True, exist_ok=True)
+        piv_cache.save(Path(out_dir), key, res, stab or None)
+    return _preview(project, res, mapping)
+
+
+def cached_piv(project: Project, inputs, out_dir: Path) -> dict | None:
+    """The PIV step's summary of the field saved in ``out_dir``'s PIV cache for the project's
+    current PIV inputs, or None (no cache, other inputs, unreadable)."""
+    from ..errors import FieldToolError
+
+    try:
+        mapping, _, _, _, _, key = _piv_setup(project, inputs)
+    except FieldToolError:
+        return None
+    if key is None:
+        return None
+    hit = piv_cache.load(Path(out_dir), key)
+    if hit is None:
+        return None
+    return _preview(project, hit[0], mapping)
 
 
 def run_calibration(project: Project, job: Job) -> dict:

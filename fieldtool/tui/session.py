@@ -17,6 +17,7 @@ from typing import Any
 
 from ..errors import FieldToolError, InputFileError
 from ..project import Project, apply_changes, flat_changes, load_project, project_to_dict, save_project
+from .checks import CoreChecks, is_missing
 from .fields import field_errors
 from .steps import PIV_TABLES, STEP_IDS, STEPS, calibration_mode, fields_for, step_problems
 
@@ -49,6 +50,9 @@ class Session:
         self._inputs = None
         self.piv_preview: dict | None = None  # PIV-only run: {"inputs": tables, "stats": {...}}
         self.calibration_run: dict | None = None  # {"inputs": calibration table, "rms_px":, "fov_deg":}
+        self.core = CoreChecks()
+        self.mark_reasons: dict[str, str] = {}  # step -> first message, for the sidebar's ✗ and ·
+        self._cache_looked: str | None = None  # PIV tables the PIV cache was last looked up for
 
     # -- file --------------------------------------------------------------------------------
     def save(self) -> None:
@@ -134,6 +138,7 @@ class Session:
 
     def piv_state(self) -> str:
         """"none" | "current" | "stale" for the velocity field (last full run or PIV-only run)."""
+        self.restore_piv()
         candidates = []
         res = self.last_result()
         if res is not None:
@@ -146,6 +151,27 @@ class Session:
             if not (self.changed_tables(inputs) & set(PIV_TABLES)):
                 return "current"
         return "stale"
+
+    def restore_piv(self) -> None:
+        """Take the PIV field of the current inputs from the output folder's PIV cache when no run of
+        this session has one (a PIV run of an earlier session, quit before a section existed)."""
+        if self.piv_preview is not None and not (self.changed_tables(self.piv_preview["inputs"]) & set(PIV_TABLES)):
+            return
+        if not (self.out_dir / "piv_cache.npz").is_file():
+            return
+        d = project_to_dict(self.project)
+        key = json.dumps([d.get(t) for t in PIV_TABLES + ("ortho", "water_level")], sort_keys=True, default=str)
+        if key == self._cache_looked:
+            return
+        self._cache_looked = key
+        from .jobs import cached_piv
+
+        try:
+            found = cached_piv(self.project, self.inputs(), self.out_dir)
+        except FieldToolError:
+            return
+        if found is not None:
+            self.piv_preview = found
 
     def calibration_state(self) -> str:
         if self.ui.get("calibration_mode") != "run":
@@ -176,24 +202,37 @@ class Session:
         return errs + [str(pr) for pr in step_problems(step, self.project)
                        if pr.severity == "error" and not any(e.startswith(pr.key) for e in errs)]
 
+    def step_problems(self, step: str, core: bool = True) -> list[str]:
+        """Every message against ``step``: its fields and the validation layer (``step_errors``), then
+        (when those pass and ``core``) the core's own check of the step (reads the files: clip range,
+        level vs bed ...)."""
+        errs = self.step_errors(step)
+        if not errs and core:
+            msg = self.core.message(self, step)
+            if msg:
+                errs.append(msg)
+        return errs
+
     def step_marks(self) -> dict[str, str]:
-        """Sidebar mark per step: "ok", "todo" (something to fix/enter), "stale" (changed since
-        the last result, which needs recomputing)."""
+        """Sidebar mark per step: "ok" (validates), "todo" (an entry to make), "invalid" (an entry is
+        wrong; the reason in ``mark_reasons``), "stale" (changed since the last result). The core
+        check of a step runs only when every step before it validates (else its message would be
+        the earlier step's)."""
         state, changed = self.result_state()
-        marks = {}
+        marks: dict[str, str] = {}
+        self.mark_reasons = {}
+        blocked = False
         for s in STEPS:
             if s.id == "results":
                 marks[s.id] = {"none": "todo", "current": "ok", "stale": "stale"}[state]
                 continue
-            if s.id == "piv":
-                ps = self.piv_state()
-                if self.step_errors("piv"):
-                    marks[s.id] = "todo"
-                else:
-                    marks[s.id] = {"none": "todo", "current": "ok", "stale": "stale"}[ps]
-                continue
-            if self.step_errors(s.id):
-                marks[s.id] = "todo"
+            msgs = self.step_problems(s.id, core=not blocked)
+            if msgs:
+                marks[s.id] = "todo" if all(is_missing(m) for m in msgs) else "invalid"
+                self.mark_reasons[s.id] = next((m for m in msgs if not is_missing(m)), msgs[0])
+                blocked = True
+            elif s.id == "piv":
+                marks[s.id] = {"none": "todo", "current": "ok", "stale": "stale"}[self.piv_state()]
             elif state == "stale" and set(s.tables) & changed:
                 marks[s.id] = "stale"
             else:

@@ -380,7 +380,7 @@ SECTION = [
           "cross-section station of P1", placeholder="the left water edge"),
     Field("section.alpha", "Velocity index", "", "float",
           "surface to depth-averaged velocity (alpha)", check=between(0.3, 1.2),
-          placeholder="0.8 if mean depth < 2 m, else 0.9"),
+          placeholder="0.8; 0.9 if mean depth >= 2 m"),
 ]
 
 

@@ -24,15 +24,17 @@ def cmd_view(args: argparse.Namespace) -> int:
 
     handle = start_viewer(args.project, host=args.host, port=args.port, on_pick=on_pick)
     if handle.warning:
-        print(f"warning: {handle.warning}", file=sys.stderr)
+        print(handle.warning, file=sys.stderr, flush=True)
+    for note in handle.notes:
+        print(note, flush=True)
     if args.image:
         handle.show_image(args.image)
-    if args.mode:
-        handle.set_mode(args.mode)
+    handle.set_mode(args.mode or handle.next_mode())
     print(f"picking viewer at {handle.url}  (Ctrl-C to stop)", flush=True)
     if handle.host in ("127.0.0.1", "localhost", "::1"):
-        print(f"  over SSH: ssh -L {handle.port}:127.0.0.1:{handle.port} USER@THIS-MACHINE, then open "
-              f"http://127.0.0.1:{handle.port}/ on your computer", flush=True)
+        print(f"  over SSH, on your computer run:  {handle.ssh_hint}", flush=True)
+        print(f"  then open {handle.local_url}", flush=True)
+    print("  the URL holds a key made for this launch: only a page opened from it can use the viewer", flush=True)
     try:
         threading.Event().wait()
     except KeyboardInterrupt:
@@ -48,7 +50,9 @@ def register(sub) -> None:
     p.add_argument("project", help="project file (TOML); picks are saved into it")
     p.add_argument("--host", default="127.0.0.1",
                    help="address to listen on (default 127.0.0.1; anything else exposes the page to the network)")
-    p.add_argument("--port", type=int, default=0, help="TCP port (default 0: a free port)")
+    p.add_argument("--port", type=int, default=None,
+                   help="TCP port (default: the project's viewer.port, chosen free at the first launch and "
+                        "remembered; 0: a free port this time)")
     p.add_argument("--mode", help="pick mode to start in: gcp, section, roi, masks, stable, edges, edges1, "
                                   "edges2, divergence")
     p.add_argument("--image", help="image to show: frame, working, ortho, image1, image2, dem_plot")

@@ -7,7 +7,8 @@ drawn and clicked on the first frame, on the undistorted frame and on the orthor
 Kinds: ``frame`` (first frame of the range, as recorded), ``working`` (lens distortion removed;
 stabilisation registers on this frame, so it is also the stabilised frame 0), ``ortho`` (map of
 the water plane), ``image1`` / ``image2`` (the two nadir images of the angle-and-height method),
-``dem_plot`` (DEM vs surveyed bed, Hellebaut method; its ``axes`` map a click to a station).
+``dem_plot`` (DEM vs surveyed bed, Hellebaut method; its ``axes`` map a click to a station),
+``filtered`` (the TUI's filter preview, ``out/filter_preview.png``).
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ KINDS = {
     "image1": "Angle-and-height image 1",
     "image2": "Angle-and-height image 2",
     "dem_plot": "DEM vs bed (Hellebaut)",
+    "filtered": "Filter preview (TUI)",
 }
 FRAME_LIKE = ("frame", "working", "ortho")  # displays on which raw-frame picks are made
 
@@ -103,6 +105,15 @@ def load_display(project: Project, kind: str) -> Display:
         return Display(kind, _rgb(img))
     if kind == "dem_plot":
         return _dem_plot(project)
+    if kind == "filtered":  # written by the TUI's filter preview: the working frame, filtered
+        path = project.root / "out" / "filter_preview.png"
+        img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+        if img is None:
+            raise InputFileError(f"{path}: no filter preview yet; press ctrl+r on the filters step of the TUI")
+        lens = lens_of(project)
+        if lens is None:
+            return Display("filtered", _rgb(img))
+        return Display("filtered", _rgb(img), lens.undistort_points, lens.distort_points)
     raise ParameterError(f"unknown image {kind!r}; one of {', '.join(KINDS)}")
 
 

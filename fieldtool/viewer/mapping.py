@@ -153,3 +153,39 @@ class PlotAxes:
     def contains_px(self, xy) -> bool:
         """True when pixel ``xy`` is inside the plotting area."""
         return self.left_px <= xy[0] <= self.right_px and self.top_px <= xy[1] <= self.bottom_px
+
+
+def zoom_about_cursor(position, look_at, up, fov_y_rad: float, aspect: float, ndc, scale: float,
+                      plane: ImagePlane, min_dist: float | None = None, max_dist: float | None = None):
+    """New camera (position, look_at) after a zoom that keeps the point under the cursor fixed.
+
+    The camera (``position``, ``look_at``, ``up``; three.js convention, vertical field of view
+    ``fov_y_rad``, viewport ``aspect`` = width / height) is scaled about the point X where the ray
+    through the cursor meets the image plane: both the camera and its target move towards X by
+    the factor ``scale`` (< 1 zooms in). A point scaled about X with the camera stays on the same
+    ray, so X stays under the cursor. ``ndc`` is the cursor in normalised device coordinates (x
+    right, y up, -1..1). Returns None when the cursor's ray misses the plane. The distance from
+    X is kept within [min_dist, max_dist] (scene units) when given.
+    """
+    p = np.asarray(position, float)
+    t = np.asarray(look_at, float)
+    f = t - p
+    f /= np.linalg.norm(f)
+    r = np.cross(f, np.asarray(up, float))
+    if np.linalg.norm(r) < 1e-12:
+        return None
+    r /= np.linalg.norm(r)
+    u = np.cross(r, f)
+    h = np.tan(fov_y_rad / 2.0)
+    d = f + float(ndc[0]) * h * aspect * r + float(ndc[1]) * h * u
+    px = ray_to_pixel(p, d, plane)
+    if px is None:
+        return None
+    x = pixel_to_scene([px], plane)[0]
+    dist = np.linalg.norm(p - x)
+    s = float(scale)
+    if min_dist is not None and dist * s < min_dist:
+        s = min_dist / dist
+    if max_dist is not None and dist * s > max_dist:
+        s = max_dist / dist
+    return x + (p - x) * s, x + (t - x) * s

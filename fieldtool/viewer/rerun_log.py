@@ -11,16 +11,26 @@ entity                                 content
 ``frames/input/pair_vectors``          ``Arrows2D`` of each pair's valid vectors (image pixels)
 ``frames/input/mean_field``            ``Arrows2D`` of the time-averaged field
 ``frames/input/section``               the section of interest and its subsection limits
-``map/mean_field``                     ``Arrows2D`` of the rectified field, metres and m/s
-``map/section``                        section points labelled with subsection velocities (m/s)
+``map/background``                     the rectified first frame (north up), placed in metres
+``map/mean_field``                     ``Arrows2D`` of the rectified field, metres; m/s x ``map_arrow_s``
+``map/section``                        the section and its subsection midpoints (velocities: profile)
+``section/profile``                    surface velocity along the section, its band (2.5-97.5 % of
+                                       the pair fields) and labels (station m, velocity m/s)
 ``section/surface_velocity_ms``        ``BarChart`` of the subsection surface velocities
 ``section/discharge_m3s``              ``BarChart`` of the subsection discharges
 ``piv/valid_fraction``                 ``Scalars``: fraction of valid vectors in each pair
-``discharge/pair_m3s``                 ``Scalars``: discharge of each pair's field
-``discharge/running_m3s``              ``Scalars``: median of the pair discharges so far
-``discharge/total_m3s``                ``Scalars``: the discharge of the run (last time)
+``discharge/pair_m3s``                 "per-pair Q": discharge of each pair's field
+``discharge/running_m3s``              "running estimate": median of the pair discharges so far
+``discharge/final_m3s``                "final Q": the run's discharge, drawn over the clip span
+``discharge/final_ci95_lo_m3s``, _hi   "final Q 95 % lower/upper": its interval (when the run has one)
 ``log``                                ``TextLog``: stages and warnings
 =====================================  ==========================================================
+
+Map coordinates: screen x = world X, screen y = -world Y (2D views draw y down; this keeps north up),
+velocities likewise (U, -V). The profile: x = station (m), y = -velocity (m/s) x ``PROFILE_SCALE``.
+
+A blueprint (:func:`blueprint`) lays the views out: the current frame with live vectors (large),
+the rectified map, the section profile, and the discharge over time with its named series.
 
 Image-space arrows are drawn on the (possibly downscaled) frame: positions are multiplied by
 ``image_scale`` and a velocity (px/s) is drawn as the displacement over ``arrow_s`` seconds;
@@ -28,8 +38,9 @@ both are logged in ``scale`` (a ``TextDocument``).
 
 Three ways to reach a supervisor (``[rerun] mode`` or ``fieldtool run --rerun``): ``save`` to an
 ``.rrd`` file (the default when enabled), ``connect`` to a viewer the supervisor runs
-(``rerun+http://HOST:9876/proxy``), or ``serve`` gRPC and the web viewer from this machine.
-rerun's servers listen on ALL network interfaces; serving is never on by default.
+(``rerun+http://HOST:9876/proxy``), or ``serve`` gRPC and the web viewer from this machine,
+with no outside request (:mod:`fieldtool.viewer.rerun_web`). rerun's servers listen on ALL network
+interfaces; serving is never on by default.
 
 Logging never fails a run: any error becomes a warning in the run's result and logging stops.
 """
@@ -47,6 +58,34 @@ from ..errors import InputFileError, ParameterError
 from ..pipeline import Observer
 
 MODES = ("off", "save", "connect", "serve")
+PROFILE_SCALE = 10.0  # section profile: 1 m/s is drawn as 10 "metres" of station, so both axes read well
+SERIES = {"pair_m3s": ("per-pair Q (one frame pair's field)", [150, 150, 150]),
+          "running_m3s": ("running estimate (median of the pairs so far)", [255, 140, 0]),
+          "final_m3s": ("final Q (the run's mean field)", [0, 200, 255]),
+          "final_ci95_lo_m3s": ("final Q 95 % lower", [0, 120, 160]),
+          "final_ci95_hi_m3s": ("final Q 95 % upper", [0, 120, 160])}
+
+
+def blueprint():
+    """The supervisor's layout: frame + live vectors (large) | map, section profile, discharge over time."""
+    import rerun.blueprint as rrb
+
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Spatial2DView(origin="/frames/input", name="Current frame and live vectors (px)"),
+            rrb.Vertical(
+                rrb.Spatial2DView(origin="/map", name="Rectified map and mean field (m, north up)"),
+                rrb.Spatial2DView(origin="/section/profile",
+                                  name=f"Section: surface velocity and band (x station m, y m/s x {PROFILE_SCALE:g})"),
+                rrb.TimeSeriesView(origin="/discharge", name="Discharge over time (m³/s)",
+                                   plot_legend=rrb.PlotLegend(visible=True)),
+                row_shares=[3, 2, 2],
+            ),
+            column_shares=[3, 2],
+        ),
+        rrb.TimePanel(state="collapsed"),
+        collapse_panels=True,
+    )
 DEFAULT_URL = "rerun+http://127.0.0.1:9876/proxy"
 GRPC_PORT = 9876
 WEB_PORT = 9090
@@ -99,6 +138,8 @@ class RerunObserver(Observer):
         self.path: Path | None = None
         self._q_pairs: list[float] = []
         self._pair_q = None  # live discharge of one field, from the pipeline's geometry()
+        self._first: np.ndarray | None = None  # first working frame, for the map's background
+        self.web = None
         if recording is not None:
             self.rec = recording
             return
@@ -109,15 +150,19 @@ class RerunObserver(Observer):
             self.path = Path(path)
             try:
                 self.path.parent.mkdir(parents=True, exist_ok=True)
-                self.rec.save(str(self.path))
+                self.rec.save(str(self.path), default_blueprint=blueprint())
             except Exception as e:  # noqa: BLE001 - rerun raises its own error types
                 raise InputFileError(f"{self.path}: cannot write the rerun recording ({e}); check rerun.path") from e
         elif mode == "connect":
             self.urls["viewer"] = url or DEFAULT_URL
-            self.rec.connect_grpc(self.urls["viewer"])
+            self.rec.connect_grpc(self.urls["viewer"], default_blueprint=blueprint())
         elif mode == "serve":
-            self.urls["grpc"] = self.rec.serve_grpc(grpc_port=grpc_port)
-            rr.serve_web_viewer(web_port=web_port, open_browser=False, connect_to=self.urls["grpc"])
+            from .rerun_web import OfflineWebViewer, disable_rerun_analytics
+
+            disable_rerun_analytics()
+            self.urls["grpc"] = self.rec.serve_grpc(grpc_port=grpc_port, default_blueprint=blueprint())
+            self.web = OfflineWebViewer(self.urls["grpc"], grpc_port, web_port)
+            self.urls["local"] = self.web.start()
             self.urls["web"] = f"http://FIELD-MACHINE:{web_port}/?url=rerun%2Bhttp://FIELD-MACHINE:{grpc_port}/proxy"
         else:
             raise ParameterError(f"rerun.mode: {mode!r} is not one of {', '.join(MODES)}")
@@ -156,6 +201,9 @@ class RerunObserver(Observer):
             self.image_scale = min(1.0, self.max_side_px / max(h, w))
         size = (max(1, round(w * self.image_scale)), max(1, round(h * self.image_scale)))
         self._time(t_s, frame=index)
+        if self._first is None:
+            self._first = np.array(raw, copy=True)
+            self._series_names()
         for name, img in (("frames/input", raw), ("frames/filtered", filtered)):
             im = img if img.dtype in (np.uint8, np.float32) else np.asarray(img, np.float32)
             if self.image_scale < 1.0:  # downscale first: the stretch and the encoder see fewer pixels
@@ -165,6 +213,14 @@ class RerunObserver(Observer):
                 im = cv2.cvtColor(im, cv2.COLOR_BGR2RGB)
             self.rec.log(name, rr.Image(im, color_model="L" if im.ndim == 2 else "RGB").compress(
                 jpeg_quality=self.jpeg_quality))
+
+    def _series_names(self) -> None:
+        """Name and colour the discharge series once (static), so none can be confused in the plot."""
+        rr = self.rr
+        for key, (name, colour) in SERIES.items():
+            style = (rr.SeriesPoints(names=name, colors=[colour], marker_sizes=[3.0]) if key == "pair_m3s" else
+                     rr.SeriesLines(names=name, colors=[colour], widths=[1.0 if "ci95" in key else 2.0]))
+            self.rec.log(f"discharge/{key}", style, static=True)
 
     def geometry(self, pair_discharge) -> None:
         self._pair_q = pair_discharge
@@ -190,7 +246,7 @@ class RerunObserver(Observer):
         s = self.image_scale or 1.0
         self.rec.log("scale", self.rr.TextDocument(
             f"Image-space arrows: positions x {s:.4g} (frame downscale); a velocity in px/s is drawn as its "
-            f"displacement over {self.arrow_s:.4g} s. Map arrows: metres, velocity (m/s) x 1 s.",
+            f"displacement over {self.arrow_s:.4g} s.",
             media_type="text/markdown"), static=True)
 
     def _pair(self, i, t_s, x, y, u, v, valid) -> None:
@@ -224,8 +280,17 @@ class RerunObserver(Observer):
             for k, (t, q) in enumerate(zip(t_pairs, res.q_pairs)):
                 self._time(t, pair=k)
                 self._log_q(q)
-        self._time(t_end, pair=max(len(t_pairs) - 1, 0))
-        self.rec.log("discharge/total_m3s", rr.Scalars(float(d.discharge_m3s)))
+        if self._first is None:
+            self._series_names()
+        # the final Q (and its 95 % interval when the run has one) drawn across the clip's span
+        ci = _interval(res)
+        t_start = float(t_pairs[0]) if len(t_pairs) else 0.0
+        for k, t in ((0, t_start), (max(len(t_pairs) - 1, 0), t_end)):
+            self._time(t, pair=k)
+            self.rec.log("discharge/final_m3s", rr.Scalars(float(d.discharge_m3s)))
+            if ci is not None:
+                self.rec.log("discharge/final_ci95_lo_m3s", rr.Scalars(ci[0]))
+                self.rec.log("discharge/final_ci95_hi_m3s", rr.Scalars(ci[1]))
         ok = np.asarray(p.valid, bool) & np.isfinite(p.u) & np.isfinite(p.v)
         if self.arrow_s is None and ok.any():
             self._arrow_scale(p.x, p.u[ok], p.v[ok])
@@ -234,7 +299,15 @@ class RerunObserver(Observer):
             origins=np.c_[p.x[ok], p.y[ok]] * s, vectors=np.c_[p.u[ok], p.v[ok]] * (a * s), colors=[0, 200, 255]))
         XY = res.mapping.image_to_world(np.c_[p.x[ok], p.y[ok]])
         U, V = np.asarray(res.world_u)[ok], np.asarray(res.world_v)[ok]
-        self.rec.log("map/mean_field", rr.Arrows2D(origins=XY, vectors=np.c_[U, V], colors=[0, 200, 255]))
+        flip = np.array([1.0, -1.0])  # screen y = -world Y: north up
+        if self._first is not None:
+            self._map_background(res)
+        self.map_arrow_s = _map_arrow_s(XY, U, V)
+        self.rec.log("map/mean_field", rr.Arrows2D(origins=XY * flip, vectors=np.c_[U, V] * flip * self.map_arrow_s,
+                                                   colors=[0, 200, 255], radii=0.02))
+        self.rec.log("map/scale", rr.TextDocument(
+            f"Map: metres, north up (screen y = -Y). A velocity (m/s) is drawn as its displacement over "
+            f"{self.map_arrow_s:.3g} s.", media_type="text/markdown"), static=True)
         # the section: in the image (with subsection limits) and on the map (with velocities)
         edges = np.asarray(geom.station_edges, float)
         frac = (edges - edges[0]) / (edges[-1] - edges[0]) if edges[-1] != edges[0] else np.linspace(0, 1, len(edges))
@@ -245,17 +318,55 @@ class RerunObserver(Observer):
         self.rec.log("frames/input/section/limits", rr.Points2D(ticks_i * s, colors=[255, 255, 0], radii=3.0))
         mid_w = 0.5 * (ticks_w[:-1] + ticks_w[1:])
         vel = np.asarray(d.surface_velocity_ms, float)
-        labels = [f"{i + 1}: {v:.2f} m/s" + (" (filled)" if f else "")
-                  for i, (v, f) in enumerate(zip(vel, d.velocity_filled))]
-        self.rec.log("map/section", rr.LineStrips2D([pw], colors=[255, 255, 0]))
-        self.rec.log("map/section/subsections", rr.Points2D(mid_w, labels=labels, colors=[255, 255, 0], radii=0.05))
+        self.rec.log("map/section", rr.LineStrips2D([pw * flip], colors=[255, 255, 0]))
+        self.rec.log("map/section/subsections", rr.Points2D(mid_w * flip, colors=[255, 255, 0], radii=0.08))
+        self._profile(res)
         self.rec.log("section/surface_velocity_ms", rr.BarChart(np.nan_to_num(vel)))
         self.rec.log("section/discharge_m3s", rr.BarChart(np.nan_to_num(np.asarray(d.sub_discharge_m3s, float))))
         self.rec.log("log", rr.TextLog(
             f"discharge {d.discharge_m3s:.4f} m3/s, level {d.water_level_m:.3f} m, "
             f"mean velocity {d.mean_velocity_ms:.3f} m/s, alpha {d.alpha:.2f}", level="INFO"))
+        qual = _quality_line(res)
+        if qual is not None:
+            self.rec.log("log", rr.TextLog(qual[0], level=qual[1]))
         for w in res.warnings:
             self.rec.log("log", rr.TextLog(w, level="WARN"))
+
+    def _map_background(self, res) -> None:
+        """The rectified first frame under the map, pixel (c, r) centre at (Xmin + c r, -(Ymax - r r))."""
+        rr = self.rr
+        img, A = res.mapping.rectified_image(_to_uint8(self._first), max_side_px=800)
+        r = 1.0 / A[0, 0]
+        x0, y1 = -A[0, 2] * r, A[1, 2] * r
+        im = img if img.ndim == 2 else cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+        self.rec.log("map/background", rr.Transform3D(translation=[x0 - r / 2, -y1 - r / 2, 0.0], scale=r),
+                     static=True)
+        self.rec.log("map/background", rr.Image(im, color_model="L" if im.ndim == 2 else "RGB", draw_order=-10.0),
+                     static=True)
+
+    def _profile(self, res) -> None:
+        """Surface velocity along the section with the 2.5-97.5 % band of the pair fields."""
+        from ..plots.report_figures import profile_band
+
+        rr = self.rr
+        b = profile_band(res)
+        k = -PROFILE_SCALE  # screen y down: velocity up
+        s, v = b["station_m"], b["velocity_ms"]
+        band = np.isfinite(b["p025_ms"]) & np.isfinite(b["p975_ms"])
+        if band.any():
+            lo, hi = np.c_[s[band], k * b["p025_ms"][band]], np.c_[s[band], k * b["p975_ms"][band]]
+            self.rec.log("section/profile/band", rr.LineStrips2D([lo, hi], colors=[[120, 170, 230], [120, 170, 230]],
+                                                                 radii=0.04))
+        fin = np.isfinite(v)
+        self.rec.log("section/profile/velocity", rr.LineStrips2D([np.c_[s[fin], k * v[fin]]], colors=[0, 120, 255],
+                                                                 radii=0.08))
+        every = max(1, int(np.ceil(fin.sum() / 6)))  # at most ~6 labels: more overlap; hover shows the rest
+        labels = [(f"{st:.1f} m: {vel:.2f} m/s" + (" (filled)" if f else "")) if i % every == 0 else ""
+                  for i, (st, vel, f) in enumerate(zip(s[fin], v[fin], b["filled"][fin]))]
+        self.rec.log("section/profile/subsections", rr.Points2D(np.c_[s[fin], k * v[fin]], labels=labels,
+                                                                colors=[0, 120, 255], radii=0.15))
+        self.rec.log("section/profile/zero", rr.LineStrips2D([[[s.min() - 0.5, 0.0], [s.max() + 0.5, 0.0]]],
+                                                             colors=[128, 128, 128], radii=0.02))
 
     def close(self, timeout_s: float = 3.0) -> None:
         """Flush what is buffered (a viewer that cannot be reached becomes a warning); in save mode
@@ -270,6 +381,67 @@ class RerunObserver(Observer):
                 self.rec.disconnect()
             except Exception as e:  # noqa: BLE001
                 self.warnings.append(f"rerun: could not finish {self.path}: {e}")
+
+
+def _map_arrow_s(XY: np.ndarray, U: np.ndarray, V: np.ndarray) -> float:
+    """Seconds of displacement per map arrow so that a fast (90th percentile) arrow spans 0.9 node spacing."""
+    from scipy.spatial import cKDTree
+
+    if len(XY) < 2:
+        return 1.0
+    spacing = float(np.median(cKDTree(XY).query(XY, k=2)[0][:, 1]))
+    ref = float(np.percentile(np.hypot(U, V), 90))
+    return 0.9 * spacing / ref if ref > 0 and spacing > 0 else 1.0
+
+
+def _interval(res) -> tuple[float, float] | None:
+    """Q's 95 % interval from the run's summary (helper `quality`'s keys), or None until it exists."""
+    try:
+        s = res.summary()
+        ci = s.get("discharge_ci95_m3s") or (s.get("uncertainty") or {}).get("ci95_m3s")
+        lo, hi = (float(v) for v in ci)
+    except (TypeError, ValueError, AttributeError):
+        return None
+    return (lo, hi) if np.isfinite(lo) and np.isfinite(hi) else None
+
+
+def _quality_line(res) -> tuple[str, str] | None:
+    """("Q = … ± …, grade: reasons", log level) from helper `quality`'s keys, or None until they exist."""
+    try:
+        q = res.summary().get("quality")
+    except (TypeError, ValueError, AttributeError):
+        return None
+    if not isinstance(q, dict) or not q.get("grade"):
+        return None
+    ci = _interval(res)
+    head = f"discharge {res.discharge.discharge_m3s:.3f} m3/s" + (
+        f", 95 % interval {ci[0]:.3f} - {ci[1]:.3f}" if ci is not None else "")
+    reasons = "; ".join(str(r.get("message", r.get("code", ""))) for r in q.get("reasons") or [] if isinstance(r, dict))
+    level = {"good": "INFO", "doubtful": "WARN"}.get(str(q["grade"]), "ERROR")
+    return f"{head}: quality {q['grade']}" + (f" ({reasons})" if reasons else ""), level
+
+
+def confined_rrd_path(rel: str, out_dir: str | Path, key: str = "rerun.path") -> Path:
+    """The ``.rrd`` file named by the project key, inside the output folder, or ParameterError.
+
+    A project file is data that may come from someone else: its ``rerun.path`` is a file name
+    relative to the output folder, never absolute, never climbing out with ``..``, never the
+    folder itself. (``fieldtool run --rerun-path`` is the operator's own choice and is not confined.)
+    """
+    text = str(rel).strip()
+    p = Path(text)
+    fix = "give a file name such as run.rrd; it is written in the output folder"
+    if not text or text in (".", "..") or p.name in ("", ".", ".."):
+        raise ParameterError(f"{key}: {rel!r} is not a file name; {fix}")
+    if p.is_absolute() or text.startswith("~") or ".." in p.parts or any(ord(c) < 32 for c in text):
+        raise ParameterError(f"{key}: {rel!r} points outside the output folder; {fix}")
+    out = Path(out_dir).resolve()
+    target = (out / p).resolve()
+    if out != target and out not in target.parents:  # e.g. a symbolic link inside the folder
+        raise ParameterError(f"{key}: {rel!r} resolves outside the output folder {out}; {fix}")
+    if target.is_dir():
+        raise ParameterError(f"{key}: {rel!r} is a folder; {fix}")
+    return target
 
 
 def check_url(url: str, key: str = "rerun.url") -> str:
@@ -287,8 +459,8 @@ def observer_from_args(project, args, out_dir: str | Path) -> RerunObserver | No
     """The rerun observer asked for by ``fieldtool run`` flags, or else by the project's ``[rerun]``.
 
     ``--rerun save|connect|serve`` overrides ``rerun.mode``; ``--rerun-path`` / ``--rerun-url``
-    override ``rerun.path`` / ``rerun.url``. Returns None when rerun is off. A relative ``.rrd``
-    path is put in ``out_dir``. Serving prints a warning (the servers listen on all interfaces)
+    override ``rerun.path`` / ``rerun.url``. Returns None when rerun is off. ``rerun.path`` is
+    confined to ``out_dir`` (:func:`confined_rrd_path`). Serving prints a warning (the servers listen on all interfaces)
     and the addresses to stderr.
     """
     cfg = project.rerun
@@ -298,11 +470,11 @@ def observer_from_args(project, args, out_dir: str | Path) -> RerunObserver | No
     if mode == "off":
         return None
     if mode == "save":
-        rel = getattr(args, "rerun_path", None) or cfg.path or "run.rrd"
-        p = Path(rel).expanduser()
-        if not p.is_absolute():
-            p = (Path.cwd() / p) if getattr(args, "rerun_path", None) else Path(out_dir) / p
-        return RerunObserver("save", path=p)
+        flag = getattr(args, "rerun_path", None)
+        if flag:  # typed on the command line by the user: taken as given (relative to the working folder)
+            p = Path(flag).expanduser()
+            return RerunObserver("save", path=p if p.is_absolute() else Path.cwd() / p)
+        return RerunObserver("save", path=confined_rrd_path(cfg.path or "run.rrd", out_dir))
     if mode == "connect":
         from_flag = getattr(args, "rerun_url", None)
         url = check_url(from_flag or cfg.url or DEFAULT_URL, "--rerun-url" if from_flag else "rerun.url")
@@ -316,7 +488,7 @@ def observer_from_args(project, args, out_dir: str | Path) -> RerunObserver | No
     except Exception as e:  # noqa: BLE001 - e.g. a port already in use: the run goes on without it
         print(f"warning: rerun serve failed ({e}); running without live logging", file=sys.stderr)
         return None
-    print(f"rerun: serving gRPC on port {GRPC_PORT} and the web viewer on port {WEB_PORT}. Supervisor: "
-          f"`rerun rerun+http://FIELD-MACHINE:{GRPC_PORT}/proxy`, or open {obs.urls['web']} "
-          f"(FIELD-MACHINE = this machine's address)", file=sys.stderr)
+    print(f"rerun: serving gRPC on port {GRPC_PORT} and the web viewer on port {WEB_PORT} (no outside requests, "
+          f"rerun analytics off). Supervisor: `rerun rerun+http://FIELD-MACHINE:{GRPC_PORT}/proxy`, or open "
+          f"{obs.urls['web']} (FIELD-MACHINE = this machine's address; here: {obs.urls['local']})", file=sys.stderr)
     return obs

@@ -1,9 +1,21 @@
 """The picking viewer: a viser web page where the operator clicks points on the images.
 
-``start_viewer(project_path)`` serves the page on 127.0.0.1 with a free port and returns a
-:class:`ViewerHandle` (``.url``, ``.port``, ``.set_mode``, ``.show_image``, ``.stop``). Every pick
-is written to the project file at once (read, set the field, atomic save, under a lock) and
-reported to ``on_pick(field, value)`` so the TUI can update, then drawn back as an overlay.
+``start_viewer(project_path)`` serves the page on 127.0.0.1 and returns a :class:`ViewerHandle`
+(``.url``, ``.port``, ``.set_mode``, ``.show_image``, ``.stop``). Every pick is written to the
+project file at once (read, set the field, atomic save, under a lock) and reported to
+``on_pick(field, value)`` so the TUI can update, then drawn back as an overlay.
+
+Only the page itself can use the viewer (see :mod:`fieldtool.viewer.guard`): the URL carries a
+random key made at each launch, and requests whose Host or Origin is not the viewer's own address
+are refused, so another web page open in the same browser can neither read the frames nor move a
+pick. The port is fixed per project (``[viewer] port``, remembered after the first launch) so an
+SSH tunnel (``ssh_hint(port)``) can be kept.
+
+The page guides the operator: a checklist of the picks in order (done, next), a legend of the
+labels, hollow rings that leave the targets visible, only the buttons of the current mode, GCP
+clicks snapped to the centre of a checker target (:mod:`fieldtool.viewer.snap`), and a wheel zoom
+that keeps the point under the cursor (a small script added to viser's page asks the server to
+move the camera about that point).
 
 The page and its scripts come from viser's bundled client (one self-contained HTML file): no
 internet access is needed. Binding an address other than the loopback makes the page, and the
@@ -21,11 +33,13 @@ from typing import Any, Callable
 
 import numpy as np
 
-from ..errors import FieldToolError
-from ..project import apply_changes, load_project
+from ..errors import FieldToolError, ParameterError
+from ..project import load_project
+from .guard import AccessGuard, install, page_path, ssh_hint
 from .images import FRAME_LIKE, KINDS, Display, lens_of, load_display, load_field
-from .mapping import ImagePlane, camera_pose, fit_plane, inside, pixel_to_scene, ray_to_pixel
-from .picks import MODES, PickState, get_field
+from .mapping import ImagePlane, camera_pose, fit_plane, inside, pixel_to_scene, ray_to_pixel, zoom_about_cursor
+from .picks import MODES, PickState, checklist, get_field, next_mode, save_field
+from .snap import snap_to_target
 
 LOOPBACK = ("127.0.0.1", "localhost", "::1")
 FOV_RAD = np.deg2rad(50.0)
@@ -45,10 +59,42 @@ class ViewerHandle:
         self._v = viewer
         self.host: str = viewer.host
         self.port: int = viewer.server.get_port()
+        self.token: str = viewer.guard.token
         shown = "127.0.0.1" if self.host in ("0.0.0.0", "::") else self.host
         shown = f"[{shown}]" if ":" in shown else shown
-        self.url: str = f"http://{shown}:{self.port}/"
+        self.url: str = f"http://{shown}:{self.port}/{self.token}/"
         self.warning: str | None = viewer.host_warning
+        self.notes: list[str] = []  # what the launch decided about the port, for the CLI/TUI to show
+
+    @property
+    def ssh_hint(self) -> str:
+        """The ``ssh -L PORT:127.0.0.1:PORT user@host`` line that forwards this viewer's port."""
+        return ssh_hint(self.port)
+
+    @property
+    def local_url(self) -> str:
+        """The URL to open on the operator's own computer through the SSH tunnel."""
+        return f"http://127.0.0.1:{self.port}/{self.token}/"
+
+    @property
+    def refused(self) -> list[str]:
+        """Why recent requests were refused (host, origin or key), newest last."""
+        return list(self._v.guard.refused)
+
+    @property
+    def checklist(self) -> list[tuple[str, str, str]]:
+        """The picks in order as (mode key, "done" | "next" | "todo" | "optional", detail)."""
+        return [(spec.key, status, detail) for spec, status, detail in checklist(self._v.states)]
+
+    def next_mode(self) -> str | None:
+        """The mode of the checklist's next step (None when all are done)."""
+        return next_mode(self._v.states)
+
+    def zoom(self, ndc_x: float, ndc_y: float, scale: float) -> int:
+        """Zoom every open page about the point at normalised device coordinates (x right, y up,
+        -1..1) by ``scale`` (< 1 zooms in), as the page's mouse wheel does. Returns the number of
+        pages moved."""
+        return self._v.zoom(ndc_x, ndc_y, scale)
 
     def set_mode(self, mode: str) -> None:
         """Select a pick mode (a key of ``picks.MODES``, or ``None`` / "" for view only); the image
@@ -95,7 +141,7 @@ class ViewerHandle:
         self.stop()
 
 
-def start_viewer(project_path: str | Path, host: str = "127.0.0.1", port: int = 0,
+def start_viewer(project_path: str | Path, host: str = "127.0.0.1", port: int | None = None,
                  on_pick: OnPick | None = None) -> ViewerHandle:
     """Serve the picking page for the project file ``project_path``.
 
@@ -103,31 +149,138 @@ def start_viewer(project_path: str | Path, host: str = "127.0.0.1", port: int = 
     ----------
     project_path : path of the project file (TOML); picks are saved into it.
     host : address to bind. Anything but the loopback exposes the page to the network (warns).
-    port : TCP port; 0 picks a free one (see ``handle.port``).
+    port : TCP port. None: the project's ``viewer.port`` (remembered in the project after the
+        first launch; a busy remembered port falls back to the next free one, with a warning);
+        0: a free port, not remembered; N: exactly N, remembered (ParameterError when in use).
     on_pick : called as ``on_pick(field, value)`` after each saved pick, from a server thread;
         ``field`` is the dotted project key (``"ortho.gcp_px"``).
     """
     import viser
 
+    path = Path(project_path).resolve()
+    project = load_project(path)
+    remembered = int(getattr(getattr(project, "viewer", None), "port", 0) or 0)
+    want = remembered if port is None else int(port)
+    if want != 0 and not 1024 <= want <= 65535:
+        key = "viewer.port" if port is None else "--port"
+        raise ParameterError(f"{key} = {want}: give a port from 1024 to 65535 (or 0 for a free one)")
     host_warning = None
     if host not in LOOPBACK:
-        host_warning = (f"the picking viewer listens on {host}: anyone who can reach this machine on the port can "
-                        f"see the frames and change the picks of the project. Use the default 127.0.0.1 with SSH port "
-                        f"forwarding (ssh -L PORT:127.0.0.1:PORT) unless the network is trusted.")
+        host_warning = (f"WARNING: the picking viewer listens on {host}: anyone who can reach this machine on the "
+                        f"port and learns the URL's key can see the frames and change the picks of the project. "
+                        f"Use the default 127.0.0.1 with SSH port forwarding (ssh -L PORT:127.0.0.1:PORT) unless "
+                        f"the network is trusted.")
         warnings.warn(host_warning, stacklevel=2)
-    with contextlib.redirect_stdout(io.StringIO()):  # viser prints a banner; the TUI owns the terminal
-        server = viser.ViserServer(host=host, port=port, verbose=False)
+    guard = AccessGuard(host)
+    routes = _Routes(guard)
+    with contextlib.redirect_stdout(io.StringIO()), install(guard, routes):  # viser prints a banner
+        server = viser.ViserServer(host=host, port=want, verbose=False)
+    if not guard.hooked:
+        server.stop()
+        raise FieldToolError("the picking viewer could not install its access check in viser's web server "
+                             f"(viser {viser.__version__}); it is not started. Please report this.")
+    got = server.get_port()
+    notes = []
+    if want != 0 and got != want:
+        if port is not None:
+            server.stop()
+            raise ParameterError(f"--port {want}: the port is in use (another viewer?); stop it or give another "
+                                 "port")
+        notes.append(f"port {want} (viewer.port) is in use; this viewer uses {got}: tunnel that port this time")
     try:
-        viewer = _Viewer(server, Path(project_path).resolve(), host, host_warning, on_pick)
+        viewer = _Viewer(server, path, host, host_warning, on_pick, guard)
+        routes.viewer = viewer
+        if got != remembered and (port is None and remembered == 0 or port is not None and port != 0):
+            save_field(path, "viewer.port", got)  # remembered: the next launch (and its tunnel) uses it again
+            notes.append(f"port {got} is remembered in viewer.port of {path.name}")
     except BaseException:
         server.stop()
         raise
-    return ViewerHandle(viewer)
+    handle = ViewerHandle(viewer)
+    handle.notes = notes
+    return handle
+
+
+class _Routes:
+    """Requests the viewer answers itself: its page (viser's, plus the zoom script) and ``zoom``."""
+
+    def __init__(self, guard: AccessGuard):
+        self.guard = guard
+        self.viewer: "_Viewer | None" = None
+        self._page: bytes | None = None
+        self._page_gz: bytes | None = None
+
+    def page(self) -> tuple[bytes, bytes]:
+        if self._page is None:
+            import gzip
+
+            html = page_path().read_text(encoding="utf-8")
+            if "</body>" not in html:
+                raise FieldToolError("viser's page has no </body>: cannot add the zoom script; please report this")
+            html = html.replace("</body>", f"<script>{ZOOM_SCRIPT}</script></body>", 1)
+            self._page = html.encode("utf-8")
+            self._page_gz = gzip.compress(self._page)
+        return self._page, self._page_gz
+
+    def __call__(self, rest: str, request):
+        from urllib.parse import parse_qs
+
+        from websockets.datastructures import Headers
+        from websockets.http11 import Response
+
+        path, _, query = rest.partition("?")
+        if path in ("/", "/index.html"):
+            raw, gz = self.page()
+            use_gz = "gzip" in request.headers.get("Accept-Encoding", "")
+            body = gz if use_gz else raw
+            return Response(200, "OK", Headers({"Content-Type": "text/html; charset=utf-8",
+                                                "Content-Length": str(len(body)),
+                                                "Content-Encoding": "gzip" if use_gz else "identity"}), body)
+        if path == "/zoom":
+            q = parse_qs(query)
+            try:
+                x, y, f = (float(q[k][0]) for k in ("x", "y", "f"))
+                if not all(np.isfinite([x, y, f])) or f <= 0:
+                    raise ValueError
+            except (KeyError, ValueError, IndexError):
+                return Response(400, "Bad Request", Headers({"Content-Length": "0"}), b"")
+            if self.viewer is not None:
+                self.viewer.zoom(x, y, f)
+            return Response(204, "No Content", Headers({"Content-Length": "0"}), b"")
+        return None
+
+
+# The wheel over the image zooms about the cursor: the page sends the cursor (normalised device
+# coordinates) and the zoom factor; the server moves the camera (viser's own wheel zoom goes to the
+# view centre). One request in flight at a time; wheel steps arriving meanwhile are summed.
+ZOOM_SCRIPT = """
+(function () {
+  var pending = 0, busy = false, last = null;
+  function send() {
+    if (busy || pending === 0 || last === null) return;
+    var f = Math.min(Math.max(Math.exp(pending * 0.0015), 0.2), 5.0);
+    pending = 0; busy = true;
+    fetch('zoom?x=' + last.x + '&y=' + last.y + '&f=' + f, {cache: 'no-store'})
+      .catch(function () {}).then(function () { busy = false; send(); });
+  }
+  window.addEventListener('wheel', function (e) {
+    var c = e.target;
+    if (!(c instanceof HTMLCanvasElement) || c.clientWidth < 200) return;
+    e.preventDefault(); e.stopImmediatePropagation();
+    var r = c.getBoundingClientRect();
+    last = {x: ((e.clientX - r.left) / r.width) * 2 - 1, y: 1 - ((e.clientY - r.top) / r.height) * 2};
+    pending += e.deltaY * (e.deltaMode === 1 ? 33 : (e.deltaMode === 2 ? 400 : 1));
+    send();
+  }, {capture: true, passive: false});
+})();
+"""
 
 
 class _Viewer:
-    def __init__(self, server, path: Path, host: str, host_warning: str | None, on_pick: OnPick | None):
+    def __init__(self, server, path: Path, host: str, host_warning: str | None, on_pick: OnPick | None,
+                 guard: AccessGuard):
         self.server, self.path, self.host, self.host_warning, self.on_pick = server, path, host, host_warning, on_pick
+        self.guard = guard
         self._lock = threading.RLock()
         self.project = load_project(path)
         self.mode: str | None = None
@@ -149,13 +302,15 @@ class _Viewer:
         self.gui_image = s.gui.add_dropdown("Image", tuple(KINDS.values()), initial_value=KINDS["frame"])
         self.gui_mode = s.gui.add_dropdown("Pick mode", (NO_MODE,) + tuple(m.label for m in MODES.values()),
                                            initial_value=NO_MODE)
+        self.gui_checklist = s.gui.add_markdown(" ")
+        next_btn = s.gui.add_button("Next pick")
         self.gui_help = s.gui.add_markdown("Choose a pick mode, then click on the image.")
-        undo = s.gui.add_button("Undo")
-        close = s.gui.add_button("Close polygon")
-        clear = s.gui.add_button("Clear this mode")
+        self.gui_legend = s.gui.add_markdown(" ")
+        self.buttons = {"undo": s.gui.add_button("Undo"), "close": s.gui.add_button("Close polygon"),
+                        "clear": s.gui.add_button("Clear this mode")}
         self.gui_field = s.gui.add_checkbox("Velocity field", True)
         self.gui_status = s.gui.add_markdown(" ")
-        s.gui.add_markdown(f"Picks are saved to `{path}` at once.")
+        s.gui.add_markdown(f"Picks are saved to `{path}` at once. The mouse wheel zooms about the cursor.")
 
         @self.gui_image.on_update
         def _(_):
@@ -169,9 +324,9 @@ class _Viewer:
                 key = next((k for k, m in MODES.items() if m.label == self.gui_mode.value), None)
                 self.set_mode(key)
 
-        undo.on_click(lambda _: self._act("undo"))
-        close.on_click(lambda _: self._act("close"))
-        clear.on_click(lambda _: self._act("clear"))
+        for action, button in self.buttons.items():
+            button.on_click(lambda _, a=action: self._act(a))
+        next_btn.on_click(lambda _: self.set_mode(next_mode(self.states)))
         self.gui_field.on_update(lambda _: self.redraw())
 
         @s.scene.on_click()
@@ -189,8 +344,10 @@ class _Viewer:
                     self._fit_camera(client)
 
         self._load_states()
+        self._show_buttons(None)
         self.show_field(None)
         self.show_image("frame")
+        self.update_checklist()
 
     # ------------------------------------------------------------------ state
 
@@ -208,11 +365,30 @@ class _Viewer:
             self._load_states()
             if self.display.kind == "dem_plot":
                 self.show_image("dem_plot")
+            self.update_checklist()
             self.redraw()
 
     def set_status(self, text: str) -> None:
         self.status_text = text
         self.gui_status.content = text or " "
+
+    def update_checklist(self) -> None:
+        """Redraw the checklist: done, next and the rest, with what is placed in each."""
+        marks = {"done": "✓", "next": "➜", "todo": "○", "optional": "○"}
+        lines = ["**Checklist**", ""]
+        for spec, status, detail in checklist(self.states):
+            name = f"**{spec.label}**" if status == "next" else spec.label
+            opt = "" if spec.required else " (optional)"
+            lines.append(f"- {marks[status]} {name}{opt}: {detail}")
+        if next_mode(self.states) is None:
+            lines.append("")
+            lines.append("All picks are placed.")
+        self.gui_checklist.content = "\n".join(lines)
+
+    def _show_buttons(self, key: str | None) -> None:
+        wanted = MODES[key].buttons if key else ()
+        for action, button in self.buttons.items():
+            button.visible = action in wanted
 
     def set_mode(self, key: str | None) -> None:
         if key is not None and key not in MODES:
@@ -220,12 +396,15 @@ class _Viewer:
         with self._lock:
             self.mode = key
             self._sync(self.gui_mode, MODES[key].label if key else NO_MODE)
+            self._show_buttons(key)
             if key is None:
-                self.gui_help.content = "View only: choose a pick mode to click points."
+                self.gui_help.content = "View only: choose a pick mode (or press Next pick) to click points."
+                self.gui_legend.content = " "
                 self.redraw()
                 return
             spec = MODES[key]
             self.gui_help.content = spec.help
+            self.gui_legend.content = f"Legend: {spec.legend}" if spec.legend else " "
             if self.display.pick_image != spec.image:
                 self.show_image(spec.image)
                 if self.display.pick_image != spec.image:
@@ -312,9 +491,18 @@ class _Viewer:
                 msg = f"{spec.label} are picked on the {KINDS[spec.image].lower()}: switch the image"
                 self.set_status(msg)
                 return msg
+            snapped = None
+            if spec.snap and self.display.kind in FRAME_LIKE:
+                snapped = snap_to_target(self.display.rgb, float(px[0]), float(px[1]))
+                if snapped is not None:
+                    px = np.array([snapped.x, snapped.y])
             raw = self.display.from_display(px)[0] if self.display.kind in FRAME_LIKE else px
             state = self.states[self.mode]
-            msg = state.click(float(raw[0]), float(raw[1]))
+            before = state.value()
+            msg = state.click(float(raw[0]), float(raw[1]), exact=snapped is not None)
+            if snapped is not None and state.value() != before:
+                msg += (f" - snapped to the target centre ({raw[0]:.2f}, {raw[1]:.2f}) px, "
+                        f"{snapped.moved_px:.1f} px from the click (Undo if wrong)")
         return self._commit(spec, state, msg)
 
     def _act(self, action: str) -> str:
@@ -342,12 +530,13 @@ class _Viewer:
                 try:
                     project = load_project(self.path)  # fresh: keeps what the TUI saved meanwhile
                     if value != get_field(project, spec.field):
-                        project = apply_changes(self.path, {spec.field: value})  # this one key, merged
+                        project = save_field(self.path, spec.field, value)
                         saved = True
                     self.project = project
                 except (FieldToolError, OSError) as e:
                     msg = f"NOT SAVED: {e}"
             self.set_status(msg)
+            self.update_checklist()
             self.redraw()
         if saved and self.on_pick is not None:
             try:
@@ -391,27 +580,58 @@ class _Viewer:
             p = self.display.to_display(p)
         return pixel_to_scene(p, self.plane, lift=lift + self.plane.render_width * 1e-3)
 
-    def _lines(self, name: str, pts_raw, color, closed: bool = False, width: float = 2.5) -> None:
-        p = self._to_scene(pts_raw)
+    def _ring_px(self, active: bool) -> float:
+        """Radius of the rings around picked points, display pixels."""
+        h, w = self.display.rgb.shape[:2]
+        return max(5.0, 0.009 * max(w, h)) * (1.3 if active else 1.0)
+
+    def _lines(self, name: str, pts_raw, color, closed: bool = False, width: float = 2.5,
+               gap_px: float = 0.0) -> None:
+        """Straight segments between points; ``gap_px`` stops each segment short of its ends (the
+        rings), so the lines never cross the targets inside the rings."""
+        p = np.asarray(pts_raw, float).reshape(-1, 2)
         if len(p) < 2:
             return
         if closed:
             p = np.vstack([p, p[:1]])
-        seg = np.stack([p[:-1], p[1:]], axis=1)
+        if gap_px <= 0:
+            q = self._to_scene(p)
+            seg = np.stack([q[:-1], q[1:]], axis=1)
+        else:
+            d = self.display.to_display(p) if self.display.kind in FRAME_LIKE else p
+            a, b = d[:-1], d[1:]
+            n = np.linalg.norm(b - a, axis=1)
+            keep = n > 2.2 * gap_px
+            if not np.any(keep):
+                return
+            u = (b - a)[keep] / n[keep, None]
+            a, b = a[keep] + gap_px * u, b[keep] - gap_px * u
+            lift = self.plane.render_width * 1e-3
+            seg = np.stack([pixel_to_scene(a, self.plane, lift=lift), pixel_to_scene(b, self.plane, lift=lift)],
+                           axis=1)
         self._overlay.append(self.server.scene.add_line_segments(
             f"/overlay/{name}_lines", seg, color, thickness=width, thickness_units="screen"))
 
     def _points(self, name: str, labels: list[tuple[str, list[float]]], color, active: bool) -> None:
+        """Hollow rings around the picked points (the target stays visible inside) and their
+        labels beside the ring, up and to the right."""
         if not labels:
             return
-        pts = self._to_scene([p for _, p in labels], lift=self.plane.render_width * 1e-3)
-        size = self.plane.render_width * (0.009 if active else 0.006)
-        self._overlay.append(self.server.scene.add_point_cloud(
-            f"/overlay/{name}_pts", pts, np.array(color, np.uint8), point_size=size, point_shape="circle",
-            point_shading="flat", precision="float32"))
-        for i, ((text, _), p) in enumerate(zip(labels, pts)):
+        raw = np.array([p for _, p in labels], float)
+        disp = self.display.to_display(raw) if self.display.kind in FRAME_LIKE else raw
+        r = self._ring_px(active)
+        th = np.linspace(0, 2 * np.pi, 25)
+        circle = np.c_[np.cos(th), np.sin(th)] * r
+        rings = disp[:, None, :] + circle[None]  # (N, 25, 2) display px
+        lift = self.plane.render_width * 2e-3
+        p = pixel_to_scene(rings.reshape(-1, 2), self.plane, lift=lift).reshape(len(disp), len(th), 3)
+        seg = np.concatenate([np.stack([q[:-1], q[1:]], axis=1) for q in p])
+        self._overlay.append(self.server.scene.add_line_segments(
+            f"/overlay/{name}_rings", seg, color, thickness=3.0 if active else 2.0, thickness_units="screen"))
+        at = pixel_to_scene(disp + np.array([0.8 * r, -0.8 * r]), self.plane, lift=lift)
+        for i, ((text, _), q) in enumerate(zip(labels, at)):
             self._overlay.append(self.server.scene.add_label(
-                f"/overlay/{name}_label{i}", text, position=tuple(p), anchor="bottom-left",
+                f"/overlay/{name}_label{i}", text, position=tuple(q), anchor="bottom-left",
                 font_screen_scale=1.3 if active else 1.0))
 
     def _draw_state(self, key: str) -> None:
@@ -421,9 +641,9 @@ class _Viewer:
         color, active = COLORS[key], key == self.mode
         width = 3.5 if active else 2.0
         if key == "gcp":
-            self._lines(key, st.value(), color, closed=st.complete, width=width)
+            self._lines(key, st.value(), color, closed=st.complete, width=width, gap_px=self._ring_px(active))
         elif key in ("section", "edges", "edges1", "edges2"):
-            self._lines(key, st.value(), color, width=width)
+            self._lines(key, st.value(), color, width=width, gap_px=self._ring_px(active))
         elif key == "roi":
             if st.complete:
                 x0, y0, x1, y1 = st.value()
@@ -483,6 +703,26 @@ class _Viewer:
             "/overlay/divergence", p[None], color, thickness=3.0, thickness_units="screen"))
         self._overlay.append(self.server.scene.add_label(
             "/overlay/divergence_label", f"D = {st.value():.3f} m", position=tuple(p[0]), anchor="top-left"))
+
+    # ------------------------------------------------------------------ zoom
+
+    def zoom(self, ndc_x: float, ndc_y: float, scale: float) -> int:
+        moved = 0
+        size = max(self.plane.render_width, self.plane.render_height)
+        for client in list(self.server.get_clients().values()):
+            try:
+                cam = client.camera
+                aspect = cam.aspect if cam.image_height else 16 / 9
+                new = zoom_about_cursor(cam.position, cam.look_at, cam.up_direction, cam.fov, aspect,
+                                        (ndc_x, ndc_y), scale, self.plane, min_dist=0.02 * size, max_dist=20 * size)
+                if new is None:
+                    continue
+                with client.atomic():
+                    cam.position, cam.look_at = new
+                moved += 1
+            except Exception as e:  # noqa: BLE001 - a client that went away must not break the viewer
+                self.set_status(f"zoom not applied for a client: {e}")
+        return moved
 
     def stop(self) -> None:
         with contextlib.redirect_stdout(io.StringIO()):

@@ -10,9 +10,10 @@ from textual.widgets import Footer, OptionList, Static
 
 from .. import keys
 from ...errors import FieldToolError
+from ..checks import is_missing
 from ..fields import Field
 from ..steps import STEP_BY_ID, STEP_IDS, fields_for
-from ..widgets.chrome import HelpLine, JobPanel, StepList, TitleBar
+from ..widgets.chrome import HelpLine, StatusLine, StepList, TitleBar
 from ..widgets.field_row import FieldRow, field_id
 
 GENERAL_HELP = "tab / shift+tab: next / previous field · enter: open a list · ctrl+p: jump to a step"
@@ -46,10 +47,13 @@ class StepScreen(Screen):
     def compose(self) -> ComposeResult:
         yield TitleBar(id="titlebar")
         with Horizontal(id="body"):
-            yield StepList(self.STEP, self.session.step_marks())
+            marks = self.session.step_marks()
+            yield StepList(self.STEP, marks, self.session.mark_reasons)
             with VerticalScroll(id="main"):
                 n = STEP_IDS.index(self.STEP) + 1
-                yield Static(f"[b]{n}. {STEP_BY_ID[self.STEP].title}[/b]  [dim]{self.INTRO}[/dim]", id="heading")
+                heading = Text.from_markup(f"[b]{n}. {STEP_BY_ID[self.STEP].title}[/b]  [dim]{self.INTRO}[/dim]")
+                heading.no_wrap, heading.overflow = True, "ellipsis"
+                yield Static(heading, id="heading")
                 yield Static("", id="step-errors")
                 yield from self.compose_top()
                 seen: set[str] = set()
@@ -62,8 +66,8 @@ class StepScreen(Screen):
                     self.rows.append(row)
                     yield row
                 yield from self.compose_extra()
-                yield JobPanel(id="job")
         yield HelpLine(GENERAL_HELP, id="help")
+        yield StatusLine(id="status")
         yield Footer()
 
     def compose_top(self) -> ComposeResult:
@@ -79,12 +83,19 @@ class StepScreen(Screen):
             self.project.step = self.STEP
             self.session.save()
         self.query_one("#step-errors", Static).display = False
+        self.app.show_status(self)  # type: ignore[attr-defined]
         self.update_title()
         self.update_visibility()
         self.refresh_view()
         self.focus_first()
 
     def focus_first(self) -> None:
+        """Focus the first field still to be entered, else the first field (saves tabs on arrival)."""
+        for row in self.rows:
+            err = row.current_error() if row.display else None
+            if err and is_missing(err):
+                row.control.focus()
+                return
         for w in self.query("#main Input, #main Select, #main OptionList, #main DataTable"):
             if w.display and w.parent is not None and all(a.display for a in w.ancestors_with_self if hasattr(a, "display")):
                 w.focus()
@@ -104,7 +115,8 @@ class StepScreen(Screen):
         """Redraw what depends on the project (plots, info lines). Called after every edit."""
 
     def refresh_marks(self) -> None:
-        self.query_one(StepList).set_marks(self.session.step_marks())
+        marks = self.session.step_marks()
+        self.query_one(StepList).set_marks(marks, self.session.mark_reasons)
 
     # -- events ------------------------------------------------------------------------------------
     def on_field_row_edited(self, event: FieldRow.Edited) -> None:
@@ -119,6 +131,8 @@ class StepScreen(Screen):
         self.refresh_marks()
         self.update_title()
         self.query_one("#step-errors", Static).display = False
+        if self.app.focused is not None and event.row in self.app.focused.ancestors:
+            self.show_row_help(event.row)
 
     def after_edit(self, field: Field) -> None:
         """Hook after a parameter changed (already saved)."""
@@ -129,16 +143,37 @@ class StepScreen(Screen):
         while node is not None and not isinstance(node, FieldRow):
             node = node.parent
         if isinstance(node, FieldRow):
-            help_line.update(Text(node.field.help_line(self.project)))
+            self.show_row_help(node)
             if node.field.pickable:
                 self.app.viewer_focus(node.field.key)  # type: ignore[attr-defined]
         else:
             help_line.update(Text(self.focus_help(event.widget)))
 
+    def show_row_help(self, row: FieldRow) -> None:
+        """The help line of a field: its full message first when its entry is wrong, then its help."""
+        t = Text()
+        if row.error and is_missing(row.error):
+            t.append("✗ required · ", style="bold red")
+        elif row.error:
+            t.append(f"✗ {row.error}\n", style="bold red")
+        t.append(row.field.help_line(self.project))
+        self.query_one(HelpLine).update(t)
+
     def focus_help(self, widget) -> str:
-        if isinstance(widget, OptionList) and widget.id == "steps":
-            return "up / down and enter: go to that step (✓ done, · to do, ! changed since the last result)"
+        if isinstance(widget, StepList):
+            return self.step_help(widget)
         return GENERAL_HELP
+
+    def step_help(self, steps: StepList) -> str:
+        i = steps.highlighted
+        sid = STEP_IDS[i] if i is not None else self.STEP
+        reason = steps.reasons.get(sid)
+        head = f"{STEP_BY_ID[sid].title}: {reason}\n" if reason else ""
+        return head + "up / down, enter: go to that step (✓ validates, · to enter, ✗ wrong, ! changed since the result)"
+
+    def on_option_list_option_highlighted(self, event: OptionList.OptionHighlighted) -> None:
+        if isinstance(event.option_list, StepList) and self.app.focused is event.option_list:
+            self.query_one(HelpLine).update(Text(self.step_help(event.option_list)))
 
     def on_option_list_option_selected(self, event: OptionList.OptionSelected) -> None:
         if event.option_list.id == "steps":
@@ -152,6 +187,9 @@ class StepScreen(Screen):
         msgs = [m for m in msgs if m]
         if msgs:
             return msgs
+        msgs = self.session.step_problems(self.STEP, core=False)
+        if msgs:
+            return msgs
         try:
             self.step_check()
         except FieldToolError as e:
@@ -160,10 +198,17 @@ class StepScreen(Screen):
 
     def step_check(self) -> None:
         """Check the step with the core functions; raise FieldToolError with the user's message."""
+        from ..checks import core_check
+
+        core_check(self.session, self.STEP)
 
     def show_errors(self, msgs: list[str]) -> None:
+        """What blocks "next": one message whole, several one line each (a missing entry as "key:
+        required"); the field at fault gets the focus, so the help line shows its full message."""
         box = self.query_one("#step-errors", Static)
-        box.update(Text("\n".join(f"✗ {m}" for m in msgs)))
+        lines = [m.split(" — ")[0] if is_missing(m) else m for m in msgs]
+        one_line = len(lines) > 1
+        box.update(Text("\n".join(f"✗ {m}" for m in lines), no_wrap=one_line, overflow="ellipsis" if one_line else None))
         box.display = bool(msgs)
         if msgs:
             for row in self.rows:
@@ -189,8 +234,9 @@ class StepScreen(Screen):
             self.app.goto(STEP_IDS[i - 1])  # type: ignore[attr-defined]
 
     # -- runs (the app owns the worker; the screen shows it) ----------------------------------------
-    def job_panel(self) -> JobPanel:
-        return self.query_one(JobPanel)
+    def status_line(self) -> StatusLine | None:
+        """The screen's status line (None while the screen is being built or torn down)."""
+        return next(iter(self.query(StatusLine)), None)
 
     def on_job_finished(self, name: str, result) -> None:
         """A run of this session finished while this screen is shown (result already stored)."""

@@ -27,7 +27,7 @@ def typed_level(project) -> float | None:
 
 class CrossSectionScreen(StepScreen):
     STEP = "cross_section"
-    INTRO = "the surveyed bed, left bank to right bank"
+    INTRO = "the surveyed bed, left to right bank"
     BINDINGS = keys.CROSS_SECTION
 
     def compose_extra(self) -> ComposeResult:
@@ -47,9 +47,6 @@ class CrossSectionScreen(StepScreen):
         except FieldToolError:
             level = None
         plot.set_data(cs.station, cs.elevation, level)
-
-    def step_check(self) -> None:
-        build_cross_section(self.project)
 
     def action_write_csv(self) -> None:
         """Write the created shape's points to a CSV beside the project (reusable with 'load a file')."""

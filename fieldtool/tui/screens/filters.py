@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import re
+
+import numpy as np
+
 from rich.text import Text
 from textual.app import ComposeResult
 from textual.containers import Horizontal
@@ -10,7 +14,7 @@ from textual.widgets import Input, Label, OptionList, Select, Static
 from ...errors import FieldToolError, ParameterError
 from ...processing.filters import FILTERS, FilterStack
 from .. import keys
-from ..fields import fmt_num
+from ..fields import DECIMAL_HINT, fmt_num
 from ..widgets.plots import GrayImage
 from .base import StepScreen
 
@@ -22,7 +26,8 @@ def parse_params(text: str, name: str) -> dict:
         if not part:
             continue
         if "=" not in part:
-            raise ParameterError(f"filter parameters: {part!r} is not 'name=value' (e.g. clip_limit=2.0)")
+            hint = f"; {DECIMAL_HINT}" if re.search(r"=\s*[+-]?\d+,\d", text) else ""
+            raise ParameterError(f"filter parameters: {part!r} is not 'name=value' (e.g. clip_limit=2.0){hint}")
         k, v = (s.strip() for s in part.split("=", 1))
         try:
             val: object = int(v)
@@ -123,12 +128,13 @@ class FiltersScreen(StepScreen):
         self.refresh_view()
         self.refresh_marks()
 
-    def step_check(self) -> None:
-        FilterStack.from_config(self.project.filters)
-
     # -- preview ---------------------------------------------------------------------------------
     def action_run(self) -> None:
+        """Filter the first frame: small before/after here, large in a preview screen, and the
+        filtered frame written to out/filter_preview.png for the viewer."""
         from ...processing.filters import preview
+        from ...project import atomic_write_bytes
+        from .preview import PNG, PreviewScreen
 
         try:
             inputs = self.session.inputs()
@@ -138,13 +144,26 @@ class FiltersScreen(StepScreen):
             if FilterStack.from_config(self.project.filters).needs_prepass:
                 frames = (self.lens(inputs, f.image) for f in inputs.source)
             # as the pipeline: filtered inside the ROI only (image-based defaults come from the ROI)
-            after = self.crop(preview(self.project.filters, gray, frames, roi), roi)
+            filtered = preview(self.project.filters, gray, frames, roi)
         except FieldToolError as e:
             self.show_errors([str(e)])
             return
+        after = self.crop(filtered, roi)
         before = self.crop(gray, roi)
-        self.query_one("#before", GrayImage).set_image(before, f"first frame, std {before.std():.1f}")
-        self.query_one("#after", GrayImage).set_image(after, f"filtered, std {after.std():.1f}")
+        captions = (f"first frame, std {before.std():.1f}", f"filtered, std {after.std():.1f}")
+        self.query_one("#before", GrayImage).set_image(before, captions[0])
+        self.query_one("#after", GrayImage).set_image(after, captions[1])
+        png = f"{self.session.out_dir.name}/{PNG}"
+        try:
+            import cv2
+
+            self.session.out_dir.mkdir(parents=True, exist_ok=True)
+            ok, buf = cv2.imencode(".png", np.clip(filtered, 0, 255).astype(np.uint8))
+            if ok:
+                atomic_write_bytes(self.session.out_dir / PNG, buf.tobytes())
+        except OSError as e:
+            self.notify(f"{png} not written: {e}", severity="warning")
+        self.app.push_screen(PreviewScreen(before, after, captions, png))
 
     @staticmethod
     def lens(inputs, img):

@@ -7,7 +7,7 @@ from textual.app import ComposeResult
 from textual.markup import escape
 from textual.widgets import Static
 
-from ...errors import FieldToolError, ParameterError
+from ...errors import FieldToolError
 from .. import keys
 from .base import StepScreen
 
@@ -20,7 +20,7 @@ SCHEMATIC = ("P1 ──L1── P2   bank 1\n"
 
 class OrthoScreen(StepScreen):
     STEP = "ortho"
-    INTRO = "image pixels -> metres on the water"
+    INTRO = "pixels -> metres on the water"
     BINDINGS = [keys.run("Check GCPs")]
 
     def compose_extra(self) -> ComposeResult:
@@ -43,13 +43,6 @@ class OrthoScreen(StepScreen):
         from ...pipeline import build_mapping
 
         return build_mapping(self.project, self.session.inputs(), None)
-
-    def step_check(self) -> None:
-        m = self.project.ortho.method
-        if m in ("distances", "world", "two_points"):
-            self.mapping()
-        elif m == "pose" and not self.project.calibration.path:
-            raise ParameterError("ortho.method = pose needs the camera intrinsics: calibrate or load a lens in step 3")
 
     def action_run(self) -> None:
         info = self.query_one("#ortho-info", Static)

@@ -20,14 +20,6 @@ class PivScreen(StepScreen):
         yield Static("", id="piv-info")
         yield VectorGrid(id="vectors")
 
-    def step_check(self) -> None:
-        from ...pipeline import piv_params, roi_and_mask
-        from ...processing import piv as piv_mod
-
-        inputs = self.session.inputs()
-        roi, _ = roi_and_mask(self.project, inputs)
-        piv_mod.check_params(inputs.shape, piv_params(self.project), roi)
-
     def refresh_view(self) -> None:
         info = self.query_one("#piv-info", Static)
         grid = self.query_one(VectorGrid)
@@ -75,4 +67,5 @@ class PivScreen(StepScreen):
             self.app.start_job("piv", "PIV and discharge",  # type: ignore[attr-defined]
                                lambda job: jobs.run_full(p, out, job))
         else:
-            self.app.start_job("piv", "PIV", lambda job: jobs.run_piv_only(p, job))  # type: ignore[attr-defined]
+            out = self.session.out_dir  # the field is saved there at once (PIV cache)
+            self.app.start_job("piv", "PIV", lambda job: jobs.run_piv_only(p, job, out))  # type: ignore[attr-defined]

@@ -3,6 +3,7 @@ subsection table, and where the plots and files were written. Recomputed when st
 
 from __future__ import annotations
 
+from rich.text import Text
 from textual.app import ComposeResult
 from textual.markup import escape
 from textual.widgets import DataTable, Static
@@ -16,6 +17,39 @@ COLUMNS = (("#", "subsection", None), ("from m", "station_from_m", 2), ("to m", 
            ("Q m³/s", "discharge_m3s", 3))
 
 
+GRADE_STYLE = {"good": "green", "doubtful": "yellow", "unusable": "bold red"}
+
+
+def discharge_lines(s: dict) -> list[str]:
+    """Markup lines for Q with its 95 % interval and the quality grade with its reasons (the keys
+    ``discharge_ci95_m3s`` and ``quality``; without them the pairs' spread, as older results have)."""
+    q = s["discharge_m3s"]
+    ci = s.get("discharge_ci95_m3s")
+    if isinstance(ci, (list, tuple)) and len(ci) == 2 and all(isinstance(v, (int, float)) for v in ci):
+        lo, hi = ci  # the interval is not symmetric about Q: both ends are shown
+        lines = [f"[b]discharge      {q:.4f} m³/s[/b]  95 %: {lo:.3f} .. {hi:.3f}"]
+    else:
+        p05, p95 = s.get("discharge_p05_m3s"), s.get("discharge_p95_m3s")
+        spread = f"  [dim](pairs 5-95 %: {p05:.4f} - {p95:.4f})[/dim]" if p05 is not None and p95 is not None else ""
+        lines = [f"[b]discharge      {q:.4f} m³/s[/b]{spread}"]
+    quality = s.get("quality")
+    if isinstance(quality, dict) and quality.get("grade"):
+        grade = str(quality["grade"])
+        style = GRADE_STYLE.get(grade, "")
+        reasons = [r.get("message", r.get("code", "")) if isinstance(r, dict) else str(r)
+                   for r in quality.get("reasons") or []]
+        text = f"quality        [{style}]{escape(grade)}[/{style}]" if style else f"quality        {escape(grade)}"
+        lines.append(text + (": " + escape("; ".join(reasons)) if reasons else " (no reason for doubt found)"))
+    sm = s.get("sections_summary")
+    if isinstance(sm, dict) and sm.get("n"):
+        each = ", ".join(f"{escape(str(e.get('name')))} {e['discharge_m3s']:.3f}" for e in s.get("sections") or []
+                         if isinstance(e.get("discharge_m3s"), (int, float)))
+        cv = sm.get("cv")
+        lines.append(f"sections       mean {sm['mean_m3s']:.3f} m³/s, std {sm['std_m3s']:.3f}, CV "
+                     f"{100 * cv:.1f} % ({each})" if isinstance(cv, (int, float)) else f"sections       {each}")
+    return lines
+
+
 class ResultsScreen(StepScreen):
     STEP = "results"
     INTRO = "discharge and export"
@@ -23,6 +57,7 @@ class ResultsScreen(StepScreen):
 
     def compose_extra(self) -> ComposeResult:
         yield Static("", id="summary")
+        yield Static("", id="table-hint")
         yield DataTable(id="subsections", zebra_stripes=True, cursor_type="row")
         yield Static("", id="files")
 
@@ -36,9 +71,22 @@ class ResultsScreen(StepScreen):
         if state != "current" and not self.app.job_running():  # type: ignore[attr-defined]
             self.action_run()
 
+    def focus_first(self) -> None:
+        self.query_one(DataTable).focus()
+
+    def focus_help(self, widget) -> str:
+        if isinstance(widget, DataTable):
+            return "↑ / ↓ / page up / page down scroll the subsections · ctrl+r recomputes · ctrl+b goes back"
+        return super().focus_help(widget)
+
     def refresh_view(self) -> None:
         if self.is_mounted and self.query(DataTable):
             self.fill()
+
+    def computing(self) -> bool:
+        """Whether the running job computes the discharge."""
+        job = self.app.job  # type: ignore[attr-defined]
+        return job is not None and job.name in ("results", "piv")
 
     def fill(self) -> None:
         summary = self.query_one("#summary", Static)
@@ -47,25 +95,28 @@ class ResultsScreen(StepScreen):
         table.clear()
         res = self.session.last_result()
         state, changed = self.session.result_state()
+        now = ("[b]computing the discharge…[/b] (progress in the status line below; esc cancels)"
+               if self.computing() else None)
         if res is None:
-            summary.update("no result yet: ctrl+r computes the discharge (every step is used)")
+            summary.update(now or "no result yet: ctrl+r computes the discharge (every step is used)")
             files.update("")
             table.display = False
+            self.query_one("#table-hint", Static).display = False
             return
         s = res.summary
-        stale = ""
-        if state == "stale":
-            stale = f"[red]! stale: {', '.join(sorted(changed))} changed since; ctrl+r recomputes[/red]\n"
-        p05, p95 = s.get("discharge_p05_m3s"), s.get("discharge_p95_m3s")
-        spread = f"  (pairs 5-95 %: {p05:.4f} - {p95:.4f})" if p05 is not None and p95 is not None else ""
+        head = ""
+        if now is not None:
+            head = now + "\n"
+        elif state == "stale":
+            head = f"[red]! stale: {', '.join(sorted(changed))} changed since; ctrl+r recomputes[/red]\n"
         unc = s.get("water_level_uncertainty_m")
         unc_t = f" ± {unc:.3f}" if unc else ""
         alpha_t = " default" if s.get("alpha_default") else ""
-        summary.update(
-            f"{stale}[b]discharge      {s['discharge_m3s']:.4f} m³/s[/b]{spread}\n"
-            f"water level    {s['water_level_m']:.3f}{unc_t} m ({s.get('water_level_method', '')})\n"
-            f"wetted area    {s['wetted_area_m2']:.3f} m²    width {s['wetted_width_m']:.3f} m\n"
-            f"mean velocity  {s['mean_velocity_ms']:.4f} m/s    alpha {s['alpha']:.2f}{alpha_t}")
+        summary.update(head + "\n".join([
+            *discharge_lines(s),
+            f"water level    {s['water_level_m']:.3f}{unc_t} m ({s.get('water_level_method', '')})",
+            f"wetted area    {s['wetted_area_m2']:.3f} m²    width {s['wetted_width_m']:.3f} m",
+            f"mean velocity  {s['mean_velocity_ms']:.4f} m/s    alpha {s['alpha']:.2f}{alpha_t}"]))
         table.display = True
         for row in res.subsections:
             vals = []
@@ -83,6 +134,29 @@ class ResultsScreen(StepScreen):
         names = sorted(set((s.get("files") or {}).values()))
         warn = "".join(f"\n[yellow]warning: {escape(w)}[/yellow]" for w in s.get("warnings", []))
         files.update(f"{note}files in out/ beside {self.session.path.name}: {', '.join(names)}{warn}")
+        self.call_after_refresh(self.update_hint)
+
+    def update_hint(self) -> None:
+        """Which subsections the table shows, and how to see the others."""
+        table = self.query_one(DataTable)
+        hint = self.query_one("#table-hint", Static)
+        n = table.row_count
+        shown = max(table.scrollable_content_region.height - 1, 0)  # less the header
+        if n == 0 or shown >= n:
+            hint.update(f"{n} subsections" if n else "")
+            hint.display = bool(n)
+            return
+        first = int(table.scroll_y) + 1
+        last = min(n, first + shown - 1)
+        hint.display = True
+        hint.update(Text(f"subsections {first}-{last} of {n} · ↑/↓ scroll the table", style="dim"))
+
+    def on_data_table_row_highlighted(self, event: DataTable.RowHighlighted) -> None:
+        self.call_after_refresh(self.update_hint)
+
+    def on_job_finished(self, name: str, result) -> None:
+        super().on_job_finished(name, result)
+        self.focus_first()
 
     def action_run(self) -> None:
         from .. import jobs
@@ -94,7 +168,8 @@ class ResultsScreen(StepScreen):
             return
         p = jobs.snapshot(self.project)
         out = self.session.out_dir
-        self.app.start_job("results", "Discharge", lambda job: jobs.run_full(p, out, job))  # type: ignore[attr-defined]
+        if self.app.start_job("results", "Discharge", lambda job: jobs.run_full(p, out, job)):  # type: ignore[attr-defined]
+            self.fill()
 
     def action_next(self) -> None:
         self.notify("this is the last step; ctrl+b goes back, ctrl+p jumps to any step")

@@ -35,5 +35,3 @@ class RoiScreen(StepScreen):
 
         return roi_and_mask(self.project, self.session.inputs())
 
-    def step_check(self) -> None:
-        self.check()

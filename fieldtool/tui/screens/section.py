@@ -21,15 +21,9 @@ class SectionScreen(StepScreen):
         yield Static("", id="section-info")
 
     def geometry(self):
-        from ...pipeline import build_section, level_and_mapping
+        from ..checks import section_geometry
 
-        inputs = self.session.inputs()
-        level, mapping = level_and_mapping(self.project, inputs)
-        geom = build_section(self.project, inputs, level.level_m, mapping)  # same checks as `fieldtool run`
-        return geom, level, inputs.cross_section
-
-    def step_check(self) -> None:
-        self.geometry()
+        return section_geometry(self.session)
 
     def refresh_view(self, checked: bool = False) -> None:
         info = self.query_one("#section-info", Static)

@@ -6,7 +6,7 @@ from textual.app import ComposeResult
 from textual.markup import escape
 from textual.widgets import Static
 
-from ...errors import FieldToolError, ParameterError
+from ...errors import FieldToolError
 from .. import keys
 from .base import StepScreen
 
@@ -43,12 +43,6 @@ class VideoScreen(StepScreen):
             st.update(text)
         else:
             st.update("")
-
-    def step_check(self) -> None:
-        src = self.session.inputs().source
-        if src.estimated_count() < 2:
-            raise ParameterError("video: the range holds fewer than 2 frames; widen video.start_s .. video.end_s "
-                                 "or lower video.step")
 
     def check_action(self, action: str, parameters: tuple) -> bool | None:
         if action == "run":

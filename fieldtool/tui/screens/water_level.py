@@ -15,7 +15,7 @@ from .cross_section import build_cross_section
 
 class WaterLevelScreen(StepScreen):
     STEP = "water_level"
-    INTRO = "elevation of the surface, datum of the section"
+    INTRO = "surface elevation in the section datum"
     BINDINGS = [keys.run("Compute level")]
 
     def compose_extra(self) -> ComposeResult:
@@ -55,9 +55,6 @@ class WaterLevelScreen(StepScreen):
             plot.set_data(cs.station, cs.elevation, None)
         except FieldToolError as e:
             plot.set_data(message=str(e))
-
-    def step_check(self) -> None:
-        self.compute()
 
     def action_run(self) -> None:
         self.refresh_view(computed=True)

@@ -13,12 +13,17 @@ from textual.containers import Horizontal, Vertical
 from textual.message import Message
 from textual.widgets import Input, Label, Select, Static
 
+from ..checks import is_missing
 from ..fields import Field
+from .path_suggester import PathSuggester
 
 
 def field_id(field: Field) -> str:
     """A widget id for a field key (``ortho.gcp_px[0]`` -> ``f-ortho-gcp_px-0``)."""
     return "f-" + field.key.replace(".", "-").replace("[", "-").replace("]", "")
+
+
+PLACEHOLDER_MAX = 30  # characters an input shows at 80 x 24 (placeholders are kept within it)
 
 
 class FieldRow(Vertical):
@@ -54,7 +59,10 @@ class FieldRow(Vertical):
                              id="input", type_to_search=False)
             else:
                 ph = f.placeholder(self.project) if callable(f.placeholder) else f.placeholder
-                yield Input(f.format(value), placeholder=ph, compact=True, id="input", select_on_focus=False)
+                # select_on_focus: typing into a field that holds "0" replaces it (not "0abc")
+                suggester = PathSuggester(self.project.root, f.key) if f.kind == "path" else None
+                yield Input(f.format(value), placeholder=ph, compact=True, id="input", select_on_focus=True,
+                            suggester=suggester)
         yield Static("", classes="field-error")
 
     def on_mount(self) -> None:
@@ -118,8 +126,25 @@ class FieldRow(Vertical):
         self._show(self.current_error())
 
     def _show(self, msg: str | None) -> None:
+        """A wrong entry: one line under the field, without the key (the label says it); the help
+        line shows the full message when the field has the focus. A missing entry takes no line:
+        the label turns red and the empty input says "required"."""
         self.error = msg
+        missing = bool(msg) and is_missing(msg)
         box = self.query_one(".field-error", Static)
-        box.update(Text(msg or ""))
-        box.display = bool(msg)
+        box.update(Text(short_message(msg, self.field.key), no_wrap=True, overflow="ellipsis")
+                   if msg and not missing else "")
+        box.display = bool(msg) and not missing
         self.set_class(bool(msg), "-invalid")
+        ctl = self.control
+        if isinstance(ctl, Input):
+            ph = self.field.placeholder(self.project) if callable(self.field.placeholder) else self.field.placeholder
+            full = f"✗ required · {ph}" if ph else "✗ required"
+            ctl.placeholder = (full if len(full) <= PLACEHOLDER_MAX else "✗ required") if missing else ph
+
+
+def short_message(msg: str, key: str) -> str:
+    """The one-line form of a field's message: "✗ " and the message without the leading key."""
+    if msg.startswith(key + ": "):
+        msg = msg[len(key) + 2:]
+    return "✗ " + msg

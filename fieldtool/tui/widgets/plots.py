@@ -98,8 +98,18 @@ class SectionPlot(Widget):
         return out
 
 
+def fit_cells(h: int, w: int, cols: int, rows: int) -> tuple[int, int]:
+    """Cells (cols, rows) of an ``h`` x ``w`` px image fitted into ``cols`` x ``rows`` half-block
+    cells with its aspect kept (a cell is one pixel wide and two high, about square on screen)."""
+    if h <= 0 or w <= 0:
+        return 0, 0
+    scale = min(cols / w, 2 * rows / h)
+    return max(1, min(cols, int(round(w * scale)))), max(1, min(rows, int(round(h * scale / 2))))
+
+
 class GrayImage(Widget):
-    """A gray image drawn with half blocks (two pixels per cell), resized to the widget."""
+    """A gray image drawn with half blocks (two pixels per cell), fitted to the widget with its
+    aspect kept, and a caption on the last line."""
 
     DEFAULT_CSS = "GrayImage { height: 8; }"
 
@@ -119,12 +129,12 @@ class GrayImage(Widget):
             return Text(self.caption or "no image", style="dim")
         import cv2
 
-        rows = 2 * (h - 1)
-        small = cv2.resize(self.image.astype(np.float32), (w, rows), interpolation=cv2.INTER_AREA)
+        cols, rows = fit_cells(*self.image.shape[:2], w, h - 1)
+        small = cv2.resize(self.image.astype(np.float32), (cols, 2 * rows), interpolation=cv2.INTER_AREA)
         g = np.clip(small, 0, 255).astype(int)
         out = Text()
-        for r in range(0, rows, 2):
-            for c in range(w):
+        for r in range(0, 2 * rows, 2):
+            for c in range(cols):
                 top, bot = g[r, c], g[r + 1, c]
                 out.append("▀", style=Style(color=f"rgb({top},{top},{top})", bgcolor=f"rgb({bot},{bot},{bot})"))
             out.append("\n")

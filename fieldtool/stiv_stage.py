@@ -1,0 +1,184 @@
+"""STIV inside a run: search lines from the project, sampled during the PIV's frame stream, then
+per-subsection STIV velocities, the STIV discharge, the PIV/STIV disagreement and the velocity source
+the user chose (``[section] velocity_source`` = piv | stiv | combined).
+
+The science is in :mod:`fieldtool.processing.stiv`; this module only reads the Project and shapes the
+``"stiv"`` block of ``result.json``.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Callable, Iterator
+
+import numpy as np
+
+from .errors import ParameterError
+from .processing import discharge as dq
+from .processing import stiv
+from .project import Project
+
+SOURCES = ("piv", "stiv", "combined")
+
+
+@dataclass
+class StivRun:
+    """Lines and their space-time images for one run; ``seconds`` counts sampling and analysis."""
+
+    acc: stiv.StiAccumulator
+    n_sub: int
+    normal: np.ndarray  # normal of the geometry the lines were built on
+    p_img: np.ndarray  # its P1, P2 (px): tells whether the pipeline swapped them later
+    seconds: float = 0.0
+    sampled: bool = False
+
+    def tap(self, frames) -> Iterator:
+        """The frame stream, unchanged, with every frame sampled on the lines (timed)."""
+        self.sampled = True
+        for t, img in frames:
+            t0 = time.perf_counter()
+            self.acc.add(t, img)
+            self.seconds += time.perf_counter() - t0
+            yield t, img
+
+
+def start(project: Project, mapping, geom: dq.SectionGeometry, shape: tuple[int, int],
+          roi: tuple[int, int, int, int] | None, mask: np.ndarray | None) -> StivRun | None:
+    """The STIV lines of ``project`` on ``geom`` (None when ``[stiv] enabled = false``)."""
+    s = project.stiv
+    if project.section.velocity_source not in SOURCES:
+        raise ParameterError(f"section.velocity_source: {project.section.velocity_source!r} is not one of "
+                             f"{', '.join(SOURCES)}")
+    if not s.enabled:
+        if project.section.velocity_source != "piv":
+            raise ParameterError(f"section.velocity_source = {project.section.velocity_source!r} needs STIV: "
+                                 "set [stiv] enabled = true or velocity_source = \"piv\"")
+        return None
+    if s.method not in stiv.METHODS:
+        raise ParameterError(f"stiv.method: {s.method!r} is not one of {', '.join(stiv.METHODS)}")
+    valid = None
+    if roi is not None or mask is not None:
+        valid = np.ones(shape, bool)
+        if roi is not None:
+            x0, y0, x1, y1 = roi
+            valid[:] = False
+            valid[y0:y1, x0:x1] = True
+        if mask is not None:
+            valid &= ~mask
+    t0 = time.perf_counter()
+    lines = stiv.build_lines(geom.p_world, geom.normal, mapping, len(geom.station_edges) - 1,
+                             length_m=s.line_length_m, lines_per_sub=s.lines_per_sub, angles_deg=s.angles_deg,
+                             image_shape=shape, valid=valid)
+    run = StivRun(stiv.StiAccumulator(lines), len(geom.station_edges) - 1, geom.normal.copy(), geom.p_img.copy())
+    run.seconds = time.perf_counter() - t0
+    return run
+
+
+def ensure_sampled(run: StivRun | None, frames: Callable[[], Iterator]) -> None:
+    """Sample the lines from a stream of their own when the PIV did not stream (its field was reused)."""
+    if run is not None and not run.sampled:
+        for _ in run.tap(frames()):
+            pass
+
+
+def _piv_confidence(geom: dq.SectionGeometry, piv_res, U, V) -> np.ndarray:
+    """PIV confidence per subsection (0..1): the fraction of pairs in which the nodes were valid, averaged
+    over the subsection's sample points (0 where the averaged field is invalid)."""
+    ok = np.isfinite(U) & np.isfinite(V)
+    vf = np.where(ok, np.asarray(piv_res.valid_fraction, float), np.nan)
+    a, _ = dq.sample_field(piv_res.x, piv_res.y, vf, vf, geom.sample_img)
+    return np.mean(np.nan_to_num(a), axis=1)
+
+
+def _flow_dir(geom: dq.SectionGeometry, x, y, U, V) -> np.ndarray:
+    """PIV mean flow direction per subsection (unit world vectors; NaN where PIV has none)."""
+    su, sv = dq.sample_field(x, y, U, V, geom.sample_img)
+    ok = np.isfinite(su) & np.isfinite(sv)
+    cnt = ok.sum(axis=1)
+    mu = np.where(cnt > 0, np.where(ok, su, 0).sum(axis=1) / np.maximum(cnt, 1), np.nan)
+    mv = np.where(cnt > 0, np.where(ok, sv, 0).sum(axis=1) / np.maximum(cnt, 1), np.nan)
+    n = np.hypot(mu, mv)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where((n > 0)[:, None], np.c_[mu / n, mv / n], np.nan)
+
+
+def combine(v_piv: np.ndarray, w_piv: np.ndarray, v_stiv: np.ndarray, w_stiv: np.ndarray) -> np.ndarray:
+    """Confidence-weighted mean per subsection; where one estimate is missing (NaN or zero weight), the other."""
+    vp = np.where(np.isfinite(v_piv) & (w_piv > 0), v_piv, np.nan)
+    vs = np.where(np.isfinite(v_stiv) & (w_stiv > 0), v_stiv, np.nan)
+    both = np.isfinite(vp) & np.isfinite(vs)
+    out = np.where(np.isfinite(vp), vp, vs)
+    wsum = np.where(both, w_piv + w_stiv, 1.0)
+    return np.where(both, (w_piv * np.nan_to_num(vp) + w_stiv * np.nan_to_num(vs)) / wsum, out)
+
+
+def finish(run: StivRun | None, project: Project, geom: dq.SectionGeometry, cs, level_m: float,
+           dres: dq.DischargeResult, piv_res, U: np.ndarray, V: np.ndarray) -> tuple[dict | None, dq.DischargeResult]:
+    """STIV per subsection on the final ``geom``; returns (the ``"stiv"`` block, the discharge result of
+    the chosen velocity source: ``dres`` itself for "piv")."""
+    if run is None:
+        return None, dres
+    t0 = time.perf_counter()
+    s = project.stiv
+    swapped = not np.allclose(geom.p_img, run.p_img)
+    w_piv = _piv_confidence(geom, piv_res, U, V)
+    flow = None
+    if len(set(s.angles_deg)) > 1:
+        flow = stiv.guide_directions(_flow_dir(geom, piv_res.x, piv_res.y, U, V), geom.normal, w_piv)
+    only = stiv.select_lines(run.acc.lines, run.n_sub, flow, reversed_order=swapped)
+    v_line, c_line = stiv.line_velocities(run.acc, s.method, only=only)
+    v_st, c_st, ang = stiv.subsection_velocity(run.acc.lines, v_line, c_line, run.n_sub, geom.normal,
+                                               reversed_order=swapped, flow_dir=flow, min_confidence=s.min_confidence)
+    v_piv_raw = dq.subsection_velocity(geom, piv_res.x, piv_res.y, U, V)
+    v_comb = combine(v_piv_raw, w_piv, v_st, c_st)
+    q_w = dres.alpha * dres.area_m2
+    block: dict = {"method": s.method, "n_lines": len(run.acc.lines), "n_lines_analysed": int(only.sum()),
+                   "n_frames": len(run.acc.rows), "angles_deg": list(s.angles_deg),
+                   "line_length_m": s.line_length_m, "lines_per_sub": s.lines_per_sub,
+                   "velocity_ms": _clean(v_st), "confidence": _clean(c_st), "angle_deg": _clean(ang),
+                   "piv_velocity_ms": _clean(v_piv_raw), "piv_confidence": _clean(w_piv),
+                   "combined_velocity_ms": _clean(v_comb),
+                   "disagreement": stiv.disagreement(v_piv_raw, v_st, q_w),
+                   "velocity_source": project.section.velocity_source}
+    block["disagreement_reason"] = stiv.disagreement_reason(block["disagreement"])
+    alpha = project.section.alpha
+    out = {}
+    for name, v in (("stiv", v_st), ("combined", v_comb)):
+        if np.any(np.isfinite(v)):
+            out[name] = dq.compute_discharge(geom, cs, level_m, v, alpha)
+    block["discharge_m3s"] = out["stiv"].discharge_m3s if "stiv" in out else None
+    block["discharge_combined_m3s"] = out["combined"].discharge_m3s if "combined" in out else None
+    block["subsections_filled"] = int(out["stiv"].velocity_filled.sum()) if "stiv" in out else run.n_sub
+    run.seconds += time.perf_counter() - t0
+    block["seconds"] = round(run.seconds, 3)
+    src = project.section.velocity_source
+    if src == "piv":
+        return block, dres
+    if src not in out:
+        raise ParameterError(f"section.velocity_source = {src!r}: STIV found no velocity on the section "
+                             "(check the search lines lie on textured water, or use velocity_source = \"piv\")")
+    chosen = out[src]
+    chosen.warnings.insert(0, f"discharge from the {src} velocities (section.velocity_source)")
+    return block, chosen
+
+
+def _clean(a) -> list:
+    return [None if not np.isfinite(x) else float(x) for x in np.asarray(a, float)]
+
+
+def stiv_column(block: dict | None, n: int) -> list[str]:
+    """The ``stiv_velocity_ms`` cells of subsections.csv ("" where STIV gave none)."""
+    vals = (block or {}).get("velocity_ms") or [None] * n
+    return ["" if v is None else f"{v:.5f}" for v in vals]
+
+
+def add_reason(quality, block: dict | None) -> None:
+    """Add the PIV/STIV disagreement to the quality verdict (doubtful; a good grade becomes doubtful)."""
+    if quality is None or not block or not block.get("disagreement_reason"):
+        return
+    from .processing.quality import Reason
+
+    quality.reasons.append(Reason(**block["disagreement_reason"]))
+    if quality.grade == "good":
+        quality.grade = "doubtful"

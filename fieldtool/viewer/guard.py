@@ -1,0 +1,243 @@
+"""Who may load the picking page and open its WebSocket: same-origin, known host, per-launch key.
+
+A web page open in the operator's browser can open a WebSocket to any ``ws://127.0.0.1:PORT``
+(WebSockets are not bound by the same-origin policy) and, through DNS rebinding, even load the
+page under its own domain name. The viewer refuses both:
+
+- **Host**: the ``Host`` header must name the loopback (``127.0.0.1``, ``localhost``, ``[::1]``),
+  or the address the viewer was told to bind with ``--host`` (for a wildcard bind, any IP literal
+  or this machine's name). Any port is accepted, so an SSH tunnel to another local port works.
+  A DNS-rebinding page arrives with its own domain name and is refused.
+- **Origin**: a WebSocket handshake must carry ``Origin: http://<the same Host>``; an HTTP request
+  carrying an Origin must match too. A page from another site sends its own Origin: refused.
+- **Key**: a random token (new at every launch) is the first segment of the URL the CLI and the TUI
+  print, ``http://127.0.0.1:PORT/<token>/``; the page's WebSocket URL is derived from its address,
+  so it carries the token as its path. Anything without it gets 403.
+
+:func:`install` wraps the ``process_request`` hook of the ``websockets`` server that viser 1.1
+starts (viser serves its page and its WebSocket on one port through that hook).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hmac
+import ipaddress
+import secrets
+import socket
+import threading
+from dataclasses import dataclass, field
+from http import HTTPStatus
+from pathlib import Path
+from typing import Callable, Iterator
+from urllib.parse import urlsplit
+
+LOOPBACK_NAMES = ("127.0.0.1", "localhost", "::1")
+WILDCARDS = ("0.0.0.0", "::", "")
+
+
+def _split_host(value: str) -> str | None:
+    """Host name of a ``Host`` header value (``name``, ``name:port``, ``[v6]:port``), lower case;
+    None when malformed."""
+    value = value.strip().lower()
+    if not value:
+        return None
+    try:
+        parts = urlsplit("//" + value)
+        host = parts.hostname
+        _ = parts.port  # raises ValueError on a bad port
+    except ValueError:
+        return None
+    return host or None
+
+
+def _is_ip(name: str) -> bool:
+    try:
+        ipaddress.ip_address(name)
+        return True
+    except ValueError:
+        return False
+
+
+@dataclass
+class AccessGuard:
+    """The rules for one launch of the viewer.
+
+    Parameters
+    ----------
+    bind_host : the address the server listens on (``127.0.0.1`` by default).
+    token : the URL key; a new random one when not given.
+    """
+
+    bind_host: str = "127.0.0.1"
+    token: str = field(default_factory=lambda: secrets.token_urlsafe(18))
+    refused: list[str] = field(default_factory=list)  # why recent requests were refused (last 20)
+    hooked: bool = False  # set once the check sits in front of viser's server
+
+    def __post_init__(self) -> None:
+        names = {n.lower() for n in LOOPBACK_NAMES}
+        self._any_ip = self.bind_host in WILDCARDS
+        if self.bind_host not in WILDCARDS:
+            names.add(self.bind_host.strip("[]").lower())
+        if self._any_ip:
+            for n in (socket.gethostname(), socket.getfqdn()):
+                if n:
+                    names.add(n.lower())
+        self._names = frozenset(names)
+        self._lock = threading.Lock()
+
+    @property
+    def prefix(self) -> str:
+        """The URL path every request must start with: ``/<token>``."""
+        return "/" + self.token
+
+    def host_allowed(self, host_header: str | None) -> bool:
+        name = _split_host(host_header or "")
+        if name is None:
+            return False
+        if name in self._names:
+            return True
+        if _is_ip(name):
+            ip = ipaddress.ip_address(name)
+            return ip.is_loopback or self._any_ip
+        return False
+
+    def origin_allowed(self, origin: str | None, host_header: str | None) -> bool:
+        """Same origin: ``scheme://`` + exactly the Host the request was sent to."""
+        if not origin or not host_header:
+            return False
+        o = origin.strip().lower()
+        h = host_header.strip().lower()
+        return o in (f"http://{h}", f"https://{h}")
+
+    def _key_of(self, path: str) -> tuple[bool, str]:
+        """(token matched, rest of the path after the token) for a request path."""
+        path = path.partition("?")[0]
+        first, sep, rest = path.lstrip("/").partition("/")
+        ok = hmac.compare_digest(first.encode(), self.token.encode())
+        return ok, "/" + rest if sep else ""
+
+    def check(self, path: str, headers, websocket: bool) -> tuple[HTTPStatus, str] | None:
+        """None when the request may pass; else the status and the reason to answer with."""
+        host = headers.get("Host")
+        origin = headers.get("Origin")
+        if not self.host_allowed(host):
+            return self._refuse(HTTPStatus.FORBIDDEN, f"host {host!r} is not this viewer's address")
+        if (websocket or origin is not None) and not self.origin_allowed(origin, host):
+            return self._refuse(HTTPStatus.FORBIDDEN, f"origin {origin!r} is not the viewer's page")
+        ok, _rest = self._key_of(path)
+        if not ok:
+            return self._refuse(HTTPStatus.FORBIDDEN, "the URL lacks the viewer's access key: open the address "
+                                "printed by `fieldtool view` or shown in the TUI")
+        return None
+
+    def _refuse(self, status: HTTPStatus, why: str) -> tuple[HTTPStatus, str]:
+        with self._lock:
+            self.refused.append(why)
+            del self.refused[:-20]
+        return status, why
+
+
+# ---------------------------------------------------------------------------------------------
+# the hook into viser's websockets server
+
+SECURITY_HEADERS = {
+    "X-Frame-Options": "DENY",  # no framing by another site (clickjacking)
+    "Content-Security-Policy": "frame-ancestors 'none'",
+    "Referrer-Policy": "no-referrer",  # the key never leaves in a Referer
+    "Cache-Control": "no-store",
+}
+
+_INSTALL_LOCK = threading.Lock()
+
+
+def make_process_request(guard: AccessGuard, inner: Callable | None,
+                         extra_routes: Callable[[str, object], object] | None = None) -> Callable:
+    """A ``process_request(connection, request)`` for websockets that applies ``guard``, strips
+    the key from the path and hands the request to viser's own file server (``inner``).
+
+    ``extra_routes(rest_of_path, request)`` may answer paths itself (a Response) or return None."""
+    from websockets.datastructures import Headers
+    from websockets.http11 import Request, Response
+
+    def refuse(status: HTTPStatus, why: str) -> Response:
+        body = f"{status.value} {status.phrase}: {why}\n".encode()
+        return Response(status.value, status.phrase,
+                        Headers({"Content-Type": "text/plain; charset=utf-8", "Content-Length": str(len(body)),
+                                 **SECURITY_HEADERS}), body)
+
+    def process_request(connection, request: Request):
+        is_ws = (request.headers.get("Upgrade") or "").lower() == "websocket"
+        verdict = guard.check(request.path, request.headers, websocket=is_ws)
+        if verdict is not None:
+            return refuse(*verdict)
+        _, rest = guard._key_of(request.path)
+        if is_ws:
+            return None  # accepted: viser's handler takes the connection
+        if rest == "":  # /<token> -> /<token>/ so that the page's relative URLs keep the key
+            return Response(HTTPStatus.FOUND.value, "Found",
+                            Headers({"Location": guard.prefix + "/", "Content-Length": "0", **SECURITY_HEADERS}), b"")
+        query = request.path.partition("?")[2]
+        if extra_routes is not None:
+            answer = extra_routes(rest + ("?" + query if query else ""), request)
+            if answer is not None:
+                for k, v in SECURITY_HEADERS.items():
+                    answer.headers[k] = v
+                return answer
+        if inner is None:
+            return refuse(HTTPStatus.NOT_FOUND, "nothing here")
+        stripped = Request(rest + ("?" + query if query else ""), request.headers)
+        answer = inner(connection, stripped)
+        if answer is not None:
+            for k, v in SECURITY_HEADERS.items():
+                answer.headers[k] = v
+        return answer
+
+    return process_request
+
+
+@contextlib.contextmanager
+def install(guard: AccessGuard, extra_routes: Callable | None = None) -> Iterator[None]:
+    """While inside, a ``websockets.asyncio.server.serve`` call made by viser gets its
+    ``process_request`` wrapped by ``guard``. Create the ``viser.ViserServer`` inside: it binds
+    its socket before its constructor returns, so the patch is in place exactly for that call."""
+    import websockets.asyncio.server as wss
+
+    original = wss.serve
+
+    class guarded_serve(original):  # type: ignore[misc, valid-type]
+        def __init__(self, *args, **kwargs):
+            inner = kwargs.get("process_request")
+            if inner is not None and getattr(inner, "__name__", "") == "viser_http_server":
+                kwargs["process_request"] = make_process_request(guard, inner, extra_routes)
+                guard.hooked = True
+            super().__init__(*args, **kwargs)
+
+    with _INSTALL_LOCK:
+        wss.serve = guarded_serve
+        try:
+            yield
+        finally:
+            wss.serve = original
+
+
+def ssh_hint(port: int, user: str | None = None, host: str | None = None) -> str:
+    """The exact command that forwards the viewer's ``port`` from this machine to the operator's
+    computer: ``ssh -L PORT:127.0.0.1:PORT user@host`` (then open ``http://127.0.0.1:PORT/KEY/``
+    there). ``user`` and ``host`` default to this account and this machine's name."""
+    import getpass
+
+    if user is None:
+        try:
+            user = getpass.getuser()
+        except Exception:  # noqa: BLE001 - no login name (container): leave a placeholder
+            user = "USER"
+    host = host or socket.getfqdn() or socket.gethostname() or "THIS-MACHINE"
+    return f"ssh -L {int(port)}:127.0.0.1:{int(port)} {user}@{host}"
+
+
+def page_path() -> Path:
+    """viser's bundled, self-contained page."""
+    import viser
+
+    return Path(viser.__file__).resolve().parent / "client" / "build" / "index.html"

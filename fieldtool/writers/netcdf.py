@@ -1,0 +1,187 @@
+"""The mean surface velocity field as CF-convention NetCDF (``mean_field.nc``), written with xarray.
+
+PIV nodes lie on a regular grid in the *image*; on the water plane (an oblique view) they do not.
+Tools that read NetCDF (QGIS through GDAL, Panoply, xarray) expect a regular grid, so the valid
+node velocities are interpolated linearly (scipy ``LinearNDInterpolator``) onto a regular grid in the site's
+coordinates: cell size = the median distance from a valid node to its nearest valid neighbour
+(at most 1000 cells a side); a cell is empty (NaN) outside the nodes' convex hull or when its nearest
+valid node is farther than that node's distance to its own nearest neighbour (and than one cell).
+The native node values stay in ``mean_field.npz``.
+
+Variables (CF 1.8): ``x``, ``y`` (m, the world frame of the GCPs: projected coordinates when
+``ortho.crs_epsg`` is given, else the site's local frame), ``time`` with ``time_bnds`` (the clip
+span that was averaged), ``surface_velocity_x`` / ``surface_velocity_y`` (standard names
+``sea_water_x_velocity`` / ``sea_water_y_velocity``, m s-1), ``surface_speed`` (``sea_water_speed``)
+and ``valid_fraction`` (1). The project and the run's key results are global attributes.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from datetime import datetime, timezone
+from pathlib import Path
+
+import numpy as np
+
+from .. import __version__
+from .geotiff import crs_of
+
+MAX_CELLS = 1000  # per side
+
+
+def regular_grid(XY: np.ndarray, values: list[np.ndarray], max_cells: int = MAX_CELLS):
+    """Interpolate scattered node values (metres) onto a regular grid.
+
+    Parameters
+    ----------
+    XY : (N, 2) node positions (m)
+    values : arrays of N values each
+
+    Returns
+    -------
+    x (nx,), y (ny,) cell centres (m, ascending), cell size (m), list of (ny, nx) arrays (NaN = no data)
+    """
+    from scipy.interpolate import LinearNDInterpolator
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(XY)
+    d, _ = tree.query(XY, k=2)
+    dx = float(np.median(d[:, 1])) if len(XY) > 1 else 1.0
+    lo, hi = XY.min(axis=0), XY.max(axis=0)
+    dx = max(dx, float(np.max(hi - lo)) / max_cells, 1e-6)
+    dx = float(f"{dx:.3g}")
+    x0, y0 = np.floor(lo / dx) * dx
+    nx = int(np.ceil((hi[0] - x0) / dx)) + 1
+    ny = int(np.ceil((hi[1] - y0) / dx)) + 1
+    x = x0 + dx * np.arange(nx)
+    y = y0 + dx * np.arange(ny)
+    Xg, Yg = np.meshgrid(x, y)
+    # empty where the nearest node is farther than that node's own spacing (oblique views: far nodes are sparse)
+    dist, idx = tree.query(np.c_[Xg.ravel(), Yg.ravel()])
+    far = (dist > np.maximum(d[idx, 1] if len(XY) > 1 else dx, dx)).reshape(Xg.shape)
+    if len(XY) >= 3:  # one triangulation for every variable
+        g = LinearNDInterpolator(XY, np.stack(values, axis=-1))(Xg, Yg)
+    else:
+        g = np.full(Xg.shape + (len(values),), np.nan)
+    g[far] = np.nan
+    return x, y, dx, [g[..., k].astype(np.float32) for k in range(len(values))]
+
+
+def _flat_attrs(inputs: dict) -> dict:
+    """Scalar project keys as ``project_<table>_<key>`` attributes (lists and tables go in the JSON one)."""
+    attrs = {}
+    for k, v in inputs.items():
+        items = v.items() if isinstance(v, dict) else [(None, v)]
+        for k2, v2 in items:
+            name = f"project_{k}" + (f"_{k2}" if k2 else "")
+            if isinstance(v2, bool):
+                attrs[name] = int(v2)
+            elif isinstance(v2, (int, float, str)) and not (isinstance(v2, float) and not np.isfinite(v2)):
+                attrs[name] = v2
+    return attrs
+
+
+def build_dataset(result, project):
+    """The CF dataset of a run's mean field (see the module docstring)."""
+    import xarray as xr
+
+    p = result.piv
+    ok = np.asarray(p.valid, bool) & np.isfinite(result.world_u) & np.isfinite(result.world_v)
+    XY = result.mapping.image_to_world(np.c_[p.x[ok], p.y[ok]])
+    U, V = np.asarray(result.world_u)[ok], np.asarray(result.world_v)[ok]
+    vf = np.asarray(p.valid_fraction, float)[ok]
+    x, y, dx, (gu, gv, gf) = regular_grid(XY, [U, V, vf])
+    speed = np.hypot(gu, gv)
+
+    t = np.asarray(p.t_pairs, float)
+    dt = np.asarray(p.dt_s, float) if p.dt_s is not None and len(p.dt_s) else np.zeros_like(t)
+    t0 = float(t[0] - dt[0] / 2) if len(t) else 0.0
+    t1 = float(t[-1] + dt[-1] / 2) if len(t) else 0.0
+    video = getattr(result, "video", None) or {}
+    # a date only from the container: a file's modification time says when it was copied, not recorded
+    recorded = video.get("recorded_utc") if video.get("recorded_source") == "container" else None
+    if recorded:
+        t_units = f"seconds since {recorded.replace('T', ' ').replace('Z', '')}"
+        t_comment = "seconds from the recording start (container creation time); clip time as in the run"
+    else:
+        t_units = "seconds since 1970-01-01 00:00:00"
+        t_comment = "recording date unknown: the values are seconds from the start of the clip, not a date"
+
+    crs = crs_of(project)
+    frame = (f"EPSG:{project.ortho.crs_epsg}" if crs is not None else
+             f"the site's local frame of the GCPs (ortho.method = {project.ortho.method})")
+    common = {"grid_mapping": "crs"} if crs is not None else {}
+    ds = xr.Dataset(
+        data_vars={
+            "surface_velocity_x": (("time", "y", "x"), gu[None], {
+                "standard_name": "sea_water_x_velocity", "long_name": "surface velocity, x component (LSPIV)",
+                "units": "m s-1", "cell_methods": "time: mean", **common}),
+            "surface_velocity_y": (("time", "y", "x"), gv[None], {
+                "standard_name": "sea_water_y_velocity", "long_name": "surface velocity, y component (LSPIV)",
+                "units": "m s-1", "cell_methods": "time: mean", **common}),
+            "surface_speed": (("time", "y", "x"), speed[None].astype(np.float32), {
+                "standard_name": "sea_water_speed", "long_name": "surface speed (LSPIV)", "units": "m s-1",
+                "cell_methods": "time: mean", **common}),
+            "valid_fraction": (("time", "y", "x"), gf[None], {
+                "long_name": "fraction of frame pairs in which the PIV vector was valid", "units": "1", **common}),
+            "time_bnds": (("time", "nv"), np.array([[t0, t1]])),
+        },
+        coords={
+            "time": ("time", np.array([(t0 + t1) / 2]), {"standard_name": "time", "long_name": "time of the mean field",
+                                                        "axis": "T", "bounds": "time_bnds", "units": t_units,
+                                                        "calendar": "standard", "comment": t_comment}),
+            # projection coordinates also in a local frame: there is no grid mapping then (CRS unknown)
+            "x": ("x", x, {"standard_name": "projection_x_coordinate", "long_name": f"x in {frame}", "units": "m",
+                           "axis": "X"}),
+            "y": ("y", y, {"standard_name": "projection_y_coordinate", "long_name": f"y in {frame}", "units": "m",
+                           "axis": "Y"}),
+        },
+    )
+    if crs is not None:
+        from .geotiff import cf_grid_mapping
+
+        ds["crs"] = ((), np.int32(0), cf_grid_mapping(crs))
+    d = result.discharge
+    now = datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
+    ds.attrs = {
+        "Conventions": "CF-1.8",
+        "title": f"LSPIV mean surface velocity — {project.name}",
+        "source": f"fieldtool {__version__}: large-scale particle image velocimetry of a river surface video",
+        "history": f"{now} written by fieldtool {__version__} (fieldtool run)",
+        "references": "thesis: LSPIV discharge measurement (fieldtool/shared/seed)",
+        "comment": (f"Node velocities interpolated linearly onto a regular {dx:g} m grid in {frame}; cells farther "
+                    "from a valid node than the local node spacing are empty. Native PIV nodes: mean_field.npz."),
+        "site": project.site,
+        "video_file": video.get("file", ""),
+        "discharge_m3s": float(d.discharge_m3s),
+        "water_level_m": float(d.water_level_m),
+        "grid_cell_m": dx,
+        "fieldtool_project_json": json.dumps(result.project, sort_keys=True, default=str),
+        **_flat_attrs(result.project),
+    }
+    if recorded:
+        ds.attrs["time_coverage_start"] = recorded
+    for k in ("surface_velocity_x", "surface_velocity_y", "surface_speed", "valid_fraction"):
+        ds[k].encoding.update({"zlib": True, "complevel": 4, "_FillValue": np.float32(np.nan)})
+    for k in ("x", "y", "time_bnds"):
+        ds[k].encoding["_FillValue"] = None
+    ds["time"].encoding["_FillValue"] = None
+    return ds
+
+
+def write_mean_field(result, project, inputs, out: Path) -> str:
+    """Write ``mean_field.nc`` into ``out`` (through a temporary file and a rename); returns its name."""
+    ds = build_dataset(result, project)
+    path = Path(out) / "mean_field.nc"
+    fd, tmp = tempfile.mkstemp(prefix=".mean_field.", suffix=".nc.tmp", dir=out)
+    os.close(fd)
+    try:
+        ds.to_netcdf(tmp, engine="netcdf4", format="NETCDF4")
+        os.chmod(tmp, 0o644)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path.name

@@ -1,0 +1,244 @@
+"""STIV: velocity from the orientation of space-time images, on synthetic STIs with a known slope, on
+frames of a moving particle plane with a known profile (both directions, skewed), and in a run."""
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+from fieldtool.processing import ortho, stiv
+
+
+def synthetic_sti(p: float, T: int = 120, S: int = 240, density: float = 0.2, diameter: float = 3.0,
+                  noise: float = 2.0, seed: int = 0) -> np.ndarray:
+    """Particles drifting ``p`` samples per row (Gaussian blobs, random brightness) plus noise."""
+    rng = np.random.default_rng(seed)
+    s, t = np.arange(S)[None, :], np.arange(T)[:, None]
+    span = abs(p) * T + 10
+    x0 = rng.uniform(-span, S + span, int(density * (S + 2 * span)))
+    amp = rng.uniform(40, 120, len(x0))
+    img = np.zeros((T, S))
+    sig = diameter / 2.355
+    for xi, ai in zip(x0, amp):
+        img += ai * np.exp(-0.5 * ((s - (xi + p * t)) / sig) ** 2)
+    return img + rng.normal(0, noise, img.shape)
+
+
+@pytest.mark.parametrize("p", [-4.0, -0.4, 0.15, 1.0, 6.0])
+def test_fft_recovers_slope_both_directions(p):
+    dt, ds = 1 / 30, 0.01
+    img = synthetic_sti(p)
+    v, conf = stiv.sti_velocity(img, np.arange(len(img)) * dt, ds, "fft")
+    assert v == pytest.approx(p * ds / dt, rel=0.01)
+    assert conf > 0.5
+
+
+def test_tensor_good_at_slow_streaks_biased_at_fast_ones():
+    dt, ds = 1 / 30, 0.01
+    t = np.arange(120) * dt
+    v, _ = stiv.sti_velocity(synthetic_sti(1.0), t, ds, "tensor")
+    assert v == pytest.approx(1.0 * ds / dt, rel=0.03)
+    v_fast, _ = stiv.sti_velocity(synthetic_sti(6.0), t, ds, "tensor")
+    assert abs(v_fast / (6.0 * ds / dt) - 1) > 0.05  # why "fft" is the default
+
+
+def test_timestamps_not_frame_counts():
+    """Dropped frames: the rows left keep their own times; the velocity stays right."""
+    dt, ds, p = 1 / 30, 0.01, 2.0
+    img = synthetic_sti(p, T=150)
+    t = np.arange(150) * dt
+    keep = np.ones(150, bool)
+    keep[[10, 11, 40, 41, 42, 90, 120]] = False
+    v, _ = stiv.sti_velocity(img[keep], t[keep], ds, "fft")
+    assert v == pytest.approx(p * ds / dt, rel=0.01)
+    # treating the frames as evenly spaced would be wrong by about the dropped share
+    v_bad, _ = stiv.sti_velocity(img[keep], np.arange(keep.sum()) * dt, ds, "fft")
+    assert abs(v_bad / (p * ds / dt) - 1) > 0.02
+
+
+def test_static_flicker_draws_no_streak():
+    """Bright spots flickering in place (glints) on top of the drift are removed by the column mean
+    and do not pull the velocity to zero."""
+    dt, ds, p = 1 / 30, 0.01, 1.5
+    rng = np.random.default_rng(3)
+    img = synthetic_sti(p)
+    cols = rng.choice(img.shape[1], 12, replace=False)
+    img[:, cols] += 150 * (0.7 + 0.3 * rng.uniform(size=(img.shape[0], 12)))
+    v, _ = stiv.sti_velocity(img, np.arange(len(img)) * dt, ds, "fft")
+    assert v == pytest.approx(p * ds / dt, rel=0.02)
+
+
+# ---------------------------------------------------------------------------------------------
+# frames of a particle plane seen from above (scale 1 cm/px)
+
+M_PER_PX = 0.01
+H, W = 200, 320
+
+
+def plane_frames(u_of_y, angle_deg: float = 0.0, n: int = 60, fps: float = 30.0, seed: int = 1):
+    """(t, frame) of particles moving at speed ``u_of_y(y_px)`` px/s in the direction ``angle_deg``
+    from +x (image axes; positive turns towards -y, i.e. counter-clockwise on the water seen from above)."""
+    rng = np.random.default_rng(seed)
+    npart = 1500
+    x0 = rng.uniform(-400, W + 400, npart)
+    y0 = rng.uniform(-100, H + 100, npart)
+    speed = u_of_y(y0)
+    a = np.radians(angle_deg)
+    for i in range(n):
+        t = i / fps
+        x, y = x0 + speed * np.cos(a) * t, y0 - speed * np.sin(a) * t
+        img = np.zeros((H, W), np.float32)
+        ok = (x >= 0) & (x < W - 1) & (y >= 0) & (y < H - 1)
+        xi, yi = x[ok].astype(int), y[ok].astype(int)
+        fx, fy = x[ok] - xi, y[ok] - yi
+        for dx, dy, w in ((0, 0, (1 - fx) * (1 - fy)), (1, 0, fx * (1 - fy)), (0, 1, (1 - fx) * fy), (1, 1, fx * fy)):
+            np.add.at(img, (yi + dy, xi + dx), 400 * w)
+        img = cv2.GaussianBlur(img, (0, 0), 1.5) + 40 + rng.normal(0, 2, img.shape).astype(np.float32)
+        yield t, img
+
+
+def _run_lines(frames, angles=(0.0,), n_sub=5, flow_dir=None):
+    mapping = ortho.from_scale(M_PER_PX)  # X = 0.01 x, Y = -0.01 y
+    sec_px = np.array([[160.0, 10.0], [160.0, 190.0]])  # left edge at the top: downstream = +x
+    pw = mapping.image_to_world(sec_px)
+    t = (pw[1] - pw[0]) / np.hypot(*(pw[1] - pw[0]))
+    normal = np.array([-t[1], t[0]])
+    lines = stiv.build_lines(pw, normal, mapping, n_sub, length_m=1.6, lines_per_sub=2, angles_deg=angles,
+                             image_shape=(H, W))
+    acc = stiv.StiAccumulator(lines)
+    for t_s, img in frames:
+        acc.add(t_s, img)
+    fd = None if flow_dir is None else np.tile(flow_dir, (n_sub, 1))
+    only = stiv.select_lines(lines, n_sub, fd)
+    v, c = stiv.line_velocities(acc, "fft", only=only)
+    vs, cs, ang = stiv.subsection_velocity(lines, v, c, n_sub, normal, flow_dir=fd)
+    y_centres = 10 + 180 * (np.arange(n_sub) + 0.5) / n_sub
+    return vs, cs, ang, y_centres, normal, only
+
+
+@pytest.mark.parametrize("sign", [1, -1])
+def test_profile_on_frames_both_directions(sign):
+    def u(y):
+        return sign * (40 + 0.8 * np.asarray(y, float))  # px/s: 0.4 m/s at the top to 2.0 m/s at the bottom
+
+    vs, cs, _, yc, normal, _ = _run_lines(plane_frames(u))
+    assert normal == pytest.approx([1.0, 0.0])
+    np.testing.assert_allclose(vs, u(yc) * M_PER_PX, rtol=0.02)
+    assert np.all(cs > 0.3)
+
+
+FAN = (-30.0, -20.0, -10.0, 0.0, 10.0, 20.0, 30.0)
+
+
+@pytest.mark.parametrize("ang", [25.0, -15.0])
+def test_skewed_flow_normal_component(ang):
+    """Flow turned from the section normal: a tracer crosses a normal line in a few frames, so the fan of
+    lines is analysed at the angle nearest the (PIV) flow direction and projected; without a direction,
+    the most confident angle (refined by a parabola) is taken."""
+    speed = 90.0  # px/s
+    truth = speed * np.cos(np.radians(ang)) * M_PER_PX
+
+    def frames():
+        return plane_frames(lambda y: np.full_like(y, speed), angle_deg=ang, n=90)
+
+    e = np.array([np.cos(np.radians(ang)), np.sin(np.radians(ang))])  # world: Y up = image -y
+    vs, _, flow_ang, _, _, only = _run_lines(frames(), angles=FAN, flow_dir=e)
+    assert only.sum() == 10  # one angle of 7 per subsection, 2 lines each
+    np.testing.assert_allclose(flow_ang, ang, atol=1e-6)
+    np.testing.assert_allclose(vs, truth, rtol=0.04)  # 3 s of a few tracers 5° off the lines: noisy, unbiased
+    assert np.mean(vs) == pytest.approx(truth, rel=0.015)
+    vs, _, flow_ang, _, _, _ = _run_lines(frames(), angles=FAN)
+    np.testing.assert_allclose(flow_ang, ang, atol=6.0)
+    np.testing.assert_allclose(vs, truth, rtol=0.07)  # no direction: the confidence peak is a coarser guide
+    assert np.mean(vs) == pytest.approx(truth, rel=0.05)
+
+
+# ---------------------------------------------------------------------------------------------
+# in a run
+
+
+@pytest.fixture(scope="module")
+def nadir_scene(tmp_path_factory):
+    from fieldtool.synthetic import presets, render_scene
+
+    return render_scene(presets.get("nadir", duration_s=1.5), tmp_path_factory.mktemp("stiv") / "scene")
+
+
+def test_run_reports_stiv_beside_piv(nadir_scene, tmp_path):
+    from fieldtool.pipeline import run_project
+    from fieldtool.project import load_project
+
+    q_true = nadir_scene.discharge_m3s
+    res = run_project(load_project(nadir_scene.project_path), tmp_path / "out")
+    summary = json.loads((tmp_path / "out" / "result.json").read_text())
+    st = summary["stiv"]
+    assert abs(st["discharge_m3s"] / q_true - 1) < 0.05
+    assert summary["discharge_m3s"] == pytest.approx(res.discharge.discharge_m3s)  # default source: PIV
+    assert st["velocity_source"] == "piv" and len(st["velocity_ms"]) == 15
+    assert st["disagreement"]["n_compared"] >= 13
+    header, *rows = (tmp_path / "out" / "subsections.csv").read_text().splitlines()
+    assert header.split(",")[-1] == "stiv_velocity_ms"
+    assert [float(r.split(",")[-1]) for r in rows] == pytest.approx(st["velocity_ms"], abs=1e-5)
+
+
+def test_velocity_source_and_switch_off(nadir_scene):
+    from fieldtool.pipeline import run_project
+    from fieldtool.project import load_project
+
+    proj = load_project(nadir_scene.project_path)
+    proj.section.velocity_source = "stiv"
+    res = run_project(proj, None)
+    assert res.discharge.discharge_m3s == pytest.approx(res.stiv["discharge_m3s"])
+    assert abs(res.discharge.discharge_m3s / nadir_scene.discharge_m3s - 1) < 0.05
+    proj.section.velocity_source = "combined"
+    res = run_project(proj, None)
+    assert res.discharge.discharge_m3s == pytest.approx(res.stiv["discharge_combined_m3s"])
+    proj.section.velocity_source = "piv"
+    proj.stiv.enabled = False
+    assert run_project(proj, None).stiv is None
+
+
+def test_disagreement_and_its_reason():
+    w = np.ones(6)
+    v_piv = np.array([0.2, 0.6, 1.0, 1.0, 0.6, np.nan])
+    same = stiv.disagreement(v_piv, v_piv * 1.02, w)
+    assert same["n_compared"] == 5 and same["subsections_over_threshold"] == []
+    assert same["discharge_relative"] == pytest.approx(0.02)
+    assert stiv.disagreement_reason(same) is None
+    v_st = v_piv.copy()
+    v_st[2:4] = 0.7  # two fast subsections 30 % slower by STIV
+    d = stiv.disagreement(v_piv, v_st, w)
+    assert d["subsections_over_threshold"] == [3, 4]
+    assert d["discharge_relative"] == pytest.approx(-0.6 / 3.4)
+    r = stiv.disagreement_reason(d)
+    assert r["severity"] == "doubtful" and "3, 4" in r["message"] and "30 %" in r["message"]
+    assert json.dumps(d) and "nan" not in json.dumps(d).lower()
+
+
+def test_swapped_section_points_keep_stiv_downstream(nadir_scene):
+    """P1/P2 picked right-to-left: the pipeline swaps them after the PIV; the STIV lines built on the
+    unswapped section are re-read in the new order and sign."""
+    from fieldtool.pipeline import run_project
+    from fieldtool.project import load_project
+
+    proj = load_project(nadir_scene.project_path)
+    ref = run_project(proj, None).stiv
+    proj.section.points_px = proj.section.points_px[::-1]
+    res = run_project(proj, None)
+    assert res.section.swapped
+    # the lines are laid out from the other end: the same up to rounding of their sample positions
+    assert res.stiv["velocity_ms"] == pytest.approx(ref["velocity_ms"], rel=1e-4)
+    assert res.stiv["discharge_m3s"] == pytest.approx(ref["discharge_m3s"], rel=1e-4)
+
+
+def test_guide_directions_trusts_the_section_over_noisy_nodes():
+    n = np.array([1.0, 0.0])
+    ang = np.array([24.0, 26.0, 70.0, 25.0, -60.0, np.nan])
+    f = np.c_[np.cos(np.radians(ang)), np.sin(np.radians(ang))]
+    f[1] *= -1  # an upstream vector has the same line direction
+    w = np.array([0.9, 0.9, 0.9, 0.2, 0.9, 0.9])
+    g = stiv.guide_directions(f, n, w)
+    got = np.degrees(np.arctan2(g[:, 1], g[:, 0]))
+    np.testing.assert_allclose(got, [24.0, 26.0, 25.0, 25.0, 25.0, 25.0], atol=1e-9)
+    assert np.all(np.isnan(stiv.guide_directions(f, n, np.zeros(6))))
