@@ -652,7 +652,7 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
         res, stab_cached, extra = cached
         stab.update(stab_cached or {})
         fast.update(extra or {})
-    elif not project.piv.all_pairs and n_exp > 2 and stiv_run is None:  # STIV needs every frame, once
+    elif not project.piv.all_pairs and n_exp > 2:  # STIV (when on) then reads the clip by itself (ensure_sampled)
         plan_pairs(piv_stream(want=lambda k: k <= planning.LOOK_PAIRS))  # the first look reads the first frames
         gap = max(1, int(params.frame_gap))
         if n_exp - gap >= 2:
