@@ -115,9 +115,6 @@ def assess_run(project, inputs, level, mapping, geom, res, U, V, dres, q_pairs, 
                        alpha=dres.alpha, mapping_fn=fn, method=mapping.method, gcp_px=px, gcp_ref=ref,
                        x=res.x, y=res.y, u=res.u, v=res.v, u_pairs=res.u_pairs, v_pairs=res.v_pairs,
                        suspect=suspect, suspect_upper_ms=upper)
-    u = project.uncertainty
-    mc = un.monte_carlo_discharge(model, sig, dres.discharge_m3s, n_draws=u.n_draws,
-                                  n_draws_source=max(u.n_draws // 4, 20), seed=u.seed)
     dt = float(np.median(res.dt_s)) if res.dt_s is not None and len(res.dt_s) else 1.0
     p = res.params
     first = p.window_px * 2 ** (max(p.passes, 1) - 1)
@@ -125,7 +122,7 @@ def assess_run(project, inputs, level, mapping, geom, res, U, V, dres, q_pairs, 
     ev = ql.Evidence(subsection_width_m=np.diff(geom.station_edges), subsection_velocity_ms=v_meas,
                      subsection_depth_m=dres.mean_depth_m,
                      discharge_m3s=dres.discharge_m3s, first_window_px=first, search_px=p.search_px or first,
-                     q_pairs_m3s=q_pairs, relative_u95=mc.relative_u95,
+                     q_pairs_m3s=q_pairs,
                      **ql.section_evidence(geom.sample_img, geom.normal, res.x, res.y, res.u, res.v, U, V, dt,
                                            res.valid_fraction, res.peak))
     if frame_stats.get("pairs"):
@@ -139,4 +136,16 @@ def assess_run(project, inputs, level, mapping, geom, res, U, V, dres, q_pairs, 
                                f"ortho.max_residual_m = {project.ortho.max_residual_m:g} m and was accepted "
                                "(ortho.accept_residual)", float(mapping.details.get('max_distance_residual_m', r)),
                                project.ortho.max_residual_m))
+    # a verdict that doubts the velocities widens the interval upward: LSPIV fails by under-reading
+    # (stationary glints and waves pull towards zero, empty seeding leaves slow water)
+    first_verdict = ql.assess(ev, th, extra)
+    doubts = [r for r in first_verdict.reasons if r.code in ql.VELOCITY_DOUBTS]
+    u = project.uncertainty
+    model.underread_max = 0.0
+    if doubts:
+        unusable = any(r.severity == "unusable" for r in doubts)
+        model.underread_max = u.underread_unusable if unusable else u.underread_doubtful
+    mc = un.monte_carlo_discharge(model, sig, dres.discharge_m3s, n_draws=u.n_draws,
+                                  n_draws_source=max(u.n_draws // 4, 20), seed=u.seed)
+    ev.relative_u95 = mc.relative_u95
     return mc, ql.assess(ev, th, extra)

@@ -46,11 +46,13 @@ def test_calibration_from_rendered_checkerboard(tmp_path):
 
 
 @pytest.mark.slow
-def test_background_subtraction_reduces_glint_error(tmp_path):
+def test_static_glints_within_3_percent(tmp_path):
+    """Static glints: the default stationary-pattern removal handles them (the scene was -5 % before it), and the
+    thesis' background subtraction filter on top of it keeps the discharge within 3 % too."""
     truth = render_scene(presets.get("oblique", duration_s=2.0, glints=True), tmp_path / "scene")
     proj = load_project(truth.project_path)
-    plain = run_project(proj, None)
+    default = run_project(proj, None)
+    assert abs(_err(default, truth)) < 0.03
     proj.filters = [{"name": "background"}]
     filtered = run_project(proj, None)
-    assert abs(_err(filtered, truth)) < abs(_err(plain, truth))
     assert abs(_err(filtered, truth)) < 0.03

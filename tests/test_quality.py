@@ -278,3 +278,13 @@ def test_a_band_far_below_what_its_depth_suggests_is_in_deficit_and_widens_the_i
     assert q.grade == "doubtful" and "6 (" in r.message and 0.1 < r.value < 0.3 and r.threshold == 0.03
     assert list(ql.deficit_subsections(v, depth)) == [5, 6, 7]
     assert ql.depth_envelope(v, depth)[6] == pytest.approx(1.2 * 0.8 ** (2 / 3), rel=0.02)
+
+
+def test_doubted_velocities_widen_the_interval_upward_only():
+    m = _model()
+    sig = un.McSigmas(level_m=0, gcp_px=0, gcp_ref_m=0, alpha=0, bed_m=0, filled_rel=0, piv_rel=0, sampling=False)
+    m.underread_max = 0.5
+    r = un.monte_carlo_discharge(m, sig, 8.925, n_draws=400, n_draws_source=50)
+    lo, hi = r.ci95_m3s
+    assert lo == pytest.approx(8.925, rel=0.02) and hi == pytest.approx(2 * 8.925, rel=0.05)
+    assert {b["source"]: b["share"] for b in r.budget}["velocity_sampling"] == pytest.approx(1.0)

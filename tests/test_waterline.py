@@ -56,6 +56,6 @@ def test_oblique_scene_level_within_2_cm(short_scene):
 def test_nadir_scene_with_glints_level_within_2_cm(tmp_path):
     from fieldtool.synthetic import presets, render_scene
 
-    truth = render_scene(presets.get("nadir", glints=True, duration_s=1.5), tmp_path / "s")
+    truth = render_scene(presets.get("nadir", glints=True, duration_s=2.0), tmp_path / "s")  # slow edge water needs ~2 s
     err, _ = _level_error(truth.project_path, truth.water_level_m)
     assert abs(err) < 0.02, f"{100 * err:+.2f} cm"

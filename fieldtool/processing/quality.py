@@ -63,7 +63,7 @@ class Thresholds:
     displacement_unusable: float = 0.45
     peak_min: float = 0.15  # median correlation peak (coefficient) along the section
     pair_spread_max: float = 0.35  # robust spread of the per-pair discharges / |Q|
-    angle_doubtful_deg: float = 30.0  # mean flow direction off the section normal
+    angle_doubtful_deg: float = 20.0  # mean flow direction off the section normal
     angle_unusable_deg: float = 60.0
     identical_frames_doubtful: float = 0.05  # fraction of consecutive frames that are identical
     identical_frames_unusable: float = 0.5
@@ -311,6 +311,10 @@ def check_interval(ev: Evidence, th: Thresholds) -> list[Reason]:
                    f"{100 * th.relative_u95_doubtful:.0f} %); see the uncertainty budget for its main source",
                    ev.relative_u95, th.relative_u95_doubtful)]
 
+
+#: reasons that doubt the measured velocities themselves (the interval then allows an under-read)
+VELOCITY_DOUBTS = frozenset({"stalled_subsections", "velocity_deficit", "valid_fraction", "pair_spread",
+                             "low_correlation", "displacement_limit", "no_motion", "identical_frames"})
 
 CHECKS: list[Check] = [check_motion, check_speed, check_measured_width, check_valid_fraction, check_stalled, check_deficit,
                        check_displacement, check_peak, check_pair_spread, check_angle, check_interval]

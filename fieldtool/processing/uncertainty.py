@@ -104,6 +104,7 @@ class McModel:
     v_pairs: np.ndarray | None = None
     suspect: np.ndarray | None = None  # (n_sub,) bool: measured velocities in doubt (e.g. stalled by glints)
     suspect_upper_ms: np.ndarray | None = None  # (n_sub,) what a suspect's velocity may reach (m/s); None = neighbours'
+    underread_max: float = 0.0  # the verdict doubts the velocities: they may be under-read by up to this fraction
 
 
 @dataclass
@@ -139,6 +140,7 @@ class _Draw:
 
     def __init__(self, m: McModel, sig: McSigmas):
         self.m, self.sig = m, sig
+        self.last_underread = 0.0  # the under-read fraction of the last draw (Q was divided by 1 - it)
         self.theta0 = np.r_[np.asarray(m.gcp_px, float).ravel(), np.asarray(m.gcp_ref, float).ravel(), m.level_m]
         self.n_px = np.asarray(m.gcp_px).size
         self.n_ref = np.asarray(m.gcp_ref).size
@@ -217,6 +219,10 @@ class _Draw:
                 vs = vs + np.where(np.isfinite(dev), dev, 0.0)
             if "velocity_sampling" in active and sig.piv_rel > 0:
                 vs = vs * (1.0 + sig.piv_rel * rng.standard_normal())
+            self.last_underread = 0.0
+            if "velocity_sampling" in active and m.underread_max > 0:
+                self.last_underread = float(rng.uniform(0.0, min(m.underread_max, 0.95)))
+                vs = vs / (1.0 - self.last_underread)  # Q scales by the same factor (it is linear in vs)
         if not np.any(np.isfinite(vs)):
             return float("nan")
         suspect = m.suspect if m.suspect is not None and "filled_subsections" in active else None
@@ -272,7 +278,7 @@ def _subsection_samples(geom, x, y, U, V) -> np.ndarray:
 def _active_sources(sig: McSigmas, model: McModel, drawer: _Draw) -> list[str]:
     on = {"water_level": sig.level_m > 0, "gcp_pixels": sig.gcp_px > 0 and drawer.n_px > 0,
           "gcp_distances": sig.gcp_ref_m > 0 and drawer.n_ref > 0, "velocity_index": sig.alpha > 0,
-          "velocity_sampling": bool(sig.sampling) or sig.piv_rel > 0,
+          "velocity_sampling": bool(sig.sampling) or sig.piv_rel > 0 or model.underread_max > 0,
           "filled_subsections": sig.filled_rel > 0 or (model.suspect is not None and bool(np.any(model.suspect))),
           "cross_section": sig.bed_m > 0}
     return [s for s in SOURCES if on[s]]
@@ -311,22 +317,29 @@ def monte_carlo_discharge(model: McModel, sigmas: McSigmas, discharge_m3s: float
     active = _active_sources(sigmas, model, drawer)
     failed = 0
 
+    base: list[float] = []
+
     def draws(act: frozenset[str], n: int) -> np.ndarray:
         nonlocal failed
         out = np.empty(n)
         for i in range(n):
             try:
                 out[i] = drawer(act, rng)
+                base.append(out[i] * (1.0 - drawer.last_underread))
             except FieldToolError:  # a draw whose level leaves the section or whose geometry degenerates
                 out[i] = np.nan
                 failed += 1
         return out[np.isfinite(out)]
 
     q_all = draws(frozenset(active), n_draws)
+    q_base = np.asarray(base, float)
+    q_base = q_base[np.isfinite(q_base)]
     if len(q_all) < 10:
         lo = hi = float("nan")
     else:
-        lo, hi = (float(v) for v in np.quantile(q_all, [0.025, 0.975]))
+        # an under-read only raises Q: the lower bound comes from the draws without it
+        lo = float(np.quantile(q_base, 0.025))
+        hi = float(np.quantile(q_all, 0.975))
         lo, hi = min(lo, discharge_m3s), max(hi, discharge_m3s)
     u = {}
     for src in SOURCES:

@@ -174,7 +174,7 @@ class FieldToolApp(App):
             self.notify(f"the viewer is not available ({e}); type pixel points as 'x, y'", severity="warning")
             return
         try:
-            self.viewer = start_viewer(self.session.path, host="127.0.0.1", port=0, on_pick=self._pick_from_viewer)
+            self.viewer = start_viewer(self.session.path, host="127.0.0.1", on_pick=self._pick_from_viewer)  # the project's port
         except Exception as e:  # noqa: BLE001 - no viewer must not stop the measurement
             self.notify(f"the viewer did not start: {e}; type pixel points as 'x, y'", severity="error")
             return

@@ -66,12 +66,18 @@ def run_full(project: Project, out_dir: Path, job: Job) -> dict:
     return res.summary()
 
 
+# where the PIV-only run keeps its field, inside the output folder: not the pipeline's own PIV cache,
+# because the discharge run's PIV has stages this run does not repeat (stationary-pattern removal,
+# frame-gap planning), so its field must not be taken for the pipeline's
+PREVIEW_DIR = "tui_piv"
+
+
 def _piv_setup(project: Project, inputs):
     """What the PIV of ``project`` needs besides the frames, as pipeline.run_project sets it up:
     (mapping or None, roi, mask, params, speed limit in px/s or None, cache key or None).
 
-    The key is the PIV cache's (``piv_cache.piv_key``), so a field computed here is the one the
-    discharge run reuses; it is None when a speed limit is set but the mapping cannot be built yet."""
+    The key is the PIV cache's (``piv_cache.piv_key``) on every PIV input; it is None when a speed
+    limit is set but the mapping cannot be built yet."""
     from ..errors import FieldToolError
     from ..pipeline import level_and_mapping, piv_params, roi_and_mask
     from ..processing import piv as piv_mod
@@ -115,8 +121,8 @@ def run_piv_only(project: Project, job: Job, out_dir: Path | None = None) -> dic
     """PIV on the project's clip (before a section of interest exists): field statistics.
 
     The level and mapping are used when they can be computed (speed limit, m/s statistics). The
-    field is saved at once in ``out_dir``'s PIV cache, where the discharge run finds it: quitting
-    before a section exists loses nothing."""
+    field is saved at once under ``out_dir/tui_piv`` (the PIV cache's format and key): quitting before
+    a section exists loses nothing, the PIV step shows it again when the project is reopened."""
     from ..pipeline import _Sized, load_inputs, working_frames
     from ..processing import piv as piv_mod
 
@@ -131,14 +137,15 @@ def run_piv_only(project: Project, job: Job, out_dir: Path | None = None) -> dic
         frames = _Sized(frames, n_expected)  # the same pair plan as the discharge run
     res = piv_mod.analyze(frames, params, roi=roi, mask=mask, max_speed_px_s=max_speed, cancel=job.cancelled)
     if out_dir is not None and key is not None:
-        Path(out_dir).mkdir(parents=True, exist_ok=True)
-        piv_cache.save(Path(out_dir), key, res, stab or None)
+        folder = Path(out_dir) / PREVIEW_DIR
+        folder.mkdir(parents=True, exist_ok=True)
+        piv_cache.save(folder, key, res, stab or None)
     return _preview(project, res, mapping)
 
 
 def cached_piv(project: Project, inputs, out_dir: Path) -> dict | None:
-    """The PIV step's summary of the field saved in ``out_dir``'s PIV cache for the project's
-    current PIV inputs, or None (no cache, other inputs, unreadable)."""
+    """The PIV step's summary of the field a PIV-only run saved in ``out_dir`` for the project's
+    current PIV inputs, or None (none, other inputs, unreadable)."""
     from ..errors import FieldToolError
 
     try:
@@ -147,7 +154,7 @@ def cached_piv(project: Project, inputs, out_dir: Path) -> dict | None:
         return None
     if key is None:
         return None
-    hit = piv_cache.load(Path(out_dir), key)
+    hit = piv_cache.load(Path(out_dir) / PREVIEW_DIR, key)
     if hit is None:
         return None
     return _preview(project, hit[0], mapping)

@@ -153,11 +153,13 @@ class Session:
         return "stale"
 
     def restore_piv(self) -> None:
-        """Take the PIV field of the current inputs from the output folder's PIV cache when no run of
-        this session has one (a PIV run of an earlier session, quit before a section existed)."""
+        """Take the PIV field of the current inputs that a PIV-only run saved in the output folder when
+        no run of this session has one (a PIV run of an earlier session, quit before a section existed)."""
         if self.piv_preview is not None and not (self.changed_tables(self.piv_preview["inputs"]) & set(PIV_TABLES)):
             return
-        if not (self.out_dir / "piv_cache.npz").is_file():
+        from .jobs import PREVIEW_DIR
+
+        if not (self.out_dir / PREVIEW_DIR / "piv_cache.npz").is_file():
             return
         d = project_to_dict(self.project)
         key = json.dumps([d.get(t) for t in PIV_TABLES + ("ortho", "water_level")], sort_keys=True, default=str)
