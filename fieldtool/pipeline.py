@@ -109,6 +109,7 @@ class RunResult:
     quality: object | None = None  # processing.quality.Quality
     sections: list = field(default_factory=list)  # several sections: the main one first (fieldtool.sections)
     robust: dict | None = None  # facts of the robust stages (processing/surface.py, robust.py, planning.py)
+    piv_fast: dict | None = None  # region box and pair sampling of the fast path (see piv_region / run_piv_fast)
     video: dict = field(default_factory=dict)  # the clip's metadata (records.video_meta.video_info)
 
     def summary(self) -> dict:
@@ -148,6 +149,7 @@ class RunResult:
             "piv_reused": self.piv_reused,
             "stiv": self.stiv,
             "robust": self.robust,
+            **_fast_summary(self.piv_fast, int(getattr(self.piv, "n_pairs", 0) or len(self.q_pairs))),
             "video": self.video,
             "warnings": self.warnings + d.warnings,
             "timings_s": self.timings_s,
@@ -354,19 +356,29 @@ def roi_and_mask(project: Project, inputs: Inputs) -> tuple[tuple[int, int, int,
 
 def working_frames(project: Project, inputs: Inputs, cancel: Callable[[], bool] | None = None,
                    observer: _Guarded | None = None, stab_report: dict | None = None,
-                   progress: Progress | None = None, stage: str = "frames") -> Iterator[tuple[float, np.ndarray]]:
-    """Stream (t_s, float32 working frame): undistorted, stabilised, filtered."""
+                   progress: Progress | None = None, stage: str = "frames",
+                   want: Callable[[int], bool] | None = None) -> Iterator[tuple[float, np.ndarray]]:
+    """Stream (t_s, float32 working frame): undistorted, stabilised, filtered.
+
+    ``want(k)``: frames at stream positions k that fail it come as (t_s, None), decoded past but not converted
+    (the fast path's rounds need only their own pairs' frames). Ignored with stabilisation, which tracks every
+    frame, and with a filter stack marked ``temporal``."""
     from .processing.filters import FilterStack
 
     # filters work inside the ROI only (thesis 9.2.7): banks and sky do not set their statistics
     stack = FilterStack.from_config(project.filters, roi=roi_and_mask(project, inputs)[0]) if project.filters else None
+    if project.stabilize.enabled or getattr(stack, "temporal", False):
+        want = None
     stabilizer = None
     total = inputs.source.estimated_count()
 
     def corrected() -> Iterator[tuple[int, float, np.ndarray]]:
         nonlocal stabilizer
-        for fr in inputs.source:
+        for fr in (inputs.source if want is None else inputs.source.iter_wanted(want)):
             img = fr.image
+            if img is None:
+                yield fr.index, fr.t_s, None
+                continue
             if inputs.lens is not None:
                 img = inputs.lens.undistort(img)
             if project.stabilize.enabled:
@@ -383,12 +395,19 @@ def working_frames(project: Project, inputs: Inputs, cancel: Callable[[], bool] 
             yield fr.index, fr.t_s, img
 
     if stack is not None and stack.needs_prepass:
+        want, want_later = None, want
         stack.prepass(img for _, _, img in corrected())
+        want = want_later
         stabilizer = None  # registered again on the second pass, identically
     log_every = max(1, total // 20) if total else 10
     for k, (idx, t, img) in enumerate(corrected()):
         if cancel is not None and cancel():
             raise Cancelled("cancelled by the user")
+        if img is None:
+            if progress is not None:
+                progress(stage, k + 1, total)
+            yield t, None
+            continue
         out = stack.apply(img) if stack is not None else img.astype(np.float32)
         if observer is not None and k % log_every == 0:
             observer("frame", idx, t, img, out)
@@ -404,6 +423,9 @@ def _count_identical(frames: Iterator[tuple[float, np.ndarray]], stats: dict) ->
     prev = None
     n = same = 0
     for t, img in frames:
+        if img is None:  # a frame the fast path did not decode (working_frames(want=...))
+            yield t, img
+            continue
         if prev is not None:
             n += 1
             sub = img[::4, ::4]
@@ -435,6 +457,63 @@ def piv_params(project: Project):
                      snr_min=p.snr_min, averaging=p.averaging, median_threshold=p.median_threshold,
                      std_threshold=p.std_threshold, min_valid_fraction=p.min_valid_fraction, engine=p.engine,
                      frame_gap=p.frame_gap or 1, remove_zero_peak=p.remove_zero_peak)
+
+
+def piv_region(project: Project, inputs: Inputs, params, roi, segments) -> tuple[int, int, int, int] | None:
+    """The box PIV correlates (working-image px), by ``[piv] region``: ``section`` a band around the section
+    segment(s) (list of (2, 2) working-image points) within the ROI, ``roi`` the ROI (None = whole frame),
+    ``full`` the whole frame (None)."""
+    from .processing import piv_fast
+
+    region = project.piv.region
+    if region not in piv_fast.REGIONS:
+        raise ParameterError(f"piv.region: {region!r} is not one of {', '.join(piv_fast.REGIONS)}")
+    if region == "full":
+        return None
+    if region == "roi":
+        return roi
+    margin = piv_fast.band_margin_px(params.window_px, params.overlap_px, params.passes, params.search_px)
+    w0 = params.window_px * 2 ** (params.passes - 1)
+    side = max(w0, int(params.search_px or 0)) + 2 * (params.window_px - params.overlap_px) * 2 ** (params.passes - 1)
+    return piv_fast.section_band(inputs.shape, segments, margin, roi, min_side_px=side)
+
+
+def run_piv_fast(make_frames, n_pairs: int, gap: int, params, roi, mask, max_speed, cancel, on_pair, pair_q,
+                 rel_ci: float, min_pairs: int):
+    """PIV with pairs added until the discharge has converged (``processing.piv_fast.converge``), each round's
+    frames read by a background thread. Returns (PivResult, dict of pairs_used, converged, ...)."""
+    from dataclasses import asdict
+
+    from .processing import piv as piv_mod
+    from .processing import piv_fast
+
+    if not (isinstance(rel_ci, (int, float)) and np.isfinite(rel_ci) and rel_ci > 0):
+        raise ParameterError(f"piv.converge_rel_ci: {rel_ci!r} must be a number above 0 (0.005 = +-0.5 %)")
+    if isinstance(min_pairs, bool) or not isinstance(min_pairs, int) or min_pairs < 2:
+        raise ParameterError(f"piv.min_pairs: {min_pairs!r} must be a whole number of 2 or more (30 is usual)")
+
+    def run(frames, select, carry):
+        reader = piv_fast.prefetch(frames)
+        try:
+            return piv_mod.analyze(reader, params, roi=roi, mask=mask, max_speed_px_s=max_speed, cancel=cancel,
+                                   on_pair=on_pair, select=select, carry=carry)
+        finally:
+            reader.close()
+
+    res, conv, _ = piv_fast.converge(make_frames, n_pairs, run, pair_q, rel_ci=rel_ci, min_pairs=min_pairs,
+                                     frame_gap=gap)
+    return res, asdict(conv)
+
+
+def _fast_summary(fast: dict | None, n_pairs: int) -> dict:
+    """result.json keys of the fast path: pairs_used, converged, piv_region."""
+    fast = fast or {}
+    out = {"pairs_used": int(fast.get("pairs_used", n_pairs)), "converged": fast.get("converged")}
+    if fast:
+        out["piv_sampling"] = {k: fast.get(k) for k in ("pairs_total", "rel_ci", "threshold", "min_pairs", "rounds")
+                               if k in fast}
+        out["piv_region"] = {k: fast.get(k) for k in ("region", "box_px", "roi_px")}
+    return out
 
 
 # ---------------------------------------------------------------------------------------------
@@ -488,6 +567,9 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
         from dataclasses import replace
 
         params = replace(params, min_texture=MIN_TEXTURE)
+    roi_user = roi
+    segments = [geom.p_img] + [inputs.to_working(s.points_px) for s in extra_sections if len(s.points_px)]
+    roi = piv_region(project, inputs, params, roi, segments)
     x, y = piv_mod.grid(inputs.shape, params, roi)
     max_speed = None
     if project.piv.max_velocity_ms is not None:
@@ -523,33 +605,40 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
     # the pixel-space field is reused when only the mapping, level, section or alpha changed (not while
     # streaming to an observer, who wants to see the frames and pairs)
     cache_dir = Path(out_dir) if out_dir is not None and observer is None else None
-    key = piv_cache.piv_key(project, max_speed) if cache_dir is not None else ""
-    cached = piv_cache.load(cache_dir, key) if cache_dir is not None else None
-    if cached is not None:
-        res, stab_cached = cached
-        stab.update(stab_cached or {})
-    else:
-        frames = working_frames(project, inputs, cancel, obs, stab if project.stabilize.enabled else None, progress)
-        if stiv_run is not None:  # STIV samples its lines from the same stream (one decode)
+    key = piv_cache.piv_key(project, max_speed, roi) if cache_dir is not None else ""
+    cached = piv_cache.load(cache_dir, key, with_extra=True) if cache_dir is not None else None
+    fast = {"region": project.piv.region, "box_px": None if roi is None else list(roi),
+            "roi_px": None if roi_user is None else list(roi_user)}
+    decoded: list[float] = []
+    from dataclasses import replace as _replace
+
+    from .processing import planning
+
+    def piv_stream(want=None, tap: bool = False):
+        """The frames PIV reads: working frames, duplicate count, stationary-pattern removal (which needs every
+        frame of its time window: then ``want`` is not used). ``tap``: STIV samples its lines from this stream."""
+        if project.piv.remove_stationary:
+            want = None
+        frames = working_frames(project, inputs, cancel, obs, stab if project.stabilize.enabled else None, progress,
+                                want=want)
+        if tap and stiv_run is not None:  # STIV samples its lines from the same stream (one decode)
             frames = stiv_run.tap(frames)
-        decoded: list[float] = []
 
         def tracked(it):
             for t, img in it:
                 decoded[:] = [t]
                 yield t, img
 
-        frames = tracked(frames)
-        frames = _count_identical(frames, frame_stats)
+        frames = _count_identical(tracked(frames), frame_stats)
         if project.piv.remove_stationary:
             from .processing import surface
 
             frames = surface.standardize(frames, roi, margin=max(64, params.search_px or 0), half=surface.HALF_WINDOW,
                                          shrink=surface.SHRINK, stats=surface_stats)
-        from dataclasses import replace as _replace
+        return frames
 
-        from .processing import planning
-
+    def plan_pairs(frames):
+        nonlocal params, plan
         if project.piv.frame_gap is None:
             plan, frames = planning.first_look(frames, params, roi, mask)
             params = _replace(params, frame_gap=plan.frame_gap, search_px=params.search_px or plan.search_px)
@@ -561,13 +650,42 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
                     + "; set piv.frame_gap (and piv.search_px) to choose yourself")
         else:
             plan = planning.Plan(frame_gap=int(project.piv.frame_gap), search_px=params.search_px, chosen="user")
-        n_expected = inputs.source.estimated_count()
-        if n_expected:
-            frames = _Sized(frames, n_expected)  # lets the ensemble plan which pairs get per-pair vectors
-        res = piv_mod.analyze(frames, params, roi=roi, mask=mask, max_speed_px_s=max_speed,
-                              progress=None, cancel=cancel, on_pair=on_pair)
+        return frames
+
+    n_exp = inputs.source.estimated_count()
+    if cached is not None:
+        res, stab_cached, extra = cached
+        stab.update(stab_cached or {})
+        fast.update(extra or {})
+    elif not project.piv.all_pairs and n_exp > 2:  # STIV (when on) then reads the clip by itself (ensure_sampled)
+        plan_pairs(piv_stream(want=lambda k: k <= planning.LOOK_PAIRS))  # the first look reads the first frames
+        gap = max(1, int(params.frame_gap))
+        if n_exp - gap >= 2:
+            res, conv = run_piv_fast(piv_stream, n_exp - gap, gap, params, roi, mask, max_speed, cancel, on_pair,
+                                     pair_q_fn(geom), project.piv.converge_rel_ci, project.piv.min_pairs)
+            fast.update(conv)
+        else:
+            res = piv_mod.analyze(piv_stream(), params, roi=roi, mask=mask, max_speed_px_s=max_speed, cancel=cancel,
+                                  on_pair=on_pair)
+            fast.update(pairs_used=int(res.n_pairs or 0), converged=None)
         if cache_dir is not None:
-            piv_cache.save(cache_dir, key, res, stab or None)
+            piv_cache.save(cache_dir, key, res, stab or None, fast)
+    else:
+        from .processing.piv_fast import prefetch
+
+        frames = plan_pairs(piv_stream(tap=True))
+        reader = prefetch(frames)
+        frames = reader
+        if n_exp:
+            frames = _Sized(frames, n_exp)  # lets the ensemble plan which pairs get per-pair vectors
+        try:
+            res = piv_mod.analyze(frames, params, roi=roi, mask=mask, max_speed_px_s=max_speed,
+                                  progress=None, cancel=cancel, on_pair=on_pair)
+        finally:
+            reader.close()
+        fast.update(pairs_used=int(res.n_pairs or 0), converged=None)
+        if cache_dir is not None:
+            piv_cache.save(cache_dir, key, res, stab or None, fast)
         v, fps = project.video, getattr(getattr(inputs.source, "info", None), "fps", 0) or 0
         if v.end_s is not None and decoded and fps > 0 and decoded[0] < v.end_s - (v.step + 1) / fps:
             warnings.append(f"video.end_s: the clip decoded only up to {decoded[0]:.2f} s of the {v.end_s:g} s asked "
@@ -655,7 +773,7 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
     result = RunResult(dres, q_pairs, level, mapping, res, geom, U, V, None, timings_s=timings, warnings=warnings,
                        stabilization=stab or None, project=project_to_dict(project), piv_reused=cached is not None,
                        uncertainty=unc, quality=qual, sections=section_entries, robust=robust_facts,
-                       stiv=stiv_block)
+                       stiv=stiv_block, piv_fast=fast)
     if out_dir is not None:
         write_outputs(result, project, inputs, Path(out_dir))
     obs("result", result)

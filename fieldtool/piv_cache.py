@@ -33,8 +33,9 @@ def _stat(path: Path) -> list:
     return [[f.name, f.stat().st_size, f.stat().st_mtime_ns] for f in files]
 
 
-def piv_key(project: Project, max_speed_px_s: np.ndarray | None) -> str:
-    """Hash of everything the PIV field depends on."""
+def piv_key(project: Project, max_speed_px_s: np.ndarray | None, box_px=None) -> str:
+    """Hash of everything the PIV field depends on; ``box_px`` is the correlated box (``[piv] region =
+    "section"`` derives it from the section, so a moved section recomputes the field)."""
     d = project_to_dict(project)
     parts = {k: d.get(k) for k in ("video", "calibration", "stabilize", "roi", "filters", "piv")}
     parts["video_file"] = _stat(project.resolve(project.video.path))
@@ -44,11 +45,13 @@ def piv_key(project: Project, max_speed_px_s: np.ndarray | None) -> str:
         parts["lens_from_gcps"] = [project.ortho.gcp_px, project.ortho.gcp_world_m]
     if max_speed_px_s is not None:
         parts["max_speed"] = hashlib.sha256(np.ascontiguousarray(max_speed_px_s, dtype=np.float64)).hexdigest()
+    if box_px is not None:
+        parts["box_px"] = [int(c) for c in box_px]
     parts["version"] = __version__
     return hashlib.sha256(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()
 
 
-def save(folder: Path, key: str, res, stabilization: dict | None) -> None:
+def save(folder: Path, key: str, res, stabilization: dict | None, extra: dict | None = None) -> None:
     """Write the PIV result (arrays and parameters) with its key, atomically."""
     arrays = {}
     for f in dataclasses.fields(res):
@@ -56,14 +59,15 @@ def save(folder: Path, key: str, res, stabilization: dict | None) -> None:
         if isinstance(v, np.ndarray):
             arrays[f.name] = v
     meta = {"key": key, "params": dataclasses.asdict(res.params), "n_pairs": res.n_pairs,
-            "stabilization": stabilization}
+            "stabilization": stabilization, "extra": extra}
     buf = io.BytesIO()
     np.savez(buf, meta=np.array(json.dumps(meta)), **arrays)
     atomic_write_bytes(folder / FILE, buf.getvalue())
 
 
-def load(folder: Path, key: str):
-    """``(PivResult, stabilization report)`` saved under ``key``, or None (absent, other key, unreadable)."""
+def load(folder: Path, key: str, with_extra: bool = False):
+    """``(PivResult, stabilization report)`` saved under ``key``, or None (absent, other key, unreadable);
+    ``with_extra``: ``(PivResult, stabilization report, extra)``."""
     from .processing.piv import PivParams, PivResult
 
     path = folder / FILE
@@ -78,4 +82,6 @@ def load(folder: Path, key: str):
     except (OSError, ValueError, KeyError):
         return None  # a damaged cache is only a cache: PIV runs again and rewrites it
     res = PivResult(params=PivParams(**meta["params"]), n_pairs=meta.get("n_pairs"), **arrays)
+    if with_extra:
+        return res, meta.get("stabilization"), meta.get("extra")
     return res, meta.get("stabilization")

@@ -156,6 +156,10 @@ class PivCfg:
     remove_zero_peak: bool = key(True)  # ensemble: a peak at zero displacement where the node moves is not the flow (glints)
     frame_gap: int | None = key(None, ge=1, le=100)  # frames between the two images of a pair; None = chosen from a first look at the clip
     reject_upstream: bool = key(True)  # subsections going upstream while the section goes downstream: rejected, filled, reported
+    region: str = key("section", choices=("section", "roi", "full"))  # section (a band around the section(s), within the ROI) | roi | full (whole frame)
+    all_pairs: bool = key(False)  # true: correlate every pair; false: add pairs until the discharge has converged
+    converge_rel_ci: float = key(0.005, gt=0.0, le=1.0)  # stop when the 95 % interval of the mean per-pair Q is within +- this fraction
+    min_pairs: int = key(30, ge=2, le=100000)  # fewest pairs before the convergence test
 
 
 @dataclass

@@ -131,6 +131,11 @@ class FrameSource:
     def __iter__(self) -> Iterator[Frame]:
         return self._iter_sequence() if self.files is not None else self._iter_video()
 
+    def iter_wanted(self, want) -> Iterator[Frame]:
+        """As iteration, but a frame whose position in the stream (0-based, after the step) fails ``want(k)`` is
+        only decoded past (video: grabbed, not retrieved; sequence: not read) and comes with ``image = None``."""
+        return self._iter_sequence(want) if self.files is not None else self._iter_video(want)
+
     def _in_range(self, t: float) -> int:
         """-1 before the range, 0 inside, 1 after."""
         eps = 1e-6
@@ -140,7 +145,7 @@ class FrameSource:
             return 1
         return 0
 
-    def _iter_sequence(self) -> Iterator[Frame]:
+    def _iter_sequence(self, want=None) -> Iterator[Frame]:
         kept = 0
         for i, f in enumerate(self.files):
             t = i * self.frame_interval_s
@@ -149,7 +154,9 @@ class FrameSource:
                 continue
             if where > 0:
                 break
-            if kept % self.step == 0:
+            if kept % self.step == 0 and want is not None and not want(kept // self.step):
+                yield Frame(i, t, None)
+            elif kept % self.step == 0:
                 img = cv2.imread(str(f), cv2.IMREAD_GRAYSCALE)
                 if img is None:
                     raise InputFileError(f"{f}: cannot be read as an image")
@@ -158,7 +165,7 @@ class FrameSource:
                 yield Frame(i, t, img)
             kept += 1
 
-    def _iter_video(self) -> Iterator[Frame]:
+    def _iter_video(self, want=None) -> Iterator[Frame]:
         cap = cv2.VideoCapture(str(self.path))
         try:
             i, kept = -1, 0
@@ -172,7 +179,9 @@ class FrameSource:
                     continue
                 if where > 0:
                     return
-                if kept % self.step == 0:
+                if kept % self.step == 0 and want is not None and not want(kept // self.step):
+                    yield Frame(i, t, None)
+                elif kept % self.step == 0:
                     ok, img = cap.retrieve()
                     if not ok:
                         return

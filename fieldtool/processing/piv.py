@@ -125,6 +125,7 @@ class PivResult:
     pair_index: np.ndarray | None = None  # (n_pairs,) index of each of these pairs in the clip (0 = frames 0-1)
     n_pairs: int | None = None  # pairs correlated in the clip (ensemble: more than the per-pair fields hold)
     zero_peak_removed: np.ndarray | None = None  # (ny, nx) bool, ensemble plane's zero-displacement block blanked
+    carry: object | None = None  # analyze(select=...): state that a later call continues (``carry=``); not saved
 
 
 # --------------------------------------------------------------------------------------------- geometry
@@ -494,11 +495,14 @@ class _Engine:
             img[self.mask_crop] = fill
         return img
 
-    def prepare(self, frame: np.ndarray) -> _Frame:
-        """Crop, fill the mask with the frame mean, and compute the window spectra of all levels."""
+    def prepare(self, frame: np.ndarray, as_a: bool = True) -> _Frame:
+        """Crop, fill the mask with the frame mean, and compute the window spectra of all levels.
+
+        ``as_a=False``: the frame is only the second frame of a pair (``analyze(select=...)``): the A-window
+        spectra of the later passes, which only a first frame needs, are not computed."""
         img = self._masked_crop(frame)
         spec_a, scale_a = [], []
-        for lv in self.levels:
+        for lv in (self.levels if as_a else self.levels[:1]):
             oy, ox = self._offsets(lv)
             sp, sc = _window_spectra(img, oy, ox, lv, lv.w)
             spec_a.append(sp)
@@ -667,6 +671,8 @@ def analyze(
     cancel: Callable[[], bool] | None = None,
     on_pair: Callable | None = None,
     backend: str = "auto",
+    select=None,
+    carry=None,
 ) -> PivResult:
     """Run PIV over consecutive frame pairs and average in time.
 
@@ -685,6 +691,11 @@ def analyze(
         in the clip; ensemble: the sampled pairs only, see the module docstring).
     backend : "auto" (GPU when CuPy with a CUDA device is importable and passes its self-check, single pass
         only; else CPU), "cpu" or "gpu". See piv_gpu (unverified on real hardware).
+    select : pair indices (0 = frames 0-1 of the stream) to correlate, or None for every pair. Frames that belong
+        to no selected pair are read but not transformed, and the stream is left after the last selected pair.
+        Every selected pair gets per-pair vectors. Used by ``piv_fast.converge`` (pairs added in rounds).
+    carry : ``PivResult.carry`` of an earlier call on the same clip, geometry and parameters: its ensemble sums
+        and per-pair fields are continued, so the result covers the pairs of all calls.
 
     Returns
     -------
@@ -720,29 +731,58 @@ def analyze(
     if ens is not None:
         ens.remove_zero = params.remove_zero_peak
     # ensemble: per-pair vectors (inverse FFT + peaks of the final pass) only on every stride-th pair
-    subsample = ens is not None and getattr(engine, "spectrum_only", False)
+    subsample = ens is not None and getattr(engine, "spectrum_only", False) and select is None
     stride = max(1, total // ENSEMBLE_PAIRS) if subsample else 1  # clip length unknown (total 0): grown below
     per_pair = {k: [] for k in ("u", "v", "t", "dt", "snr", "p2m", "peak", "index")}
+    n_done = 0
+    if carry is not None:  # continue an earlier call (select=): its ensemble sums and per-pair fields
+        ens, per_pair, n_done = carry.ensemble, carry.per_pair, carry.n_pairs
+        if ens is not None:
+            ens.engine = engine
     gap = max(1, int(params.frame_gap))
-    history = deque([(engine.prepare(first), float(t_prev))], maxlen=gap)  # the last `gap` frames, oldest first
+    wanted = None if select is None else frozenset(int(k) for k in select)
+    last_wanted = max(wanted) if wanted else -1
+
+    def prep(k: int, img):
+        """Frame k's spectra; with ``select``: None when no selected pair uses it (it may come undecoded),
+        and only what a pair's second frame needs when it is not the first frame of a selected pair."""
+        if wanted is None:
+            return engine.prepare(img)
+        if k not in wanted and k - gap not in wanted:
+            return None
+        img = _check_frame(k, img, shape)
+        if k in wanted or type(engine).prepare is not _Engine.prepare:
+            return engine.prepare(img)
+        return engine.prepare(img, as_a=False)
+
+    history = deque([(prep(0, first), float(t_prev))], maxlen=gap)  # the last `gap` frames, oldest first
     t_last = float(t_prev)
     i = 0
     for i_frame, (t, img) in enumerate(it, start=1):
+        if wanted is not None and i_frame - gap > last_wanted:  # hook of ``select``: no selected pair left
+            break
         if cancel is not None and cancel():
             raise Cancelled(f"PIV cancelled by the user after {i} pairs")
-        img = _check_frame(i_frame, img, shape)
+        if wanted is None:
+            img = _check_frame(i_frame, img, shape)
         t = float(t)
         if not t > t_last:
             raise InputFileError(
                 f"frames: timestamps must increase; frame {i_frame} is at {t:.6f} s after {t_last:.6f} s"
             )
         t_last = t
-        cur = engine.prepare(img)
+        cur = prep(i_frame, img)
         if len(history) < gap:  # the first frames only fill the history
             history.append((cur, t))
             continue
         prev, t_prev = history[0]
         dt = t - t_prev
+        if wanted is not None and i not in wanted:  # hook of ``select``: this pair is skipped
+            i += 1
+            if progress is not None:
+                progress(i, total)
+            history.append((cur, t))
+            continue
         cb = None
         if ens is not None:
             cb = ens.add_fn(dt, node_mask)
@@ -775,6 +815,10 @@ def analyze(
                                  "range holds no such pair; lower piv.frame_gap or widen video.start_s / video.end_s")
         raise ParameterError("video: only 1 frame in the selected time range; PIV needs at least 2 — widen "
                              "video.start_s / video.end_s or lower video.step")
+    if wanted is not None:
+        i = n_done + len(wanted & set(range(i)))
+        if not per_pair["u"]:
+            raise ParameterError("video: none of the selected pairs is in the clip; PIV needs at least 2 frames")
 
     u_pairs, v_pairs = np.stack(per_pair["u"]), np.stack(per_pair["v"])
     n_valid = np.sum(np.isfinite(u_pairs), axis=0)
@@ -786,7 +830,7 @@ def analyze(
     dts = np.asarray(per_pair["dt"])
     ens_snr = None
     if ens is not None:
-        u_avg, v_avg, ens_ok, ens_snr = ens.result()
+        u_avg, v_avg, ens_ok, ens_snr = ens.result(keep=wanted is not None)
     else:
         if params.averaging == "mean":
             with np.errstate(all="ignore"):
@@ -804,7 +848,17 @@ def analyze(
         t_pairs=np.asarray(per_pair["t"]), snr=snr_med, params=params, peak2mean=p2m_med, peak=peak_med,
         replaced=replaced, ensemble_snr=ens_snr, dt_s=dts, pair_index=np.asarray(per_pair["index"], dtype=np.int64),
         n_pairs=i, zero_peak_removed=None if ens is None else ens.zero_removed,
+        carry=_Carry(ens, per_pair, i) if wanted is not None else None,
     )
+
+
+@dataclass
+class _Carry:
+    """What ``analyze(select=...)`` hands to its next call: the ensemble sums, per-pair fields, pairs done."""
+
+    ensemble: object | None
+    per_pair: dict
+    n_pairs: int
 
 
 def _nanmedian_t(stack: np.ndarray) -> np.ndarray:
@@ -878,18 +932,20 @@ class _Ensemble:
 
         return add
 
-    def result(self):
+    def result(self, keep: bool = False):
+        """Time-averaged field; ``keep``: leave the sums usable for more pairs (the inverse FFT works in place)."""
         lv = self.lv
+        spec = self.spec.copy() if keep else self.spec  # the inverse FFT works in place
         if self.remove_zero and type(self.engine) is _Engine and len(self.engine.levels) > 1:
             from fieldtool.processing import piv_peaks
 
-            corr = self.engine.ensemble_planes(self.spec)
+            corr = self.engine.ensemble_planes(spec)
             with np.errstate(all="ignore"):
                 self.zero_removed = piv_peaks.blank_zero(corr, lv.margin, self.px / self.wsum, self.py / self.wsum)
             self.zero_removed = self.zero_removed.reshape(lv.ny, lv.nx)
             pk = _find_peaks(corr, lv.margin)
         else:
-            pk = self.engine.ensemble_peaks(self.spec)
+            pk = self.engine.ensemble_peaks(spec)
         with np.errstate(all="ignore"):
             dt = self.wdt / self.wsum
             dx = pk.dx + self.px / self.wsum

@@ -1,0 +1,288 @@
+"""Time to discharge: fieldtool vs pyorc (pyopenrivercam), end to end from the video to Q, on the same clips.
+
+    .venv/bin/python benchmarks/time_to_q.py                       # 720p 8 s + 1080p 30 s (+ fast_1080p), 3 runs
+    .venv/bin/python benchmarks/time_to_q.py --clips 720p --repeats 5
+    .venv/bin/python benchmarks/time_to_q.py --engines             # engine table: fieldtool, OpenPIV, ffpiv
+    .venv/bin/python benchmarks/time_to_q.py --profile             # cProfile top entries, 720p, before/after
+
+Clips (rendered once into --root by the generator, exact truth from ``River.truth()``): the ``oblique`` scene
+at 1280x720 for 8 s, the same at 1920x1080 for 30 s, and helper robust's ``fast_1080p`` hard preset when
+``fieldtool.synthetic.presets`` has it. Every project runs with default settings and no ROI (``roi.rect_px``
+cleared), as the issue measured.
+
+Contestants, each a separate process started from here (interpreter start and imports included, as a user
+waits for them), in turn within every repeat (alternating runs), medians over the repeats:
+* ``fieldtool``: ``python -m fieldtool.cli run project.toml --out NEW`` with the defaults
+  (``[piv] region = "section"``, pairs added until the discharge converged); all outputs (plots) written.
+* ``pyorc``: ``benchmarks/peers/pyorc_run.py`` in its own virtual environment ``benchmarks/.peers-venv``
+  (created here with the pinned versions in PEERS; never the project's venv), pyorc's API recipe with the same
+  GCPs, level, velocity index and cross-section, a bounding box of +-3 m around the section (as the ROI of the
+  generated project), ``resolution`` 0.02 m and ``window_size`` 16 (pyorc's defaults are 0.05 m / 10 px).
+* once per clip, not alternated (it is the slow reference): fieldtool full frame, every pair
+  (``region = "full"``, ``all_pairs = true``): "today's full-frame all-pairs result" of the issue
+  (``--no-reference`` leaves it out).
+
+Printed per clip: median wall time and every run's, the ratio pyorc / fieldtool (ratio of medians and median of
+the per-run ratios), each discharge and its error against the truth, the difference in percentage points
+between fieldtool's default and its full-frame all-pairs error, pairs used, the peak resident memory of each
+process (``wait4``'s ru_maxrss) and the load average before and after. Not part of the test run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+REPO = HERE.parent
+PEERS_VENV = HERE / ".peers-venv"
+PEERS = ["pyopenrivercam==0.9.10", "ffpiv==0.2.1"]  # pinned (pip index versions pyopenrivercam, Nov 2026)
+PYORC_RESOLUTION_M, PYORC_WINDOW = 0.02, 16
+
+
+# --------------------------------------------------------------------------------------------- clips
+
+
+def clips(root: Path, names: list[str]) -> list[dict]:
+    """Render the clips once; return [{name, dir, project (no ROI), truth, spec}]."""
+    from fieldtool.synthetic import presets, render_scene
+
+    plan = {"720p_8s": lambda: presets.get("oblique", duration_s=8.0),
+            "1080p_30s": lambda: presets.get("oblique", duration_s=30.0, camera__width_px=1920, camera__height_px=1080)}
+    if "fast_1080p" in getattr(presets, "NAMES", ()) + tuple(getattr(presets, "HARD_NAMES", ())):
+        plan["fast_1080p"] = lambda: presets.get("fast_1080p")
+    out = []
+    for name in names:
+        if name not in plan:
+            print(f"clip {name}: not available here (fieldtool.synthetic.presets has no such preset); skipped")
+            continue
+        d = root / name
+        spec = plan[name]()
+        if not (d / "truth.json").is_file():
+            t0 = time.perf_counter()
+            render_scene(spec, d)
+            print(f"rendered {name} in {time.perf_counter() - t0:.0f} s")
+        import tomlkit
+
+        doc = tomlkit.parse((d / "project.toml").read_text())
+        doc["roi"]["rect_px"] = []
+        (d / "noroi.toml").write_text(tomlkit.dumps(doc))
+        doc["piv"]["region"] = "full"
+        doc["piv"]["all_pairs"] = True
+        (d / "full_all.toml").write_text(tomlkit.dumps(doc))
+        out.append({"name": name, "dir": d, "truth": json.loads((d / "truth.json").read_text()), "spec": spec})
+    return out
+
+
+def pyorc_job(c: dict) -> Path:
+    """The job file of pyorc_run.py: what a pyorc user enters for this clip (see the module docstring)."""
+    import tomllib
+
+    d, spec, tr = c["dir"], c["spec"], c["truth"]
+    r = spec.river
+    proj = tomllib.loads((d / "noroi.toml").read_text())
+    cs = np.loadtxt(d / "cross_section.csv", delimiter=",", skiprows=1)
+    xs, half = r.x_section_m, spec.roi_half_length_m
+    y_hi, y_lo = r.y_left_edge + 0.5, r.y_right_edge - 0.5
+    job = {"video": str(d / spec.video_name), "width": spec.camera.width_px, "height": spec.camera.height_px,
+           "n_frames": int(tr["n_frames"]), "gcp_px": proj["ortho"]["gcp_px"],
+           "gcp_xy_m": [g[:2] for g in tr["gcp_world_m"]], "level_m": float(tr["water_level_m"]),
+           "window_size": PYORC_WINDOW, "resolution_m": PYORC_RESOLUTION_M,
+           # pyorc spans its grid from the first edge of the box towards the third corner: start on the left bank
+           "bbox_xy_m": [[xs - half, y_hi], [xs + half, y_hi], [xs + half, y_lo], [xs - half, y_lo]],
+           "transect_xyz_m": [[float(xs), float(r.y_of_station(s)), float(z)] for s, z in cs],
+           "alpha": float(proj["section"].get("alpha") or 0.85), "s_max": 3.0 * float(r.u_max_ms)}
+    path = d / "pyorc_job.json"
+    path.write_text(json.dumps(job))
+    return path
+
+
+# --------------------------------------------------------------------------------------------- processes
+
+
+def peers_python() -> Path:
+    """The peers' venv interpreter; created with the pinned PEERS on first use."""
+    py = PEERS_VENV / "bin" / "python"
+    if not py.is_file():
+        print(f"creating {PEERS_VENV} with {' '.join(PEERS)} (once)")
+        subprocess.run([sys.executable, "-m", "venv", str(PEERS_VENV)], check=True)
+        subprocess.run([str(py), "-m", "pip", "install", "-q", *PEERS], check=True)
+    return py
+
+
+def timed(cmd: list[str], env: dict | None = None) -> tuple[float, int, str, float]:
+    """Run ``cmd``; (wall s, peak resident memory MiB of that process, stdout, CPU s of that process and its
+    threads: user + system, which a shared machine's load inflates far less than the wall time)."""
+    t0 = time.perf_counter()
+    with tempfile.TemporaryFile() as out, tempfile.TemporaryFile() as err:
+        p = subprocess.Popen(cmd, stdout=out, stderr=err, env=env, cwd=REPO)
+        _, status, ru = os.wait4(p.pid, 0)
+        wall = time.perf_counter() - t0
+        p.returncode = os.waitstatus_to_exitcode(status)
+        out.seek(0)
+        err.seek(0)
+        text, etext = out.read().decode(errors="replace"), err.read().decode(errors="replace")
+    if p.returncode not in (0,):
+        raise RuntimeError(f"{cmd[:4]} exited {p.returncode}: {etext[-800:]}")
+    return wall, int(ru.ru_maxrss / 1024), text, ru.ru_utime + ru.ru_stime
+
+
+def run_fieldtool(toml: Path, scratch: Path) -> dict:
+    out = Path(tempfile.mkdtemp(dir=scratch))
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    wall, mem, _, cpu = timed([sys.executable, "-m", "fieldtool.cli", "run", str(toml), "--out", str(out)], env)
+    res = json.loads((out / "result.json").read_text())
+    shutil.rmtree(out, ignore_errors=True)
+    return {"s": wall, "cpu": cpu, "mib": mem, "q": res["discharge_m3s"], "pairs": res.get("pairs_used"),
+            "converged": res.get("converged"), "piv_s": res["timings_s"].get("frames_and_piv")}
+
+
+def run_pyorc(job: Path) -> dict:
+    wall, mem, text, cpu = timed([str(peers_python()), str(HERE / "peers" / "pyorc_run.py"), str(job)])
+    res = json.loads(text.strip().splitlines()[-1])
+    return {"s": wall, "cpu": cpu, "mib": mem, "q": res["discharge_m3s"], "pairs": None}
+
+
+def end_to_end(cs: list[dict], repeats: int, with_pyorc: bool, scratch: Path, reference: bool = True) -> None:
+    for c in cs:
+        truth = c["truth"]["discharge_m3s"]
+        err = lambda q: 100.0 * (q / truth - 1.0)  # noqa: E731
+        job = pyorc_job(c)
+        load0 = os.getloadavg()
+        ref = run_fieldtool(c["dir"] / "full_all.toml", scratch) if reference else None
+        runs = {"fieldtool": [], "pyorc": []}
+        for _ in range(repeats):  # alternating: each repeat runs each contestant once, in turn
+            runs["fieldtool"].append(run_fieldtool(c["dir"] / "noroi.toml", scratch))
+            if with_pyorc:
+                runs["pyorc"].append(run_pyorc(job))
+        load1 = os.getloadavg()
+        print(f"\n== {c['name']}: {c['truth']['n_frames']} frames, true Q {truth:.4f} m³/s; "
+              f"{os.cpu_count()} cores, load average {load0[0]:.2f} before, {load1[0]:.2f} after")
+        print(f"{'contestant':34s} {'median s':>9s} {'runs s':>26s} {'CPU s':>7s} {'Q m³/s':>9s} {'error %':>8s} "
+              f"{'pairs':>6s} {'peak MiB':>9s}")
+        rows = ([("fieldtool full frame, all pairs", [ref])] if ref else []) + [(k, v) for k, v in runs.items() if v]
+        med = {}
+        for name, rs in rows:
+            t = [r["s"] for r in rs]
+            q = float(np.median([r["q"] for r in rs]))
+            med[name] = float(np.median(t))
+            pairs = rs[-1]["pairs"]
+            cpu = float(np.median([r["cpu"] for r in rs]))
+            print(f"{name:34s} {med[name]:9.2f} {' '.join(f'{v:.1f}' for v in t):>26s} {cpu:7.1f} {q:9.4f} {err(q):+8.2f} "
+                  f"{'' if pairs is None else pairs:>6} {max(r['mib'] for r in rs):9d}")
+        fq = float(np.median([r["q"] for r in runs["fieldtool"]]))
+        if ref:
+            print(f"fieldtool default vs full frame all pairs: {err(fq) - err(ref['q']):+.2f} percentage points of "
+                  f"error")
+        print(f"fieldtool default: {med['fieldtool']:.2f} s for a {c['truth']['n_frames'] / c['truth']['fps']:.0f} s "
+              f"clip")
+        if runs["pyorc"]:
+            per = np.median([p["s"] / f["s"] for p, f in zip(runs["pyorc"], runs["fieldtool"])])
+            cpu_ratio = np.median([r["cpu"] for r in runs["pyorc"]]) / np.median([r["cpu"] for r in runs["fieldtool"]])
+            print(f"pyorc / fieldtool: {med['pyorc'] / med['fieldtool']:.2f}x (ratio of medians), "
+                  f"{per:.2f}x (median of per-run ratios), {cpu_ratio:.2f}x in CPU seconds")
+
+
+# --------------------------------------------------------------------------------------------- engines
+
+
+def engines(runs: int, n_pairs: int, ens_pairs: int, scratch: Path) -> None:
+    """pairs/s on 1920x1080 frames, window 32 / overlap 16: fieldtool, OpenPIV, ffpiv (alternating runs)."""
+    sys.path.insert(0, str(HERE))
+    import piv_vs_openpiv as pvo
+
+    syn = pvo.syn
+    frames = syn.clip(syn.rankine(pvo.W / 2, pvo.H / 2, rc=200, vmax=5.0), pvo.H, pvo.W, n_frames=n_pairs + 1,
+                      density=0.03)
+    stack = scratch / "ffpiv_frames.npy"
+    np.save(stack, np.stack([f for _, f in frames]))
+    clip = {"pairs": frames, "ensemble": [(k / 30.0, frames[k % len(frames)][1]) for k in range(ens_pairs + 1)]}
+    table = list(pvo.ENGINES[:3]) + [pvo.ENGINES[4], pvo.ENGINES[5]]
+    times = {name: [] for name, _, _ in table}
+    times["ffpiv (numba) single pass"] = []
+    py = peers_python()
+    for _ in range(runs):
+        for name, fn, which in table:
+            t0 = time.perf_counter()
+            fn(clip[which])
+            times[name].append((len(clip[which]) - 1) / (time.perf_counter() - t0))
+        out = subprocess.run([str(py), str(HERE / "peers" / "ffpiv_rate.py"), str(stack), "32", "16"],
+                             capture_output=True, text=True, check=True).stdout
+        times["ffpiv (numba) single pass"].append(json.loads(out.strip().splitlines()[-1])["pairs_per_s"])
+    print(f"\nEngines: 1920x1080, window 32, overlap 16, {n_pairs} pairs per call ({ens_pairs} for the ensemble), "
+          f"{runs} alternating runs, {os.cpu_count()} cores, load average {os.getloadavg()[0]:.2f} at the end")
+    print(f"{'engine':36s} {'median pairs/s':>14s} {'runs':>28s} {'vs fieldtool single':>20s}")
+    base = float(np.median(times["fieldtool single pass (mean)"]))
+    for name, v in times.items():
+        m = float(np.median(v))
+        print(f"{name:36s} {m:14.2f} {' '.join(f'{x:.2f}' for x in v):>28s} {m / base:19.2f}x")
+
+
+# --------------------------------------------------------------------------------------------- profile
+
+
+def profile(c: dict, top: int) -> None:
+    """cProfile of run_project on the clip: full frame + all pairs (before), then the defaults (after)."""
+    import cProfile
+    import io
+    import pstats
+
+    from fieldtool.pipeline import run_project
+    from fieldtool.project import load_project
+
+    for label, toml in (("before: region = full, all_pairs = true", "full_all.toml"), ("after: defaults", "noroi.toml")):
+        proj = load_project(c["dir"] / toml)
+        out = Path(tempfile.mkdtemp())
+        pr = cProfile.Profile()
+        t0 = time.perf_counter()
+        pr.enable()
+        run_project(proj, out)
+        pr.disable()
+        wall = time.perf_counter() - t0
+        s = io.StringIO()
+        pstats.Stats(pr, stream=s).sort_stats("tottime").print_stats(top)
+        print(f"\n== profile {c['name']}, {label}: {wall:.2f} s wall, load average {os.getloadavg()[0]:.2f}")
+        print("\n".join(line for line in s.getvalue().splitlines() if line.strip())[:6000])
+        shutil.rmtree(out, ignore_errors=True)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--root", default=os.path.join(tempfile.gettempdir(), "ft_time_to_q"), help="clip folder")
+    ap.add_argument("--clips", default="720p_8s,1080p_30s,fast_1080p")
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--no-pyorc", action="store_true", help="fieldtool only")
+    ap.add_argument("--no-reference", action="store_true", help="without the full-frame all-pairs fieldtool run")
+    ap.add_argument("--engines", action="store_true", help="the engine table instead of end to end")
+    ap.add_argument("--runs", type=int, default=3, help="engine table: alternating runs")
+    ap.add_argument("--pairs", type=int, default=4, help="engine table: pairs per call")
+    ap.add_argument("--ensemble-pairs", type=int, default=60, help="engine table: pairs of the ensemble clip")
+    ap.add_argument("--profile", action="store_true", help="cProfile the first clip, before/after")
+    args = ap.parse_args()
+    root = Path(args.root)
+    root.mkdir(parents=True, exist_ok=True)
+    scratch = Path(tempfile.mkdtemp(prefix="ttq_"))
+    try:
+        if args.engines:
+            engines(args.runs, args.pairs, args.ensemble_pairs, scratch)
+            return
+        cs = clips(root, args.clips.split(","))
+        if args.profile:
+            profile(cs[0], 25)
+            return
+        end_to_end(cs, args.repeats, not args.no_pyorc, scratch, reference=not args.no_reference)
+    finally:
+        shutil.rmtree(scratch, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    main()
