@@ -1,6 +1,7 @@
 """Round-trip saving (comments kept) and concurrent writers (apply_changes never loses a key)."""
 
 import multiprocessing as mp
+from pathlib import Path
 
 from fieldtool.project import apply_changes, load_project, save_project
 from fieldtool.template import write_template
@@ -55,3 +56,27 @@ def test_tui_session_keeps_a_key_another_process_set(tmp_path):
     s.project.section.n_sub = 9
     s.save()
     assert load_project(path).calibration.path == "/somewhere/cal.toml"
+
+
+def test_atomic_write_keeps_links_and_devices(tmp_path):
+    """A rename would replace a link (e.g. /dev/stdout) or a device by a plain file."""
+    import os
+
+    from fieldtool.project import atomic_write_bytes
+
+    target = tmp_path / "real.txt"
+    target.write_text("old")
+    link = tmp_path / "link.txt"
+    link.symlink_to(target)
+    atomic_write_bytes(link, b"new")
+    assert link.is_symlink() and target.read_bytes() == b"new"
+    atomic_write_bytes(Path("/dev/null"), b"x")
+    assert Path("/dev/null").is_char_device()
+    fifo = tmp_path / "pipe"
+    os.mkfifo(fifo)
+    r = os.open(fifo, os.O_RDONLY | os.O_NONBLOCK)
+    try:
+        atomic_write_bytes(fifo, b"through")
+        assert os.read(r, 100) == b"through" and fifo.is_fifo()
+    finally:
+        os.close(r)
