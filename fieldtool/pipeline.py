@@ -562,7 +562,16 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
     stiv_run = stiv_stage.start(project, mapping, geom, inputs.shape, roi, mask)
 
     params = piv_params(project)
-    if project.piv.remove_stationary:
+    # stationary-pattern removal standardises each pixel over a window of frames: a clip shorter than that
+    # window (e.g. 1 s of natural texture) would lose its own texture to the window's mean
+    from .processing.surface import HALF_WINDOW
+
+    n_clip = inputs.source.estimated_count() or 0
+    standardize = project.piv.remove_stationary and (n_clip == 0 or n_clip >= 2 * HALF_WINDOW + 1)
+    if project.piv.remove_stationary and not standardize:
+        warnings.append(f"piv.remove_stationary: the clip has {n_clip} frames, fewer than the {2 * HALF_WINDOW + 1} its "
+                        "time window needs; glints and other patterns fixed in the image are not removed")
+    if standardize:
         from .processing.surface import MIN_TEXTURE
         from dataclasses import replace
 
@@ -594,7 +603,7 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
     frame_stats: dict = {}
     surface_stats = None
     plan = None
-    if project.piv.remove_stationary:
+    if standardize:
         from .processing.surface import SurfaceStats
 
         surface_stats = SurfaceStats()
@@ -617,7 +626,7 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
     def piv_stream(want=None, tap: bool = False):
         """The frames PIV reads: working frames, duplicate count, stationary-pattern removal (which needs every
         frame of its time window: then ``want`` is not used). ``tap``: STIV samples its lines from this stream."""
-        if project.piv.remove_stationary:
+        if standardize:
             want = None
         frames = working_frames(project, inputs, cancel, obs, stab if project.stabilize.enabled else None, progress,
                                 want=want)
@@ -630,7 +639,7 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
                 yield t, img
 
         frames = _count_identical(tracked(frames), frame_stats)
-        if project.piv.remove_stationary:
+        if standardize:
             from .processing import surface
 
             frames = surface.standardize(frames, roi, margin=max(64, params.search_px or 0), half=surface.HALF_WINDOW,

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from conftest import SHARED_DATA
+from fieldtool.errors import GeometryError
 from fieldtool.pipeline import run_project
 from fieldtool.processing.frames import FrameSource
 from fieldtool.project import project_from_dict
@@ -33,7 +34,13 @@ def test_geul_pose_orthorectification_and_piv(tmp_path):
         "water_level": {"method": "value", "value_m": z0},
         "section": {"points_px": [[560.0, 480.0], [1640.0, 520.0]]},
     }, tmp_path)
+    # whole-pixel picks of the authors: GCP 5 misses the water plane by 0.22 m (16 px), over the 0.10 m default
+    with pytest.raises(GeometryError, match=r"GCP 5 misses by 0\.2\d+ m"):
+        run_project(proj, tmp_path / "out")
+    proj.ortho.accept_residual = True
     result = run_project(proj, tmp_path / "out")
+    assert "gcp_residual" in {r.code for r in result.quality.reasons} and result.quality.grade != "good"
+    assert any("remove_stationary" in w for w in result.warnings)  # 10 frames: too short to standardise
     details = result.mapping.details
     assert details["reprojection_rms_px"] < 5.0  # the authors' integer GCP pixels: ~4.2 px
     assert result.mapping.residual_m < 0.2  # GCPs met on their own planes: 0.12 m RMS (two GCPs ~0.2 m off)
