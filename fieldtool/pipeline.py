@@ -642,6 +642,7 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
         if standardize:
             from .processing import surface
 
+            surface_stats.frames = 0  # each round of the fast path standardises the clip again: count one pass
             frames = surface.standardize(frames, roi, margin=max(64, params.search_px or 0), half=surface.HALF_WINDOW,
                                          shrink=surface.SHRINK, stats=surface_stats)
         return frames
