@@ -10,6 +10,7 @@ A field set to ``None`` is "not given" and is left out of the file (TOML has no 
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import os
 import tempfile
@@ -434,6 +435,22 @@ def atomic_write_bytes(path: Path | str, data: bytes) -> None:
             os.unlink(tmp)
         except FileNotFoundError:
             pass
+        raise
+
+
+@contextlib.contextmanager
+def atomic_path(path: Path | str, mode: int = 0o644):
+    """A temporary file name beside ``path`` for a library that writes by file name (netCDF4, GDAL); renamed
+    onto ``path`` when the block ends without error, removed otherwise: never half a file."""
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f"{path.suffix}.tmp", dir=path.parent)
+    os.close(fd)
+    try:
+        yield tmp
+        os.chmod(tmp, mode)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
         raise
 
 

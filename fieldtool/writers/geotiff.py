@@ -14,13 +14,12 @@ frame are 0 and flagged as nodata by an alpha band.
 
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import ParameterError
+from ..project import atomic_path
 
 GEOREF_METHODS = ("world", "pose")
 
@@ -121,9 +120,7 @@ def write_rectified(result, project, inputs, out: Path) -> str | None:
     alpha = np.where(img.any(axis=2), 255, 0).astype(np.uint8)
     transform = Affine(r, 0.0, x0 - r / 2, 0.0, -r, y1 + r / 2)
     path = Path(out) / "rectified.tif"
-    fd, tmp = tempfile.mkstemp(prefix=".rectified.", suffix=".tif.tmp", dir=out)
-    os.close(fd)
-    try:
+    with atomic_path(path) as tmp:
         with rasterio.open(tmp, "w", driver="GTiff", width=img.shape[1], height=img.shape[0], count=4,
                            dtype="uint8", crs=crs, transform=transform, compress="deflate", photometric="RGB",
                            tiled=True) as dst:
@@ -134,9 +131,4 @@ def write_rectified(result, project, inputs, out: Path) -> str | None:
                                rasterio.enums.ColorInterp.blue, rasterio.enums.ColorInterp.alpha]
             dst.update_tags(TIFFTAG_SOFTWARE="fieldtool", title=f"rectified first frame — {project.name}",
                             cell_size_m=f"{r:.6g}", ortho_method=o.method)
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
     return path.name

@@ -18,14 +18,13 @@ and ``valid_fraction`` (1). The project and the run's key results are global att
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from datetime import datetime, timezone
 from pathlib import Path
 
 import numpy as np
 
 from .. import __version__
+from ..project import atomic_path
 from .geotiff import crs_of
 
 MAX_CELLS = 300  # per side: the PIV grid has far fewer nodes; a finer grid only costs time
@@ -175,13 +174,6 @@ def write_mean_field(result, project, inputs, out: Path) -> str:
     """Write ``mean_field.nc`` into ``out`` (through a temporary file and a rename); returns its name."""
     ds = build_dataset(result, project)
     path = Path(out) / "mean_field.nc"
-    fd, tmp = tempfile.mkstemp(prefix=".mean_field.", suffix=".nc.tmp", dir=out)
-    os.close(fd)
-    try:
+    with atomic_path(path) as tmp:
         ds.to_netcdf(tmp, engine="netcdf4", format="NETCDF4")
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
     return path.name
