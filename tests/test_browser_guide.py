@@ -146,10 +146,11 @@ def test_click_near_a_demo_target_snaps_to_its_centre(short_scene, tmp_path, chr
                 for x, y in truth:
                     sx, sy = _screen_of(page, handle, (x + 2.5, y - 2.0))  # a click 3 px beside the centre
                     n = len(picked)
-                    page.mouse.click(float(sx), float(sy))
-                    if not _wait(lambda: len(picked) > n, 5):  # the page drops a click now and then: again
+                    for _ in range(5):  # the page drops a click now and then (more often under load): again
                         page.mouse.click(float(sx), float(sy))
-                    assert _wait(lambda: len(picked) > n), handle.status
+                        if _wait(lambda: len(picked) > n, 6):
+                            break
+                    assert len(picked) > n, handle.status
                     assert "snapped to the target centre" in handle.status
                 assert _wait(lambda: "snapped" in _body(page))  # reported on the page
                 page.screenshot(path=str(tmp_path / "viewer.png"))
