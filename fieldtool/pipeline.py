@@ -667,7 +667,9 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
         res, stab_cached, extra = cached
         stab.update(stab_cached or {})
         fast.update(extra or {})
-    elif not project.piv.all_pairs and n_exp > 2:  # STIV (when on) then reads the clip by itself (ensure_sampled)
+    # rounds until converged pay off only when a round can skip frames: the stationary-pattern removal needs
+    # every frame of its window, so with it the pairs are correlated in one pass (demo: 3.2 s against 5.8 s)
+    elif not project.piv.all_pairs and not standardize and n_exp > 2:  # STIV then reads the clip by itself
         plan_pairs(piv_stream(want=lambda k: k <= planning.LOOK_PAIRS))  # the first look reads the first frames
         gap = max(1, int(params.frame_gap))
         if n_exp - gap >= 2:

@@ -136,6 +136,9 @@ def test_pipeline_band_and_convergence_keys_and_cache(scene):
     proj.roi.rect_px = []
     proj.piv.min_pairs = 10
     proj.piv.frame_gap = 1  # pairs of consecutive frames: 35 in the 36-frame clip
+    one_pass = run_project(proj, None)  # stationary-pattern removal reads every frame: one pass, every pair
+    assert one_pass.summary()["converged"] is None and one_pass.summary()["pairs_used"] == 35
+    proj.piv.remove_stationary = False  # rounds that skip frames until the discharge has converged
     fast = run_project(proj, scene / "out")
     d = json.loads((scene / "out" / "result.json").read_text())
     assert d["pairs_used"] == fast.piv.n_pairs and 10 <= d["pairs_used"] <= 35 and isinstance(d["converged"], bool)
