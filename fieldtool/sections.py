@@ -67,6 +67,7 @@ def measure(project, inputs, spec: SectionSpec, level, mapping, res, U, V, frame
     """Discharge, interval and grade of one extra section on the run's field; never raises for a bad section
     (its entry then holds ``error``)."""
     from .assess import assess_run
+    from .pipeline import build_section
     from .processing import cross_section as xs
 
     entry: dict = {"name": spec.name, "points_px": spec.points_px}
@@ -81,8 +82,7 @@ def measure(project, inputs, spec: SectionSpec, level, mapping, res, U, V, frame
         ortho.check_in_frame(np.asarray(spec.points_px, float), inputs.shape, f"sections[{spec.index}].points_px")
         pts = np.asarray(spec.points_px, float)
         for attempt in (0, 1):
-            geom = dq.section_geometry(vin.to_working(pts), mapping, cs, level.level_m, sec.n_sub, sec.station_offset_m)
-            dq.check_section(geom, cs, level.level_m, sec.min_length_fraction, sec.edge_tolerance_m)
+            geom = build_section(view, vin, level.level_m, mapping, points_px=pts.tolist())
             v_sub = dq.subsection_velocity(geom, res.x, res.y, U, V)
             dres = dq.compute_discharge(geom, cs, level.level_m, v_sub, sec.alpha)
             if dres.discharge_m3s >= 0 or attempt:
