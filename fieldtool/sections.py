@@ -48,7 +48,6 @@ def parse(project) -> list[SectionSpec]:
             if not isinstance(v, SECTION_KEYS[name]) or isinstance(v, bool):
                 raise ParameterError(f"{k}.{name}: wrong type {type(v).__name__}")
         pts = item.get("points_px", [])
-        arr = np.asarray(pts, dtype=object)
         try:
             arr = np.asarray(pts, float)
         except (TypeError, ValueError):
