@@ -479,9 +479,11 @@ def piv_region(project: Project, inputs: Inputs, params, roi, segments) -> tuple
 
 
 def run_piv_fast(make_frames, n_pairs: int, gap: int, params, roi, mask, max_speed, cancel, on_pair, pair_q,
-                 rel_ci: float, min_pairs: int):
+                 rel_ci: float, min_pairs: int, drain_first: bool = False):
     """PIV with pairs added until the discharge has converged (``processing.piv_fast.converge``), each round's
-    frames read by a background thread. Returns (PivResult, dict of pairs_used, converged, ...)."""
+    frames read by a background thread (``make_frames`` may hand one already reading). ``drain_first``: the
+    first round's stream is read to its end (STIV samples its lines from it). Returns (PivResult, dict of
+    pairs_used, converged, ...)."""
     from dataclasses import asdict
 
     from .processing import piv as piv_mod
@@ -493,10 +495,14 @@ def run_piv_fast(make_frames, n_pairs: int, gap: int, params, roi, mask, max_spe
         raise ParameterError(f"piv.min_pairs: {min_pairs!r} must be a whole number of 2 or more (30 is usual)")
 
     def run(frames, select, carry):
-        reader = piv_fast.prefetch(frames)
+        reader = frames if isinstance(frames, (piv_fast.prefetch, piv_fast.Prefetched)) else piv_fast.prefetch(frames)
         try:
-            return piv_mod.analyze(reader, params, roi=roi, mask=mask, max_speed_px_s=max_speed, cancel=cancel,
-                                   on_pair=on_pair, select=select, carry=carry)
+            res = piv_mod.analyze(reader, params, roi=roi, mask=mask, max_speed_px_s=max_speed, cancel=cancel,
+                                  on_pair=on_pair, select=select, carry=carry)
+            if carry is None and drain_first:
+                for _ in reader:
+                    pass
+            return res
         finally:
             reader.close()
 
@@ -626,7 +632,8 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
     def piv_stream(want=None, tap: bool = False):
         """The frames PIV reads: working frames, duplicate count, stationary-pattern removal (which needs every
         frame of its time window: then ``want`` is not used). ``tap``: STIV samples its lines from this stream."""
-        if standardize:
+        want_std = want
+        if standardize:  # every frame enters the standardisation's window; only the wanted ones are built
             want = None
         frames = working_frames(project, inputs, cancel, obs, stab if project.stabilize.enabled else None, progress,
                                 want=want)
@@ -644,7 +651,7 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
 
             surface_stats.frames = 0  # each round of the fast path standardises the clip again: count one pass
             frames = surface.standardize(frames, roi, margin=max(64, params.search_px or 0), half=surface.HALF_WINDOW,
-                                         shrink=surface.SHRINK, stats=surface_stats)
+                                         shrink=surface.SHRINK, stats=surface_stats, want=want_std)
         return frames
 
     def plan_pairs(frames):
@@ -667,18 +674,42 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
         res, stab_cached, extra = cached
         stab.update(stab_cached or {})
         fast.update(extra or {})
-    # rounds until converged pay off only when a round can skip frames: the stationary-pattern removal needs
-    # every frame of its window, so with it the pairs are correlated in one pass (demo: 3.2 s against 5.8 s)
-    elif not project.piv.all_pairs and not standardize and n_exp > 2:  # STIV then reads the clip by itself
-        plan_pairs(piv_stream(want=lambda k: k <= planning.LOOK_PAIRS))  # the first look reads the first frames
+    # pairs are added in rounds until the discharge converged (piv_fast.converge). With the stationary-pattern
+    # removal every frame of its window must be read, so the first round is one streamed pass that STIV and
+    # the first look share: its reader thread decodes and standardises every frame, but builds only the frames
+    # of the round's pairs, spread over the clip; a further round (a new pass) only when not converged
+    elif not project.piv.all_pairs and n_exp > 2:
+        from .processing.piv_fast import Prefetched, prefetch
+
+        first = None
+        if standardize:  # round 1 reads the stream the first look started; want is set when round 1 begins
+            round1_want: list = [None]
+            reader1 = prefetch(piv_stream(want=lambda k: round1_want[0] is None or round1_want[0](k), tap=True))
+            first = plan_pairs(reader1)
+        else:  # STIV then reads the clip by itself
+            plan_pairs(piv_stream(want=lambda k: k <= planning.LOOK_PAIRS))  # the first look reads the first frames
         gap = max(1, int(params.frame_gap))
+
+        def make_frames(want=None):
+            nonlocal first
+            if first is None:
+                return piv_stream(want=want)
+            round1_want[0] = want
+            frames, first = Prefetched(first, reader1.close), None
+            return frames
+
         if n_exp - gap >= 2:
-            res, conv = run_piv_fast(piv_stream, n_exp - gap, gap, params, roi, mask, max_speed, cancel, on_pair,
-                                     pair_q_fn(geom), project.piv.converge_rel_ci, project.piv.min_pairs)
+            res, conv = run_piv_fast(make_frames, n_exp - gap, gap, params, roi, mask, max_speed, cancel, on_pair,
+                                     pair_q_fn(geom), project.piv.converge_rel_ci, project.piv.min_pairs,
+                                     drain_first=standardize and stiv_run is not None)
             fast.update(conv)
         else:
-            res = piv_mod.analyze(piv_stream(), params, roi=roi, mask=mask, max_speed_px_s=max_speed, cancel=cancel,
-                                  on_pair=on_pair)
+            frames = make_frames()
+            try:
+                res = piv_mod.analyze(frames, params, roi=roi, mask=mask, max_speed_px_s=max_speed, cancel=cancel,
+                                      on_pair=on_pair)
+            finally:
+                getattr(frames, "close", lambda: None)()
             fast.update(pairs_used=int(res.n_pairs or 0), converged=None)
         if cache_dir is not None:
             piv_cache.save(cache_dir, key, res, stab or None, fast)

@@ -136,8 +136,19 @@ def test_pipeline_band_and_convergence_keys_and_cache(scene):
     proj.roi.rect_px = []
     proj.piv.min_pairs = 10
     proj.piv.frame_gap = 1  # pairs of consecutive frames: 35 in the 36-frame clip
-    one_pass = run_project(proj, None)  # stationary-pattern removal reads every frame: one pass, every pair
+    # stationary-pattern removal reads every frame; the pairs of the first round are spread over the clip and
+    # correlated in that same pass
+    std_fast = run_project(proj, None)
+    s = std_fast.summary()
+    assert isinstance(s["converged"], bool) and 10 <= s["pairs_used"] <= 35 and s["piv_sampling"]["rounds"] >= 1
+    assert std_fast.robust["stationary_removed"]["frames"] == 36  # every frame standardised, in one pass
+    proj.piv.all_pairs = True
+    one_pass = run_project(proj, None)
     assert one_pass.summary()["converged"] is None and one_pass.summary()["pairs_used"] == 35
+    assert abs(std_fast.discharge.discharge_m3s / one_pass.discharge.discharge_m3s - 1) < 0.01
+    if one_pass.stiv is not None:  # STIV samples its lines from the first round's stream: the whole clip
+        assert std_fast.stiv["discharge_m3s"] == pytest.approx(one_pass.stiv["discharge_m3s"], rel=1e-6)
+    proj.piv.all_pairs = False
     proj.piv.remove_stationary = False  # rounds that skip frames until the discharge has converged
     fast = run_project(proj, scene / "out")
     d = json.loads((scene / "out" / "result.json").read_text())
