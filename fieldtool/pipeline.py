@@ -649,7 +649,10 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
         if standardize:
             from .processing import surface
 
+            from .processing.piv_fast import threaded
+
             surface_stats.frames = 0  # each round of the fast path standardises the clip again: count one pass
+            frames = threaded(frames)  # decoding (and STIV's sampling) in a thread of its own
             frames = surface.standardize(frames, roi, margin=max(64, params.search_px or 0), half=surface.HALF_WINDOW,
                                          shrink=surface.SHRINK, stats=surface_stats, want=want_std)
         return frames

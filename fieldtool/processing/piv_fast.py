@@ -285,3 +285,14 @@ class Prefetched:
 
     def close(self) -> None:
         self._close()
+
+
+def threaded(source: Iterable, depth: int = 4) -> Iterator:
+    """``source`` read by a :class:`prefetch` thread of its own, as a generator that stops that thread when it is
+    closed or dropped: a stage of a pipeline of threads (decoding in one, the stationary-pattern removal in the
+    next, the correlation in the caller's)."""
+    reader = prefetch(source, depth)
+    try:
+        yield from reader
+    finally:
+        reader.close()
