@@ -701,19 +701,23 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
             frames, first = Prefetched(first, reader1.close), None
             return frames
 
-        if n_exp - gap >= 2:
-            res, conv = run_piv_fast(make_frames, n_exp - gap, gap, params, roi, mask, max_speed, cancel, on_pair,
-                                     pair_q_fn(geom), project.piv.converge_rel_ci, project.piv.min_pairs,
-                                     drain_first=standardize and stiv_run is not None)
-            fast.update(conv)
-        else:
-            frames = make_frames()
-            try:
-                res = piv_mod.analyze(frames, params, roi=roi, mask=mask, max_speed_px_s=max_speed, cancel=cancel,
-                                      on_pair=on_pair)
-            finally:
-                getattr(frames, "close", lambda: None)()
-            fast.update(pairs_used=int(res.n_pairs or 0), converged=None)
+        try:
+            if n_exp - gap >= 2:
+                res, conv = run_piv_fast(make_frames, n_exp - gap, gap, params, roi, mask, max_speed, cancel, on_pair,
+                                         pair_q_fn(geom), project.piv.converge_rel_ci, project.piv.min_pairs,
+                                         drain_first=standardize and stiv_run is not None)
+                fast.update(conv)
+            else:
+                frames = make_frames()
+                try:
+                    res = piv_mod.analyze(frames, params, roi=roi, mask=mask, max_speed_px_s=max_speed, cancel=cancel,
+                                          on_pair=on_pair)
+                finally:
+                    getattr(frames, "close", lambda: None)()
+                fast.update(pairs_used=int(res.n_pairs or 0), converged=None)
+        finally:  # round 1's reader thread stops even when the rounds never started (a key refused)
+            if standardize:
+                reader1.close()
         if cache_dir is not None:
             piv_cache.save(cache_dir, key, res, stab or None, fast)
     else:
