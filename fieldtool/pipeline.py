@@ -111,6 +111,7 @@ class RunResult:
     robust: dict | None = None  # facts of the robust stages (processing/surface.py, robust.py, planning.py)
     piv_fast: dict | None = None  # region box and pair sampling of the fast path (see piv_region / run_piv_fast)
     video: dict = field(default_factory=dict)  # the clip's metadata (records.video_meta.video_info)
+    prerendered: object | None = None  # plots.prerender.Prerender: figures drawn during the PIV
 
     def summary(self) -> dict:
         d = self.discharge
@@ -605,6 +606,11 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
 
     obs("geometry", pair_q_fn(geom))
     obs("stage", "piv")
+    prerendered = None
+    if out_dir is not None:  # the figures of the inputs are drawn while the PIV waits for its frames
+        from .plots.prerender import Prerender
+
+        prerendered = Prerender(project, inputs, level, mapping)
     stab: dict = {}
     frame_stats: dict = {}
     surface_stats = None
@@ -823,7 +829,7 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
     result = RunResult(dres, q_pairs, level, mapping, res, geom, U, V, None, timings_s=timings, warnings=warnings,
                        stabilization=stab or None, project=project_to_dict(project), piv_reused=cached is not None,
                        uncertainty=unc, quality=qual, sections=section_entries, robust=robust_facts,
-                       stiv=stiv_block, piv_fast=fast)
+                       stiv=stiv_block, piv_fast=fast, prerendered=prerendered)
     if out_dir is not None:
         write_outputs(result, project, inputs, Path(out_dir))
     obs("result", result)
@@ -899,9 +905,14 @@ def _write_outputs(result: RunResult, inputs: Inputs, out: Path) -> None:
     files["rectified_png"] = plots.plot_rectified(out / "rectified.png", inputs.first_color, result, inputs).name
     files["section_png"] = plots.plot_section(out / "section.png", inputs.cross_section, result).name
     try:
-        from .plots.water_level import plot_level
+        png = result.prerendered.png("water_level.png") if result.prerendered is not None else None
+        if png:
+            atomic_write_bytes(out / "water_level.png", png)
+            files["water_level_png"] = "water_level.png"
+        else:
+            from .plots.water_level import plot_level
 
-        files["water_level_png"] = plot_level(out / "water_level.png", inputs.cross_section, result.level).name
+            files["water_level_png"] = plot_level(out / "water_level.png", inputs.cross_section, result.level).name
     except FieldToolError as e:
         result.warnings.append(f"water-level plot not written: {e}")
     files["result"] = "result.json"
