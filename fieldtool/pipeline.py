@@ -637,7 +637,8 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
 
     def piv_stream(want=None, tap: bool = False):
         """The frames PIV reads: working frames, duplicate count, stationary-pattern removal (which needs every
-        frame of its time window: then ``want`` is not used). ``tap``: STIV samples its lines from this stream."""
+        frame of its time window: then every frame is decoded and ``want`` only chooses the standardised frames
+        that are built). ``tap``: STIV samples its lines from this stream."""
         want_std = want
         if standardize:  # every frame enters the standardisation's window; only the wanted ones are built
             want = None
