@@ -159,7 +159,7 @@ class PivCfg:
     reject_upstream: bool = key(True)  # subsections going upstream while the section goes downstream: rejected, filled, reported
     region: str = key("section", choices=("section", "roi", "full"))  # section (a band around the section(s), within the ROI) | roi | full (whole frame)
     all_pairs: bool = key(False)  # true: correlate every pair; false: add pairs until the discharge has converged
-    converge_rel_ci: float = key(0.005, gt=0.0, le=1.0)  # stop when the 95 % interval of the trimmed mean per-pair Q is within +- this fraction
+    converge_rel_ci: float = key(0.005, gt=0.0, le=1.0)  # stop when the 95 % interval of the 10 %-trimmed mean per-pair Q is within +- this fraction
     min_pairs: int = key(30, ge=2, le=100000)  # fewest pairs before the convergence test
 
 
