@@ -685,12 +685,85 @@ def compute_level(cfg: WaterLevelCfg, cs: CrossSection, *, root: Path, mapping: 
     if m == "waterline":
         if mapping is None or detected is None:
             raise ParameterError("water_level.method = waterline needs the orthorectification and the clip")
-        sig = float(np.max(detected["sigma_px"]))
-        w, sw, world = image_width(detected["edges_px"], mapping, sig, None)
-        return _from_width(cs, w, sw, "waterline", {
-            "edges_px": np.asarray(detected["edges_px"]).tolist(), "edge_sigma_px": np.asarray(detected["sigma_px"]).tolist(),
-            "edges_world_m": world.tolist(), "search_line_px": np.asarray(detected["line_px"]).tolist(),
-            "contrast": detected["contrast"], "n_frames": detected["n_frames"],
-            "refined_on_mean_image": detected.get("refined_on_mean_image"),
-            "mapping_residual_m": float(mapping.residual_m)})
+        return waterline_level(cs, mapping, detected)
     raise ParameterError(f"water_level.method: {m!r} is not one of {', '.join(METHODS)}")
+
+
+# ---------------------------------------------------------------------------------------------
+# waterline: levels of several search lines, checked against each other
+
+WATERLINE_MIN_LINES = 3  # lines with both edges found (of 5) below which the method refuses
+WATERLINE_DOUBT_M = 0.02  # the lines' levels scatter more than this (sd, m): doubtful, sigma widened by the scatter
+WATERLINE_REFUSE_M = 0.05  # ... more than this: refused
+REFUSE_FIX = ("type the level (water_level.method = value, water_level.value_m) or pick the two water edges on the "
+              "frame (water_level.method = image)")
+
+
+def _refuse(why: str) -> GeometryError:
+    return GeometryError(f"water_level.method = waterline: could not find the water line reliably ({why}); {REFUSE_FIX}")
+
+
+def waterline_level(cs: CrossSection, mapping: OrthoMapping, detected: dict) -> LevelResult:
+    """Level from the water edges found along several parallel search lines
+    (:func:`processing.waterline.detect_water_edges`).
+
+    Each line's edges give a width on the water plane (:func:`image_width`) and so a level. In a reach
+    where the width changes slowly, lines a few decimetres apart must give the same level: their scatter
+    is the self-check. The level is the median of the lines' levels; its 1-sigma combines the median
+    line's own 1-sigma and the scatter (sd) between lines.
+
+    Refuses (GeometryError naming ``water_level.method`` and the fix: type the level) when the centre line
+    finds no edge, fewer than ``WATERLINE_MIN_LINES`` lines do, or the lines' levels scatter more than
+    ``WATERLINE_REFUSE_M``; a scatter above ``WATERLINE_DOUBT_M``, or a single line, is listed in
+    ``details["doubtful"]`` (turned into a quality reason by the caller).
+    """
+    per = []
+    for ln in detected["lines"]:
+        item = {"offset_m": ln["offset_m"], "search_line_px": np.asarray(ln["line_px"]).tolist()}
+        if "error" in ln:
+            item["error"] = ln["error"]
+            per.append(item)
+            continue
+        sig = float(np.max(ln["sigma_px"]))
+        try:
+            w, sw, world = image_width(ln["edges_px"], mapping, sig, None)
+            r = _from_width(cs, w, sw, "waterline", {})
+        except GeometryError as e:
+            item["error"] = str(e)
+            per.append(item)
+            continue
+        item.update(level_m=r.level_m, uncertainty_m=r.uncertainty_m, width_m=w, width_sigma_m=sw,
+                    edges_px=np.asarray(ln["edges_px"]).tolist(), edge_sigma_px=np.asarray(ln["sigma_px"]).tolist(),
+                    edges_world_m=world.tolist(), contrast=ln["contrast"], still_water_px=ln["still_water_px"])
+        per.append(item)
+    ok = [p for p in per if "level_m" in p]
+    centre = per[0]
+    if "level_m" not in centre:
+        raise _refuse(f"on the search line: {centre['error']}")
+    if len(per) > 1 and len(ok) < WATERLINE_MIN_LINES:
+        raise _refuse(f"only {len(ok)} of {len(per)} parallel search lines found both edges")
+    z = np.array([p["level_m"] for p in ok])
+    s = np.array([p["uncertainty_m"] for p in ok])
+    zm = float(np.median(z))
+    spread = float(np.std(z, ddof=1)) if len(z) > 1 else 0.0
+    if spread > WATERLINE_REFUSE_M:
+        raise _refuse(f"the levels of {len(ok)} parallel search lines scatter by {100 * spread:.1f} cm (sd), more "
+                      f"than {100 * WATERLINE_REFUSE_M:g} cm: the edges are not where the water ends on some of them")
+    doubts = []
+    if spread > WATERLINE_DOUBT_M:
+        doubts.append({"code": "waterline_scatter", "value": spread, "threshold": WATERLINE_DOUBT_M,
+                       "message": f"the water line's parallel search lines give levels {100 * spread:.1f} cm apart "
+                                  f"(sd, over {100 * WATERLINE_DOUBT_M:g} cm); its uncertainty includes that scatter"})
+    if len(per) == 1:
+        doubts.append({"code": "waterline_unchecked", "value": None, "threshold": None,
+                       "message": "the water line was searched on one line only (water_level.search_spacing_m = 0): "
+                                  "nothing checks it"})
+    k = int(np.argmin(np.abs(z - zm)))
+    sigma = float(np.hypot(s[k], spread))
+    res = _from_width(cs, ok[k]["width_m"], ok[k]["width_sigma_m"], "waterline",
+                      {"lines": per, "n_frames": detected["n_frames"], "mapping_residual_m": float(mapping.residual_m)})
+    res.details.update(lines_found=len(ok), lines_spread_m=spread, centre_level_m=centre["level_m"],
+                       edges_px=ok[k]["edges_px"], edge_sigma_px=ok[k]["edge_sigma_px"],
+                       edges_world_m=ok[k]["edges_world_m"], search_line_px=centre["search_line_px"],
+                       contrast=ok[k]["contrast"], doubtful=doubts)
+    return LevelResult(zm, res.width_m, sigma, "waterline", res.details)
