@@ -3,10 +3,12 @@
 Flowing water changes from frame to frame (tracers, ripples, glints); banks do not. Along a search line
 that crosses the river from bank to bank, the temporal standard deviation of the grey levels (averaged
 over a thin band across the line) is high over the water and low over the banks. The water edges are
-where that activity falls from the water's level to the bank's, searched outwards from the middle of
-the line (see :func:`find_edges`); their sub-pixel position comes from linear interpolation, and their
-1-sigma from the steepness of the transition. With the ortho mapping and the cross-section, the two
-edges give the wetted width and so the water level (as the thesis' image method, 5.3, without clicks).
+where that activity falls from the water's level to the bank's (see :func:`find_edges`). Still water at a
+bank is not active, so each edge then walks outwards over still water onto the bank and snaps to the step of
+the time-averaged image (:func:`settle_on_bank`). The same is done on parallel lines a few decimetres apart
+on the water plane (:func:`parallel_lines`); with the ortho mapping and the cross-section each line's edges
+give a width and so a level, and the lines must agree (``processing.water_level.waterline_level``), as the
+thesis' image method (5.3) without clicks.
 
 Image space: working-image pixels (undistorted), x right, y down. Intensities 0-255.
 """
