@@ -229,11 +229,17 @@ def compute_level(project: Project, inputs: Inputs, mapping: ortho.OrthoMapping 
     from .processing.water_level import compute_level as _compute
 
     detected = detect_waterline(project, inputs, mapping) if project.water_level.method == "waterline" else None
+    sec = project.section
+    station_of = None  # with a surveyed station of the section's first point, each edge gives a level too
+    if detected is not None and sec.station_offset_m is not None and np.shape(sec.points_px) == (2, 2):
+        from .processing.waterline import station_function
+
+        station_of = station_function(inputs.to_working(sec.points_px), mapping, sec.station_offset_m)
     fov = inputs.lens.fov_deg() if inputs.lens is not None else None
     return _compute(project.water_level, inputs.cross_section, root=project.root, mapping=mapping, fov_deg=fov,
                     points_transform=inputs.to_working if inputs.lens is not None else None,
                     image_undistort=inputs.lens.undistort_points_in if inputs.lens is not None else None,
-                    detected=detected)
+                    detected=detected, station_of=station_of)
 
 
 def build_mapping(project: Project, inputs: Inputs, level_m: float | None) -> ortho.OrthoMapping:

@@ -90,6 +90,18 @@ def test_moderate_scatter_is_doubtful_and_widens_the_uncertainty():
     assert lv.uncertainty_m >= lv.details["lines_spread_m"]
 
 
+def test_with_a_surveyed_station_each_edge_gives_a_level_and_they_must_agree():
+    """Edges 8 m apart at px x = 100: on the V channel the level is 10.4 m with the edges at stations 6 and 14."""
+    det = _lines([8.0, 8.0, 8.0])
+    right = waterline_level(V, from_scale(0.01), det, station_of=lambda w: np.asarray(w)[:, 0] + 5.0)
+    assert right.details["edge_levels"]["levels_m"] == pytest.approx([10.4, 10.4], abs=1e-6)
+    assert right.details["doubtful"] == []
+    # a station offset 2 m off puts the edges at 8 and 16 m: bank levels 10.2 and 10.6, doubtful
+    off = waterline_level(V, from_scale(0.01), det, station_of=lambda w: np.asarray(w)[:, 0] + 7.0)
+    assert off.level_m == pytest.approx(10.4, abs=1e-6)  # the width does not move
+    assert [d["code"] for d in off.details["doubtful"]] == ["waterline_edges_disagree"]
+
+
 def test_extend_line_is_clipped_to_the_frame():
     ln = extend_line([100, 100], [300, 200], 0.4, (240, 320))
     assert np.all(ln >= 0) and np.all(ln[:, 0] <= 319) and np.all(ln[:, 1] <= 239)

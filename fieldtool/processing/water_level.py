@@ -617,7 +617,8 @@ def compute_level(cfg: WaterLevelCfg, cs: CrossSection, *, root: Path, mapping: 
                   fov_deg: tuple[float, float, float] | None = None,
                   points_transform: Callable[[np.ndarray], np.ndarray] | None = None,
                   image_undistort: Callable[[np.ndarray, tuple[int, int]], np.ndarray] | None = None,
-                  detected: dict | None = None) -> LevelResult:
+                  detected: dict | None = None,
+                  station_of: Callable[[np.ndarray], np.ndarray] | None = None) -> LevelResult:
     """Water level by ``cfg.method`` (see module docstring).
 
     Parameters
@@ -634,6 +635,8 @@ def compute_level(cfg: WaterLevelCfg, cs: CrossSection, *, root: Path, mapping: 
         (angle_height: the pinhole formulas of thesis 5.2.1 need undistorted edges).
     detected : method = waterline: :func:`processing.waterline.detect_water_edges`' result (edges in
         working-image pixels and their 1-sigma), measured on the clip by the caller.
+    station_of : method = waterline: water-plane points (N, 2) m -> cross-section stations (m), when the
+        section's first point has a surveyed station (see :func:`waterline_level`).
     """
     root = Path(root)
     m = cfg.method
@@ -685,7 +688,7 @@ def compute_level(cfg: WaterLevelCfg, cs: CrossSection, *, root: Path, mapping: 
     if m == "waterline":
         if mapping is None or detected is None:
             raise ParameterError("water_level.method = waterline needs the orthorectification and the clip")
-        return waterline_level(cs, mapping, detected)
+        return waterline_level(cs, mapping, detected, station_of)
     raise ParameterError(f"water_level.method: {m!r} is not one of {', '.join(METHODS)}")
 
 
@@ -695,6 +698,8 @@ def compute_level(cfg: WaterLevelCfg, cs: CrossSection, *, root: Path, mapping: 
 WATERLINE_MIN_LINES = 3  # lines with both edges found (of 5) below which the method refuses
 WATERLINE_DOUBT_M = 0.02  # the lines' levels scatter more than this (sd, m): doubtful, sigma widened by the scatter
 WATERLINE_REFUSE_M = 0.05  # ... more than this: refused
+WATERLINE_EDGES_K = 3.0  # with section.station_offset_m: the two edges' bank levels differ by more than this times
+WATERLINE_EDGES_MIN_M = 0.03  # their combined 1-sigma and this (m): doubtful
 REFUSE_FIX = ("type the level (water_level.method = value, water_level.value_m) or pick the two water edges on the "
               "frame (water_level.method = image)")
 
@@ -703,7 +708,8 @@ def _refuse(why: str) -> GeometryError:
     return GeometryError(f"water_level.method = waterline: could not find the water line reliably ({why}); {REFUSE_FIX}")
 
 
-def waterline_level(cs: CrossSection, mapping: OrthoMapping, detected: dict) -> LevelResult:
+def waterline_level(cs: CrossSection, mapping: OrthoMapping, detected: dict,
+                    station_of: Callable[[np.ndarray], np.ndarray] | None = None) -> LevelResult:
     """Level from the water edges found along several parallel search lines
     (:func:`processing.waterline.detect_water_edges`).
 
@@ -716,6 +722,13 @@ def waterline_level(cs: CrossSection, mapping: OrthoMapping, detected: dict) -> 
     finds no edge, fewer than ``WATERLINE_MIN_LINES`` lines do, or the lines' levels scatter more than
     ``WATERLINE_REFUSE_M``; a scatter above ``WATERLINE_DOUBT_M``, or a single line, is listed in
     ``details["doubtful"]`` (turned into a quality reason by the caller).
+
+    ``station_of``: water-plane points (N, 2) m -> cross-section stations (m), known when the section's
+    first point has a surveyed station (``section.station_offset_m``). Then each edge of the median line
+    also gives a level on its own, the bed elevation of its bank at its station, and the two must agree
+    (within ``WATERLINE_EDGES_K`` times their combined 1-sigma and ``WATERLINE_EDGES_MIN_M``), else the
+    run is doubtful. A station offset that is wrong moves both edges' levels in opposite directions, so
+    this check also catches it.
     """
     per = []
     for ln in detected["lines"]:
@@ -759,11 +772,23 @@ def waterline_level(cs: CrossSection, mapping: OrthoMapping, detected: dict) -> 
                        "message": "the water line was searched on one line only (water_level.search_spacing_m = 0): "
                                   "nothing checks it"})
     k = int(np.argmin(np.abs(z - zm)))
+    edge_levels = None
+    if station_of is not None:
+        st = np.sort(np.asarray(station_of(np.asarray(ok[k]["edges_world_m"], float)), float).ravel())
+        ez = np.interp(st, cs.station, cs.elevation)
+        slope = np.abs(np.gradient(cs.elevation, cs.station))
+        ss = ok[k]["width_sigma_m"] * np.interp(st, cs.station, slope)  # each edge's station 1-sigma <= the width's
+        gap, tol = float(ez[1] - ez[0]), float(max(WATERLINE_EDGES_K * np.hypot(*ss), WATERLINE_EDGES_MIN_M))
+        edge_levels = {"stations_m": st.tolist(), "levels_m": ez.tolist(), "difference_m": gap, "tolerance_m": tol}
+        if abs(gap) > tol:
+            doubts.append({"code": "waterline_edges_disagree", "value": abs(gap), "threshold": tol,
+                           "message": f"the water line's left and right edges lie on the banks at levels {100 * abs(gap):.1f} cm "
+                                      f"apart (over {100 * tol:.1f} cm): an edge is off, or section.station_offset_m is"})
     sigma = float(np.hypot(s[k], spread))
     res = _from_width(cs, ok[k]["width_m"], ok[k]["width_sigma_m"], "waterline",
                       {"lines": per, "n_frames": detected["n_frames"], "mapping_residual_m": float(mapping.residual_m)})
     res.details.update(lines_found=len(ok), lines_spread_m=spread, centre_level_m=centre["level_m"],
                        edges_px=ok[k]["edges_px"], edge_sigma_px=ok[k]["edge_sigma_px"],
                        edges_world_m=ok[k]["edges_world_m"], search_line_px=centre["search_line_px"],
-                       contrast=ok[k]["contrast"], doubtful=doubts)
+                       contrast=ok[k]["contrast"], edge_levels=edge_levels, doubtful=doubts)
     return LevelResult(zm, res.width_m, sigma, "waterline", res.details)

@@ -220,6 +220,14 @@ def settle_on_bank(mean: np.ndarray, texture: np.ndarray, activity: np.ndarray, 
     return {"edges": out, "sigma": np.full(2, EDGE_SIGMA_SAMPLES), "still_water": still}
 
 
+def station_function(section_px: np.ndarray, mapping, station_offset_m: float):
+    """Water-plane points (N, 2) m -> cross-section stations (m): the distance along the section (two
+    working-image points, the first at ``station_offset_m``) from its first point."""
+    pw = mapping.image_to_world(np.asarray(section_px, float))
+    u = (pw[1] - pw[0]) / max(float(np.hypot(*(pw[1] - pw[0]))), 1e-12)
+    return lambda w: station_offset_m + (np.asarray(w, float) - pw[0]) @ u
+
+
 def parallel_lines(line_px: np.ndarray, mapping, spacing_m: float, n_side: int, shape: tuple[int, int]) -> list:
     """The search line and ``n_side`` lines on each side of it, ``spacing_m`` apart on the water plane
     (shifted along the plane's normal to the line, mapped back to the image and clipped to the frame).
