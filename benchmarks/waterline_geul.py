@@ -22,7 +22,7 @@ from fieldtool.processing import pose, waterline
 from fieldtool.processing.calibration import LensModel
 from fieldtool.processing.frames import FrameSource
 from fieldtool.processing.ortho import from_homography
-from fieldtool.processing.water_level import image_width
+from fieldtool.processing.water_level import WATERLINE_WEAK_CONTRAST, image_width
 
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "real"
 LINE_RAW_PX = [[300.0, 440.0], [1760.0, 580.0]]  # left bank grass -> right bank grass, across the water
@@ -56,6 +56,10 @@ def main() -> None:
               f"width on z_0 = {cfg['gcps']['z_0']} m: {w:.2f} +- {sw:.2f} m")
     if len(widths) > 1:
         print(f"widths over {len(widths)} lines: median {np.median(widths):.2f} m, sd {np.std(widths, ddof=1):.2f} m")
+    contrast = float(np.median([ln["contrast"] for ln in det["lines"] if "contrast" in ln]))
+    weak = contrast < WATERLINE_WEAK_CONTRAST
+    print(f"median activity contrast water / banks {contrast:.1f}" +
+          (f": under {WATERLINE_WEAK_CONTRAST:g}, so with a cross-section the level would be graded doubtful" if weak else ""))
     if a.png:
         from fieldtool.processing.frames import read_color_frame
 
@@ -75,6 +79,8 @@ def main() -> None:
         cv2.putText(img, txt, (30, 60), cv2.FONT_HERSHEY_SIMPLEX, 1.15, (0, 255, 255), 3)
         cv2.putText(img, "activity along the centre line (blue). No cross-section: no level from these edges.",
                     (30, 110), cv2.FONT_HERSHEY_SIMPLEX, 1.15, (0, 255, 255), 3)
+        cv2.putText(img, f"water/bank activity contrast {contrast:.1f}" + (" (weak: moving grass; some edges in the grass) "
+                    "-> doubtful" if weak else ""), (30, 160), cv2.FONT_HERSHEY_SIMPLEX, 1.15, (0, 255, 255), 3)
         cv2.imwrite(a.png, cv2.resize(img, (960, 540), interpolation=cv2.INTER_AREA))
         print(f"wrote {a.png}")
 

@@ -58,14 +58,14 @@ def test_still_water_at_a_bank_is_walked_over_onto_the_bank():
     assert s["still_water"][0] >= 25
 
 
-def _lines(levels_width_m, scale=0.01):
+def _lines(levels_width_m, scale=0.01, contrast=20.0):
     """``detected`` as detect_water_edges gives it, for lines whose edges are ``width / scale`` px apart."""
     out = []
     for k, w in enumerate(levels_width_m):
         x0 = 100.0
         out.append({"offset_m": 0.4 * k, "line_px": np.array([[50.0, 100 + k], [1500.0, 100 + k]]),
                     "edges_px": np.array([[x0, 100 + k], [x0 + w / scale, 100 + k]]), "sigma_px": np.array([1.5, 1.5]),
-                    "contrast": 20.0, "still_water_px": [0.0, 0.0]})
+                    "contrast": contrast, "still_water_px": [0.0, 0.0]})
     return {"lines": out, "n_frames": 30}
 
 
@@ -84,10 +84,23 @@ def test_parallel_lines_that_disagree_are_refused_naming_the_method_and_the_fix(
         waterline_level(V, from_scale(0.01), _lines([8.0, 10.0, 6.0, 8.0, 9.5]))  # levels 10.3..10.5: sd 8 cm
 
 
+def test_a_level_too_uncertain_is_refused():
+    det = _lines([8.0] * 5)
+    for ln in det["lines"]:
+        ln["sigma_px"] = np.array([400.0, 400.0])  # 4 m per edge on the water: a level +-14 cm
+    with pytest.raises(GeometryError, match="uncertain by .* more than 5 cm"):
+        waterline_level(V, from_scale(0.01), det)
+
+
 def test_moderate_scatter_is_doubtful_and_widens_the_uncertainty():
     lv = waterline_level(V, from_scale(0.01), _lines([8.0, 8.6, 7.4, 8.0, 8.3]))  # sd ~2.4 cm of level
     assert [d["code"] for d in lv.details["doubtful"]] == ["waterline_scatter"]
     assert lv.uncertainty_m >= lv.details["lines_spread_m"]
+
+
+def test_weak_contrast_between_water_and_banks_is_doubtful():
+    lv = waterline_level(V, from_scale(0.01), _lines([8.0] * 5, contrast=4.0))  # wind-blown grass: Geul gives 3.6-4.8
+    assert [d["code"] for d in lv.details["doubtful"]] == ["waterline_weak_contrast"]
 
 
 def test_with_a_surveyed_station_each_edge_gives_a_level_and_they_must_agree():

@@ -697,7 +697,9 @@ def compute_level(cfg: WaterLevelCfg, cs: CrossSection, *, root: Path, mapping: 
 
 WATERLINE_MIN_LINES = 3  # lines with both edges found (of 5) below which the method refuses
 WATERLINE_DOUBT_M = 0.02  # the lines' levels scatter more than this (sd, m): doubtful, sigma widened by the scatter
-WATERLINE_REFUSE_M = 0.05  # ... more than this: refused
+WATERLINE_REFUSE_M = 0.05  # ... more than this, or a level 1-sigma above it: refused
+WATERLINE_WEAK_CONTRAST = 6.0  # water less than this many times as active as the quieter bank: doubtful (the
+# synthetic scenes give 17-35; wind-blown grass on the Geul clip gives 3.6-4.8 and puts edges in the grass)
 WATERLINE_EDGES_K = 3.0  # with section.station_offset_m: the two edges' bank levels differ by more than this times
 WATERLINE_EDGES_MIN_M = 0.03  # their combined 1-sigma and this (m): doubtful
 REFUSE_FIX = ("type the level (water_level.method = value, water_level.value_m) or pick the two water edges on the "
@@ -719,8 +721,9 @@ def waterline_level(cs: CrossSection, mapping: OrthoMapping, detected: dict,
     line's own 1-sigma and the scatter (sd) between lines.
 
     Refuses (GeometryError naming ``water_level.method`` and the fix: type the level) when the centre line
-    finds no edge, fewer than ``WATERLINE_MIN_LINES`` lines do, or the lines' levels scatter more than
-    ``WATERLINE_REFUSE_M``; a scatter above ``WATERLINE_DOUBT_M``, or a single line, is listed in
+    finds no edge, fewer than ``WATERLINE_MIN_LINES`` lines do, or the lines' levels scatter, or the level's
+    1-sigma is, more than ``WATERLINE_REFUSE_M``; a scatter above ``WATERLINE_DOUBT_M``, a weak activity contrast between water
+    and banks (``WATERLINE_WEAK_CONTRAST``), or a single line, is listed in
     ``details["doubtful"]`` (turned into a quality reason by the caller).
 
     ``station_of``: water-plane points (N, 2) m -> cross-section stations (m), known when the section's
@@ -767,6 +770,12 @@ def waterline_level(cs: CrossSection, mapping: OrthoMapping, detected: dict,
         doubts.append({"code": "waterline_scatter", "value": spread, "threshold": WATERLINE_DOUBT_M,
                        "message": f"the water line's parallel search lines give levels {100 * spread:.1f} cm apart "
                                   f"(sd, over {100 * WATERLINE_DOUBT_M:g} cm); its uncertainty includes that scatter"})
+    contrast = float(np.median([p["contrast"] for p in ok]))
+    if contrast < WATERLINE_WEAK_CONTRAST:
+        doubts.append({"code": "waterline_weak_contrast", "value": contrast, "threshold": WATERLINE_WEAK_CONTRAST,
+                       "message": f"along the water line's search lines the water is only {contrast:.1f} times as active "
+                                  f"as the banks (under {WATERLINE_WEAK_CONTRAST:g}): moving grass or slow water may put an "
+                                  "edge on the wrong side"})
     if len(per) == 1:
         doubts.append({"code": "waterline_unchecked", "value": None, "threshold": None,
                        "message": "the water line was searched on one line only (water_level.search_spacing_m = 0): "
@@ -785,6 +794,9 @@ def waterline_level(cs: CrossSection, mapping: OrthoMapping, detected: dict,
                            "message": f"the water line's left and right edges lie on the banks at levels {100 * abs(gap):.1f} cm "
                                       f"apart (over {100 * tol:.1f} cm): an edge is off, or section.station_offset_m is"})
     sigma = float(np.hypot(s[k], spread))
+    if sigma > WATERLINE_REFUSE_M:
+        raise _refuse(f"the level it gives is uncertain by {100 * sigma:.1f} cm (1-sigma), more than "
+                      f"{100 * WATERLINE_REFUSE_M:g} cm: the edges are seen too obliquely or too blurred to give the level")
     res = _from_width(cs, ok[k]["width_m"], ok[k]["width_sigma_m"], "waterline",
                       {"lines": per, "n_frames": detected["n_frames"], "mapping_residual_m": float(mapping.residual_m)})
     res.details.update(lines_found=len(ok), lines_spread_m=spread, centre_level_m=centre["level_m"],
