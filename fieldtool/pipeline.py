@@ -202,9 +202,10 @@ def load_inputs(project: Project) -> Inputs:
     return Inputs(cs, src, lens, first)
 
 
-def detect_waterline(project: Project, inputs: Inputs) -> dict:
+def detect_waterline(project: Project, inputs: Inputs, mapping: ortho.OrthoMapping | None = None) -> dict:
     """Water edges found along the search line in the clip's first frames (processing.waterline): the
-    project's ``water_level.search_line_px``, else the section's points lengthened by 40 % each way."""
+    project's ``water_level.search_line_px``, else the section's points lengthened by 40 % each way; with a
+    ``mapping``, also along 2 lines each side of it, ``water_level.search_spacing_m`` apart on the water."""
     from .processing import waterline
 
     wl = project.water_level
@@ -218,20 +219,28 @@ def detect_waterline(project: Project, inputs: Inputs) -> dict:
             raise ParameterError("water_level.search_line_px: draw a line from bank to bank across the river "
                                  "(or pick the section's water edges, which it extends)")
         line = waterline.extend_line(*inputs.to_working(sec), 0.4, inputs.shape)
+    lines = (waterline.parallel_lines(line, mapping, wl.search_spacing_m, 2, inputs.shape) if mapping is not None
+             else [(0.0, line)])
     frames = (inputs.lens.undistort(f.image) if inputs.lens is not None else f.image for f in inputs.source)
-    return waterline.detect_water_edges(frames, line)
+    return waterline.detect_water_edges(frames, lines)
 
 
 def compute_level(project: Project, inputs: Inputs, mapping: ortho.OrthoMapping | None):
     """Water level by the project's method (see processing.water_level)."""
     from .processing.water_level import compute_level as _compute
 
-    detected = detect_waterline(project, inputs) if project.water_level.method == "waterline" else None
+    detected = detect_waterline(project, inputs, mapping) if project.water_level.method == "waterline" else None
+    sec = project.section
+    station_of = None  # with a surveyed station of the section's first point, each edge gives a level too
+    if detected is not None and sec.station_offset_m is not None and np.shape(sec.points_px) == (2, 2):
+        from .processing.waterline import station_function
+
+        station_of = station_function(inputs.to_working(sec.points_px), mapping, sec.station_offset_m)
     fov = inputs.lens.fov_deg() if inputs.lens is not None else None
     return _compute(project.water_level, inputs.cross_section, root=project.root, mapping=mapping, fov_deg=fov,
                     points_transform=inputs.to_working if inputs.lens is not None else None,
                     image_undistort=inputs.lens.undistort_points_in if inputs.lens is not None else None,
-                    detected=detected)
+                    detected=detected, station_of=station_of)
 
 
 def build_mapping(project: Project, inputs: Inputs, level_m: float | None) -> ortho.OrthoMapping:

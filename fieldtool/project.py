@@ -128,6 +128,7 @@ class WaterLevelCfg:
     # waterline: a line from bank to bank on the raw frame along which the water edges are found; [] = the
     # section's points lengthened by 40 % each way
     search_line_px: list[Point] = key(factory=list, unit="px", dim=2, counts=(0, 2), ge=-1e5, le=1e5)
+    search_spacing_m: float = key(0.4, unit="m", ge=0.0, le=100.0)  # waterline: 2 more lines each side of the search line, this far apart on the water (m); their levels must agree; 0 = one line
 
 
 @dataclass
