@@ -15,6 +15,10 @@ around the section, pairs added until converged):
   whole ``run_project`` (cProfile, main thread; decoding runs in the reader thread and shows as waiting inside
   ``analyze``).
 
+``--masked-speed``: instead, the engine alone (``piv.analyze``, 2 passes, 32/16, 8 pairs of 1280 x 720 synthetic
+particle frames) with 0 / 30 / 50 % of the frame masked (a bank), the final pass skipping the masked nodes or not
+(``piv._SKIP_MASKED``), alternating runs, medians; the 0 % row runs the same code twice (the noise floor).
+
 Prints the load average; on a shared machine the seconds are noisy, the shares less so.
 """
 
@@ -40,7 +44,12 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--duration", type=float, default=2.0, help="clip length (s)")
     ap.add_argument("--scenes", default="oblique,nadir,ripples,glints_section")
+    ap.add_argument("--masked-speed", action="store_true", help="time the skipping of masked nodes instead")
+    ap.add_argument("--runs", type=int, default=7, help="alternating runs of --masked-speed")
     args = ap.parse_args()
+    if args.masked_speed:
+        masked_speed(args.runs)
+        return
     pipeline.write_outputs = lambda *a, **k: None  # the numbers only
 
     grads: list[np.ndarray] = []
@@ -82,6 +91,36 @@ def main() -> None:
             share = [f"{100 * (a < t).mean():.0f} %" if a.size else "-" for t in (0.05, 0.1, 0.25)]
             print(f"| {name} | {len(grads)} | {' | '.join(share)} | {remap:.2f} | {fft:.2f} | {an:.2f} | {run:.2f} |",
                   flush=True)
+
+
+def masked_speed(runs: int) -> None:
+    import sys
+    import time
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    from tests.test_piv import particle_clip  # the test suite's particle renderer
+
+    h, w, pairs = 720, 1280, 8
+    frames = particle_clip(lambda x, y: (2.0 + 0 * x, 1.0 + 0 * y), h=h, w=w, n_frames=pairs + 1, seed=1)
+    params = piv.PivParams(window_px=32, overlap_px=16, passes=2)
+    print(f"{pairs} pairs of {w} x {h} px, 2 passes, 32/16, {runs} alternating runs")
+    print("| masked | skip off (pairs/s) | skip on (pairs/s) | ratio of medians | median of ratios | load |")
+    print("|---|---|---|---|---|---|")
+    for frac in (0.0, 0.3, 0.5):
+        mask = np.zeros((h, w), bool)
+        mask[:, : int(frac * w)] = True
+        t: dict[bool, list[float]] = {False: [], True: []}
+        for _ in range(runs):
+            for skip in (False, True):
+                piv._SKIP_MASKED = skip
+                t0 = time.perf_counter()
+                piv.analyze(frames, params, mask=mask if frac else None)
+                t[skip].append(time.perf_counter() - t0)
+        off, on = np.median(t[False]), np.median(t[True])
+        ratio = np.median(np.array(t[False]) / np.array(t[True]))
+        print(f"| {frac:.0%} | {pairs / off:.2f} | {pairs / on:.2f} | {off / on:.2f} | {ratio:.2f} | "
+              f"{os.getloadavg()[0]:.1f} |", flush=True)
+    piv._SKIP_MASKED = True
 
 
 if __name__ == "__main__":

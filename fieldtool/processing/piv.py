@@ -24,6 +24,9 @@ How it works
   previous pass' validated field, interpolated bicubically to every pixel (one ``cv2.resize`` by the node
   spacing), correlates the smaller windows and adds the residual to the predictor. The first frame's window
   spectra are not deformed, so they are still computed once per frame.
+* Masked nodes (window centre in ``mask``) of the final pass of a multi-pass run are not correlated: their
+  windows get no spectrum, inverse FFT or peak search (``_SKIP_MASKED``); they have no vector and add nothing to
+  the ensemble. Earlier passes keep every node, because they build the predictor of the unmasked ones.
 * Averaging: ``ensemble`` sums the cross-spectra of all pairs per node, weighted by their signal-to-noise
   (weight = clip(peak ratio - 1, 0, 10)), and takes one peak per node at the end (one inverse FFT for the clip);
   ``mean``/``median`` average the validated per-pair vectors.
@@ -80,6 +83,7 @@ ENSEMBLE_PAIRS = 30
 #: smooths its own; 0.5 was the best of 0 / 0.5 / 0.6 / 0.8 / 1.2 on benchmarks/piv_vs_openpiv.py (worst RMS 0.068 ->
 #: 0.059 px, sparse Rankine vortex) and changes the uniform cases by at most 0.001 px
 _PREDICTOR_SMOOTH = 0.5
+_SKIP_MASKED = True  # final pass: nodes whose window centre is masked are not correlated (no FFT, no peak)
 _DEFORM_INTERP = cv2.INTER_LANCZOS4  # image interpolation of the window deformation (multi-pass)
 
 
@@ -270,9 +274,11 @@ def _window_view(img: np.ndarray, oy: int, ox: int, lv: _Level, size: int) -> np
     return view[oy : oy + lv.step * (lv.ny - 1) + 1 : lv.step, ox : ox + lv.step * (lv.nx - 1) + 1 : lv.step]
 
 
-def _window_spectra(img: np.ndarray, oy: int, ox: int, lv: _Level, size: int) -> tuple[np.ndarray, np.ndarray]:
+def _window_spectra(img: np.ndarray, oy: int, ox: int, lv: _Level, size: int,
+                    idx: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Spectra (n, s, s//2+1) of the windows of side ``size`` at crop offset (oy, ox), zero-mean, zero-padded to the
     level's search side ``lv.s`` when ``size < lv.s``, and the factor (n,) that scales each to unit energy.
+    ``idx``: flat node indices (row-major) of the only windows to transform (n = len(idx)); None = all.
 
     The unit-energy scaling is not applied to the spectra: a correlation plane is scaled by the product of its two
     windows' factors only where a value is reported (peak value, ensemble sum), which saves a pass over the spectra.
@@ -283,6 +289,9 @@ def _window_spectra(img: np.ndarray, oy: int, ox: int, lv: _Level, size: int) ->
     s = lv.s
     view = _window_view(img, oy, ox, lv, size)
     n = lv.ny * lv.nx
+    if idx is not None:  # a copy of the chosen windows only
+        view = view[idx // lv.nx, idx % lv.nx][:, None]
+        n = len(idx)
     if size == s:
         spec = scipy.fft.rfft2(view, axes=(2, 3), workers=_WORKERS).reshape(n, s, s // 2 + 1)
         spec[:, 0, 0] = 0.0  # zero mean
@@ -437,6 +446,18 @@ def _find_peaks(corr: np.ndarray, margin: int, scale: np.ndarray | None = None, 
     return _Peaks(dx=ix + sx, dy=iy + sy, peak=c, snr=snr, p2m=p2m, ok=ok)
 
 
+def _scatter_peaks(pk: _Peaks, idx: np.ndarray, n: int) -> _Peaks:
+    """Peaks of the nodes ``idx`` spread onto all ``n`` nodes; the others have no vector (NaN, not ok)."""
+    out = {}
+    for name in ("dx", "dy", "peak", "snr", "p2m"):
+        arr = np.full(n, np.nan)
+        arr[idx] = getattr(pk, name)
+        out[name] = arr
+    ok = np.zeros(n, bool)
+    ok[idx] = pk.ok
+    return _Peaks(ok=ok, **out)
+
+
 # --------------------------------------------------------------------------------------------- the engine
 
 
@@ -468,6 +489,15 @@ class _Engine:
             self.mask_crop = None
         self._maps: dict = {}
         self._bufs: dict = {}
+        # final pass of a multi-pass run: only the nodes whose window centre is outside the mask are correlated
+        # (flat indices; None = all). Earlier passes keep every node: they build the predictor of the others.
+        self.active = None
+        fin = levels[-1]
+        if _SKIP_MASKED and mask is not None and len(levels) > 1:
+            X, Y = np.meshgrid(fin.xc, fin.yc)
+            node_mask = mask[np.rint(Y).astype(int).clip(0, self.h - 1), np.rint(X).astype(int).clip(0, self.w - 1)]
+            if node_mask.any():
+                self.active = np.flatnonzero(~node_mask.ravel())
 
     def _crop(self, img: np.ndarray, fill: float) -> np.ndarray:
         x0, y0 = self.cx0, self.cy0
@@ -502,9 +532,9 @@ class _Engine:
         spectra of the later passes, which only a first frame needs, are not computed."""
         img = self._masked_crop(frame)
         spec_a, scale_a = [], []
-        for lv in (self.levels if as_a else self.levels[:1]):
+        for k, lv in enumerate(self.levels if as_a else self.levels[:1]):
             oy, ox = self._offsets(lv)
-            sp, sc = _window_spectra(img, oy, ox, lv, lv.w)
+            sp, sc = _window_spectra(img, oy, ox, lv, lv.w, self.active if k == len(self.levels) - 1 else None)
             spec_a.append(sp)
             scale_a.append(sc)
         lv0 = self.levels[0]
@@ -575,7 +605,7 @@ class _Engine:
                     raise Cancelled("PIV cancelled by the user")
                 bdef = self._deform(k, b.img, du, dv)
                 pred_x, pred_y = self._node_predictor(k, du, dv)
-                spec_b, scale_b = _window_spectra(bdef, 0, 0, lv, lv.w)
+                spec_b, scale_b = _window_spectra(bdef, 0, 0, lv, lv.w, self.active if k == last else None)
             cross = self._buffer(("cross", k), a.spec_a[k])
             np.conjugate(a.spec_a[k], out=cross)
             cross *= spec_b
@@ -583,10 +613,19 @@ class _Engine:
             if self.p.min_texture > 0:  # texture gate (processing/surface.py): too little texture -> featureless
                 smax = 1.0 / (self.p.min_texture * lv.w)
                 scale = np.where((a.scale_a[k] <= smax) & (scale_b <= smax), scale, np.float32(0.0))
+            act = self.active if k == last else None
+            if act is not None and ensemble is not None:  # the ensemble sums every node: masked ones stay 0
+                full = self._buffer(("full", k), np.empty((lv.ny * lv.nx,) + cross.shape[1:], cross.dtype))
+                full[:] = 0
+                full[act] = cross
+                scale_full = np.zeros(lv.ny * lv.nx, np.float32)
+                scale_full[act] = scale
             if k == last and not peaks:
+                if act is not None:
+                    cross, scale = full, scale_full
                 ensemble(cross, pred_x, pred_y, None, scale)
                 return None, None, None
-            keep = k == last and ensemble is not None
+            keep = k == last and ensemble is not None and act is None
             if keep:  # the ensemble needs the cross-spectrum after the peaks: transform a copy
                 work = self._buffer(("work", k), cross)
                 np.copyto(work, cross)
@@ -597,6 +636,10 @@ class _Engine:
                 zeros = np.zeros(lv.ny * lv.nx)
                 piv_peaks.blank_zero(corr, lv.margin, zeros, zeros, min_shift=0.0, fill="zero")
             pk = _find_peaks(corr, lv.margin, scale, second=k == last)
+            if act is not None:
+                pk = _scatter_peaks(pk, act, lv.ny * lv.nx)
+                if ensemble is not None:
+                    cross, scale, keep = full, scale_full, True
             dx, dy = pk.dx.reshape(lv.ny, lv.nx), pk.dy.reshape(lv.ny, lv.nx)
             if pred_x is not None:
                 dx = dx + pred_x
