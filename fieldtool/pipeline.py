@@ -692,7 +692,9 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
     if cached is not None:
         res, stab_cached, extra = cached
         stab.update(stab_cached or {})
-        fast.update(extra or {})
+        extra = dict(extra or {})
+        frame_stats.update(extra.pop("frame_stats", None) or {})  # identical frames are still a reason on reuse
+        fast.update(extra)
     # pairs are added in rounds until the discharge converged (piv_fast.converge). With the stationary-pattern
     # removal every frame of its window must be read, so the first round is one streamed pass that STIV and
     # the first look share: its reader thread decodes and standardises every frame, but builds only the frames
@@ -735,7 +737,7 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
             if standardize:
                 reader1.close()
         if cache_dir is not None:
-            piv_cache.save(cache_dir, key, res, stab or None, fast)
+            piv_cache.save(cache_dir, key, res, stab or None, {**fast, "frame_stats": frame_stats})
     else:
         from .processing.piv_fast import prefetch
 
@@ -751,7 +753,7 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
             reader.close()
         fast.update(pairs_used=int(res.n_pairs or 0), converged=None)
         if cache_dir is not None:
-            piv_cache.save(cache_dir, key, res, stab or None, fast)
+            piv_cache.save(cache_dir, key, res, stab or None, {**fast, "frame_stats": frame_stats})
         v, fps = project.video, getattr(getattr(inputs.source, "info", None), "fps", 0) or 0
         if v.end_s is not None and decoded and fps > 0 and decoded[0] < v.end_s - (v.step + 1) / fps:
             warnings.append(f"video.end_s: the clip decoded only up to {decoded[0]:.2f} s of the {v.end_s:g} s asked "
