@@ -136,6 +136,8 @@ def assess_run(project, inputs, level, mapping, geom, res, U, V, dres, q_pairs, 
                                f"ortho.max_residual_m = {project.ortho.max_residual_m:g} m and was accepted "
                                "(ortho.accept_residual)", float(mapping.details.get('max_distance_residual_m', r)),
                                project.ortho.max_residual_m))
+    for d in (level.details.get("doubtful") or []) if level.method == "waterline" else []:
+        extra.append(ql.Reason(d["code"], "doubtful", d["message"], d.get("value"), d.get("threshold")))
     # a verdict that doubts the velocities widens the interval upward: LSPIV fails by under-reading
     # (stationary glints and waves pull towards zero, empty seeding leaves slow water)
     first_verdict = ql.assess(ev, th, extra)

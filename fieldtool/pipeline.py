@@ -111,6 +111,7 @@ class RunResult:
     robust: dict | None = None  # facts of the robust stages (processing/surface.py, robust.py, planning.py)
     piv_fast: dict | None = None  # region box and pair sampling of the fast path (see piv_region / run_piv_fast)
     video: dict = field(default_factory=dict)  # the clip's metadata (records.video_meta.video_info)
+    prerendered: object | None = None  # plots.prerender.Prerender: figures drawn during the PIV
 
     def summary(self) -> dict:
         d = self.discharge
@@ -201,9 +202,10 @@ def load_inputs(project: Project) -> Inputs:
     return Inputs(cs, src, lens, first)
 
 
-def detect_waterline(project: Project, inputs: Inputs) -> dict:
+def detect_waterline(project: Project, inputs: Inputs, mapping: ortho.OrthoMapping | None = None) -> dict:
     """Water edges found along the search line in the clip's first frames (processing.waterline): the
-    project's ``water_level.search_line_px``, else the section's points lengthened by 40 % each way."""
+    project's ``water_level.search_line_px``, else the section's points lengthened by 40 % each way; with a
+    ``mapping``, also along 2 lines each side of it, ``water_level.search_spacing_m`` apart on the water."""
     from .processing import waterline
 
     wl = project.water_level
@@ -217,20 +219,28 @@ def detect_waterline(project: Project, inputs: Inputs) -> dict:
             raise ParameterError("water_level.search_line_px: draw a line from bank to bank across the river "
                                  "(or pick the section's water edges, which it extends)")
         line = waterline.extend_line(*inputs.to_working(sec), 0.4, inputs.shape)
+    lines = (waterline.parallel_lines(line, mapping, wl.search_spacing_m, 2, inputs.shape) if mapping is not None
+             else [(0.0, line)])
     frames = (inputs.lens.undistort(f.image) if inputs.lens is not None else f.image for f in inputs.source)
-    return waterline.detect_water_edges(frames, line)
+    return waterline.detect_water_edges(frames, lines)
 
 
 def compute_level(project: Project, inputs: Inputs, mapping: ortho.OrthoMapping | None):
     """Water level by the project's method (see processing.water_level)."""
     from .processing.water_level import compute_level as _compute
 
-    detected = detect_waterline(project, inputs) if project.water_level.method == "waterline" else None
+    detected = detect_waterline(project, inputs, mapping) if project.water_level.method == "waterline" else None
+    sec = project.section
+    station_of = None  # with a surveyed station of the section's first point, each edge gives a level too
+    if detected is not None and sec.station_offset_m is not None and np.shape(sec.points_px) == (2, 2):
+        from .processing.waterline import station_function
+
+        station_of = station_function(inputs.to_working(sec.points_px), mapping, sec.station_offset_m)
     fov = inputs.lens.fov_deg() if inputs.lens is not None else None
     return _compute(project.water_level, inputs.cross_section, root=project.root, mapping=mapping, fov_deg=fov,
                     points_transform=inputs.to_working if inputs.lens is not None else None,
                     image_undistort=inputs.lens.undistort_points_in if inputs.lens is not None else None,
-                    detected=detected)
+                    detected=detected, station_of=station_of)
 
 
 def build_mapping(project: Project, inputs: Inputs, level_m: float | None) -> ortho.OrthoMapping:
@@ -479,9 +489,11 @@ def piv_region(project: Project, inputs: Inputs, params, roi, segments) -> tuple
 
 
 def run_piv_fast(make_frames, n_pairs: int, gap: int, params, roi, mask, max_speed, cancel, on_pair, pair_q,
-                 rel_ci: float, min_pairs: int):
+                 rel_ci: float, min_pairs: int, drain_first: bool = False):
     """PIV with pairs added until the discharge has converged (``processing.piv_fast.converge``), each round's
-    frames read by a background thread. Returns (PivResult, dict of pairs_used, converged, ...)."""
+    frames read by a background thread (``make_frames`` may hand one already reading). ``drain_first``: the
+    first round's stream is read to its end (STIV samples its lines from it). Returns (PivResult, dict of
+    pairs_used, converged, ...)."""
     from dataclasses import asdict
 
     from .processing import piv as piv_mod
@@ -493,10 +505,14 @@ def run_piv_fast(make_frames, n_pairs: int, gap: int, params, roi, mask, max_spe
         raise ParameterError(f"piv.min_pairs: {min_pairs!r} must be a whole number of 2 or more (30 is usual)")
 
     def run(frames, select, carry):
-        reader = piv_fast.prefetch(frames)
+        reader = frames if isinstance(frames, (piv_fast.prefetch, piv_fast.Prefetched)) else piv_fast.prefetch(frames)
         try:
-            return piv_mod.analyze(reader, params, roi=roi, mask=mask, max_speed_px_s=max_speed, cancel=cancel,
-                                   on_pair=on_pair, select=select, carry=carry)
+            res = piv_mod.analyze(reader, params, roi=roi, mask=mask, max_speed_px_s=max_speed, cancel=cancel,
+                                  on_pair=on_pair, select=select, carry=carry)
+            if carry is None and drain_first:
+                for _ in reader:
+                    pass
+            return res
         finally:
             reader.close()
 
@@ -599,6 +615,11 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
 
     obs("geometry", pair_q_fn(geom))
     obs("stage", "piv")
+    prerendered = None
+    if out_dir is not None:  # the figures of the inputs are drawn while the PIV waits for its frames
+        from .plots.prerender import Prerender
+
+        prerendered = Prerender(project, inputs, level, mapping)
     stab: dict = {}
     frame_stats: dict = {}
     surface_stats = None
@@ -625,8 +646,10 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
 
     def piv_stream(want=None, tap: bool = False):
         """The frames PIV reads: working frames, duplicate count, stationary-pattern removal (which needs every
-        frame of its time window: then ``want`` is not used). ``tap``: STIV samples its lines from this stream."""
-        if standardize:
+        frame of its time window: then every frame is decoded and ``want`` only chooses the standardised frames
+        that are built). ``tap``: STIV samples its lines from this stream."""
+        want_std = want
+        if standardize:  # every frame enters the standardisation's window; only the wanted ones are built
             want = None
         frames = working_frames(project, inputs, cancel, obs, stab if project.stabilize.enabled else None, progress,
                                 want=want)
@@ -642,9 +665,12 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
         if standardize:
             from .processing import surface
 
+            from .processing.piv_fast import threaded
+
             surface_stats.frames = 0  # each round of the fast path standardises the clip again: count one pass
+            frames = threaded(frames)  # decoding (and STIV's sampling) in a thread of its own
             frames = surface.standardize(frames, roi, margin=max(64, params.search_px or 0), half=surface.HALF_WINDOW,
-                                         shrink=surface.SHRINK, stats=surface_stats)
+                                         shrink=surface.SHRINK, stats=surface_stats, want=want_std)
         return frames
 
     def plan_pairs(frames):
@@ -666,22 +692,52 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
     if cached is not None:
         res, stab_cached, extra = cached
         stab.update(stab_cached or {})
-        fast.update(extra or {})
-    # rounds until converged pay off only when a round can skip frames: the stationary-pattern removal needs
-    # every frame of its window, so with it the pairs are correlated in one pass (demo: 3.2 s against 5.8 s)
-    elif not project.piv.all_pairs and not standardize and n_exp > 2:  # STIV then reads the clip by itself
-        plan_pairs(piv_stream(want=lambda k: k <= planning.LOOK_PAIRS))  # the first look reads the first frames
+        extra = dict(extra or {})
+        frame_stats.update(extra.pop("frame_stats", None) or {})  # identical frames are still a reason on reuse
+        fast.update(extra)
+    # pairs are added in rounds until the discharge converged (piv_fast.converge). With the stationary-pattern
+    # removal every frame of its window must be read, so the first round is one streamed pass that STIV and
+    # the first look share: its reader thread decodes and standardises every frame, but builds only the frames
+    # of the round's pairs, spread over the clip; a further round (a new pass) only when not converged
+    elif not project.piv.all_pairs and n_exp > 2:
+        from .processing.piv_fast import Prefetched, prefetch
+
+        first = None
+        if standardize:  # round 1 reads the stream the first look started; want is set when round 1 begins
+            round1_want: list = [None]
+            reader1 = prefetch(piv_stream(want=lambda k: round1_want[0] is None or round1_want[0](k), tap=True))
+            first = plan_pairs(reader1)
+        else:  # STIV then reads the clip by itself
+            plan_pairs(piv_stream(want=lambda k: k <= planning.LOOK_PAIRS))  # the first look reads the first frames
         gap = max(1, int(params.frame_gap))
-        if n_exp - gap >= 2:
-            res, conv = run_piv_fast(piv_stream, n_exp - gap, gap, params, roi, mask, max_speed, cancel, on_pair,
-                                     pair_q_fn(geom), project.piv.converge_rel_ci, project.piv.min_pairs)
-            fast.update(conv)
-        else:
-            res = piv_mod.analyze(piv_stream(), params, roi=roi, mask=mask, max_speed_px_s=max_speed, cancel=cancel,
-                                  on_pair=on_pair)
-            fast.update(pairs_used=int(res.n_pairs or 0), converged=None)
+
+        def make_frames(want=None):
+            nonlocal first
+            if first is None:
+                return piv_stream(want=want)
+            round1_want[0] = want
+            frames, first = Prefetched(first, reader1.close), None
+            return frames
+
+        try:
+            if n_exp - gap >= 2:
+                res, conv = run_piv_fast(make_frames, n_exp - gap, gap, params, roi, mask, max_speed, cancel, on_pair,
+                                         pair_q_fn(geom), project.piv.converge_rel_ci, project.piv.min_pairs,
+                                         drain_first=standardize and stiv_run is not None)
+                fast.update(conv)
+            else:
+                frames = make_frames()
+                try:
+                    res = piv_mod.analyze(frames, params, roi=roi, mask=mask, max_speed_px_s=max_speed, cancel=cancel,
+                                          on_pair=on_pair)
+                finally:
+                    getattr(frames, "close", lambda: None)()
+                fast.update(pairs_used=int(res.n_pairs or 0), converged=None)
+        finally:  # round 1's reader thread stops even when the rounds never started (a key refused)
+            if standardize:
+                reader1.close()
         if cache_dir is not None:
-            piv_cache.save(cache_dir, key, res, stab or None, fast)
+            piv_cache.save(cache_dir, key, res, stab or None, {**fast, "frame_stats": frame_stats})
     else:
         from .processing.piv_fast import prefetch
 
@@ -697,7 +753,7 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
             reader.close()
         fast.update(pairs_used=int(res.n_pairs or 0), converged=None)
         if cache_dir is not None:
-            piv_cache.save(cache_dir, key, res, stab or None, fast)
+            piv_cache.save(cache_dir, key, res, stab or None, {**fast, "frame_stats": frame_stats})
         v, fps = project.video, getattr(getattr(inputs.source, "info", None), "fps", 0) or 0
         if v.end_s is not None and decoded and fps > 0 and decoded[0] < v.end_s - (v.step + 1) / fps:
             warnings.append(f"video.end_s: the clip decoded only up to {decoded[0]:.2f} s of the {v.end_s:g} s asked "
@@ -785,7 +841,7 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
     result = RunResult(dres, q_pairs, level, mapping, res, geom, U, V, None, timings_s=timings, warnings=warnings,
                        stabilization=stab or None, project=project_to_dict(project), piv_reused=cached is not None,
                        uncertainty=unc, quality=qual, sections=section_entries, robust=robust_facts,
-                       stiv=stiv_block, piv_fast=fast)
+                       stiv=stiv_block, piv_fast=fast, prerendered=prerendered)
     if out_dir is not None:
         write_outputs(result, project, inputs, Path(out_dir))
     obs("result", result)
@@ -861,9 +917,14 @@ def _write_outputs(result: RunResult, inputs: Inputs, out: Path) -> None:
     files["rectified_png"] = plots.plot_rectified(out / "rectified.png", inputs.first_color, result, inputs).name
     files["section_png"] = plots.plot_section(out / "section.png", inputs.cross_section, result).name
     try:
-        from .plots.water_level import plot_level
+        png = result.prerendered.png("water_level.png") if result.prerendered is not None else None
+        if png:
+            atomic_write_bytes(out / "water_level.png", png)
+            files["water_level_png"] = "water_level.png"
+        else:
+            from .plots.water_level import plot_level
 
-        files["water_level_png"] = plot_level(out / "water_level.png", inputs.cross_section, result.level).name
+            files["water_level_png"] = plot_level(out / "water_level.png", inputs.cross_section, result.level).name
     except FieldToolError as e:
         result.warnings.append(f"water-level plot not written: {e}")
     files["result"] = "result.json"

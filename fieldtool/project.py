@@ -128,6 +128,7 @@ class WaterLevelCfg:
     # waterline: a line from bank to bank on the raw frame along which the water edges are found; [] = the
     # section's points lengthened by 40 % each way
     search_line_px: list[Point] = key(factory=list, unit="px", dim=2, counts=(0, 2), ge=-1e5, le=1e5)
+    search_spacing_m: float = key(0.4, unit="m", ge=0.0, le=100.0)  # waterline: 2 more lines each side of the search line, this far apart on the water (m); their levels must agree; 0 = one line
 
 
 @dataclass
@@ -159,7 +160,7 @@ class PivCfg:
     reject_upstream: bool = key(True)  # subsections going upstream while the section goes downstream: rejected, filled, reported
     region: str = key("section", choices=("section", "roi", "full"))  # section (a band around the section(s), within the ROI) | roi | full (whole frame)
     all_pairs: bool = key(False)  # true: correlate every pair; false: add pairs until the discharge has converged
-    converge_rel_ci: float = key(0.005, gt=0.0, le=1.0)  # stop when the 95 % interval of the mean per-pair Q is within +- this fraction
+    converge_rel_ci: float = key(0.005, gt=0.0, le=1.0)  # stop when the 95 % interval of the 10 %-trimmed mean per-pair Q is within +- this fraction
     min_pairs: int = key(30, ge=2, le=100000)  # fewest pairs before the convergence test
 
 

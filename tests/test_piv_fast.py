@@ -136,8 +136,19 @@ def test_pipeline_band_and_convergence_keys_and_cache(scene):
     proj.roi.rect_px = []
     proj.piv.min_pairs = 10
     proj.piv.frame_gap = 1  # pairs of consecutive frames: 35 in the 36-frame clip
-    one_pass = run_project(proj, None)  # stationary-pattern removal reads every frame: one pass, every pair
+    # stationary-pattern removal reads every frame; the pairs of the first round are spread over the clip and
+    # correlated in that same pass
+    std_fast = run_project(proj, None)
+    s = std_fast.summary()
+    assert isinstance(s["converged"], bool) and 10 <= s["pairs_used"] <= 35 and s["piv_sampling"]["rounds"] >= 1
+    assert std_fast.robust["stationary_removed"]["frames"] == 36  # every frame standardised, in one pass
+    proj.piv.all_pairs = True
+    one_pass = run_project(proj, None)
     assert one_pass.summary()["converged"] is None and one_pass.summary()["pairs_used"] == 35
+    assert abs(std_fast.discharge.discharge_m3s / one_pass.discharge.discharge_m3s - 1) < 0.01
+    if one_pass.stiv is not None:  # STIV samples its lines from the first round's stream: the whole clip
+        assert std_fast.stiv["discharge_m3s"] == pytest.approx(one_pass.stiv["discharge_m3s"], rel=1e-6)
+    proj.piv.all_pairs = False
     proj.piv.remove_stationary = False  # rounds that skip frames until the discharge has converged
     fast = run_project(proj, scene / "out")
     d = json.loads((scene / "out" / "result.json").read_text())
@@ -175,3 +186,31 @@ def test_frame_source_decodes_past_unwanted_frames_with_the_same_times(short_sce
         assert (b.image is not None) == (k % 3 == 0)
         if b.image is not None:
             assert np.array_equal(a.image, b.image)
+
+
+def test_standardize_builds_only_wanted_frames_with_the_same_values():
+    from fieldtool.processing import surface
+
+    rng = np.random.default_rng(3)
+    frames = [(k / 30, (rng.random((40, 50)) * 200).astype(np.float32)) for k in range(30)]
+    full = list(surface.standardize(frames, (5, 5, 40, 30), margin=4, half=5))
+    part = list(surface.standardize(frames, (5, 5, 40, 30), margin=4, half=5, want=lambda k: k % 4 == 1))
+    assert [t for t, _ in part] == [t for t, _ in full]
+    for k, ((_, a), (_, b)) in enumerate(zip(full, part)):
+        assert (b is None) == (k % 4 != 1)
+        if b is not None:
+            assert np.array_equal(a, b)
+
+
+def test_window_values_are_exactly_float16s_whatever_the_storage():
+    from fieldtool.processing import surface
+
+    c = np.array([0.0, -0.0, 1.0, 255.0, 1e-7, -3e-5, 6.1e-5, 65504.0, 65519.0, 65520.0, 1e6, np.nan, -np.inf,
+                  1.00048828125, 1.000732421875, 2047.5, 0.33333334], np.float32)
+    c = np.concatenate([c, np.random.default_rng(0).normal(0, 50, 1000).astype(np.float32)])
+    want = c.astype(np.float16).astype(np.float32)
+    with np.errstate(over="ignore", invalid="ignore"):
+        got = surface._f16_values(c.copy(), np.float32)
+    assert got.dtype == np.float32
+    assert np.array_equal(got, want, equal_nan=True)
+    assert np.array_equal(np.signbit(got), np.signbit(want))

@@ -261,11 +261,14 @@ def test_identical_frames_are_unusable(short_scene, tmp_path, capsys):
         p.video.path = "still/*.png"
         p.video.frame_interval_s = 1 / 30
 
-    code, text = _run(_variant(short_scene, "still", still), tmp_path / "out", capsys)
-    assert code == 3
-    res = json.loads((tmp_path / "out" / "result.json").read_text())
-    codes = {r["code"] for r in res["quality"]["reasons"]}
-    assert {"identical_frames", "no_motion"} <= codes
+    project = _variant(short_scene, "still", still)
+    for run in ("first", "PIV reused from the cache"):
+        code, text = _run(project, tmp_path / "out", capsys)
+        assert code == 3, run
+        res = json.loads((tmp_path / "out" / "result.json").read_text())
+        codes = {r["code"] for r in res["quality"]["reasons"]}
+        assert {"identical_frames", "no_motion"} <= codes, run
+    assert res["piv_reused"] is True
 
 
 def test_a_band_far_below_what_its_depth_suggests_is_in_deficit_and_widens_the_interval():

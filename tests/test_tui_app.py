@@ -388,3 +388,44 @@ def test_results_screen_says_it_is_computing(project_path, monkeypatch):
             assert f"{app.session.last_result().summary['discharge_m3s']:.4f}" in "\n".join(screen_lines(app))
 
     asyncio.run(run())
+
+
+def test_a_failed_save_is_said_in_place_and_kept_for_the_next_save(project_path, monkeypatch):
+    """Disk full (or a read-only folder) while editing: the TUI says NOT SAVED on its status line and title,
+    keeps the entry in memory, and the next successful save writes every entry since the last one."""
+    import errno
+
+    from fieldtool.tui.session import Session
+
+    p = load_project(project_path)
+    p.step = "piv"
+    save_project(p, project_path)
+    real_save = Session.save
+    state = {"fail": True}
+
+    def flaky_save(self):
+        if state["fail"]:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        real_save(self)
+
+    monkeypatch.setattr(Session, "save", flaky_save)
+
+    async def run():
+        app = FieldToolApp(project_path)
+        async with app.run_test(size=SIZE) as pilot:
+            await pilot.pause()
+            await pilot.press("end", "ctrl+u", "2", "4")  # piv.window_px = 24, not written
+            await pilot.pause()
+            assert app.status[1] and app.status[0].startswith("NOT SAVED")
+            assert "No space left on device" in app.status[0]
+            assert "NOT SAVED" in "\n".join(screen_lines(app))
+            assert app.session.project.piv.window_px == 24
+            assert load_project(project_path).piv.window_px != 24
+            state["fail"] = False
+            await pilot.press("tab", "end", "ctrl+u", "8")  # piv.overlap_px = 8: this save writes both
+            await pilot.pause()
+            assert not app.status[1]
+        saved = load_project(project_path)
+        assert (saved.piv.window_px, saved.piv.overlap_px) == (24, 8)
+
+    asyncio.run(run())

@@ -8,7 +8,7 @@ Two pieces, both pure (numpy in, numpy/dataclasses out), used by the pipeline ar
   ``"roi"`` the user's ROI (whole frame without one) as before; ``"full"`` the whole frame.
 * :func:`converge` - pairs are added in rounds, spread evenly over the clip (van der Corput order: every round
   fills the gaps the previous ones left), until the 95 % bootstrap interval
-  (``processing.uncertainty.bootstrap_ci``) of the mean per-pair discharge is narrower than
+  (``processing.uncertainty.bootstrap_ci``) of the 10 %-trimmed mean per-pair discharge is narrower than
   ``rel_ci`` (half-width / |mean|, ``[piv] converge_rel_ci``, default 0.005), with at least ``min_pairs``
   pairs (``[piv] min_pairs``, default 30). Each round reads the clip again (frames are streamed, never held)
   but transforms only the frames of its own pairs; the next round's size is the one the interval's width
@@ -108,6 +108,21 @@ def pair_order(n_pairs: int) -> np.ndarray:
 # --------------------------------------------------------------------------------------------- convergence
 
 
+#: share of the per-pair discharges cut at each end by the convergence test's statistic (:func:`trimmed_mean`)
+TRIM = 0.1
+
+
+def trimmed_mean(a: np.ndarray, axis: int = 1) -> np.ndarray:
+    """Mean along ``axis`` of a 2-D array after cutting the lowest and highest :data:`TRIM` share of the values
+    (at least one value is kept). A single odd pair (the first pair of a clip coded as a key frame, a glint
+    burst) moves the ensemble little, since it weighs each pair's correlation by its peak ratio; the trimmed
+    mean follows the ensemble, where the plain mean would call for many more pairs."""
+    a = np.sort(np.asarray(a, float), axis=axis)
+    n = a.shape[axis]
+    k = min(int(TRIM * n), (n - 1) // 2)
+    return np.take(a, np.arange(k, n - k), axis=axis).mean(axis=axis)
+
+
 @dataclass
 class Convergence:
     """How the pair sampling ended."""
@@ -115,7 +130,7 @@ class Convergence:
     pairs_used: int  # pairs correlated
     pairs_total: int  # pairs in the clip (as planned from the container's frame count)
     converged: bool  # the interval got narrower than the threshold with at least min_pairs pairs
-    rel_ci: float | None  # final half-width of the 95 % interval of the mean per-pair discharge / |mean|
+    rel_ci: float | None  # final half-width of the 95 % interval of the trimmed mean per-pair discharge / |mean|
     rounds: int  # passes over the clip
     threshold: float
     min_pairs: int
@@ -133,8 +148,8 @@ def converge(make_frames: Callable[[], Iterator], n_pairs_total: int, run: Calla
     n_pairs_total : pairs in the clip (frames - 1), from the container.
     run : run(frames, select, carry) -> piv.PivResult; ``piv.analyze`` with its other arguments bound.
     pair_q : pair_q(x, y, u_px_s, v_px_s) -> discharge (m³/s) of one pair's field.
-    rel_ci : threshold on the half-width of the 95 % bootstrap interval of the mean per-pair discharge,
-        relative to that mean (0.005 = +-0.5 %).
+    rel_ci : threshold on the half-width of the 95 % bootstrap interval of the trimmed mean per-pair discharge
+        (:func:`trimmed_mean`), relative to that mean (0.005 = +-0.5 %).
     min_pairs : fewest pairs before the threshold is tested.
     seed : bootstrap seed (reproducible runs).
     frame_gap : frames between the two images of a pair (``PivParams.frame_gap``): pair k = frames k, k + gap.
@@ -156,8 +171,8 @@ def converge(make_frames: Callable[[], Iterator], n_pairs_total: int, run: Calla
         q.extend(pair_q(res.x, res.y, res.u_pairs[k], res.v_pairs[k]) for k in range(len(q), len(res.u_pairs)))
         done = target
         qa = np.asarray(q, float)
-        lo, hi = bootstrap_ci(qa, seed=seed)
-        mean = float(np.nanmean(qa)) if np.isfinite(qa).any() else float("nan")
+        lo, hi = bootstrap_ci(qa, seed=seed, stat=trimmed_mean)
+        mean = float(trimmed_mean(qa[np.isfinite(qa)][None, :], axis=1)[0]) if np.isfinite(qa).any() else float("nan")
         rel = (hi - lo) / 2.0 / abs(mean) if np.isfinite(lo) and np.isfinite(mean) and mean != 0 else None
         converged = rel is not None and rel <= rel_ci and done >= min(min_pairs, n_total)
         if converged or done >= n_total:
@@ -253,3 +268,31 @@ class prefetch:
 
     def __del__(self):
         self._stop.set()
+
+
+class Prefetched:
+    """A stream that a :class:`prefetch` already reads (e.g. its head replayed after a first look), with that
+    reader's ``close``."""
+
+    def __init__(self, frames: Iterable, close: Callable[[], None]):
+        self._it, self._close = iter(frames), close
+
+    def __iter__(self):
+        return self
+
+    def __next__(self):
+        return next(self._it)
+
+    def close(self) -> None:
+        self._close()
+
+
+def threaded(source: Iterable, depth: int = 4) -> Iterator:
+    """``source`` read by a :class:`prefetch` thread of its own, as a generator that stops that thread when it is
+    closed or dropped: a stage of a pipeline of threads (decoding in one, the stationary-pattern removal in the
+    next, the correlation in the caller's)."""
+    reader = prefetch(source, depth)
+    try:
+        yield from reader
+    finally:
+        reader.close()

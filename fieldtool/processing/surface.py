@@ -22,7 +22,7 @@ from __future__ import annotations
 
 from collections import deque
 from dataclasses import dataclass
-from typing import Iterable, Iterator
+from typing import Callable, Iterable, Iterator
 
 import numpy as np
 
@@ -45,6 +45,7 @@ class SurfaceStats:
     std_ref: float = float("nan")  # median temporal standard deviation over the box (grey levels)
     specular_fraction: float = float("nan")  # share of box pixels whose spread exceeds 4 x std_ref (glints)
     static: bool = False  # nothing moves or flickers in the first window: frames passed unchanged (PIV sees no motion)
+    shape: tuple[int, int] | None = None  # (H, W) of the frames, px
 
 
 def _box(shape: tuple[int, int], roi, margin: int) -> tuple[int, int, int, int]:
@@ -56,7 +57,8 @@ def _box(shape: tuple[int, int], roi, margin: int) -> tuple[int, int, int, int]:
 
 
 def standardize(frames: Iterable[tuple[float, np.ndarray]], roi=None, *, margin: int = 64, half: int = HALF_WINDOW,
-                shrink: float = SHRINK, stats: SurfaceStats | None = None) -> Iterator[tuple[float, np.ndarray]]:
+                shrink: float = SHRINK, stats: SurfaceStats | None = None,
+                want: Callable[[int], bool] | None = None) -> Iterator[tuple[float, np.ndarray | None]]:
     """Stream (t_s, float32 frame) standardised over time inside the ROI box.
 
     Parameters
@@ -70,41 +72,89 @@ def standardize(frames: Iterable[tuple[float, np.ndarray]], roi=None, *, margin:
         sparse, strong texture of tracers; a dense, weak, Gaussian-like texture (wind ripples, codec and sensor
         noise) goes, and windows with nothing else become featureless (see ``PivParams.min_texture``).
     stats : filled with what was seen (see :class:`SurfaceStats`).
+    want : ``want(k)`` false: the frame at stream position k comes out as (t_s, None), not built (every frame
+        still enters the running window; the fast path correlates only some pairs). None: every frame.
 
     Yields
     ------
     (t_s, float32 image), zero mean and unit-ish spread per pixel; same times and order as the input.
     """
     stats = stats if stats is not None else SurfaceStats()
-    out = _standardize(frames, roi, margin=margin, half=half, shrink=shrink, stats=stats)
+    crops = _standardize(frames, roi, margin=margin, half=half, shrink=shrink, stats=stats)
     if shrink > 0 and RECENTRE:
-        out = _recentre(out, stats, half)
+        return _recentre(crops, stats, half, want)
+    return _frames(crops, stats, want)
+
+
+def _frames(crops: Iterator[tuple[float, np.ndarray]], stats: SurfaceStats, want) -> Iterator:
+    """Whole frames (0 outside the box) from the box crops."""
+    for k, (t, c) in enumerate(crops):
+        if want is not None and not want(k):
+            yield t, None
+            continue
+        out = np.zeros(stats.shape, np.float32)
+        x0, y0, x1, y1 = stats.box
+        out[y0:y1, x0:x1] = c
+        yield t, out
+
+
+#: the window's crops are kept as float32 holding float16 values (exactly what float16 storage gives, without
+#: converting float16 on every use) while a window of them stays under this many bytes; float16 above
+WINDOW_BYTES_F32 = 160 * 2**20
+
+
+def _window_dtype(box: tuple[int, int, int, int], n_win: int):
+    x0, y0, x1, y1 = box
+    return np.float32 if (x1 - x0) * (y1 - y0) * n_win * 4 <= WINDOW_BYTES_F32 else np.float16
+
+
+def _f16_values(c: np.ndarray, dtype) -> np.ndarray:
+    """``c`` (float32) rounded to float16, stored as ``dtype``: float16, or float32 holding the same values
+    (round to nearest even on the bits; the rare values outside float16's normal range go through float16)."""
+    if dtype is np.float16:
+        return c.astype(np.float16)
+    b = np.ascontiguousarray(c, np.float32).view(np.uint32)
+    r = b >> 13
+    r &= 1
+    r += np.uint32(0xFFF)
+    r += b
+    r &= np.uint32(0xFFFFE000)
+    out = r.view(np.float32)
+    a = np.abs(c)
+    odd = ~((a >= np.float32(2.0 ** -14)) & (a <= np.float32(65504.0)))  # subnormal, zero, overflow, NaN
+    odd &= a != 0
+    if odd.any():
+        out[odd] = c[odd].astype(np.float16)
     return out
 
 
-def _recentre(frames: Iterator[tuple[float, np.ndarray]], stats: SurfaceStats, half: int):
+def _recentre(frames: Iterator[tuple[float, np.ndarray]], stats: SurfaceStats, half: int, want=None):
     """Subtract each pixel's centred temporal mean again, after the soft threshold: the threshold is not
     linear, and a pattern that flickers in place between two levels would otherwise come back with a mean of
-    its own (E[(z_a)(z_b)] > 0 at zero displacement)."""
+    its own (E[(z_a)(z_b)] > 0 at zero displacement). ``frames`` are the box crops of :func:`_standardize`."""
     n_win = 2 * half + 1
     buf: deque = deque()
     times: deque = deque()
     st = _Sums()
-    shape = None
+    dtype = None
+    k_out = 0
 
-    def push(t, img):
-        nonlocal shape
-        shape = img.shape
-        x0, y0, x1, y1 = stats.box
-        c = img[y0:y1, x0:x1]
+    def push(t, c):
+        nonlocal dtype
+        if dtype is None:
+            dtype = _window_dtype(stats.box, n_win)
         st.add(c)
-        buf.append(c.astype(np.float16))
+        buf.append(_f16_values(c, dtype))
         times.append(t)
 
     def emit(c16, t):
+        nonlocal k_out
         if st.updates >= _RESUM_EVERY:
             st.reset(buf)
-        out = np.zeros(shape, np.float32)
+        k_out += 1
+        if want is not None and not want(k_out - 1):
+            return t, None
+        out = np.zeros(stats.shape, np.float32)
         x0, y0, x1, y1 = stats.box
         if stats.static:
             out[y0:y1, x0:x1] = c16
@@ -139,18 +189,19 @@ def _standardize(frames, roi, *, margin: int, half: int, shrink: float, stats: S
     buf: deque = deque()
     times: deque = deque()
     st = _Sums()
-    box = shape = ref = None
+    box = ref = dtype = None
 
     def push(t, img):
-        nonlocal box, shape
+        nonlocal box, dtype
         a = np.asarray(img)
         if box is None:
-            shape = a.shape
-            box = stats.box = _box(shape, roi, margin)
+            stats.shape = a.shape
+            box = stats.box = _box(a.shape, roi, margin)
+            dtype = _window_dtype(box, n_win)
         x0, y0, x1, y1 = box
         c = a[y0:y1, x0:x1].astype(np.float32)
         st.add(c)
-        buf.append(c.astype(np.float16))
+        buf.append(_f16_values(c, dtype))
         times.append(float(t))
 
     def moments():
@@ -167,14 +218,13 @@ def _standardize(frames, roi, *, margin: int, half: int, shrink: float, stats: S
         return mean, sd
 
     def emit(c16: np.ndarray, t: float, mom) -> tuple[float, np.ndarray]:
+        """The standardised box crop of one frame (float32)."""
         mean, den = mom
-        out = np.zeros(shape, np.float32)
-        x0, y0, x1, y1 = box
-        o = out[y0:y1, x0:x1]
+        o = np.empty(c16.shape, np.float32)
         stats.frames += 1
         if stats.static:
             o[:] = c16
-            return t, out
+            return t, o
         np.subtract(c16, mean, out=o, dtype=np.float32)
         o /= den
         if shrink > 0:
@@ -183,7 +233,7 @@ def _standardize(frames, roi, *, margin: int, half: int, shrink: float, stats: S
             mag -= tau
             np.maximum(mag, 0.0, out=mag)
             np.copysign(mag, o, out=o)
-        return t, out
+        return t, o
 
     for t, img in it:  # fill the first window
         push(t, img)

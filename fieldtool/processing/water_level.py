@@ -617,7 +617,8 @@ def compute_level(cfg: WaterLevelCfg, cs: CrossSection, *, root: Path, mapping: 
                   fov_deg: tuple[float, float, float] | None = None,
                   points_transform: Callable[[np.ndarray], np.ndarray] | None = None,
                   image_undistort: Callable[[np.ndarray, tuple[int, int]], np.ndarray] | None = None,
-                  detected: dict | None = None) -> LevelResult:
+                  detected: dict | None = None,
+                  station_of: Callable[[np.ndarray], np.ndarray] | None = None) -> LevelResult:
     """Water level by ``cfg.method`` (see module docstring).
 
     Parameters
@@ -634,6 +635,8 @@ def compute_level(cfg: WaterLevelCfg, cs: CrossSection, *, root: Path, mapping: 
         (angle_height: the pinhole formulas of thesis 5.2.1 need undistorted edges).
     detected : method = waterline: :func:`processing.waterline.detect_water_edges`' result (edges in
         working-image pixels and their 1-sigma), measured on the clip by the caller.
+    station_of : method = waterline: water-plane points (N, 2) m -> cross-section stations (m), when the
+        section's first point has a surveyed station (see :func:`waterline_level`).
     """
     root = Path(root)
     m = cfg.method
@@ -685,12 +688,119 @@ def compute_level(cfg: WaterLevelCfg, cs: CrossSection, *, root: Path, mapping: 
     if m == "waterline":
         if mapping is None or detected is None:
             raise ParameterError("water_level.method = waterline needs the orthorectification and the clip")
-        sig = float(np.max(detected["sigma_px"]))
-        w, sw, world = image_width(detected["edges_px"], mapping, sig, None)
-        return _from_width(cs, w, sw, "waterline", {
-            "edges_px": np.asarray(detected["edges_px"]).tolist(), "edge_sigma_px": np.asarray(detected["sigma_px"]).tolist(),
-            "edges_world_m": world.tolist(), "search_line_px": np.asarray(detected["line_px"]).tolist(),
-            "contrast": detected["contrast"], "n_frames": detected["n_frames"],
-            "refined_on_mean_image": detected.get("refined_on_mean_image"),
-            "mapping_residual_m": float(mapping.residual_m)})
+        return waterline_level(cs, mapping, detected, station_of)
     raise ParameterError(f"water_level.method: {m!r} is not one of {', '.join(METHODS)}")
+
+
+# ---------------------------------------------------------------------------------------------
+# waterline: levels of several search lines, checked against each other
+
+WATERLINE_MIN_LINES = 3  # lines with both edges found (of 5) below which the method refuses
+WATERLINE_DOUBT_M = 0.02  # the lines' levels scatter more than this (sd, m): doubtful, sigma widened by the scatter
+WATERLINE_REFUSE_M = 0.05  # ... more than this, or a level 1-sigma above it: refused
+WATERLINE_WEAK_CONTRAST = 6.0  # water less than this many times as active as the quieter bank: doubtful (the
+# synthetic scenes give 17-35; wind-blown grass on the Geul clip gives 3.6-4.8 and puts edges in the grass)
+WATERLINE_EDGES_K = 3.0  # with section.station_offset_m: the two edges' bank levels differ by more than this times
+WATERLINE_EDGES_MIN_M = 0.03  # their combined 1-sigma and this (m): doubtful
+REFUSE_FIX = ("type the level (water_level.method = value, water_level.value_m) or pick the two water edges on the "
+              "frame (water_level.method = image)")
+
+
+def _refuse(why: str) -> GeometryError:
+    return GeometryError(f"water_level.method = waterline: could not find the water line reliably ({why}); {REFUSE_FIX}")
+
+
+def waterline_level(cs: CrossSection, mapping: OrthoMapping, detected: dict,
+                    station_of: Callable[[np.ndarray], np.ndarray] | None = None) -> LevelResult:
+    """Level from the water edges found along several parallel search lines
+    (:func:`processing.waterline.detect_water_edges`).
+
+    Each line's edges give a width on the water plane (:func:`image_width`) and so a level. In a reach
+    where the width changes slowly, lines a few decimetres apart must give the same level: their scatter
+    is the self-check. The level is the median of the lines' levels; its 1-sigma combines the median
+    line's own 1-sigma and the scatter (sd) between lines.
+
+    Refuses (GeometryError naming ``water_level.method`` and the fix: type the level) when the centre line
+    finds no edge, fewer than ``WATERLINE_MIN_LINES`` lines do, or the lines' levels scatter, or the level's
+    1-sigma is, more than ``WATERLINE_REFUSE_M``; a scatter above ``WATERLINE_DOUBT_M``, a weak activity contrast between water
+    and banks (``WATERLINE_WEAK_CONTRAST``), or a single line, is listed in
+    ``details["doubtful"]`` (turned into a quality reason by the caller).
+
+    ``station_of``: water-plane points (N, 2) m -> cross-section stations (m), known when the section's
+    first point has a surveyed station (``section.station_offset_m``). Then each edge of the median line
+    also gives a level on its own, the bed elevation of its bank at its station, and the two must agree
+    (within ``WATERLINE_EDGES_K`` times their combined 1-sigma and ``WATERLINE_EDGES_MIN_M``), else the
+    run is doubtful. A station offset that is wrong moves both edges' levels in opposite directions, so
+    this check also catches it.
+    """
+    per = []
+    for ln in detected["lines"]:
+        item = {"offset_m": ln["offset_m"], "search_line_px": np.asarray(ln["line_px"]).tolist()}
+        if "error" in ln:
+            item["error"] = ln["error"]
+            per.append(item)
+            continue
+        sig = float(np.max(ln["sigma_px"]))
+        try:
+            w, sw, world = image_width(ln["edges_px"], mapping, sig, None)
+            r = _from_width(cs, w, sw, "waterline", {})
+        except GeometryError as e:
+            item["error"] = str(e)
+            per.append(item)
+            continue
+        item.update(level_m=r.level_m, uncertainty_m=r.uncertainty_m, width_m=w, width_sigma_m=sw,
+                    edges_px=np.asarray(ln["edges_px"]).tolist(), edge_sigma_px=np.asarray(ln["sigma_px"]).tolist(),
+                    edges_world_m=world.tolist(), contrast=ln["contrast"], still_water_px=ln["still_water_px"])
+        per.append(item)
+    ok = [p for p in per if "level_m" in p]
+    centre = per[0]
+    if "level_m" not in centre:
+        raise _refuse(f"on the search line: {centre['error']}")
+    if len(per) > 1 and len(ok) < WATERLINE_MIN_LINES:
+        raise _refuse(f"only {len(ok)} of {len(per)} parallel search lines found both edges")
+    z = np.array([p["level_m"] for p in ok])
+    s = np.array([p["uncertainty_m"] for p in ok])
+    zm = float(np.median(z))
+    spread = float(np.std(z, ddof=1)) if len(z) > 1 else 0.0
+    if spread > WATERLINE_REFUSE_M:
+        raise _refuse(f"the levels of {len(ok)} parallel search lines scatter by {100 * spread:.1f} cm (sd), more "
+                      f"than {100 * WATERLINE_REFUSE_M:g} cm: the edges are not where the water ends on some of them")
+    doubts = []
+    if spread > WATERLINE_DOUBT_M:
+        doubts.append({"code": "waterline_scatter", "value": spread, "threshold": WATERLINE_DOUBT_M,
+                       "message": f"the water line's parallel search lines give levels {100 * spread:.1f} cm apart "
+                                  f"(sd, over {100 * WATERLINE_DOUBT_M:g} cm); its uncertainty includes that scatter"})
+    contrast = float(np.median([p["contrast"] for p in ok]))
+    if contrast < WATERLINE_WEAK_CONTRAST:
+        doubts.append({"code": "waterline_weak_contrast", "value": contrast, "threshold": WATERLINE_WEAK_CONTRAST,
+                       "message": f"along the water line's search lines the water is only {contrast:.1f} times as active "
+                                  f"as the banks (under {WATERLINE_WEAK_CONTRAST:g}): moving grass or slow water may put an "
+                                  "edge on the wrong side"})
+    if len(per) == 1:
+        doubts.append({"code": "waterline_unchecked", "value": None, "threshold": None,
+                       "message": "the water line was searched on one line only (water_level.search_spacing_m = 0): "
+                                  "nothing checks it"})
+    k = int(np.argmin(np.abs(z - zm)))
+    edge_levels = None
+    if station_of is not None:
+        st = np.sort(np.asarray(station_of(np.asarray(ok[k]["edges_world_m"], float)), float).ravel())
+        ez = np.interp(st, cs.station, cs.elevation)
+        slope = np.abs(np.gradient(cs.elevation, cs.station))
+        ss = ok[k]["width_sigma_m"] * np.interp(st, cs.station, slope)  # each edge's station 1-sigma <= the width's
+        gap, tol = float(ez[1] - ez[0]), float(max(WATERLINE_EDGES_K * np.hypot(*ss), WATERLINE_EDGES_MIN_M))
+        edge_levels = {"stations_m": st.tolist(), "levels_m": ez.tolist(), "difference_m": gap, "tolerance_m": tol}
+        if abs(gap) > tol:
+            doubts.append({"code": "waterline_edges_disagree", "value": abs(gap), "threshold": tol,
+                           "message": f"the water line's left and right edges lie on the banks at levels {100 * abs(gap):.1f} cm "
+                                      f"apart (over {100 * tol:.1f} cm): an edge is off, or section.station_offset_m is"})
+    sigma = float(np.hypot(s[k], spread))
+    if sigma > WATERLINE_REFUSE_M:
+        raise _refuse(f"the level it gives is uncertain by {100 * sigma:.1f} cm (1-sigma), more than "
+                      f"{100 * WATERLINE_REFUSE_M:g} cm: the edges are seen too obliquely or too blurred to give the level")
+    res = _from_width(cs, ok[k]["width_m"], ok[k]["width_sigma_m"], "waterline",
+                      {"lines": per, "n_frames": detected["n_frames"], "mapping_residual_m": float(mapping.residual_m)})
+    res.details.update(lines_found=len(ok), lines_spread_m=spread, centre_level_m=centre["level_m"],
+                       edges_px=ok[k]["edges_px"], edge_sigma_px=ok[k]["edge_sigma_px"],
+                       edges_world_m=ok[k]["edges_world_m"], search_line_px=centre["search_line_px"],
+                       contrast=ok[k]["contrast"], edge_levels=edge_levels, doubtful=doubts)
+    return LevelResult(zm, res.width_m, sigma, "waterline", res.details)

@@ -70,6 +70,26 @@ class FieldToolApp(App):
                                 lambda step=s.id: self.goto(step))
         yield from super().get_system_commands(screen)
 
+    def save_project(self) -> bool:
+        """Save the session's project; when the file cannot be written (disk full, read-only, removed folder) say
+        so on the status line and in a notification, keep every entry in memory (the next edit saves them all
+        again) and return False."""
+        try:
+            self.session.save()
+        except OSError as e:
+            why = e.strerror or str(e)
+            self.status = (f"NOT SAVED: {self.session.path}: {why}; your entries are kept here and written at the "
+                           "next edit", True)
+            self.notify(self.status[0], severity="error", timeout=10)
+            ok = False
+        else:
+            if self.status[1] and self.status[0].startswith("NOT SAVED"):
+                self.status = (f"saved {self.session.path.name}", False)
+            ok = True
+        if isinstance(self.screen, StepScreen):
+            self.show_status(self.screen)
+        return ok
+
     # -- long work -------------------------------------------------------------------------------
     def job_running(self) -> bool:
         return self.job is not None
@@ -210,7 +230,7 @@ class FieldToolApp(App):
         for part in head:
             obj = getattr(obj, part)
         setattr(obj, last, value)
-        self.session.save()
+        self.save_project()
         if isinstance(self.screen, StepScreen):
             self.screen.show_value(key)
 

@@ -308,6 +308,9 @@ WATER_LEVEL = [
     Field("water_level.search_line_px", "Search line", "px", "points",
           "a line from bank to bank 'x, y; x, y' along which the water edges are found; empty = the section's "
           "points lengthened by 40 % each way", show=_wm("waterline"), check=_two_points, pickable=True),
+    Field("water_level.search_spacing_m", "Line spacing", "m", "float",
+          "2 more search lines each side, this far apart on the water; their levels must agree (0 = one line)",
+          show=_wm("waterline")),
 ]
 
 # ---------------------------------------------------------------------------------------------

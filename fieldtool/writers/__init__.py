@@ -40,7 +40,15 @@ def write_standard(result, project, inputs, out: Path) -> None:
 
     try:  # the report's figures: velocity profile with its band, GCPs with distances and residuals
         result.files["section_profile"], result.files["profile_png"] = figs.write_profile(out, result)
-        gcp = figs.write_gcp(out, project, result, inputs)
+        pre = getattr(result, "prerendered", None)
+        png = pre.png("gcp.png") if pre is not None else None  # drawn during the PIV (plots.prerender)
+        if png:
+            from ..project import atomic_write_bytes
+
+            atomic_write_bytes(out / "gcp.png", png)
+            gcp = "gcp.png"
+        else:
+            gcp = figs.write_gcp(out, project, result, inputs)
         if gcp is not None:
             result.files["gcp_png"] = gcp
     except (OSError, ValueError) as e:

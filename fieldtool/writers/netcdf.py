@@ -1,4 +1,5 @@
-"""The mean surface velocity field as CF-convention NetCDF (``mean_field.nc``), written with xarray.
+"""The mean surface velocity field as CF-convention NetCDF (``mean_field.nc``), written with netCDF4 (xarray
+reads it back; it is not imported to write, since it and pandas take about half a second to import).
 
 PIV nodes lie on a regular grid in the *image*; on the water plane (an oblique view) they do not.
 Tools that read NetCDF (QGIS through GDAL, Panoply, xarray) expect a regular grid, so the valid
@@ -82,10 +83,9 @@ def _flat_attrs(inputs: dict) -> dict:
     return attrs
 
 
-def build_dataset(result, project):
-    """The CF dataset of a run's mean field (see the module docstring)."""
-    import xarray as xr
-
+def build_dataset(result, project) -> dict:
+    """The CF dataset of a run's mean field (see the module docstring), as plain values:
+    ``{"dims": {name: size}, "vars": {name: (dims, array, attrs, encoding)}, "attrs": {...}}``."""
     p = result.piv
     ok = np.asarray(p.valid, bool) & np.isfinite(result.world_u) & np.isfinite(result.world_v)
     XY = result.mapping.image_to_world(np.c_[p.x[ok], p.y[ok]])
@@ -112,39 +112,38 @@ def build_dataset(result, project):
     frame = (f"EPSG:{project.ortho.crs_epsg}" if crs is not None else
              f"the site's local frame of the GCPs (ortho.method = {project.ortho.method})")
     common = {"grid_mapping": "crs"} if crs is not None else {}
-    ds = xr.Dataset(
-        data_vars={
-            "surface_velocity_x": (("time", "y", "x"), gu[None], {
-                "standard_name": "sea_water_x_velocity", "long_name": "surface velocity, x component (LSPIV)",
-                "units": "m s-1", "cell_methods": "time: mean", **common}),
-            "surface_velocity_y": (("time", "y", "x"), gv[None], {
-                "standard_name": "sea_water_y_velocity", "long_name": "surface velocity, y component (LSPIV)",
-                "units": "m s-1", "cell_methods": "time: mean", **common}),
-            "surface_speed": (("time", "y", "x"), speed[None].astype(np.float32), {
-                "standard_name": "sea_water_speed", "long_name": "surface speed (LSPIV)", "units": "m s-1",
-                "cell_methods": "time: mean", **common}),
-            "valid_fraction": (("time", "y", "x"), gf[None], {
-                "long_name": "fraction of frame pairs in which the PIV vector was valid", "units": "1", **common}),
-            "time_bnds": (("time", "nv"), np.array([[t0, t1]])),
-        },
-        coords={
-            "time": ("time", np.array([(t0 + t1) / 2]), {"standard_name": "time", "long_name": "time of the mean field",
-                                                        "axis": "T", "bounds": "time_bnds", "units": t_units,
-                                                        "calendar": "standard", "comment": t_comment}),
-            # projection coordinates also in a local frame: there is no grid mapping then (CRS unknown)
-            "x": ("x", x, {"standard_name": "projection_x_coordinate", "long_name": f"x in {frame}", "units": "m",
-                           "axis": "X"}),
-            "y": ("y", y, {"standard_name": "projection_y_coordinate", "long_name": f"y in {frame}", "units": "m",
-                           "axis": "Y"}),
-        },
-    )
+    field = {"zlib": True, "complevel": 4, "fill_value": np.float32(np.nan)}
+    plain = {"fill_value": False}
+    tyx = ("time", "y", "x")
+    variables = {
+        # projection coordinates also in a local frame: there is no grid mapping then (CRS unknown)
+        "time": (("time",), np.array([(t0 + t1) / 2]), {
+            "standard_name": "time", "long_name": "time of the mean field", "axis": "T", "bounds": "time_bnds",
+            "units": t_units, "calendar": "standard", "comment": t_comment}, plain),
+        "x": (("x",), x, {"standard_name": "projection_x_coordinate", "long_name": f"x in {frame}", "units": "m",
+                          "axis": "X"}, plain),
+        "y": (("y",), y, {"standard_name": "projection_y_coordinate", "long_name": f"y in {frame}", "units": "m",
+                          "axis": "Y"}, plain),
+        "surface_velocity_x": (tyx, gu[None], {
+            "standard_name": "sea_water_x_velocity", "long_name": "surface velocity, x component (LSPIV)",
+            "units": "m s-1", "cell_methods": "time: mean", **common}, field),
+        "surface_velocity_y": (tyx, gv[None], {
+            "standard_name": "sea_water_y_velocity", "long_name": "surface velocity, y component (LSPIV)",
+            "units": "m s-1", "cell_methods": "time: mean", **common}, field),
+        "surface_speed": (tyx, speed[None].astype(np.float32), {
+            "standard_name": "sea_water_speed", "long_name": "surface speed (LSPIV)", "units": "m s-1",
+            "cell_methods": "time: mean", **common}, field),
+        "valid_fraction": (tyx, gf[None], {
+            "long_name": "fraction of frame pairs in which the PIV vector was valid", "units": "1", **common}, field),
+        "time_bnds": (("time", "nv"), np.array([[t0, t1]]), {}, plain),
+    }
     if crs is not None:
         from .geotiff import cf_grid_mapping
 
-        ds["crs"] = ((), np.int32(0), cf_grid_mapping(crs))
+        variables["crs"] = ((), np.int32(0), cf_grid_mapping(crs), {})
     d = result.discharge
     now = datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
-    ds.attrs = {
+    attrs = {
         "Conventions": "CF-1.8",
         "title": f"LSPIV mean surface velocity — {project.name}",
         "source": f"fieldtool {__version__}: large-scale particle image velocimetry of a river surface video",
@@ -161,19 +160,24 @@ def build_dataset(result, project):
         **_flat_attrs(result.project),
     }
     if recorded:
-        ds.attrs["time_coverage_start"] = recorded
-    for k in ("surface_velocity_x", "surface_velocity_y", "surface_speed", "valid_fraction"):
-        ds[k].encoding.update({"zlib": True, "complevel": 4, "_FillValue": np.float32(np.nan)})
-    for k in ("x", "y", "time_bnds"):
-        ds[k].encoding["_FillValue"] = None
-    ds["time"].encoding["_FillValue"] = None
-    return ds
+        attrs["time_coverage_start"] = recorded
+    return {"dims": {"time": 1, "y": len(y), "x": len(x), "nv": 2}, "vars": variables, "attrs": attrs}
 
 
 def write_mean_field(result, project, inputs, out: Path) -> str:
     """Write ``mean_field.nc`` into ``out`` (through a temporary file and a rename); returns its name."""
+    import netCDF4
+
     ds = build_dataset(result, project)
     path = Path(out) / "mean_field.nc"
     with atomic_path(path) as tmp:
-        ds.to_netcdf(tmp, engine="netcdf4", format="NETCDF4")
+        with netCDF4.Dataset(tmp, "w", format="NETCDF4") as nc:
+            for name, size in ds["dims"].items():
+                nc.createDimension(name, size)
+            for name, (dims, values, attrs, enc) in ds["vars"].items():
+                values = np.asarray(values)
+                var = nc.createVariable(name, values.dtype, dims, **enc)
+                var.setncatts(attrs)
+                var[...] = values
+            nc.setncatts(ds["attrs"])
     return path.name

@@ -81,7 +81,7 @@ class StepScreen(Screen):
     def on_mount(self) -> None:
         if self.project.step != self.STEP:
             self.project.step = self.STEP
-            self.session.save()
+            self.app.save_project()  # type: ignore[attr-defined]
         self.query_one("#step-errors", Static).display = False
         self.app.show_status(self)  # type: ignore[attr-defined]
         self.update_title()
@@ -102,6 +102,9 @@ class StepScreen(Screen):
                 return
 
     def update_title(self, note: str = "") -> None:
+        status = getattr(self.app, "status", ("", False))
+        if not note and status[1] and status[0].startswith("NOT SAVED"):
+            note = "NOT SAVED"
         viewer = getattr(self.app, "viewer_url", None)
         if viewer and not note:
             note = f"viewer {viewer}"
@@ -120,7 +123,7 @@ class StepScreen(Screen):
 
     # -- events ------------------------------------------------------------------------------------
     def on_field_row_edited(self, event: FieldRow.Edited) -> None:
-        self.session.save()
+        self.app.save_project()  # type: ignore[attr-defined]
         self.app.viewer_reload()  # type: ignore[attr-defined]
         self.after_edit(event.row.field)
         self.update_visibility()

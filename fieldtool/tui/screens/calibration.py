@@ -42,7 +42,7 @@ class CalibrationScreen(StepScreen):
             c.checkerboard_video = ""
         elif mode == "run" and not c.path:
             c.path = "calibration.toml"
-        self.session.save()
+        self.app.save_project()  # type: ignore[attr-defined]
         self.app.goto(self.STEP)  # type: ignore[attr-defined]  # rebuild the rows for the mode
 
     def focus_first(self) -> None:

@@ -123,7 +123,7 @@ class FiltersScreen(StepScreen):
         self.changed()
 
     def changed(self) -> None:
-        self.session.save()
+        self.app.save_project()  # type: ignore[attr-defined]
         self.show_errors([])
         self.refresh_view()
         self.refresh_marks()
