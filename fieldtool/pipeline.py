@@ -322,7 +322,7 @@ def build_section(project: Project, inputs: Inputs, level_m: float, mapping: ort
     if np.asarray(pts).shape == (2, 2):  # raw-frame pixels, checked before undistortion
         ortho.check_in_frame(np.asarray(pts, float), inputs.shape, "section.points_px")
     geom = dq.section_geometry(inputs.to_working(pts) if len(pts) else pts, mapping, inputs.cross_section,
-                               level_m, sec.n_sub, sec.station_offset_m)
+                               level_m, sec.n_sub, sec.station_offset_m, footprint_px=dq.window_reach_px(project.piv.window_px, project.piv.overlap_px))
     dq.check_section(geom, inputs.cross_section, level_m, sec.min_length_fraction, sec.edge_tolerance_m)
     return geom
 
@@ -604,12 +604,13 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
         """Discharge of one pixel-velocity field (px/s) on the section ``g`` (cross-section ``cs_g``, default
         the project's)."""
         cs_g = cs if cs_g is None else cs_g
-        area, depth = dq.subsection_areas(g, cs_g, level.level_m)
+        area, _ = dq.subsection_areas(g, cs_g, level.level_m)
+        law = dq.manning_factors(cs_g, level.level_m, g.station_edges)
         alpha = dq.resolve_alpha(sec.alpha, cs_g, level.level_m)
 
         def q(xx, yy, u, v) -> float:
             Uw, Vw = mapping.rectify_velocity(xx, yy, u, v)
-            return dq.pair_discharge(g, area, depth, alpha, xx, yy, Uw, Vw)
+            return dq.pair_discharge(g, area, law, alpha, xx, yy, Uw, Vw)
 
         return q
 
@@ -770,7 +771,8 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
         warnings.append("section.points_px were given right edge first; they were swapped (P1 must be the left "
                         "water edge looking downstream)")
         pts = np.asarray(sec.points_px, float)[::-1]
-        geom = dq.section_geometry(inputs.to_working(pts), mapping, cs, level.level_m, sec.n_sub, sec.station_offset_m)
+        geom = dq.section_geometry(inputs.to_working(pts), mapping, cs, level.level_m, sec.n_sub, sec.station_offset_m,
+                                   footprint_px=dq.window_reach_px(project.piv.window_px, project.piv.overlap_px))
         geom.swapped = True
         v_sub = dq.subsection_velocity(geom, res.x, res.y, U, V)
         dres = dq.compute_discharge(geom, cs, level.level_m, v_sub, sec.alpha)

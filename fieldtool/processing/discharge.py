@@ -4,8 +4,14 @@ Thesis chapter 8, with two changes a hydrologist expects:
 - the velocity of a subsection is the mean normal component sampled at several points along the
   subsection (interpolated from the field), not only the nearest vector: far from the camera one
   window covers metres;
-- a subsection without valid vectors gets the velocity of the nearest valid one scaled by
-  (depth / depth_neighbour)^(2/3) (Manning-like), and is flagged in the table.
+- a subsection without valid vectors gets the velocity of the nearest valid one carried along the local
+  Manning law v ∝ depth^(2/3): scaled by its depth-weighted mean of depth^(2/3) (as the discharge weighs it)
+  over the neighbour's plain mean (as its sample points average it), and is flagged in the table;
+- a sample point whose interpolation reads a window that reaches over a water edge (a bank or an
+  island) is left out (``footprint_px``): stationary removal blanks the bank, so such a window reads
+  the faster water beside it, +50 % at an edge subsection of the oblique scene. A subsection left with
+  no sample is filled as above. When fewer than half of the subsections would keep a sample (a narrow
+  stream under large windows), every sample is kept and the run says so.
 
 Section of interest: two points, P1 the left water edge and P2 the right water edge (left/right
 looking downstream). Subsection i spans the fraction [i/n, (i+1)/n] of P1->P2; its stations on the
@@ -43,11 +49,24 @@ class SectionGeometry:
     station_edges: np.ndarray  # (n+1,) stations of the subsection limits (m)
     sample_img: np.ndarray  # (n, k, 2) px sample points along each subsection
     swapped: bool = False  # P1/P2 were swapped because the flow ran upstream of the normal
+    trusted: np.ndarray | None = None  # (n, k) bool: the sample's windows lie on water (None = all)
+    edge_note: str = ""  # why edge samples were kept or dropped, for the run's warnings
+
+
+def window_reach_px(window_px: int, overlap_px: int) -> float:
+    """How far (px) from a point the final-pass windows that its bilinear interpolation reads reach: half
+    a window plus one node spacing."""
+    return 0.5 * window_px + max(window_px - overlap_px, 1)
 
 
 def section_geometry(points_px, mapping: OrthoMapping, cs: CrossSection, level: float, n_sub: int,
-                     station_offset_m: float | None = None, image_shape: tuple[int, int] | None = None) -> SectionGeometry:
-    """Build the section of interest (see module docstring)."""
+                     station_offset_m: float | None = None, image_shape: tuple[int, int] | None = None,
+                     footprint_px: float = 0.0) -> SectionGeometry:
+    """Build the section of interest (see module docstring).
+
+    ``footprint_px``: how far (px, image axes) from a sample point the windows that its interpolation reads
+    reach (half the final window plus one node spacing); 0 keeps every sample.
+    """
     p = np.asarray(points_px, float)
     if p.shape != (2, 2):
         raise ParameterError("section.points_px: give two [x, y] pixel points, the left then the right water edge")
@@ -69,7 +88,47 @@ def section_geometry(points_px, mapping: OrthoMapping, cs: CrossSection, level: 
     frac = (np.arange(n_sub)[:, None] + (np.arange(SAMPLES_PER_SUB)[None, :] + 0.5) / SAMPLES_PER_SUB) / n_sub
     pts_w = pw[0] + frac[..., None] * d
     sample_img = mapping.world_to_image(pts_w.reshape(-1, 2)).reshape(n_sub, SAMPLES_PER_SUB, 2)
-    return SectionGeometry(p, pw, length, normal, edges, sample_img)
+    geom = SectionGeometry(p, pw, length, normal, edges, sample_img)
+    if footprint_px > 0:
+        geom.trusted, geom.edge_note = _on_water(geom, frac, mapping, cs, level, float(footprint_px))
+    return geom
+
+
+def _on_water(geom: SectionGeometry, frac: np.ndarray, mapping: OrthoMapping, cs: CrossSection, level: float,
+              footprint_px: float) -> tuple[np.ndarray, str]:
+    """(n, k) bool: the stations within the windows' reach of each sample point are all wet.
+
+    The reach (m along the section) is the largest projection on the section of the square of half-side
+    ``footprint_px`` around the sample, mapped to the water plane.
+    """
+    n, k, _ = geom.sample_img.shape
+    pts = geom.sample_img.reshape(-1, 2)
+    t = (geom.p_world[1] - geom.p_world[0]) / geom.length_m
+    centre = mapping.image_to_world(pts)
+    reach = np.zeros(len(pts))
+    for dx, dy in ((-1, -1), (-1, 1), (1, -1), (1, 1)):
+        corner = mapping.image_to_world(pts + footprint_px * np.array([dx, dy], float))
+        reach = np.fmax(reach, np.abs((corner - centre) @ t))
+    span = geom.station_edges[-1] - geom.station_edges[0]
+    stations = geom.station_edges[0] + frac.reshape(-1) * span
+    reach = reach * (span / geom.length_m)
+    ok = np.isfinite(reach)
+    for f in np.linspace(-1.0, 1.0, 9):
+        ok &= cs.depth_at(level, stations + f * np.where(np.isfinite(reach), reach, 0.0)) > 0
+    ok = ok.reshape(n, k)
+    kept = ok.any(axis=1)
+    if not kept.all() and kept.mean() < 0.5:
+        return np.ones((n, k), bool), (f"the interrogation windows reach over a water edge in {int((~kept).sum())} of "
+                                       f"{n} subsections; all samples kept (smaller piv.window_px would avoid it)")
+    return ok, ""
+
+
+def section_samples(geom: SectionGeometry, x, y, U, V) -> np.ndarray:
+    """Downstream-normal velocity (m/s) at each subsection's sample points, (n, k); NaN where invalid or
+    where the sample's windows reach over a water edge."""
+    su, sv = sample_field(x, y, U, V, geom.sample_img)
+    vn = su * geom.normal[0] + sv * geom.normal[1]
+    return vn if geom.trusted is None else np.where(geom.trusted, vn, np.nan)
 
 
 def sample_field(x: np.ndarray, y: np.ndarray, U: np.ndarray, V: np.ndarray, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -137,15 +196,29 @@ class DischargeResult:
 
 def subsection_velocity(geom: SectionGeometry, x, y, U, V) -> np.ndarray:
     """Mean downstream-normal surface velocity (m/s) per subsection; NaN where nothing is valid."""
-    su, sv = sample_field(x, y, U, V, geom.sample_img)
-    vn = su * geom.normal[0] + sv * geom.normal[1]
+    vn = section_samples(geom, x, y, U, V)
     with np.errstate(invalid="ignore"):
         cnt = np.sum(np.isfinite(vn), axis=1)
         return np.where(cnt > 0, np.nansum(vn, axis=1) / np.maximum(cnt, 1), np.nan)
 
 
-def fill_velocity(v: np.ndarray, depth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Fill NaN subsection velocities from the nearest valid one scaled by (depth ratio)^(2/3)."""
+def manning_factors(cs: CrossSection, level: float, edges: np.ndarray, k: int = 32) -> tuple[np.ndarray, np.ndarray]:
+    """The local Manning law v ∝ depth^(2/3) averaged two ways over each subsection between ``edges`` (m):
+    weighted by depth, as the discharge weighs a surface velocity (``to``), and plain, as the sample points
+    along a subsection average the surface velocity (``frm``); m^(2/3), ``k`` points per subsection."""
+    e = np.asarray(edges, float)
+    s = e[:-1, None] + (np.arange(k)[None, :] + 0.5) / k * np.diff(e)[:, None]
+    d = cs.depth_at(level, s)
+    d23 = d ** (2.0 / 3.0)
+    dsum = d.sum(axis=1)
+    to = np.where(dsum > 0, (d23 * d).sum(axis=1) / np.where(dsum > 0, dsum, 1.0), 0.0)
+    return to, d23.mean(axis=1)
+
+
+def fill_velocity(v: np.ndarray, law: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """Fill NaN subsection velocities from the nearest valid one along the local Manning law:
+    v_i = v_j · to_i / frm_j with ``law = (to, frm)`` of :func:`manning_factors` (m/s)."""
+    to, frm = law
     v = v.copy()
     filled = ~np.isfinite(v)
     valid = np.nonzero(~filled)[0]
@@ -153,7 +226,7 @@ def fill_velocity(v: np.ndarray, depth: np.ndarray) -> tuple[np.ndarray, np.ndar
         return v, filled
     for i in np.nonzero(filled)[0]:
         j = valid[np.argmin(np.abs(valid - i))]
-        v[i] = v[j] * (depth[i] / depth[j]) ** (2.0 / 3.0) if depth[j] > 0 else 0.0
+        v[i] = v[j] * to[i] / frm[j] if frm[j] > 0 else 0.0
     return v, filled
 
 
@@ -176,13 +249,14 @@ def resolve_alpha(alpha: float | None, cs: CrossSection, level: float) -> float:
     return float(alpha)
 
 
-def pair_discharge(geom: SectionGeometry, area: np.ndarray, mean_depth: np.ndarray, alpha: float,
+def pair_discharge(geom: SectionGeometry, area: np.ndarray, law: tuple[np.ndarray, np.ndarray], alpha: float,
                    x: np.ndarray, y: np.ndarray, U: np.ndarray, V: np.ndarray) -> float:
-    """Discharge (m³/s) of one velocity field (m/s on the pixel grid); NaN when nothing is valid."""
+    """Discharge (m³/s) of one velocity field (m/s on the pixel grid); NaN when nothing is valid.
+    ``law``: :func:`manning_factors` of the section, for the fill."""
     v = subsection_velocity(geom, x, y, U, V)
     if not np.any(np.isfinite(v)):
         return float("nan")
-    v, _ = fill_velocity(v, mean_depth)
+    v, _ = fill_velocity(v, law)
     return float(np.sum(alpha * area * v))
 
 
@@ -198,9 +272,17 @@ def compute_discharge(geom: SectionGeometry, cs: CrossSection, level: float, sur
             "section: no valid velocity vector on the section of interest; check section.points_px lies on the "
             "water inside the ROI and that the PIV found motion (window size, seeding, filters)"
         )
-    v, filled = fill_velocity(surface_v, mean_depth)
-    if filled.any():
-        warnings.append(f"{int(filled.sum())} of {n} subsections had no valid vector and were filled from a neighbour")
+    v, filled = fill_velocity(surface_v, manning_factors(cs, level, edges))
+    edge = filled & (~geom.trusted.any(axis=1) if geom.trusted is not None else False)
+    if edge.any():
+        warnings.append(f"{int(edge.sum())} of {n} subsections lie within the interrogation windows' reach of a water "
+                        "edge (the windows would read the faster water beside the bank): their velocity is the "
+                        "neighbour's scaled by (depth ratio)^(2/3)")
+    if (filled & ~edge).any():
+        warnings.append(f"{int((filled & ~edge).sum())} of {n} subsections had no valid vector and were filled from "
+                        "a neighbour")
+    if geom.edge_note:
+        warnings.append(geom.edge_note)
     total_area = float(area.sum())
     width = cs.wetted_width(level)
     alpha_default = alpha is None

@@ -13,7 +13,7 @@ import numpy as np
 
 from ..errors import FieldToolError
 from .cross_section import CrossSection
-from .discharge import fill_velocity, sample_field, section_geometry
+from .discharge import fill_velocity, manning_factors, section_geometry, section_samples
 from .ortho import OrthoMapping
 
 
@@ -105,6 +105,7 @@ class McModel:
     suspect: np.ndarray | None = None  # (n_sub,) bool: measured velocities in doubt (e.g. stalled by glints)
     suspect_upper_ms: np.ndarray | None = None  # (n_sub,) what a suspect's velocity may reach (m/s); None = neighbours'
     underread_max: float = 0.0  # the verdict doubts the velocities: they may be under-read by up to this fraction
+    footprint_px: float = 0.0  # reach of the windows a sample reads (px; discharge.section_geometry)
 
 
 @dataclass
@@ -165,7 +166,8 @@ class _Draw:
         # crop the field to the nodes around the section (rectification and sampling per draw)
         x, y = np.asarray(m.x, float), np.asarray(m.y, float)
         cs = m.cross_section
-        g0 = section_geometry(m.section_px, OrthoMapping(H0, m.method), cs, m.level_m, m.n_sub, m.station_offset_m)
+        g0 = section_geometry(m.section_px, OrthoMapping(H0, m.method), cs, m.level_m, m.n_sub, m.station_offset_m,
+                               footprint_px=m.footprint_px)
         pts = g0.sample_img.reshape(-1, 2)
         xs, ys = x[0, :], y[:, 0]
         margin_x = 3 * (xs[1] - xs[0]) if len(xs) > 1 else 1.0
@@ -183,7 +185,7 @@ class _Draw:
             vp = []
             for up, vq in zip(m.u_pairs, m.v_pairs):
                 U, V = map0.rectify_velocity(self.x, self.y, np.asarray(up, float)[sl], np.asarray(vq, float)[sl])
-                vp.append(_subsection_samples(g0, self.x, self.y, U, V))
+                vp.append(section_samples(g0, self.x, self.y, U, V))
             self.vp = _nanmean(np.stack(vp), axis=2)  # (n_pairs, n_sub)
             self.vp_mean = _nanmean(self.vp, axis=0)
 
@@ -203,10 +205,12 @@ class _Draw:
             cs = CrossSection(cs.station, cs.elevation + sig.bed_m * rng.standard_normal(len(cs.elevation)))
         cs.check_level(level)
         mapping = OrthoMapping(H, m.method)
-        geom = section_geometry(m.section_px, mapping, cs, level, m.n_sub, m.station_offset_m)
-        area, depth = _subsection_areas(cs, level, geom.station_edges)
+        geom = section_geometry(m.section_px, mapping, cs, level, m.n_sub, m.station_offset_m,
+                               footprint_px=m.footprint_px)
+        area, _ = _subsection_areas(cs, level, geom.station_edges)
+        law = manning_factors(cs, level, geom.station_edges)
         U, V = mapping.rectify_velocity(self.x, self.y, self.u, self.v)
-        vn = _subsection_samples(geom, self.x, self.y, U, V)  # (n_sub, k)
+        vn = section_samples(geom, self.x, self.y, U, V)  # (n_sub, k)
         if "velocity_sampling" in active and sig.sampling:
             k = vn.shape[1]
             vn = np.take_along_axis(vn, rng.integers(0, k, vn.shape), axis=1)
@@ -228,12 +232,12 @@ class _Draw:
         suspect = m.suspect if m.suspect is not None and "filled_subsections" in active else None
         if suspect is not None and suspect.any():
             # a velocity in doubt lies anywhere between what was measured and what its neighbours suggest
-            alt, _ = fill_velocity(np.where(suspect, np.nan, vs), depth)
+            alt, _ = fill_velocity(np.where(suspect, np.nan, vs), law)
             if m.suspect_upper_ms is not None:
                 alt = np.where(np.isfinite(m.suspect_upper_ms), np.fmax(m.suspect_upper_ms, alt), alt)
             t = rng.uniform(0.0, 1.0)  # one artefact (glints, waves): the same for every suspect subsection
             vs = np.where(suspect & np.isfinite(alt), vs + t * (alt - vs), vs)
-        vf, filled = fill_velocity(vs, depth)
+        vf, filled = fill_velocity(vs, law)
         if "filled_subsections" in active and sig.filled_rel > 0 and filled.any():
             vf = np.where(filled, vf * (1.0 + sig.filled_rel * rng.standard_normal(len(vf))), vf)
         alpha = m.alpha
@@ -269,10 +273,6 @@ def _norm_h(H: np.ndarray) -> np.ndarray:
     return H / H[2, 2] if abs(H[2, 2]) > 1e-12 else H / np.linalg.norm(H)
 
 
-def _subsection_samples(geom, x, y, U, V) -> np.ndarray:
-    """Downstream-normal velocity (m/s) at each subsection's sample points, (n_sub, k), NaN invalid."""
-    su, sv = sample_field(x, y, U, V, geom.sample_img)
-    return su * geom.normal[0] + sv * geom.normal[1]
 
 
 def _active_sources(sig: McSigmas, model: McModel, drawer: _Draw) -> list[str]:
