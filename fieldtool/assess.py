@@ -117,7 +117,7 @@ def assess_run(project, inputs, level, mapping, geom, res, U, V, dres, q_pairs, 
                        x=res.x, y=res.y, u=res.u, v=res.v, u_pairs=res.u_pairs, v_pairs=res.v_pairs,
                        suspect=suspect, suspect_upper_ms=upper,
                        footprint_px=0.0 if geom.trusted is None else
-                       window_reach_px(project.piv.window_px, project.piv.overlap_px))
+                       window_reach_px(project.piv.window_px))
     dt = float(np.median(res.dt_s)) if res.dt_s is not None and len(res.dt_s) else 1.0
     p = res.params
     first = p.window_px * 2 ** (max(p.passes, 1) - 1)

@@ -322,7 +322,7 @@ def build_section(project: Project, inputs: Inputs, level_m: float, mapping: ort
     if np.asarray(pts).shape == (2, 2):  # raw-frame pixels, checked before undistortion
         ortho.check_in_frame(np.asarray(pts, float), inputs.shape, "section.points_px")
     geom = dq.section_geometry(inputs.to_working(pts) if len(pts) else pts, mapping, inputs.cross_section,
-                               level_m, sec.n_sub, sec.station_offset_m, footprint_px=dq.window_reach_px(project.piv.window_px, project.piv.overlap_px))
+                               level_m, sec.n_sub, sec.station_offset_m, footprint_px=dq.window_reach_px(project.piv.window_px))
     dq.check_section(geom, inputs.cross_section, level_m, sec.min_length_fraction, sec.edge_tolerance_m)
     return geom
 
@@ -772,7 +772,7 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
                         "water edge looking downstream)")
         pts = np.asarray(sec.points_px, float)[::-1]
         geom = dq.section_geometry(inputs.to_working(pts), mapping, cs, level.level_m, sec.n_sub, sec.station_offset_m,
-                                   footprint_px=dq.window_reach_px(project.piv.window_px, project.piv.overlap_px))
+                                   footprint_px=dq.window_reach_px(project.piv.window_px))
         geom.swapped = True
         v_sub = dq.subsection_velocity(geom, res.x, res.y, U, V)
         dres = dq.compute_discharge(geom, cs, level.level_m, v_sub, sec.alpha)

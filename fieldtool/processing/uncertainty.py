@@ -105,7 +105,7 @@ class McModel:
     suspect: np.ndarray | None = None  # (n_sub,) bool: measured velocities in doubt (e.g. stalled by glints)
     suspect_upper_ms: np.ndarray | None = None  # (n_sub,) what a suspect's velocity may reach (m/s); None = neighbours'
     underread_max: float = 0.0  # the verdict doubts the velocities: they may be under-read by up to this fraction
-    footprint_px: float = 0.0  # reach of the windows a sample reads (px; discharge.section_geometry)
+    footprint_px: float = 0.0  # reach of the window centred on a sample (px; discharge.section_geometry)
 
 
 @dataclass
