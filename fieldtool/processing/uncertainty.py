@@ -168,6 +168,7 @@ class _Draw:
         cs = m.cross_section
         g0 = section_geometry(m.section_px, OrthoMapping(H0, m.method), cs, m.level_m, m.n_sub, m.station_offset_m,
                                footprint_px=m.footprint_px)
+        self.trusted = g0.trusted
         pts = g0.sample_img.reshape(-1, 2)
         xs, ys = x[0, :], y[:, 0]
         margin_x = 3 * (xs[1] - xs[0]) if len(xs) > 1 else 1.0
@@ -205,8 +206,8 @@ class _Draw:
             cs = CrossSection(cs.station, cs.elevation + sig.bed_m * rng.standard_normal(len(cs.elevation)))
         cs.check_level(level)
         mapping = OrthoMapping(H, m.method)
-        geom = section_geometry(m.section_px, mapping, cs, level, m.n_sub, m.station_offset_m,
-                               footprint_px=m.footprint_px)
+        geom = section_geometry(m.section_px, mapping, cs, level, m.n_sub, m.station_offset_m)
+        geom.trusted = self.trusted  # which samples reach a water edge: the run's answer (a draw moves it little)
         area, _ = _subsection_areas(cs, level, geom.station_edges)
         law = manning_factors(cs, level, geom.station_edges)
         U, V = mapping.rectify_velocity(self.x, self.y, self.u, self.v)
