@@ -124,3 +124,25 @@ def test_scale_without_gcps_spans_the_outer_water_edges():
     m = build_mapping(p, inputs, 10.0)
     assert m.details["m_per_px"] == pytest.approx(12.0 / 1200.0)
     assert 11.0 / 1200.0 / m.details["m_per_px"] - 1 == pytest.approx(-0.0833, abs=1e-3)  # the old scale's error
+
+
+def test_the_quadrilateral_solver_finds_scipys_minimum():
+    """ortho.levenberg_marquardt stands in for scipy.optimize.least_squares (import time); same minimum."""
+    from scipy.optimize import least_squares
+
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        quad = np.array([[0.0, 8.0], [12.0, 9.0], [11.0, -1.0], [0.0, 0.0]]) + rng.normal(0, 1.0, (4, 2))
+        quad[3] = 0.0
+        quad[0, 0] = 0.0
+        L = np.array([np.hypot(*(quad[j] - quad[i])) for i, j in ortho.PAIRS]) + rng.normal(0, 0.05, 6)
+
+        def resid(p, L=L):
+            q = np.array([[0.0, p[0]], p[1:3], p[3:5], [0.0, 0.0]])
+            return np.array([np.hypot(*(q[j] - q[i])) for i, j in ortho.PAIRS]) - L
+
+        x0 = np.r_[quad[0, 1], quad[1], quad[2]] + rng.normal(0, 0.2, 5)
+        ours = ortho.levenberg_marquardt(resid, x0)
+        ref = least_squares(resid, x0, xtol=1e-15, ftol=1e-15, gtol=1e-15).x
+        assert np.sum(resid(ours) ** 2) <= np.sum(resid(ref) ** 2) + 1e-12
+        np.testing.assert_allclose(ours, ref, atol=1e-6)

@@ -167,3 +167,21 @@ def test_recording_time_from_a_matroska_header(tmp_path):
     assert mkv_creation_time(path) is None and recording_time(path)[1] == "file mtime"
     (tmp_path / "not.mkv").write_bytes(b"RIFF....")
     assert mkv_creation_time(tmp_path / "not.mkv") is None
+
+
+def test_the_grid_interpolation_is_scipys_linear_nd():
+    """writers.netcdf interpolates on Delaunay triangles itself (import time); same values as SciPy's."""
+    from scipy.interpolate import LinearNDInterpolator
+
+    from fieldtool.writers.netcdf import _linear_on_triangles
+
+    rng = np.random.default_rng(1)
+    XY = rng.uniform(0, 10, (200, 2))
+    V = np.c_[np.sin(XY[:, 0]) + XY[:, 1], XY[:, 0] * XY[:, 1]]
+    pts = rng.uniform(-1, 11, (500, 2))
+    ours = _linear_on_triangles(XY, V, pts)
+    ref = LinearNDInterpolator(XY, V)(pts)
+    np.testing.assert_array_equal(np.isnan(ours), np.isnan(ref))
+    ok = ~np.isnan(ref)
+    assert ok.sum() > 300
+    np.testing.assert_allclose(ours[ok], ref[ok], rtol=1e-10, atol=1e-10)

@@ -41,7 +41,6 @@ from pathlib import Path
 from typing import Callable
 
 import numpy as np
-from scipy.optimize import least_squares
 
 from ..errors import GeometryError, InputFileError, ParameterError
 from ..project import WaterLevelCfg
@@ -492,6 +491,7 @@ def offcentre_solution(alpha_low: float, alpha_high: float, dh_m: float, shift: 
         L, H = x
         return np.array([_subtended(H, L, shift) - alpha_low, _subtended(H + dh_m, L, shift) - alpha_high])
 
+    from scipy.optimize import least_squares  # here: importing scipy.optimize costs 0.3-0.5 s of a run
     sol = least_squares(res, np.asarray(guess, float), bounds=([1e-6, 1e-6], [np.inf, np.inf]), xtol=1e-14, ftol=1e-14, gtol=1e-14)
     if not sol.success or np.max(np.abs(sol.fun)) > 1e-9:
         raise GeometryError(f"off-centre solution did not converge (residual {np.max(np.abs(sol.fun)):.2e} rad)")
