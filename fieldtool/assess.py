@@ -13,7 +13,6 @@ import numpy as np
 
 from .processing import quality as ql
 from .processing import uncertainty as un
-from .processing.discharge import window_reach_px
 from .processing.ortho import OrthoMapping
 
 
@@ -115,9 +114,7 @@ def assess_run(project, inputs, level, mapping, geom, res, U, V, dres, q_pairs, 
                        n_sub=len(geom.station_edges) - 1, station_offset_m=project.section.station_offset_m,
                        alpha=dres.alpha, mapping_fn=fn, method=mapping.method, gcp_px=px, gcp_ref=ref,
                        x=res.x, y=res.y, u=res.u, v=res.v, u_pairs=res.u_pairs, v_pairs=res.v_pairs,
-                       suspect=suspect, suspect_upper_ms=upper,
-                       footprint_px=0.0 if geom.trusted is None else
-                       window_reach_px(project.piv.window_px))
+                       suspect=suspect, suspect_upper_ms=upper, trusted=geom.trusted)
     dt = float(np.median(res.dt_s)) if res.dt_s is not None and len(res.dt_s) else 1.0
     p = res.params
     first = p.window_px * 2 ** (max(p.passes, 1) - 1)

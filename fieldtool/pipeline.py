@@ -322,7 +322,8 @@ def build_section(project: Project, inputs: Inputs, level_m: float, mapping: ort
     if np.asarray(pts).shape == (2, 2):  # raw-frame pixels, checked before undistortion
         ortho.check_in_frame(np.asarray(pts, float), inputs.shape, "section.points_px")
     geom = dq.section_geometry(inputs.to_working(pts) if len(pts) else pts, mapping, inputs.cross_section,
-                               level_m, sec.n_sub, sec.station_offset_m, footprint_px=dq.window_reach_px(project.piv.window_px))
+                               level_m, sec.n_sub, sec.station_offset_m,
+                               footprint_px=dq.window_reach_px(project.piv.window_px))
     dq.check_section(geom, inputs.cross_section, level_m, sec.min_length_fraction, sec.edge_tolerance_m)
     return geom
 
@@ -770,9 +771,7 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
         # P1/P2 picked right-to-left: swap them so P1 is the left edge, as the stations assume
         warnings.append("section.points_px were given right edge first; they were swapped (P1 must be the left "
                         "water edge looking downstream)")
-        pts = np.asarray(sec.points_px, float)[::-1]
-        geom = dq.section_geometry(inputs.to_working(pts), mapping, cs, level.level_m, sec.n_sub, sec.station_offset_m,
-                                   footprint_px=dq.window_reach_px(project.piv.window_px))
+        geom = build_section(project, inputs, level.level_m, mapping, np.asarray(sec.points_px, float)[::-1])
         geom.swapped = True
         v_sub = dq.subsection_velocity(geom, res.x, res.y, U, V)
         dres = dq.compute_discharge(geom, cs, level.level_m, v_sub, sec.alpha)

@@ -114,8 +114,9 @@ def _on_water(geom: SectionGeometry, frac: np.ndarray, mapping: OrthoMapping, cs
     stations = geom.station_edges[0] + frac.reshape(-1) * span
     reach = reach * (span / geom.length_m)
     ok = np.isfinite(reach)
+    reach = np.where(ok, reach, 0.0)
     for f in np.linspace(-1.0, 1.0, 9):
-        ok &= cs.depth_at(level, stations + f * np.where(np.isfinite(reach), reach, 0.0)) > 0
+        ok &= cs.depth_at(level, stations + f * reach) > 0
     ok = ok.reshape(n, k)
     kept = ok.any(axis=1)
     if not kept.all() and kept.mean() < 0.5:

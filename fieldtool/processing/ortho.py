@@ -145,9 +145,10 @@ def levenberg_marquardt(resid: Callable[[np.ndarray], np.ndarray], x0: np.ndarra
     r = resid(x)
     cost = float(r @ r)
     lam = 1e-3
+    eye = np.eye(len(x))
     for _ in range(max_iter):
         h = 1e-8 * np.maximum(1.0, np.abs(x))
-        J = np.stack([(resid(x + h[i] * np.eye(len(x))[i]) - r) / h[i] for i in range(len(x))], axis=1)
+        J = np.stack([(resid(x + h[i] * eye[i]) - r) / h[i] for i in range(len(x))], axis=1)
         A, g = J.T @ J, J.T @ r
         while True:
             step = np.linalg.solve(A + lam * np.diag(np.diag(A) + 1e-12), -g)

@@ -105,7 +105,7 @@ class McModel:
     suspect: np.ndarray | None = None  # (n_sub,) bool: measured velocities in doubt (e.g. stalled by glints)
     suspect_upper_ms: np.ndarray | None = None  # (n_sub,) what a suspect's velocity may reach (m/s); None = neighbours'
     underread_max: float = 0.0  # the verdict doubts the velocities: they may be under-read by up to this fraction
-    footprint_px: float = 0.0  # reach of the window centred on a sample (px; discharge.section_geometry)
+    trusted: np.ndarray | None = None  # (n_sub, k) the run's samples whose window lies on water (None = all)
 
 
 @dataclass
@@ -166,9 +166,8 @@ class _Draw:
         # crop the field to the nodes around the section (rectification and sampling per draw)
         x, y = np.asarray(m.x, float), np.asarray(m.y, float)
         cs = m.cross_section
-        g0 = section_geometry(m.section_px, OrthoMapping(H0, m.method), cs, m.level_m, m.n_sub, m.station_offset_m,
-                               footprint_px=m.footprint_px)
-        self.trusted = g0.trusted
+        g0 = section_geometry(m.section_px, OrthoMapping(H0, m.method), cs, m.level_m, m.n_sub, m.station_offset_m)
+        g0.trusted = m.trusted
         pts = g0.sample_img.reshape(-1, 2)
         xs, ys = x[0, :], y[:, 0]
         margin_x = 3 * (xs[1] - xs[0]) if len(xs) > 1 else 1.0
@@ -207,7 +206,7 @@ class _Draw:
         cs.check_level(level)
         mapping = OrthoMapping(H, m.method)
         geom = section_geometry(m.section_px, mapping, cs, level, m.n_sub, m.station_offset_m)
-        geom.trusted = self.trusted  # which samples reach a water edge: the run's answer (a draw moves it little)
+        geom.trusted = m.trusted  # which samples reach a water edge: the run's answer (a draw moves it little)
         area, _ = _subsection_areas(cs, level, geom.station_edges)
         law = manning_factors(cs, level, geom.station_edges)
         U, V = mapping.rectify_velocity(self.x, self.y, self.u, self.v)
@@ -272,8 +271,6 @@ def _nanmean(a: np.ndarray, axis: int) -> np.ndarray:
 def _norm_h(H: np.ndarray) -> np.ndarray:
     H = np.asarray(H, float)
     return H / H[2, 2] if abs(H[2, 2]) > 1e-12 else H / np.linalg.norm(H)
-
-
 
 
 def _active_sources(sig: McSigmas, model: McModel, drawer: _Draw) -> list[str]:

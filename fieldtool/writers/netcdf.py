@@ -77,10 +77,11 @@ def _linear_on_triangles(XY: np.ndarray, V: np.ndarray, pts: np.ndarray) -> np.n
 
     tri = Delaunay(XY)
     s = tri.find_simplex(pts)
-    T = tri.transform[np.maximum(s, 0)]
+    inside = np.maximum(s, 0)  # any triangle for the points outside: their values are set to NaN below
+    T = tri.transform[inside]
     b = np.einsum("nij,nj->ni", T[:, :2], pts - T[:, 2])
     w = np.c_[b, 1.0 - b.sum(axis=1)]
-    out = np.einsum("ni,nik->nk", w, V[tri.simplices[np.maximum(s, 0)]])
+    out = np.einsum("ni,nik->nk", w, V[tri.simplices[inside]])
     out[s < 0] = np.nan
     return out
 
