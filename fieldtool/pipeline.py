@@ -490,7 +490,7 @@ def piv_region(project: Project, inputs: Inputs, params, roi, segments) -> tuple
 
 
 def run_piv_fast(make_frames, n_pairs: int, gap: int, params, roi, mask, max_speed, cancel, on_pair, pair_q,
-                 rel_ci: float, min_pairs: int, drain_first: bool = False):
+                 rel_ci: float, min_pairs: int, drain_first: bool = False, near=None):
     """PIV with pairs added until the discharge has converged (``processing.piv_fast.converge``), each round's
     frames read by a background thread (``make_frames`` may hand one already reading). ``drain_first``: the
     first round's stream is read to its end (STIV samples its lines from it). Returns (PivResult, dict of
@@ -509,7 +509,7 @@ def run_piv_fast(make_frames, n_pairs: int, gap: int, params, roi, mask, max_spe
         reader = frames if isinstance(frames, (piv_fast.prefetch, piv_fast.Prefetched)) else piv_fast.prefetch(frames)
         try:
             res = piv_mod.analyze(reader, params, roi=roi, mask=mask, max_speed_px_s=max_speed, cancel=cancel,
-                                  on_pair=on_pair, select=select, carry=carry)
+                                  on_pair=on_pair, select=select, carry=carry, near=near)
             if carry is None and drain_first:
                 for _ in reader:
                     pass
@@ -553,8 +553,10 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
         timings[name] = round(now - t0, 3)
         t0 = now
 
+    mpl_import = None
     if out_dir is not None:  # matplotlib takes ~0.6 s to import: let that overlap the PIV
-        threading.Thread(target=importlib.import_module, args=("fieldtool.plots.discharge",), daemon=True).start()
+        mpl_import = threading.Thread(target=importlib.import_module, args=("fieldtool.plots.discharge",), daemon=True)
+        mpl_import.start()
     from .validation import check
 
     warnings += [str(w) for w in check(project)]  # every key, before any step
@@ -596,6 +598,12 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
     roi_user = roi
     segments = [geom.p_img] + [inputs.to_working(s.points_px) for s in extra_sections if len(s.points_px)]
     roi = piv_region(project, inputs, params, roi, segments)
+    near = None
+    if project.piv.region == "section" and roi is not None:  # in the band's box, only the nodes near the sections
+        from .processing.piv_fast import node_reach_px
+
+        near = ([np.asarray(sg, float)[:2] for sg in segments],
+                node_reach_px(params.window_px, params.overlap_px, params.passes))
     x, y = piv_mod.grid(inputs.shape, params, roi)
     max_speed = None
     if project.piv.max_velocity_ms is not None:
@@ -637,7 +645,7 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
     # the pixel-space field is reused when only the mapping, level, section or alpha changed (not while
     # streaming to an observer, who wants to see the frames and pairs)
     cache_dir = Path(out_dir) if out_dir is not None and observer is None else None
-    key = piv_cache.piv_key(project, max_speed, roi) if cache_dir is not None else ""
+    key = piv_cache.piv_key(project, max_speed, roi, near) if cache_dir is not None else ""
     cached = piv_cache.load(cache_dir, key, with_extra=True) if cache_dir is not None else None
     fast = {"region": project.piv.region, "box_px": None if roi is None else list(roi),
             "roi_px": None if roi_user is None else list(roi_user)}
@@ -725,13 +733,13 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
             if n_exp - gap >= 2:
                 res, conv = run_piv_fast(make_frames, n_exp - gap, gap, params, roi, mask, max_speed, cancel, on_pair,
                                          pair_q_fn(geom), project.piv.converge_rel_ci, project.piv.min_pairs,
-                                         drain_first=standardize and stiv_run is not None)
+                                         drain_first=standardize and stiv_run is not None, near=near)
                 fast.update(conv)
             else:
                 frames = make_frames()
                 try:
                     res = piv_mod.analyze(frames, params, roi=roi, mask=mask, max_speed_px_s=max_speed, cancel=cancel,
-                                          on_pair=on_pair)
+                                          on_pair=on_pair, near=near)
                 finally:
                     getattr(frames, "close", lambda: None)()
                 fast.update(pairs_used=int(res.n_pairs or 0), converged=None)
@@ -750,7 +758,7 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
             frames = _Sized(frames, n_exp)  # lets the ensemble plan which pairs get per-pair vectors
         try:
             res = piv_mod.analyze(frames, params, roi=roi, mask=mask, max_speed_px_s=max_speed,
-                                  progress=None, cancel=cancel, on_pair=on_pair)
+                                  progress=None, cancel=cancel, on_pair=on_pair, near=near)
         finally:
             reader.close()
         fast.update(pairs_used=int(res.n_pairs or 0), converged=None)
@@ -802,6 +810,8 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
 
     q_pairs = pairs_q(geom)
     lap("discharge")
+    if prerendered is not None:  # the velocity figures are drawn in a child process during the Monte Carlo
+        prerendered.fork_results(inputs, dres, res, U, V, geom, mapping, cs, before=[mpl_import])
 
     from .assess import assess_run
 
@@ -844,7 +854,10 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
                        uncertainty=unc, quality=qual, sections=section_entries, robust=robust_facts,
                        stiv=stiv_block, piv_fast=fast, prerendered=prerendered)
     if out_dir is not None:
-        write_outputs(result, project, inputs, Path(out_dir))
+        try:
+            write_outputs(result, project, inputs, Path(out_dir))
+        finally:
+            prerendered.close()
     obs("result", result)
     return result
 
@@ -914,9 +927,17 @@ def _write_outputs(result: RunResult, inputs: Inputs, out: Path) -> None:
 
     from .plots import discharge as plots
 
-    files["vectors_png"] = plots.plot_vectors(out / "vectors.png", inputs.first_color, result, inputs).name
-    files["rectified_png"] = plots.plot_rectified(out / "rectified.png", inputs.first_color, result, inputs).name
-    files["section_png"] = plots.plot_section(out / "section.png", inputs.cross_section, result).name
+    pre = result.prerendered
+    for key, name, draw in (
+            ("vectors_png", "vectors.png", lambda f: plots.plot_vectors(f, inputs.first_color, result, inputs)),
+            ("rectified_png", "rectified.png", lambda f: plots.plot_rectified(f, inputs.first_color, result, inputs)),
+            ("section_png", "section.png", lambda f: plots.plot_section(f, inputs.cross_section, result))):
+        png = pre.png(name) if pre is not None else None  # drawn in a child during the Monte Carlo
+        if png:
+            atomic_write_bytes(out / name, png)
+            files[key] = name
+        else:
+            files[key] = draw(out / name).name
     try:
         png = result.prerendered.png("water_level.png") if result.prerendered is not None else None
         if png:

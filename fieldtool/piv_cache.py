@@ -33,9 +33,10 @@ def _stat(path: Path) -> list:
     return [[f.name, f.stat().st_size, f.stat().st_mtime_ns] for f in files]
 
 
-def piv_key(project: Project, max_speed_px_s: np.ndarray | None, box_px=None) -> str:
-    """Hash of everything the PIV field depends on; ``box_px`` is the correlated box (``[piv] region =
-    "section"`` derives it from the section, so a moved section recomputes the field)."""
+def piv_key(project: Project, max_speed_px_s: np.ndarray | None, box_px=None, near=None) -> str:
+    """Hash of everything the PIV field depends on; ``box_px`` is the correlated box and ``near`` the section
+    segments and reaches of its nodes (``[piv] region = "section"`` derives both from the section, so a moved
+    section recomputes the field)."""
     d = project_to_dict(project)
     parts = {k: d.get(k) for k in ("video", "calibration", "stabilize", "roi", "filters", "piv")}
     parts["video_file"] = _stat(project.resolve(project.video.path))
@@ -47,6 +48,8 @@ def piv_key(project: Project, max_speed_px_s: np.ndarray | None, box_px=None) ->
         parts["max_speed"] = hashlib.sha256(np.ascontiguousarray(max_speed_px_s, dtype=np.float64)).hexdigest()
     if box_px is not None:
         parts["box_px"] = [int(c) for c in box_px]
+    if near is not None:
+        parts["near"] = [[np.round(np.asarray(sg, float), 3).tolist() for sg in near[0]], [round(r, 3) for r in near[1]]]
     parts["version"] = __version__
     return hashlib.sha256(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()
 

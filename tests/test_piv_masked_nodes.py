@@ -49,3 +49,69 @@ def test_skipping_masked_nodes_gives_the_same_vectors(monkeypatch, averaging, sa
     np.testing.assert_allclose(skip.u_pairs, full.u_pairs, rtol=1e-5, atol=1e-5, equal_nan=True)
     np.testing.assert_allclose(skip.v_pairs, full.v_pairs, rtol=1e-5, atol=1e-5, equal_nan=True)
     assert np.isnan(skip.u[inside]).all() and not skip.valid[inside].any()
+
+
+def test_nodes_far_from_the_section_are_skipped_and_the_near_ones_unchanged(monkeypatch):
+    """``near``: every pass correlates only the nodes within its reach of the section; the final pass' nodes near
+    the section read the same as without it, the others have no vector and a NaN valid fraction."""
+    from fieldtool.processing.piv_fast import node_reach_px
+
+    frames = particle_clip(rankine, n_frames=5, seed=3)
+    h, w = frames[0][1].shape
+    params = PivParams(window_px=16, overlap_px=8, passes=2)
+    seg = np.array([[40.0, 30.0], [w - 60.0, h - 40.0]])  # a diagonal section
+    reach = node_reach_px(16, 8, 2)
+    assert reach[0] > reach[1] > 3 * 8
+    calls = []
+    spectra = piv._window_spectra
+
+    def counting(img, oy, ox, lv, size, idx=None):
+        calls.append(lv.ny * lv.nx if idx is None else len(idx))
+        return spectra(img, oy, ox, lv, size, idx)
+
+    monkeypatch.setattr(piv, "_window_spectra", counting)
+    near = analyze(frames, params, near=([seg], reach))
+    n_near = sum(calls)
+    calls.clear()
+    full = analyze(frames, params)
+    n_full = sum(calls)
+    assert n_near < 0.8 * n_full
+    fin_dist = np.array([[np.hypot(*(p - seg[0] - np.clip((p - seg[0]) @ (seg[1] - seg[0]) / np.sum((seg[1] - seg[0]) ** 2),
+                                                             0, 1) * (seg[1] - seg[0])))
+                          for p in np.stack([x, y], -1)] for x, y in zip(full.x, full.y)])
+    inside = fin_dist <= reach[1]
+    assert 0.2 < inside.mean() < 0.8
+    assert np.isnan(near.valid_fraction[~inside]).all() and not near.valid[~inside].any()
+    assert np.isfinite(near.valid_fraction[inside]).all()
+    close = fin_dist <= np.sqrt(2) * 8  # the nodes a section's samples read (bilinear, one spacing)
+    ok = close & full.valid & near.valid
+    assert ok.sum() > 10 and ok.sum() == close.sum()
+    np.testing.assert_allclose(near.u[ok], full.u[ok], rtol=1e-4, atol=1e-3)
+    np.testing.assert_allclose(near.v[ok], full.v[ok], rtol=1e-4, atol=1e-3)
+
+
+def test_search_area_spectra_only_for_the_frames_that_need_them(monkeypatch):
+    """With a search area wider than the window, a frame that is only the first of a selected pair gets no
+    search-area spectra and one that is only the second gets no window spectra; the vectors are the same."""
+    frames = particle_clip(rankine, n_frames=9, seed=4)
+    params = PivParams(window_px=16, overlap_px=8, passes=2, search_px=48)
+    sizes = []
+    spectra = piv._window_spectra
+
+    def counting(img, oy, ox, lv, size, idx=None):
+        sizes.append(size)
+        return spectra(img, oy, ox, lv, size, idx)
+
+    monkeypatch.setattr(piv, "_window_spectra", counting)
+    sel = [0, 3, 6]  # frames 0,3,6 only first, 1,4,7 only second
+    res = analyze(iter(frames), params, select=sel)
+    # first level: 32 px windows (A, padded to 48), 48 px search areas (B); final level: 16 px windows
+    assert sizes.count(48) == 3 and sizes.count(32) == 3 and sizes.count(16) == 3 + 3  # A frames, deformed Bs
+    full_prepare = piv._Engine.prepare
+    monkeypatch.setattr(piv._Engine, "prepare", lambda self, frame, as_a=True, as_b=True: full_prepare(self, frame))
+    sizes.clear()
+    every = analyze(iter(frames), params, select=sel)
+    assert sizes.count(48) == 6 and sizes.count(32) == 6
+    np.testing.assert_array_equal(res.u_pairs, every.u_pairs)
+    np.testing.assert_array_equal(res.u, every.u)
+    assert np.isfinite(res.u).mean() > 0.8

@@ -45,5 +45,8 @@ def test_geul_pose_orthorectification_and_piv(tmp_path):
     assert details["reprojection_rms_px"] < 5.0  # the authors' integer GCP pixels: ~4.2 px
     assert result.mapping.residual_m < 0.2  # GCPs met on their own planes: 0.12 m RMS (two GCPs ~0.2 m off)
     assert 5.0 < result.discharge.section_length_m < 12.0  # the stream is ~8 m wide here
-    assert np.nanmean(result.piv.valid_fraction) > 0.3
+    # the nodes correlated are those near the section (NaN elsewhere); a quarter of their pairs give a vector on
+    # these 10 frames of bank-side water (0.25; over the whole box around the section it was 0.31)
+    vf = result.piv.valid_fraction
+    assert np.isnan(vf).any() and np.nanmean(vf) > 0.2
     assert np.isfinite(result.discharge.discharge_m3s) and result.discharge.discharge_m3s > 0

@@ -121,6 +121,27 @@ def test_choose_gap_and_search():
     assert planning.choose(float("nan"), 1.0, 64) == (1, None)
 
 
+def test_search_side_is_a_fast_fft_size():
+    for n in range(64, 400):
+        s = planning.fft_side(n)
+        assert s >= n and s % 2 == 0
+        m = s
+        for p in (2, 3):
+            while m % p == 0:
+                m //= p
+        assert m == 1  # only 2 and 3 as prime factors
+        # no smaller even side of that kind between n and s
+        assert all(not _smooth23(k) for k in range(n + (n % 2), s, 2))
+    assert planning.fft_side(124) == 128
+
+
+def _smooth23(k: int) -> bool:
+    for p in (2, 3):
+        while k % p == 0:
+            k //= p
+    return k == 1
+
+
 def test_first_look_plans_and_replays_every_frame():
     rng = np.random.default_rng(6)
     frames = _stream(30, 1.0, rng)

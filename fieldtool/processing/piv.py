@@ -27,6 +27,9 @@ How it works
 * Masked nodes (window centre in ``mask``) of the final pass of a multi-pass run are not correlated: their
   windows get no spectrum, inverse FFT or peak search (``_SKIP_MASKED``); they have no vector and add nothing to
   the ensemble. Earlier passes keep every node, because they build the predictor of the unmasked ones.
+* ``near`` (the fast path's band around the section): in every pass only the nodes within that pass' distance of
+  the section segments are correlated, the same way; the final pass' others are treated as masked (no vector,
+  never replaced, ``valid_fraction`` NaN), an earlier pass' others are filled from their neighbours.
 * Averaging: ``ensemble`` sums the cross-spectra of all pairs per node, weighted by their signal-to-noise
   (weight = clip(peak ratio - 1, 0, 10)), and takes one peak per node at the end (one inverse FFT for the clip);
   ``mean``/``median`` average the validated per-pair vectors.
@@ -458,6 +461,20 @@ def _scatter_peaks(pk: _Peaks, idx: np.ndarray, n: int) -> _Peaks:
     return _Peaks(ok=ok, **out)
 
 
+def near_nodes(lv: _Level, segments, reach_px, k: int) -> np.ndarray:
+    """Bool (ny, nx): the nodes of pass ``k`` (level ``lv``) whose centre is within ``reach_px[k]`` px of one of
+    ``segments`` (each a (2, 2) array of two image points, full-frame px)."""
+    X, Y = np.meshgrid(lv.xc, lv.yc)
+    P = np.stack([X.ravel(), Y.ravel()], axis=1)
+    best = np.full(len(P), np.inf)
+    for seg in segments:
+        a, b = np.asarray(seg, float).reshape(2, 2)
+        ab = b - a
+        t = np.clip((P - a) @ ab / max(float(ab @ ab), 1e-12), 0.0, 1.0)
+        best = np.minimum(best, np.hypot(*(P - a - t[:, None] * ab).T))
+    return (best <= float(reach_px[k])).reshape(lv.ny, lv.nx)
+
+
 # --------------------------------------------------------------------------------------------- the engine
 
 
@@ -475,7 +492,7 @@ class _Frame:
 class _Engine:
     """Correlation of consecutive frames on fixed pass geometry (CPU, scipy.fft)."""
 
-    def __init__(self, shape, params: PivParams, levels: list[_Level], box, mask: np.ndarray | None):
+    def __init__(self, shape, params: PivParams, levels: list[_Level], box, mask: np.ndarray | None, near=None):
         self.p = params
         self.levels = levels
         self.h, self.w = shape
@@ -489,15 +506,17 @@ class _Engine:
             self.mask_crop = None
         self._maps: dict = {}
         self._bufs: dict = {}
-        # final pass of a multi-pass run: only the nodes whose window centre is outside the mask are correlated
-        # (flat indices; None = all). Earlier passes keep every node: they build the predictor of the others.
-        self.active = None
+        # per pass, the flat indices (row-major) of the only nodes correlated (None = all): the final pass of a
+        # multi-pass run skips the nodes whose window centre is masked (earlier passes keep them: they build the
+        # predictor of the others); with ``near`` every pass skips the nodes beyond its distance of the section
+        keep = [None if near is None else near_nodes(lv, *near, k) for k, lv in enumerate(levels)]
         fin = levels[-1]
         if _SKIP_MASKED and mask is not None and len(levels) > 1:
             X, Y = np.meshgrid(fin.xc, fin.yc)
             node_mask = mask[np.rint(Y).astype(int).clip(0, self.h - 1), np.rint(X).astype(int).clip(0, self.w - 1)]
             if node_mask.any():
-                self.active = np.flatnonzero(~node_mask.ravel())
+                keep[-1] = ~node_mask if keep[-1] is None else keep[-1] & ~node_mask
+        self.act = [None if kp is None or kp.all() else np.flatnonzero(kp.ravel()) for kp in keep]
 
     def _crop(self, img: np.ndarray, fill: float) -> np.ndarray:
         x0, y0 = self.cx0, self.cy0
@@ -525,24 +544,29 @@ class _Engine:
             img[self.mask_crop] = fill
         return img
 
-    def prepare(self, frame: np.ndarray, as_a: bool = True) -> _Frame:
+    def prepare(self, frame: np.ndarray, as_a: bool = True, as_b: bool = True) -> _Frame:
         """Crop, fill the mask with the frame mean, and compute the window spectra of all levels.
 
         ``as_a=False``: the frame is only the second frame of a pair (``analyze(select=...)``): the A-window
-        spectra of the later passes, which only a first frame needs, are not computed."""
+        spectra, which only a first frame needs, are not computed (but the first level's when it is also the
+        search area's, ``search_px`` unset). ``as_b=False``: the frame is only a first frame: the first level's
+        search-area spectra (``search_px`` set) are not computed."""
         img = self._masked_crop(frame)
+        lv0 = self.levels[0]
+        same = lv0.s == lv0.w
         spec_a, scale_a = [], []
-        for k, lv in enumerate(self.levels if as_a else self.levels[:1]):
+        for k, lv in enumerate(self.levels if as_a else self.levels[: int(same)]):
             oy, ox = self._offsets(lv)
-            sp, sc = _window_spectra(img, oy, ox, lv, lv.w, self.active if k == len(self.levels) - 1 else None)
+            sp, sc = _window_spectra(img, oy, ox, lv, lv.w, self.act[k])
             spec_a.append(sp)
             scale_a.append(sc)
-        lv0 = self.levels[0]
-        if lv0.s == lv0.w:
+        if same:
             spec_b0, scale_b0 = spec_a[0], scale_a[0]
+        elif not as_b:
+            spec_b0 = scale_b0 = None
         else:
             oy, ox = self._offsets(lv0)
-            spec_b0, scale_b0 = _window_spectra(img, oy - lv0.margin, ox - lv0.margin, lv0, lv0.s)
+            spec_b0, scale_b0 = _window_spectra(img, oy - lv0.margin, ox - lv0.margin, lv0, lv0.s, self.act[0])
         return _Frame(img=img if len(self.levels) > 1 else None, spec_a=spec_a, spec_b0=spec_b0, scale_a=scale_a,
                       scale_b0=scale_b0)
 
@@ -605,7 +629,7 @@ class _Engine:
                     raise Cancelled("PIV cancelled by the user")
                 bdef = self._deform(k, b.img, du, dv)
                 pred_x, pred_y = self._node_predictor(k, du, dv)
-                spec_b, scale_b = _window_spectra(bdef, 0, 0, lv, lv.w, self.active if k == last else None)
+                spec_b, scale_b = _window_spectra(bdef, 0, 0, lv, lv.w, self.act[k])
             cross = self._buffer(("cross", k), a.spec_a[k])
             np.conjugate(a.spec_a[k], out=cross)
             cross *= spec_b
@@ -613,8 +637,8 @@ class _Engine:
             if self.p.min_texture > 0:  # texture gate (processing/surface.py): too little texture -> featureless
                 smax = 1.0 / (self.p.min_texture * lv.w)
                 scale = np.where((a.scale_a[k] <= smax) & (scale_b <= smax), scale, np.float32(0.0))
-            act = self.active if k == last else None
-            if act is not None and ensemble is not None:  # the ensemble sums every node: masked ones stay 0
+            act = self.act[k]
+            if act is not None and ensemble is not None and k == last:  # the ensemble sums every node: masked ones stay 0
                 full = self._buffer(("full", k), np.empty((lv.ny * lv.nx,) + cross.shape[1:], cross.dtype))
                 full[:] = 0
                 full[act] = cross
@@ -633,12 +657,12 @@ class _Engine:
             if k == 0 and last > 0 and self.p.remove_zero_peak and self.p.frame_gap > 1:
                 from fieldtool.processing import piv_peaks  # no predictor yet: zero is not the flow (module doc)
 
-                zeros = np.zeros(lv.ny * lv.nx)
+                zeros = np.zeros(len(corr))
                 piv_peaks.blank_zero(corr, lv.margin, zeros, zeros, min_shift=0.0, fill="zero")
             pk = _find_peaks(corr, lv.margin, scale, second=k == last)
             if act is not None:
                 pk = _scatter_peaks(pk, act, lv.ny * lv.nx)
-                if ensemble is not None:
+                if ensemble is not None and k == last:
                     cross, scale, keep = full, scale_full, True
             dx, dy = pk.dx.reshape(lv.ny, lv.nx), pk.dy.reshape(lv.ny, lv.nx)
             if pred_x is not None:
@@ -716,6 +740,7 @@ def analyze(
     backend: str = "auto",
     select=None,
     carry=None,
+    near=None,
 ) -> PivResult:
     """Run PIV over consecutive frame pairs and average in time.
 
@@ -739,6 +764,9 @@ def analyze(
         Every selected pair gets per-pair vectors. Used by ``piv_fast.converge`` (pairs added in rounds).
     carry : ``PivResult.carry`` of an earlier call on the same clip, geometry and parameters: its ensemble sums
         and per-pair fields are continued, so the result covers the pairs of all calls.
+    near : (segments, reach_px) or None: only the nodes of pass k within ``reach_px[k]`` px of the segments (each
+        two image points, px) are correlated (the fast path's band, ``piv_fast.node_reach_px``); the final pass'
+        others have no vector, as masked nodes.
 
     Returns
     -------
@@ -761,12 +789,20 @@ def analyze(
         if mask.shape != shape:
             raise ParameterError(f"mask: {mask.shape[1]} x {mask.shape[0]} px does not match the "
                                  f"{shape[1]} x {shape[0]} px frames")
-    engine = _make_engine(backend, shape, params, levels, box, mask)
+    if near is not None:
+        segs, reach = near
+        near = ([np.asarray(sg, float).reshape(2, 2) for sg in segs], [float(r) for r in reach])
+        if len(near[1]) != len(levels) or not near[0]:
+            raise ValueError("analyze(near=...): one reach per pass and at least one segment")
+    engine = _make_engine(backend, shape, params, levels, box, mask, near)
     fin = levels[-1]
     X, Y = np.meshgrid(fin.xc, fin.yc)
     node_mask = np.zeros((fin.ny, fin.nx), dtype=bool)
     if mask is not None:
         node_mask = mask[np.rint(Y).astype(int).clip(0, shape[0] - 1), np.rint(X).astype(int).clip(0, shape[1] - 1)]
+    outside = None if near is None else ~near_nodes(fin, *near, len(levels) - 1)
+    if outside is not None:
+        node_mask = node_mask | outside
     if max_speed_px_s is not None:
         max_speed_px_s = np.broadcast_to(np.asarray(max_speed_px_s, dtype=np.float64), (fin.ny, fin.nx))
 
@@ -794,9 +830,9 @@ def analyze(
         if k not in wanted and k - gap not in wanted:
             return None
         img = _check_frame(k, img, shape)
-        if k in wanted or type(engine).prepare is not _Engine.prepare:
+        if type(engine).prepare is not _Engine.prepare:
             return engine.prepare(img)
-        return engine.prepare(img, as_a=False)
+        return engine.prepare(img, as_a=k in wanted, as_b=k - gap in wanted)
 
     history = deque([(prep(0, first), float(t_prev))], maxlen=gap)  # the last `gap` frames, oldest first
     t_last = float(t_prev)
@@ -866,6 +902,8 @@ def analyze(
     u_pairs, v_pairs = np.stack(per_pair["u"]), np.stack(per_pair["v"])
     n_valid = np.sum(np.isfinite(u_pairs), axis=0)
     vf = n_valid / float(len(u_pairs))
+    if outside is not None:
+        vf = np.where(outside, np.nan, vf)
     with np.errstate(all="ignore"):
         snr_med = _nanmedian_t(np.stack(per_pair["snr"]))
         p2m_med = _nanmedian_t(np.stack(per_pair["p2m"]))
@@ -999,7 +1037,9 @@ class _Ensemble:
         return u.reshape(shp), v.reshape(shp), ok.reshape(shp), pk.snr.reshape(shp)
 
 
-def _make_engine(backend, shape, params, levels, box, mask):
+def _make_engine(backend, shape, params, levels, box, mask, near=None):
+    """The engine of ``params.engine`` / ``backend``. ``near`` (nodes skipped far from the section) is only a
+    saving of the CPU engine; the others correlate every node and ``analyze`` drops the far ones."""
     if params.engine == "openpiv":
         return _OpenPivEngine(shape, params, levels, box, mask)
     if backend not in ("auto", "cpu", "gpu"):
@@ -1012,7 +1052,7 @@ def _make_engine(backend, shape, params, levels, box, mask):
         if backend == "gpu":
             raise ParameterError("piv backend: gpu asked for, but it needs CuPy with a CUDA device (checked against "
                                  "the CPU engine) and piv.passes = 1")
-    return _Engine(shape, params, levels, box, mask)
+    return _Engine(shape, params, levels, box, mask, near)
 
 
 class _OpenPivEngine(_Engine):

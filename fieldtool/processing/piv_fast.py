@@ -4,7 +4,8 @@ Two pieces, both pure (numpy in, numpy/dataclasses out), used by the pipeline ar
 
 * :func:`section_band` - the image box that feeds the discharge: the section segment(s) widened by what the
   interpolation of the field at the section, the validation neighbourhoods and the multi-pass predictor need,
-  intersected with the user's ROI. ``[piv] region = "section"`` (default) correlates only this box;
+  intersected with the user's ROI. ``[piv] region = "section"`` (default) correlates only this box, and in it
+  only the nodes within :func:`node_reach_px` of the section (a diagonal section leaves the box's corners out);
   ``"roi"`` the user's ROI (whole frame without one) as before; ``"full"`` the whole frame.
 * :func:`converge` - pairs are added in rounds, spread evenly over the clip (van der Corput order: every round
   fills the gaps the previous ones left), until the 95 % bootstrap interval
@@ -48,6 +49,22 @@ def band_margin_px(window_px: int, overlap_px: int, passes: int, search_px: int 
     s0 = max(w0, int(search_px or 0))
     first = 3 * st0 + s0 // 2 + 1 if passes > 1 else final + (s0 - w0) // 2
     return int(max(final, first))
+
+
+def node_reach_px(window_px: int, overlap_px: int, passes: int) -> list[float]:
+    """Per pass (first to last), the distance (px) from the section segments within which nodes are correlated
+    (``piv.analyze(near=...)``); the box of :func:`section_band` holds them all.
+
+    Final pass: a sample point reads the nodes within one spacing (bilinear), validated by a 3 x 3 median test
+    and filled from 3 x 3 neighbours: three spacings, times sqrt 2 for the diagonal. An earlier pass: the next
+    pass' reach plus two of its own spacings (its field is interpolated bicubically at the next pass' nodes); its
+    validation and fill take the neighbours it has, and the nodes beyond are filled from them.
+    """
+    step = window_px - overlap_px
+    reach = [3.0 * math.sqrt(2.0) * step + 1.0]
+    for k in range(passes - 2, -1, -1):
+        reach.insert(0, reach[0] + 2.0 * math.sqrt(2.0) * step * 2 ** (passes - 1 - k))
+    return reach
 
 
 def section_band(shape: tuple[int, int], segments: Iterable, margin_px: int,

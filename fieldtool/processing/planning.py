@@ -58,9 +58,20 @@ def choose(slow_px: float, fast_px: float, first_window_px: int) -> tuple[int, i
     gap = int(min(gap_fast, gap_slow, MAX_GAP))
     search = None
     if fast_px > 1.2 * cap:  # too fast even at one frame: widen the first pass' search area
-        search = first_window_px + 2 * math.ceil(1.3 * fast_px)
-        search += search % 2
+        search = fft_side(first_window_px + 2 * math.ceil(1.3 * fast_px))
     return gap, search
+
+
+def fft_side(n: int) -> int:
+    """The smallest even side >= n whose only prime factors are 2 and 3 (px): the search area's FFT is then
+    1.5-2x faster than at a side with a large prime factor (124 = 4 x 31 takes 1.8x the time of 128)."""
+    best = 2 ** math.ceil(math.log2(max(int(n), 2)))
+    p3 = 1
+    while p3 < best:
+        m = 2 * p3 * 2 ** max(0, math.ceil(math.log2(max(n / (2 * p3), 1))))
+        best = min(best, m)
+        p3 *= 3
+    return int(best)
 
 
 def first_look(frames: Iterable[tuple[float, np.ndarray]], params: piv.PivParams, roi=None,
