@@ -124,7 +124,7 @@ def assess_run(project, inputs, level, mapping, geom, res, U, V, dres, q_pairs, 
                      discharge_m3s=dres.discharge_m3s, first_window_px=first, search_px=p.search_px or first,
                      q_pairs_m3s=q_pairs,
                      **ql.section_evidence(geom.sample_img, geom.normal, res.x, res.y, res.u, res.v, U, V, dt,
-                                           res.valid_fraction, res.peak))
+                                           res.valid_fraction, res.peak, res.first_guess))
     if frame_stats.get("pairs"):
         ev.identical_frames = frame_stats["identical"] / frame_stats["pairs"]
         ev.n_frame_pairs = frame_stats["pairs"]

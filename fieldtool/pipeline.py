@@ -490,7 +490,7 @@ def piv_region(project: Project, inputs: Inputs, params, roi, segments) -> tuple
 
 
 def run_piv_fast(make_frames, n_pairs: int, gap: int, params, roi, mask, max_speed, cancel, on_pair, pair_q,
-                 rel_ci: float, min_pairs: int, drain_first: bool = False, near=None):
+                 rel_ci: float, min_pairs: int, drain_first: bool = False, near=None, first_guess=None):
     """PIV with pairs added until the discharge has converged (``processing.piv_fast.converge``), each round's
     frames read by a background thread (``make_frames`` may hand one already reading). ``drain_first``: the
     first round's stream is read to its end (STIV samples its lines from it). Returns (PivResult, dict of
@@ -509,7 +509,7 @@ def run_piv_fast(make_frames, n_pairs: int, gap: int, params, roi, mask, max_spe
         reader = frames if isinstance(frames, (piv_fast.prefetch, piv_fast.Prefetched)) else piv_fast.prefetch(frames)
         try:
             res = piv_mod.analyze(reader, params, roi=roi, mask=mask, max_speed_px_s=max_speed, cancel=cancel,
-                                  on_pair=on_pair, select=select, carry=carry, near=near)
+                                  on_pair=on_pair, select=select, carry=carry, near=near, first_guess=first_guess)
             if carry is None and drain_first:
                 for _ in reader:
                     pass
@@ -650,6 +650,7 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
     fast = {"region": project.piv.region, "box_px": None if roi is None else list(roi),
             "roi_px": None if roi_user is None else list(roi_user)}
     decoded: list[float] = []
+    guess: list = [None]  # the first look's field, when the first pass starts from it (planning.first_look)
     from dataclasses import replace as _replace
 
     from .processing import planning
@@ -687,12 +688,17 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
         nonlocal params, plan
         if project.piv.frame_gap is None:
             plan, frames = planning.first_look(frames, params, roi, mask)
+            if params.search_px is not None:  # the user's search area, not the look's guess
+                plan.guess = None
             params = _replace(params, frame_gap=plan.frame_gap, search_px=params.search_px or plan.search_px)
-            if plan.frame_gap > 1 or plan.search_px:
+            if plan.guess is not None:
+                guess[0] = plan.guess
+            if plan.frame_gap > 1 or plan.search_px or plan.guess is not None:
                 warnings.append(
                     f"piv: from a first look at {plan.pairs_looked} pairs (slow nodes {plan.slow_px_per_frame:.1f}, "
                     f"fast nodes {plan.fast_px_per_frame:.1f} px per frame) pairs are {plan.frame_gap} frame(s) apart"
                     + (f" and the first pass searches {plan.search_px} px" if plan.search_px else "")
+                    + (" and the first pass starts from the look's field" if plan.guess is not None else "")
                     + "; set piv.frame_gap (and piv.search_px) to choose yourself")
         else:
             plan = planning.Plan(frame_gap=int(project.piv.frame_gap), search_px=params.search_px, chosen="user")
@@ -733,13 +739,14 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
             if n_exp - gap >= 2:
                 res, conv = run_piv_fast(make_frames, n_exp - gap, gap, params, roi, mask, max_speed, cancel, on_pair,
                                          pair_q_fn(geom), project.piv.converge_rel_ci, project.piv.min_pairs,
-                                         drain_first=standardize and stiv_run is not None, near=near)
+                                         drain_first=standardize and stiv_run is not None, near=near,
+                                         first_guess=guess[0])
                 fast.update(conv)
             else:
                 frames = make_frames()
                 try:
                     res = piv_mod.analyze(frames, params, roi=roi, mask=mask, max_speed_px_s=max_speed, cancel=cancel,
-                                          on_pair=on_pair, near=near)
+                                          on_pair=on_pair, near=near, first_guess=guess[0])
                 finally:
                     getattr(frames, "close", lambda: None)()
                 fast.update(pairs_used=int(res.n_pairs or 0), converged=None)
@@ -758,7 +765,7 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
             frames = _Sized(frames, n_exp)  # lets the ensemble plan which pairs get per-pair vectors
         try:
             res = piv_mod.analyze(frames, params, roi=roi, mask=mask, max_speed_px_s=max_speed,
-                                  progress=None, cancel=cancel, on_pair=on_pair, near=near)
+                                  progress=None, cancel=cancel, on_pair=on_pair, near=near, first_guess=guess[0])
         finally:
             reader.close()
         fast.update(pairs_used=int(res.n_pairs or 0), converged=None)

@@ -51,6 +51,9 @@ def piv_key(project: Project, max_speed_px_s: np.ndarray | None, box_px=None, ne
     if near is not None:
         parts["near"] = [[np.round(np.asarray(sg, float), 3).tolist() for sg in near[0]], [round(r, 3) for r in near[1]]]
     parts["version"] = __version__
+    from .processing.piv import REVISION
+
+    parts["engine_revision"] = REVISION
     return hashlib.sha256(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()
 
 

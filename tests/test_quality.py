@@ -159,6 +159,17 @@ def test_filled_width_and_displacement_reasons_carry_numbers_and_the_setting():
     assert ql.assess(_ev(v, displacement_px=40.0, first_window_px=64)).grade == "unusable"
 
 
+def test_with_a_first_guess_the_displacement_check_reads_the_residual():
+    """22 px per frame in a 64 px window is beyond the one-quarter rule, but not when the first pass moved its
+    windows by the first look's field and only 2 px were left to find; 20 px left is doubtful again."""
+    v = np.full(10, 1.0)
+    assert "displacement_limit" not in {r.code for r in ql.assess(_ev(v, displacement_px=22.0, residual_px=2.0,
+                                                                       first_window_px=64)).reasons}
+    q = ql.assess(_ev(v, displacement_px=22.0, residual_px=20.0, first_window_px=64))
+    r = {r.code: r for r in q.reasons}["displacement_limit"]
+    assert "first look" in r.message and r.value == pytest.approx(20 / 64) and q.grade == "doubtful"
+
+
 def test_speed_bound_and_no_motion_are_unusable():
     q = ql.assess(_ev(np.full(5, 20.0), max_speed_ms=21.0))
     assert q.grade == "unusable" and q.reasons[0].code == "speed_bound"

@@ -200,3 +200,28 @@ def test_zero_peak_removal_leaves_moving_texture_alone_and_blanks_planes():
     assert np.all(block == np.median(before[1]))
     corr[1][np.ix_([31, 0, 1], [26, 27, 28])] = before[1][np.ix_([31, 0, 1], [26, 27, 28])]
     assert np.array_equal(corr[1], before[1])  # nothing else changed
+
+
+def test_fast_flow_first_pass_starts_from_the_first_look():
+    """11 px per frame against a 32 px first-pass window: the look's field becomes the first guess, by which the
+    first pass moves its B windows (its search area stays the window); it reads what a wider search reads."""
+    rng = np.random.default_rng(8)
+    frames = _stream(24, 11.0, rng)
+    params = replace_params(passes=2, window_px=16, overlap_px=8)
+    plan, replay = planning.first_look(iter(frames), params)
+    assert plan.frame_gap == 1 and plan.search_px is None and plan.guess is not None
+    assert plan.as_dict()["first_guess"] is True
+    xc, yc, dx, dy = plan.guess
+    assert dx.shape == (len(yc), len(xc)) and abs(np.median(np.abs(dx)) - 11.0) < 0.5
+    res = piv.analyze(replay, params, first_guess=plan.guess)
+    ok = res.valid & ~res.replaced
+    dt = float(np.median(res.dt_s))
+    assert ok.mean() > 0.7 and abs(np.median(np.abs(res.u[ok])) * dt - 11.0) < 0.05  # the upstream edge sees new texture
+    assert res.first_guess.shape == res.x.shape + (2,)
+    _, search = planning.choose(plan.slow_px_per_frame, plan.fast_px_per_frame, 32)
+    wide = piv.analyze(iter(frames), replace_params(passes=2, window_px=16, overlap_px=8, search_px=search))  # the other way: a wider search area
+    okw = wide.valid & ~wide.replaced
+    assert search > 32 and abs(np.median(np.abs(wide.u[okw])) - np.median(np.abs(res.u[ok]))) * dt < 0.05
+    # flow beyond GUESS_MAX_FRACTION of the window: the search area is widened instead
+    plan2, _ = planning.first_look(iter(_stream(24, 14.0, np.random.default_rng(9))), params)
+    assert plan2.guess is None and (plan2.search_px or 0) > 32

@@ -19,6 +19,9 @@ How it works
   peak / root-mean-square.
 * ``search_px`` larger than the first window: the A window is zero-padded inside a B window of the search size, so
   displacements up to (search - window) / 2 are found without wrap-around.
+* ``first_guess`` (flow too fast for the first window, measured by ``planning.first_look``): the first pass'
+  B window of every node is taken where that node's first guess (rounded to whole pixels) moves it, and the
+  peak is the residual (window offset); the search area then stays the window.
 * ``passes > 1``: the first pass uses windows ``window_px * 2**(passes-1)``; each later pass deforms the second frame
   with ``cv2.remap`` (Lanczos, 8 x 8; bicubic is 4x faster but biased by up to 0.02 px with 4 px particles) by the
   previous pass' validated field, interpolated bicubically to every pixel (one ``cv2.resize`` by the node
@@ -65,6 +68,8 @@ import scipy.fft
 from fieldtool.errors import Cancelled, InputFileError, ParameterError
 from fieldtool.processing import piv_validate as pv
 
+#: bumped when the engine gives other vectors for the same inputs (a saved field of another revision is recomputed)
+REVISION = 2
 AVERAGING = ("ensemble", "mean", "median")
 ENGINES = ("fieldtool", "openpiv")
 _WORKERS = max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1))
@@ -132,6 +137,7 @@ class PivResult:
     pair_index: np.ndarray | None = None  # (n_pairs,) index of each of these pairs in the clip (0 = frames 0-1)
     n_pairs: int | None = None  # pairs correlated in the clip (ensemble: more than the per-pair fields hold)
     zero_peak_removed: np.ndarray | None = None  # (ny, nx) bool, ensemble plane's zero-displacement block blanked
+    first_guess: np.ndarray | None = None  # (ny, nx, 2) px per pair: the first pass' window offset (first_guess=)
     carry: object | None = None  # analyze(select=...): state that a later call continues (``carry=``); not saved
 
 
@@ -289,12 +295,28 @@ def _window_spectra(img: np.ndarray, oy: int, ox: int, lv: _Level, size: int,
     ``size == lv.s > lv.w`` window (search area of frame B) is scaled to the energy of a ``lv.w`` window so its
     correlation values stay comparable to correlation coefficients. A featureless window gets the factor 0.
     """
-    s = lv.s
     view = _window_view(img, oy, ox, lv, size)
     n = lv.ny * lv.nx
     if idx is not None:  # a copy of the chosen windows only
         view = view[idx // lv.nx, idx % lv.nx][:, None]
         n = len(idx)
+    return _stack_spectra(view, n, lv, size)
+
+
+def _shifted_windows(img: np.ndarray, oy: int, ox: int, lv: _Level, shift: np.ndarray,
+                     idx: np.ndarray | None) -> np.ndarray:
+    """The windows (n, 1, w, w) of side ``lv.w`` at crop offset (oy, ox), each moved by its node's whole-pixel
+    ``shift`` (ny * nx, 2: x, y); ``idx`` as in :func:`_window_spectra`."""
+    flat = np.arange(lv.ny * lv.nx) if idx is None else idx
+    r0 = oy + lv.step * (flat // lv.nx) + shift[flat, 1]
+    c0 = ox + lv.step * (flat % lv.nx) + shift[flat, 0]
+    a = np.arange(lv.w)
+    return img[(r0[:, None] + a)[:, :, None], (c0[:, None] + a)[:, None, :]][:, None]
+
+
+def _stack_spectra(view: np.ndarray, n: int, lv: _Level, size: int) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_window_spectra` of windows (n, 1, size, size) or a strided view (ny, nx, size, size)."""
+    s = lv.s
     if size == s:
         spec = scipy.fft.rfft2(view, axes=(2, 3), workers=_WORKERS).reshape(n, s, s // 2 + 1)
         spec[:, 0, 0] = 0.0  # zero mean
@@ -461,6 +483,19 @@ def _scatter_peaks(pk: _Peaks, idx: np.ndarray, n: int) -> _Peaks:
     return _Peaks(ok=ok, **out)
 
 
+def _guess_at(lv: _Level, xc: np.ndarray, yc: np.ndarray, dx: np.ndarray, dy: np.ndarray,
+              whole: bool = True) -> np.ndarray:
+    """Offsets (ny * nx, 2: x, y) of the level's nodes from a first guess (dx, dy) (px per pair) on the regular
+    grid of centres xc (nx,), yc (ny,): bilinear, edges replicated; NaN guesses count as 0. ``whole``: rounded
+    to whole pixels (int64), else float32."""
+    gx = ((lv.xc - xc[0]) / max(float(xc[1] - xc[0]), 1e-9) if len(xc) > 1 else 0 * lv.xc).astype(np.float32)
+    gy = ((lv.yc - yc[0]) / max(float(yc[1] - yc[0]), 1e-9) if len(yc) > 1 else 0 * lv.yc).astype(np.float32)
+    fx, fy = np.meshgrid(gx, gy)
+    field = np.nan_to_num(np.dstack([dx, dy]).astype(np.float32))
+    out = cv2.remap(field, fx, fy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).reshape(-1, 2)
+    return np.rint(out).astype(np.int64) if whole else out
+
+
 def near_nodes(lv: _Level, segments, reach_px, k: int) -> np.ndarray:
     """Bool (ny, nx): the nodes of pass ``k`` (level ``lv``) whose centre is within ``reach_px[k]`` px of one of
     ``segments`` (each a (2, 2) array of two image points, full-frame px)."""
@@ -492,12 +527,15 @@ class _Frame:
 class _Engine:
     """Correlation of consecutive frames on fixed pass geometry (CPU, scipy.fft)."""
 
-    def __init__(self, shape, params: PivParams, levels: list[_Level], box, mask: np.ndarray | None, near=None):
+    def __init__(self, shape, params: PivParams, levels: list[_Level], box, mask: np.ndarray | None, near=None,
+                 guess=None):
         self.p = params
         self.levels = levels
         self.h, self.w = shape
         x0, y0, x1, y1 = box
-        m = levels[0].margin
+        # first pass' whole-pixel window offsets (n0, 2: x, y) from the first guess, or None
+        self.shift0 = None if guess is None else _guess_at(levels[0], *guess)
+        m = levels[0].margin + (0 if self.shift0 is None else int(np.abs(self.shift0).max()))
         self.cx0, self.cy0 = x0 - m, y0 - m  # crop origin in full-frame px (may be negative: padded)
         self.cw, self.ch = (x1 - x0) + 2 * m, (y1 - y0) + 2 * m
         self.box = box
@@ -555,12 +593,19 @@ class _Engine:
         lv0 = self.levels[0]
         same = lv0.s == lv0.w
         spec_a, scale_a = [], []
-        for k, lv in enumerate(self.levels if as_a else self.levels[: int(same)]):
+        for k, lv in enumerate(self.levels if as_a else self.levels[: int(same and self.shift0 is None)]):
             oy, ox = self._offsets(lv)
             sp, sc = _window_spectra(img, oy, ox, lv, lv.w, self.act[k])
             spec_a.append(sp)
             scale_a.append(sc)
-        if same:
+        if self.shift0 is not None:  # the B windows where the first guess moves them
+            if as_b:
+                oy, ox = self._offsets(lv0)
+                view = _shifted_windows(img, oy, ox, lv0, self.shift0, self.act[0])
+                spec_b0, scale_b0 = _stack_spectra(view, len(view), lv0, lv0.w)
+            else:
+                spec_b0 = scale_b0 = None
+        elif same:
             spec_b0, scale_b0 = spec_a[0], scale_a[0]
         elif not as_b:
             spec_b0 = scale_b0 = None
@@ -624,6 +669,9 @@ class _Engine:
         for k, lv in enumerate(self.levels):
             if k == 0:
                 spec_b, scale_b = b.spec_b0, b.scale_b0
+                if self.shift0 is not None:  # the B windows were moved by it: the peak is the residual
+                    pred_x = self.shift0[:, 0].reshape(lv.ny, lv.nx).astype(np.float64)
+                    pred_y = self.shift0[:, 1].reshape(lv.ny, lv.nx).astype(np.float64)
             else:
                 if cancel is not None and cancel():
                     raise Cancelled("PIV cancelled by the user")
@@ -654,7 +702,7 @@ class _Engine:
                 work = self._buffer(("work", k), cross)
                 np.copyto(work, cross)
             corr = _irfft2(work if keep else cross, lv.s)
-            if k == 0 and last > 0 and self.p.remove_zero_peak and self.p.frame_gap > 1:
+            if k == 0 and last > 0 and self.p.remove_zero_peak and self.p.frame_gap > 1 and self.shift0 is None:
                 from fieldtool.processing import piv_peaks  # no predictor yet: zero is not the flow (module doc)
 
                 zeros = np.zeros(len(corr))
@@ -741,6 +789,7 @@ def analyze(
     select=None,
     carry=None,
     near=None,
+    first_guess=None,
 ) -> PivResult:
     """Run PIV over consecutive frame pairs and average in time.
 
@@ -767,6 +816,9 @@ def analyze(
     near : (segments, reach_px) or None: only the nodes of pass k within ``reach_px[k]`` px of the segments (each
         two image points, px) are correlated (the fast path's band, ``piv_fast.node_reach_px``); the final pass'
         others have no vector, as masked nodes.
+    first_guess : (xc, yc, dx, dy) or None: a displacement per pair (px; dx, dy (ny, nx)) on the regular grid of
+        node centres xc (nx,), yc (ny,), e.g. ``planning.first_look``'s; the first pass moves each B window by
+        it (CPU engine; module docstring). Others ignore it.
 
     Returns
     -------
@@ -794,7 +846,9 @@ def analyze(
         near = ([np.asarray(sg, float).reshape(2, 2) for sg in segs], [float(r) for r in reach])
         if len(near[1]) != len(levels) or not near[0]:
             raise ValueError("analyze(near=...): one reach per pass and at least one segment")
-    engine = _make_engine(backend, shape, params, levels, box, mask, near)
+    engine = _make_engine(backend, shape, params, levels, box, mask, near, first_guess)
+    if not isinstance(engine, _Engine):  # only the CPU engine moves its windows by it
+        first_guess = None
     fin = levels[-1]
     X, Y = np.meshgrid(fin.xc, fin.yc)
     node_mask = np.zeros((fin.ny, fin.nx), dtype=bool)
@@ -929,6 +983,7 @@ def analyze(
         t_pairs=np.asarray(per_pair["t"]), snr=snr_med, params=params, peak2mean=p2m_med, peak=peak_med,
         replaced=replaced, ensemble_snr=ens_snr, dt_s=dts, pair_index=np.asarray(per_pair["index"], dtype=np.int64),
         n_pairs=i, zero_peak_removed=None if ens is None else ens.zero_removed,
+        first_guess=None if first_guess is None else _guess_at(fin, *first_guess, whole=False).reshape(fin.ny, fin.nx, 2),
         carry=_Carry(ens, per_pair, i) if wanted is not None else None,
     )
 
@@ -1037,9 +1092,10 @@ class _Ensemble:
         return u.reshape(shp), v.reshape(shp), ok.reshape(shp), pk.snr.reshape(shp)
 
 
-def _make_engine(backend, shape, params, levels, box, mask, near=None):
+def _make_engine(backend, shape, params, levels, box, mask, near=None, guess=None):
     """The engine of ``params.engine`` / ``backend``. ``near`` (nodes skipped far from the section) is only a
-    saving of the CPU engine; the others correlate every node and ``analyze`` drops the far ones."""
+    saving of the CPU engine; the others correlate every node and ``analyze`` drops the far ones. ``guess``
+    (first-pass window offsets) only the CPU engine uses."""
     if params.engine == "openpiv":
         return _OpenPivEngine(shape, params, levels, box, mask)
     if backend not in ("auto", "cpu", "gpu"):
@@ -1052,7 +1108,7 @@ def _make_engine(backend, shape, params, levels, box, mask, near=None):
         if backend == "gpu":
             raise ParameterError("piv backend: gpu asked for, but it needs CuPy with a CUDA device (checked against "
                                  "the CPU engine) and piv.passes = 1")
-    return _Engine(shape, params, levels, box, mask, near)
+    return _Engine(shape, params, levels, box, mask, near, guess)
 
 
 class _OpenPivEngine(_Engine):

@@ -6,7 +6,11 @@ pixel per frame, where the sub-pixel error is a large share of the displacement;
 move a third of the first-pass window. A quick single-pass ensemble over the first few pairs measures the
 displacement per frame of every node; the frame gap is then the largest that keeps the fast nodes within a
 quarter of the first-pass window, and no larger than needed to bring the slow nodes to a few pixels. Flow too
-fast for the window at one frame gets a larger first-pass search area instead.
+fast for the window at one frame needs a larger first-pass search area, or a first guess: the first look's own
+field (its grid is the first pass'), by which the first pass moves each B window (``piv.analyze(first_guess=)``),
+so that its search area stays the window. The first guess is used when at least :data:`GUESS_MIN_VALID` of the
+look's nodes have a vector and the fast nodes move at most :data:`GUESS_MAX_FRACTION` of the window (the look
+correlates windows of the first pass' size, which wrap beyond half of it); else the search area is widened.
 
 The frames looked at are kept and replayed, so the stream is read once.
 """
@@ -26,6 +30,8 @@ LOOK_PAIRS = 8  # pairs of the first look
 SLOW_TARGET_PX = 2.5  # the slow nodes (20th percentile) should move at least this far per pair
 FAST_FRACTION = 0.25  # the fast nodes (95th percentile) move at most this share of the first-pass window per pair
 MAX_GAP = 3
+GUESS_MIN_VALID = 0.5  # share of the first look's nodes with a vector needed to use its field as the first guess
+GUESS_MAX_FRACTION = 0.4  # fast nodes beyond this share of the first-pass window: the look's field is not trusted
 
 
 @dataclass
@@ -38,6 +44,8 @@ class Plan:
     slow_px_per_frame: float = float("nan")  # 20th percentile of |d| over the moving nodes
     fast_px_per_frame: float = float("nan")  # 95th percentile
     pairs_looked: int = 0
+    #: (xc, yc, dx, dy): the look's displacement per frame (px) on its grid, when the first pass starts from it
+    guess: tuple | None = None
 
     def as_dict(self) -> dict:
         def f(x):
@@ -45,7 +53,7 @@ class Plan:
 
         return {"frame_gap": self.frame_gap, "search_px": self.search_px, "chosen": self.chosen,
                 "slow_px_per_frame": f(self.slow_px_per_frame), "fast_px_per_frame": f(self.fast_px_per_frame),
-                "pairs_looked": self.pairs_looked}
+                "pairs_looked": self.pairs_looked, "first_guess": self.guess is not None}
 
 
 def choose(slow_px: float, fast_px: float, first_window_px: int) -> tuple[int, int | None]:
@@ -111,4 +119,12 @@ def first_look(frames: Iterable[tuple[float, np.ndarray]], params: piv.PivParams
     plan.slow_px_per_frame = float(np.percentile(moving, 20))
     plan.fast_px_per_frame = float(np.percentile(d, 95))
     plan.frame_gap, plan.search_px = choose(plan.slow_px_per_frame, plan.fast_px_per_frame, w0)
+    ok = res.valid & np.isfinite(res.u) & np.isfinite(res.v)
+    if (plan.search_px is not None and plan.frame_gap == 1 and ok.mean() >= GUESS_MIN_VALID
+            and plan.fast_px_per_frame <= GUESS_MAX_FRACTION * w0):
+        from .piv_validate import fill_all
+
+        du, dv = fill_all(np.where(ok, res.u * dt, np.nan), np.where(ok, res.v * dt, np.nan))
+        plan.guess = (res.x[0].copy(), res.y[:, 0].copy(), du, dv)
+        plan.search_px = None
     return plan, replay

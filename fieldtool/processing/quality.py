@@ -83,6 +83,9 @@ class Evidence:
     valid_fraction_section: float | None = None  # mean over the section's sample points (0..1)
     displacement_px: float | None = None  # 95th percentile of |displacement| per frame along the section
     median_displacement_px: float | None = None
+    #: with a first guess (``piv.analyze(first_guess=)``): 95th percentile of |displacement - first guess| per
+    #: frame along the section, what the first pass had to find around its window offset
+    residual_px: float | None = None
     first_window_px: float | None = None  # first-pass window side (px)
     search_px: float | None = None  # first-pass search side (px)
     peak_median: float | None = None  # median correlation peak along the section
@@ -223,6 +226,16 @@ def check_displacement(ev: Evidence, th: Thresholds) -> list[Reason]:
     w = float(ev.first_window_px)
     search = float(ev.search_px or w)
     reach = max(w, search)  # side the displacement must stay well inside
+    if ev.residual_px is not None:  # the first pass moved its windows by the first look's field
+        ratio = float(ev.residual_px / reach)
+        sev = _grade2(ratio, th.displacement_doubtful, th.displacement_unusable, below=False)
+        if sev is None:
+            return []
+        return [Reason("displacement_limit", sev,
+                       f"displacements along the section differ from the first look's field by up to "
+                       f"{ev.residual_px:.1f} px per frame, {100 * ratio:.0f} % of the first-pass window {reach:.0f} px "
+                       f"(limit {100 * th.displacement_doubtful:.0f} %): the flow changed during the clip or the look "
+                       "was wrong; set piv.frame_gap and piv.search_px yourself", ratio, th.displacement_doubtful)]
     ratio = float(ev.displacement_px / reach)
     sev = _grade2(ratio, th.displacement_doubtful, th.displacement_unusable, below=False)
     if sev is None:
@@ -347,7 +360,8 @@ def assess(ev: Evidence, th: Thresholds | None = None, extra: Iterable[Reason] =
 
 def section_evidence(sample_px: np.ndarray, normal: np.ndarray, x: np.ndarray, y: np.ndarray, u_px_s: np.ndarray,
                      v_px_s: np.ndarray, U_ms: np.ndarray, V_ms: np.ndarray, dt_s: float,
-                     valid_fraction: np.ndarray | None = None, peak: np.ndarray | None = None) -> dict:
+                     valid_fraction: np.ndarray | None = None, peak: np.ndarray | None = None,
+                     first_guess: np.ndarray | None = None) -> dict:
     """Field statistics along the section's sample points, as keyword arguments of :class:`Evidence`.
 
     Parameters
@@ -357,6 +371,7 @@ def section_evidence(sample_px: np.ndarray, normal: np.ndarray, x: np.ndarray, y
     x, y : (ny, nx) node centres (px); u_px_s, v_px_s the mean field (px/s); U_ms, V_ms rectified (m/s).
     dt_s : median time between the frames of a pair (s).
     valid_fraction, peak : (ny, nx) per-node fraction of valid pairs and median correlation peak.
+    first_guess : (ny, nx, 2) px per pair by which the first pass moved its windows (``PivResult.first_guess``).
     """
     from .discharge import sample_field
 
@@ -368,6 +383,13 @@ def section_evidence(sample_px: np.ndarray, normal: np.ndarray, x: np.ndarray, y
     if len(disp):
         out["displacement_px"] = float(np.percentile(disp, 95))
         out["median_displacement_px"] = float(np.median(disp))
+    if first_guess is not None:
+        g = np.asarray(first_guess, float)
+        gu, gv = sample_field(x, y, g[..., 0], g[..., 1], pts)
+        res = np.hypot(su * dt_s - gu, sv * dt_s - gv)
+        res = res[np.isfinite(res)]
+        if len(res):
+            out["residual_px"] = float(np.percentile(res, 95))
     SU, SV = sample_field(x, y, np.asarray(U_ms, float), np.asarray(V_ms, float), pts)
     sp = np.hypot(SU, SV)
     ok = np.isfinite(sp)
