@@ -885,6 +885,7 @@ def write_outputs(result: RunResult, project: Project, inputs: Inputs, out: Path
         from .writers import write_standard
 
         write_standard(result, project, inputs, stage.path)  # mean_field.nc, rectified.tif (with a CRS), video metadata
+        _write_figures(result, inputs, stage.path)  # last: the forked child draws them meanwhile
         result.timings_s["outputs"] = round(time.perf_counter() - t0, 3)  # all but result.json itself
         _write_result_json(result, stage.path)
         stage.commit()
@@ -931,9 +932,15 @@ def _write_outputs(result: RunResult, inputs: Inputs, out: Path) -> None:
     atomic_write_bytes(out / "mean_field.npy", buf.getvalue())
     files["mean_field"] = "mean_field.npz"
     files["mean_field_npy"] = "mean_field.npy"
+    files["result"] = "result.json"
 
+
+def _write_figures(result: RunResult, inputs: Inputs, out: Path) -> None:
+    """vectors.png, rectified.png, section.png (drawn in a child process during the Monte Carlo, else here)
+    and water_level.png (drawn during the PIV, else here)."""
     from .plots import discharge as plots
 
+    files = result.files
     pre = result.prerendered
     for key, name, draw in (
             ("vectors_png", "vectors.png", lambda f: plots.plot_vectors(f, inputs.first_color, result, inputs)),
@@ -956,7 +963,6 @@ def _write_outputs(result: RunResult, inputs: Inputs, out: Path) -> None:
             files["water_level_png"] = plot_level(out / "water_level.png", inputs.cross_section, result.level).name
     except FieldToolError as e:
         result.warnings.append(f"water-level plot not written: {e}")
-    files["result"] = "result.json"
 
 
 def _json_default(o):

@@ -242,3 +242,25 @@ def test_guide_directions_trusts_the_section_over_noisy_nodes():
     got = np.degrees(np.arctan2(g[:, 1], g[:, 0]))
     np.testing.assert_allclose(got, [24.0, 26.0, 25.0, 25.0, 25.0, 25.0], atol=1e-9)
     assert np.all(np.isnan(stiv.guide_directions(f, n, np.zeros(6))))
+
+
+def test_longest_run_is_the_first_longest_stretch_of_true():
+    from fieldtool.processing.stiv import _longest_run
+
+    def by_hand(ok):
+        best, start = (0, 0), None
+        for k, v in enumerate(list(ok) + [False]):
+            if v and start is None:
+                start = k
+            elif not v and start is not None:
+                if k - start > best[1] - best[0]:
+                    best = (start, k)
+                start = None
+        return best
+
+    rng = np.random.default_rng(0)
+    for n in range(40):
+        for _ in range(30):
+            ok = rng.random(n) < rng.random()
+            assert _longest_run(ok) == by_hand(ok)
+    assert _longest_run(np.array([True, True, False, True, True])) == (0, 2)

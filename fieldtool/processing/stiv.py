@@ -133,16 +133,13 @@ def build_lines(p_world: np.ndarray, normal: np.ndarray, mapping: OrthoMapping, 
 
 
 def _longest_run(ok: np.ndarray) -> tuple[int, int]:
-    """[a, b) of the longest run of True in ``ok``."""
-    best, start = (0, 0), None
-    for k, v in enumerate(np.r_[ok, False]):
-        if v and start is None:
-            start = k
-        elif not v and start is not None:
-            if k - start > best[1] - best[0]:
-                best = (start, k)
-            start = None
-    return best
+    """[a, b) of the longest run of True in ``ok`` (the first of equal ones; (0, 0) when none)."""
+    d = np.diff(np.r_[0, np.asarray(ok, np.int8), 0])
+    starts, ends = np.flatnonzero(d == 1), np.flatnonzero(d == -1)
+    if not len(starts):
+        return 0, 0
+    k = int(np.argmax(ends - starts))
+    return int(starts[k]), int(ends[k])
 
 
 class StiAccumulator:

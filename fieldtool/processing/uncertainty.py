@@ -189,20 +189,13 @@ class _Draw:
             self.vp = _nanmean(np.stack(vp), axis=2)  # (n_pairs, n_sub)
             self.vp_mean = _nanmean(self.vp, axis=0)
 
-    def __call__(self, active: frozenset[str], rng: np.random.Generator) -> float:
-        m, sig = self.m, self.sig
-        cs = m.cross_section
-        dtheta = np.zeros_like(self.theta0)
-        for src in ("gcp_pixels", "gcp_distances"):
-            if src in active:
-                dtheta += rng.standard_normal(len(dtheta)) * self.sigma_theta[src]
-        level = m.level_m
-        if "water_level" in active and sig.level_m > 0:
-            level = m.level_m + sig.level_m * rng.standard_normal()
-            dtheta[-1] = level - m.level_m
-        H = self.H0 + (self.J @ dtheta).reshape(3, 3)
-        if "cross_section" in active and sig.bed_m > 0:
-            cs = CrossSection(cs.station, cs.elevation + sig.bed_m * rng.standard_normal(len(cs.elevation)))
+    #: sources that move the section's geometry (mapping, level, bed); a draw with none of them reuses the
+    #: run's areas, Manning factors and section samples
+    GEOMETRY = frozenset({"gcp_pixels", "gcp_distances", "water_level", "cross_section"})
+
+    def _geometry(self, H: np.ndarray, cs: CrossSection, level: float):
+        """(area (n_sub,) m², Manning factors, section samples (n_sub, k) m/s) for this mapping, bed and level."""
+        m = self.m
         cs.check_level(level)
         mapping = OrthoMapping(H, m.method)
         geom = section_geometry(m.section_px, mapping, cs, level, m.n_sub, m.station_offset_m)
@@ -210,7 +203,30 @@ class _Draw:
         area, _ = _subsection_areas(cs, level, geom.station_edges)
         law = manning_factors(cs, level, geom.station_edges)
         U, V = mapping.rectify_velocity(self.x, self.y, self.u, self.v)
-        vn = section_samples(geom, self.x, self.y, U, V)  # (n_sub, k)
+        return area, law, section_samples(geom, self.x, self.y, U, V)
+
+    _plain = None
+
+    def __call__(self, active: frozenset[str], rng: np.random.Generator) -> float:
+        m, sig = self.m, self.sig
+        cs = m.cross_section
+        if active & self.GEOMETRY:
+            dtheta = np.zeros_like(self.theta0)
+            for src in ("gcp_pixels", "gcp_distances"):
+                if src in active:
+                    dtheta += rng.standard_normal(len(dtheta)) * self.sigma_theta[src]
+            level = m.level_m
+            if "water_level" in active and sig.level_m > 0:
+                level = m.level_m + sig.level_m * rng.standard_normal()
+                dtheta[-1] = level - m.level_m
+            H = self.H0 + (self.J @ dtheta).reshape(3, 3)
+            if "cross_section" in active and sig.bed_m > 0:
+                cs = CrossSection(cs.station, cs.elevation + sig.bed_m * rng.standard_normal(len(cs.elevation)))
+            area, law, vn = self._geometry(H, cs, level)
+        else:
+            if self._plain is None:
+                self._plain = self._geometry(self.H0, cs, m.level_m)
+            area, law, vn = self._plain
         if "velocity_sampling" in active and sig.sampling:
             k = vn.shape[1]
             vn = np.take_along_axis(vn, rng.integers(0, k, vn.shape), axis=1)
