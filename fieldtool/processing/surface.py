@@ -98,8 +98,8 @@ def _frames(crops: Iterator[tuple[float, np.ndarray]], stats: SurfaceStats, want
         yield t, out
 
 
-#: the window's crops are kept as float32 holding float16 values (exactly what float16 storage gives, without
-#: converting float16 on every use) while a window of them stays under this many bytes; float16 above
+#: the window's crops are kept as float32 while a window of them stays under this many bytes; float16 above
+#: (a whole 4K frame: 31 float32 crops would take 1 GB)
 WINDOW_BYTES_F32 = 160 * 2**20
 
 
@@ -108,24 +108,9 @@ def _window_dtype(box: tuple[int, int, int, int], n_win: int):
     return np.float32 if (x1 - x0) * (y1 - y0) * n_win * 4 <= WINDOW_BYTES_F32 else np.float16
 
 
-def _f16_values(c: np.ndarray, dtype) -> np.ndarray:
-    """``c`` (float32) rounded to float16, stored as ``dtype``: float16, or float32 holding the same values
-    (round to nearest even on the bits; the rare values outside float16's normal range go through float16)."""
-    if dtype is np.float16:
-        return c.astype(np.float16)
-    b = np.ascontiguousarray(c, np.float32).view(np.uint32)
-    r = b >> 13
-    r &= 1
-    r += np.uint32(0xFFF)
-    r += b
-    r &= np.uint32(0xFFFFE000)
-    out = r.view(np.float32)
-    a = np.abs(c)
-    odd = ~((a >= np.float32(2.0 ** -14)) & (a <= np.float32(65504.0)))  # subnormal, zero, overflow, NaN
-    odd &= a != 0
-    if odd.any():
-        out[odd] = c[odd].astype(np.float16)
-    return out
+def _stored(c: np.ndarray, dtype) -> np.ndarray:
+    """``c`` (a fresh float32 crop) as the window keeps it: itself, or rounded to float16."""
+    return c if dtype is np.float32 else c.astype(np.float16)
 
 
 def _recentre(frames: Iterator[tuple[float, np.ndarray]], stats: SurfaceStats, half: int, want=None):
@@ -144,7 +129,7 @@ def _recentre(frames: Iterator[tuple[float, np.ndarray]], stats: SurfaceStats, h
         if dtype is None:
             dtype = _window_dtype(stats.box, n_win)
         st.add(c)
-        buf.append(_f16_values(c, dtype))
+        buf.append(_stored(c, dtype))
         times.append(t)
 
     def emit(c16, t):
@@ -201,7 +186,7 @@ def _standardize(frames, roi, *, margin: int, half: int, shrink: float, stats: S
         x0, y0, x1, y1 = box
         c = a[y0:y1, x0:x1].astype(np.float32)
         st.add(c)
-        buf.append(_f16_values(c, dtype))
+        buf.append(_stored(c, dtype))
         times.append(float(t))
 
     def moments():
