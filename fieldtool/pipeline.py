@@ -554,8 +554,10 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
         t0 = now
 
     mpl_import = None
-    if out_dir is not None:  # matplotlib takes ~0.6 s to import: let that overlap the PIV
-        mpl_import = threading.Thread(target=importlib.import_module, args=("fieldtool.plots.discharge",), daemon=True)
+    if out_dir is not None:  # matplotlib (~0.6 s) and scipy.spatial (~0.1 s, the NetCDF grid) are imported while
+        # the PIV waits for its frames
+        mpl_import = threading.Thread(target=lambda: [importlib.import_module(m) for m in
+                                                      ("fieldtool.plots.discharge", "scipy.spatial")], daemon=True)
         mpl_import.start()
     from .validation import check
 

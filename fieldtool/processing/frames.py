@@ -8,6 +8,7 @@ the user gives. Nothing here keeps more than one frame in memory.
 from __future__ import annotations
 
 import glob
+import os
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -19,6 +20,10 @@ import numpy as np
 from ..errors import InputFileError, ParameterError
 
 IMAGE_EXTS = {".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp"}
+
+#: decoder threads (OpenCV's CAP_PROP_N_THREADS): 1 on two cores or fewer, else FFmpeg's choice (0)
+_DECODER_THREADS = 1 if (len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity")
+                         else (os.cpu_count() or 1)) <= 2 else 0
 
 
 class Frame(NamedTuple):
@@ -166,7 +171,9 @@ class FrameSource:
             kept += 1
 
     def _iter_video(self, want=None) -> Iterator[Frame]:
-        cap = cv2.VideoCapture(str(self.path))
+        # the run already keeps two cores busy (decoding, standardising, correlating: one thread each); on two
+        # cores or fewer the decoder's own threads only compete with them
+        cap = cv2.VideoCapture(str(self.path), cv2.CAP_ANY, [cv2.CAP_PROP_N_THREADS, _DECODER_THREADS])
         try:
             i, kept = -1, 0
             while True:
