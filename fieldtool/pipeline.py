@@ -690,8 +690,10 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
         nonlocal params, plan
         if project.piv.frame_gap is None:
             plan, frames = planning.first_look(frames, params, roi, mask)
-            if params.search_px is not None:  # the user's search area, not the look's guess
-                plan.guess = None
+            if params.search_px is not None or params.engine != "fieldtool":  # the user's search area, or an
+                plan.guess = None  # engine that cannot move its windows: the wider search area instead
+            if plan.guess is not None:
+                plan.search_px = None  # the first pass starts from the look's field
             params = _replace(params, frame_gap=plan.frame_gap, search_px=params.search_px or plan.search_px)
             if plan.guess is not None:
                 guess[0] = plan.guess

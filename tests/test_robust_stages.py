@@ -209,7 +209,7 @@ def test_fast_flow_first_pass_starts_from_the_first_look():
     frames = _stream(24, 11.0, rng)
     params = replace_params(passes=2, window_px=16, overlap_px=8)
     plan, replay = planning.first_look(iter(frames), params)
-    assert plan.frame_gap == 1 and plan.search_px is None and plan.guess is not None
+    assert plan.frame_gap == 1 and plan.guess is not None and plan.search_px > 32  # the wider search: the fallback
     assert plan.as_dict()["first_guess"] is True
     xc, yc, dx, dy = plan.guess
     assert dx.shape == (len(yc), len(xc)) and abs(np.median(np.abs(dx)) - 11.0) < 0.5
@@ -222,6 +222,8 @@ def test_fast_flow_first_pass_starts_from_the_first_look():
     wide = piv.analyze(iter(frames), replace_params(passes=2, window_px=16, overlap_px=8, search_px=search))  # the other way: a wider search area
     okw = wide.valid & ~wide.replaced
     assert search > 32 and abs(np.median(np.abs(wide.u[okw])) - np.median(np.abs(res.u[ok]))) * dt < 0.05
+    with pytest.raises(Exception, match="piv.search_px"):  # the GPU engine cannot move its windows
+        piv.analyze(iter(frames), params, backend="gpu", first_guess=plan.guess)
     # flow beyond GUESS_MAX_FRACTION of the window: the search area is widened instead
     plan2, _ = planning.first_look(iter(_stream(24, 14.0, np.random.default_rng(9))), params)
     assert plan2.guess is None and (plan2.search_px or 0) > 32

@@ -1100,7 +1100,10 @@ def _make_engine(backend, shape, params, levels, box, mask, near=None, guess=Non
         return _OpenPivEngine(shape, params, levels, box, mask)
     if backend not in ("auto", "cpu", "gpu"):
         raise ParameterError(f"piv backend: {backend!r} is not one of auto, cpu, gpu")
-    if backend in ("auto", "gpu"):
+    if guess is not None and backend == "gpu":
+        raise ParameterError("piv backend: gpu asked for, but the first pass starts from the first look's field, which "
+                             "only the CPU engine does; set piv.search_px to search a wider area instead")
+    if backend in ("auto", "gpu") and guess is None:
         from fieldtool.processing import piv_gpu
 
         if piv_gpu.usable_for(params) and piv_gpu.available():

@@ -44,7 +44,8 @@ class Plan:
     slow_px_per_frame: float = float("nan")  # 20th percentile of |d| over the moving nodes
     fast_px_per_frame: float = float("nan")  # 95th percentile
     pairs_looked: int = 0
-    #: (xc, yc, dx, dy): the look's displacement per frame (px) on its grid, when the first pass starts from it
+    #: (xc, yc, dx, dy): the look's displacement per frame (px) on its grid, when the first pass can start from it
+    #: (then ``search_px`` is the wider search area that would serve instead: another engine, the user's choice)
     guess: tuple | None = None
 
     def as_dict(self) -> dict:
@@ -125,6 +126,5 @@ def first_look(frames: Iterable[tuple[float, np.ndarray]], params: piv.PivParams
         from .piv_validate import fill_all
 
         du, dv = fill_all(np.where(ok, res.u * dt, np.nan), np.where(ok, res.v * dt, np.nan))
-        plan.guess = (res.x[0].copy(), res.y[:, 0].copy(), du, dv)
-        plan.search_px = None
+        plan.guess = (res.x[0].copy(), res.y[:, 0].copy(), du, dv)  # search_px stays the fallback
     return plan, replay
