@@ -365,3 +365,34 @@ def test_record_run_of_a_project(tmp_path):
     assert (m.site, m.discharge_m3s, m.video_time) == ("S", 1.5, "2022-01-02T03:04:05Z")
     assert m.video_path == str(tmp_path / "v.mp4") and m.output_dir == str((tmp_path / "out").resolve())
     assert len(m.input_hash) == 64
+
+
+def test_a_read_is_tried_again_after_a_transient_disk_io_error(tmp_path, monkeypatch):
+    """SQLite's "disk I/O error" to a WAL reader while another process opens or closes the database is
+    transient: the read is tried again; any other error is raised at once."""
+    import sqlite3
+
+    with History(tmp_path / "h.sqlite") as h:
+        h.record_summary({"discharge_m3s": 1.0, "water_level_m": 1.0, "inputs": {"name": "a"}}, site="a",
+                         input_hash="a-1")
+        real = h.conn
+        fails = {"n": 2}
+
+        class Flaky:
+            def execute(self, sql, args=()):
+                if fails["n"] > 0:
+                    fails["n"] -= 1
+                    raise sqlite3.OperationalError("disk I/O error")
+                return real.execute(sql, args)
+
+            def __getattr__(self, name):
+                return getattr(real, name)
+
+        h.conn = Flaky()
+        try:
+            assert [m.site for m in h.query()] == ["a"] and fails["n"] == 0
+            fails["n"] = 5  # more than the retries
+            with pytest.raises(sqlite3.OperationalError, match="disk I/O"):
+                h.query()
+        finally:
+            h.conn = real

@@ -403,10 +403,23 @@ class History:
         sql += f" ORDER BY video_time {order}, id {order}"
         if limit is not None:
             sql += f" LIMIT {int(limit)}"
-        return [Measurement(*r) for r in self.conn.execute(sql, args)]
+        return [Measurement(*r) for r in self._select(sql, args)]
+
+    def _select(self, sql: str, args=()) -> list:
+        """The rows of a read. SQLite answers "disk I/O error" now and then to a reader of a WAL database while
+        another process opens or closes it (its shared-memory index is being rebuilt); a read is then tried
+        again, up to 5 times over about 0.75 s."""
+        for attempt in range(5):
+            try:
+                return self.conn.execute(sql, args).fetchall()
+            except sqlite3.OperationalError as e:
+                if "disk I/O error" not in str(e) or attempt == 4:
+                    raise
+                time.sleep(0.05 * (attempt + 1))
+        raise AssertionError("unreachable")
 
     def sites(self) -> list[str]:
-        return [r[0] for r in self.conn.execute("SELECT DISTINCT site FROM measurements ORDER BY site")]
+        return [r[0] for r in self._select("SELECT DISTINCT site FROM measurements ORDER BY site")]
 
     def references(self, measurement_id: int | None = None) -> list[Reference]:
         sql = f"SELECT {', '.join(_R_COLS)} FROM reference_discharges"
@@ -414,7 +427,7 @@ class History:
         if measurement_id is not None:
             sql += " WHERE measurement_id = ?"
             args = (measurement_id,)
-        return [Reference(*r) for r in self.conn.execute(sql + " ORDER BY id", args)]
+        return [Reference(*r) for r in self._select(sql + " ORDER BY id", args)]
 
     def reference_pairs(self, site: str | None = None) -> list[tuple[Measurement, Reference]]:
         """(measurement, reference) for every reference, optionally of one site."""
