@@ -652,7 +652,6 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
     fast = {"region": project.piv.region, "box_px": None if roi is None else list(roi),
             "roi_px": None if roi_user is None else list(roi_user)}
     decoded: list[float] = []
-    guess: list = [None]  # the first look's field, when the first pass starts from it (planning.first_look)
     from dataclasses import replace as _replace
 
     from .processing import planning
@@ -695,8 +694,6 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
             if plan.guess is not None:
                 plan.search_px = None  # the first pass starts from the look's field
             params = _replace(params, frame_gap=plan.frame_gap, search_px=params.search_px or plan.search_px)
-            if plan.guess is not None:
-                guess[0] = plan.guess
             if plan.frame_gap > 1 or plan.search_px or plan.guess is not None:
                 warnings.append(
                     f"piv: from a first look at {plan.pairs_looked} pairs (slow nodes {plan.slow_px_per_frame:.1f}, "
@@ -744,13 +741,13 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
                 res, conv = run_piv_fast(make_frames, n_exp - gap, gap, params, roi, mask, max_speed, cancel, on_pair,
                                          pair_q_fn(geom), project.piv.converge_rel_ci, project.piv.min_pairs,
                                          drain_first=standardize and stiv_run is not None, near=near,
-                                         first_guess=guess[0])
+                                         first_guess=plan.guess)
                 fast.update(conv)
             else:
                 frames = make_frames()
                 try:
                     res = piv_mod.analyze(frames, params, roi=roi, mask=mask, max_speed_px_s=max_speed, cancel=cancel,
-                                          on_pair=on_pair, near=near, first_guess=guess[0])
+                                          on_pair=on_pair, near=near, first_guess=plan.guess)
                 finally:
                     getattr(frames, "close", lambda: None)()
                 fast.update(pairs_used=int(res.n_pairs or 0), converged=None)
@@ -769,7 +766,7 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
             frames = _Sized(frames, n_exp)  # lets the ensemble plan which pairs get per-pair vectors
         try:
             res = piv_mod.analyze(frames, params, roi=roi, mask=mask, max_speed_px_s=max_speed,
-                                  progress=None, cancel=cancel, on_pair=on_pair, near=near, first_guess=guess[0])
+                                  progress=None, cancel=cancel, on_pair=on_pair, near=near, first_guess=plan.guess)
         finally:
             reader.close()
         fast.update(pairs_used=int(res.n_pairs or 0), converged=None)
@@ -957,7 +954,7 @@ def _write_figures(result: RunResult, inputs: Inputs, out: Path) -> None:
         else:
             files[key] = draw(out / name).name
     try:
-        png = result.prerendered.png("water_level.png") if result.prerendered is not None else None
+        png = pre.png("water_level.png") if pre is not None else None
         if png:
             atomic_write_bytes(out / "water_level.png", png)
             files["water_level_png"] = "water_level.png"

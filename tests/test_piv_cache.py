@@ -1,21 +1,11 @@
 """The PIV field is reused only when everything it depends on is unchanged."""
 
 import os
-import shutil
 
 import pytest
 
 from fieldtool.pipeline import Observer, run_project
 from fieldtool.project import load_project
-
-
-@pytest.fixture
-def scene(short_scene, tmp_path):
-    src = short_scene.project_path.parent
-    for f in src.iterdir():
-        if f.is_file():
-            shutil.copy(f, tmp_path / f.name)
-    return tmp_path
 
 
 def test_reused_when_only_the_section_changes(scene):

@@ -1,7 +1,6 @@
 """The fast path: section band, pair order, analyze(select=, carry=), convergence stop, reader thread, pipeline keys."""
 
 import json
-import shutil
 
 import numpy as np
 import pytest
@@ -117,15 +116,6 @@ def test_prefetch_passes_items_errors_and_stops_on_close():
     it.close()
     n = len(produced)
     assert n <= 6 and len(produced) == n  # stopped
-
-
-@pytest.fixture
-def scene(short_scene, tmp_path):
-    src = short_scene.project_path.parent
-    for f in src.iterdir():
-        if f.is_file():
-            shutil.copy(f, tmp_path / f.name)
-    return tmp_path
 
 
 def test_pipeline_band_and_convergence_keys_and_cache(scene):

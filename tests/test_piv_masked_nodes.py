@@ -9,6 +9,20 @@ from fieldtool.processing.piv import PivParams, analyze
 from tests.test_piv import particle_clip, rankine
 
 
+def _count_windows(monkeypatch, side: bool = False) -> list:
+    """A list that gets, for each call of ``piv._window_spectra``, the number of windows it transformed (or, with
+    ``side``, their side in px)."""
+    got = []
+    spectra = piv._window_spectra
+
+    def counting(img, oy, ox, lv, size, idx=None):
+        got.append(size if side else lv.ny * lv.nx if idx is None else len(idx))
+        return spectra(img, oy, ox, lv, size, idx)
+
+    monkeypatch.setattr(piv, "_window_spectra", counting)
+    return got
+
+
 def _mask(h, w):
     m = np.zeros((h, w), bool)
     m[:, :90] = True  # a bank
@@ -23,14 +37,7 @@ def test_skipping_masked_nodes_gives_the_same_vectors(monkeypatch, averaging, sa
     frames = particle_clip(rankine, n_frames=5, seed=3)
     mask = _mask(*frames[0][1].shape)
     params = PivParams(window_px=16, overlap_px=8, passes=2, averaging=averaging)
-    calls = []
-    spectra = piv._window_spectra
-
-    def counting(img, oy, ox, lv, size, idx=None):
-        calls.append(lv.ny * lv.nx if idx is None else len(idx))
-        return spectra(img, oy, ox, lv, size, idx)
-
-    monkeypatch.setattr(piv, "_window_spectra", counting)
+    calls = _count_windows(monkeypatch)
     skip = analyze(frames, params, mask=mask)
     n_skip = sum(calls)
     calls.clear()
@@ -62,14 +69,7 @@ def test_nodes_far_from_the_section_are_skipped_and_the_near_ones_unchanged(monk
     seg = np.array([[40.0, 30.0], [w - 60.0, h - 40.0]])  # a diagonal section
     reach = node_reach_px(16, 8, 2)
     assert reach[0] > reach[1] > 3 * 8
-    calls = []
-    spectra = piv._window_spectra
-
-    def counting(img, oy, ox, lv, size, idx=None):
-        calls.append(lv.ny * lv.nx if idx is None else len(idx))
-        return spectra(img, oy, ox, lv, size, idx)
-
-    monkeypatch.setattr(piv, "_window_spectra", counting)
+    calls = _count_windows(monkeypatch)
     near = analyze(frames, params, near=([seg], reach))
     n_near = sum(calls)
     calls.clear()
@@ -95,14 +95,7 @@ def test_search_area_spectra_only_for_the_frames_that_need_them(monkeypatch):
     search-area spectra and one that is only the second gets no window spectra; the vectors are the same."""
     frames = particle_clip(rankine, n_frames=9, seed=4)
     params = PivParams(window_px=16, overlap_px=8, passes=2, search_px=48)
-    sizes = []
-    spectra = piv._window_spectra
-
-    def counting(img, oy, ox, lv, size, idx=None):
-        sizes.append(size)
-        return spectra(img, oy, ox, lv, size, idx)
-
-    monkeypatch.setattr(piv, "_window_spectra", counting)
+    sizes = _count_windows(monkeypatch, side=True)
     sel = [0, 3, 6]  # frames 0,3,6 only first, 1,4,7 only second
     res = analyze(iter(frames), params, select=sel)
     # first level: 32 px windows (A, padded to 48), 48 px search areas (B); final level: 16 px windows

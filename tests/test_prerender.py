@@ -1,7 +1,6 @@
 """The velocity figures are drawn in a forked child during the Monte Carlo; the parent draws any it lacks."""
 
 import os
-import shutil
 
 import pytest
 
@@ -10,15 +9,6 @@ from fieldtool.plots import prerender
 from fieldtool.project import load_project
 
 PNG = b"\x89PNG\r\n\x1a\n"
-
-
-@pytest.fixture
-def scene(short_scene, tmp_path):
-    src = short_scene.project_path.parent
-    for f in src.iterdir():
-        if f.is_file():
-            shutil.copy(f, tmp_path / f.name)
-    return tmp_path
 
 
 @pytest.mark.skipif(not hasattr(os, "fork"), reason="no os.fork here: the parent draws every figure")

@@ -496,9 +496,9 @@ def _guess_at(lv: _Level, xc: np.ndarray, yc: np.ndarray, dx: np.ndarray, dy: np
     return np.rint(out).astype(np.int64) if whole else out
 
 
-def near_nodes(lv: _Level, segments, reach_px, k: int) -> np.ndarray:
-    """Bool (ny, nx): the nodes of pass ``k`` (level ``lv``) whose centre is within ``reach_px[k]`` px of one of
-    ``segments`` (each a (2, 2) array of two image points, full-frame px)."""
+def near_nodes(lv: _Level, segments, reach_px: float) -> np.ndarray:
+    """Bool (ny, nx): the nodes of level ``lv`` whose centre is within ``reach_px`` px of one of ``segments``
+    (each a (2, 2) array of two image points, full-frame px)."""
     X, Y = np.meshgrid(lv.xc, lv.yc)
     P = np.stack([X.ravel(), Y.ravel()], axis=1)
     best = np.full(len(P), np.inf)
@@ -507,7 +507,7 @@ def near_nodes(lv: _Level, segments, reach_px, k: int) -> np.ndarray:
         ab = b - a
         t = np.clip((P - a) @ ab / max(float(ab @ ab), 1e-12), 0.0, 1.0)
         best = np.minimum(best, np.hypot(*(P - a - t[:, None] * ab).T))
-    return (best <= float(reach_px[k])).reshape(lv.ny, lv.nx)
+    return (best <= float(reach_px)).reshape(lv.ny, lv.nx)
 
 
 # --------------------------------------------------------------------------------------------- the engine
@@ -529,6 +529,7 @@ class _Engine:
 
     def __init__(self, shape, params: PivParams, levels: list[_Level], box, mask: np.ndarray | None, near=None,
                  guess=None):
+        """``near``: per level, bool (ny, nx) of the nodes near the section (:func:`near_nodes`), or None."""
         self.p = params
         self.levels = levels
         self.h, self.w = shape
@@ -547,7 +548,7 @@ class _Engine:
         # per pass, the flat indices (row-major) of the only nodes correlated (None = all): the final pass of a
         # multi-pass run skips the nodes whose window centre is masked (earlier passes keep them: they build the
         # predictor of the others); with ``near`` every pass skips the nodes beyond its distance of the section
-        keep = [None if near is None else near_nodes(lv, *near, k) for k, lv in enumerate(levels)]
+        keep = list(near) if near is not None else [None] * len(levels)
         fin = levels[-1]
         if _SKIP_MASKED and mask is not None and len(levels) > 1:
             X, Y = np.meshgrid(fin.xc, fin.yc)
@@ -843,9 +844,10 @@ def analyze(
                                  f"{shape[1]} x {shape[0]} px frames")
     if near is not None:
         segs, reach = near
-        near = ([np.asarray(sg, float).reshape(2, 2) for sg in segs], [float(r) for r in reach])
-        if len(near[1]) != len(levels) or not near[0]:
+        segs = [np.asarray(sg, float).reshape(2, 2) for sg in segs]
+        if len(reach) != len(levels) or not segs:
             raise ValueError("analyze(near=...): one reach per pass and at least one segment")
+        near = [near_nodes(lv, segs, r) for lv, r in zip(levels, reach)]  # per pass, the nodes correlated
     engine = _make_engine(backend, shape, params, levels, box, mask, near, first_guess)
     if not isinstance(engine, _Engine):  # only the CPU engine moves its windows by it
         first_guess = None
@@ -854,7 +856,7 @@ def analyze(
     node_mask = np.zeros((fin.ny, fin.nx), dtype=bool)
     if mask is not None:
         node_mask = mask[np.rint(Y).astype(int).clip(0, shape[0] - 1), np.rint(X).astype(int).clip(0, shape[1] - 1)]
-    outside = None if near is None else ~near_nodes(fin, *near, len(levels) - 1)
+    outside = None if near is None else ~near[-1]
     if outside is not None:
         node_mask = node_mask | outside
     if max_speed_px_s is not None:
@@ -1093,8 +1095,8 @@ class _Ensemble:
 
 
 def _make_engine(backend, shape, params, levels, box, mask, near=None, guess=None):
-    """The engine of ``params.engine`` / ``backend``. ``near`` (nodes skipped far from the section) is only a
-    saving of the CPU engine; the others correlate every node and ``analyze`` drops the far ones. ``guess``
+    """The engine of ``params.engine`` / ``backend``. ``near`` (per level, the nodes near the section; the others
+    are skipped) is only a saving of the CPU engine; the others correlate every node and ``analyze`` drops the far ones. ``guess``
     (first-pass window offsets) only the CPU engine uses."""
     if params.engine == "openpiv":
         return _OpenPivEngine(shape, params, levels, box, mask)

@@ -226,20 +226,19 @@ def check_displacement(ev: Evidence, th: Thresholds) -> list[Reason]:
     w = float(ev.first_window_px)
     search = float(ev.search_px or w)
     reach = max(w, search)  # side the displacement must stay well inside
-    if ev.residual_px is not None:  # the first pass moved its windows by the first look's field
-        ratio = float(ev.residual_px / reach)
-        sev = _grade2(ratio, th.displacement_doubtful, th.displacement_unusable, below=False)
-        if sev is None:
-            return []
-        return [Reason("displacement_limit", sev,
-                       f"displacements along the section differ from the first look's field by up to "
-                       f"{ev.residual_px:.1f} px per frame, {100 * ratio:.0f} % of the first-pass window {reach:.0f} px "
-                       f"(limit {100 * th.displacement_doubtful:.0f} %): the flow changed during the clip or the look "
-                       "was wrong; set piv.frame_gap and piv.search_px yourself", ratio, th.displacement_doubtful)]
-    ratio = float(ev.displacement_px / reach)
+    # with a first guess the first pass moved its windows by the first look's field: what it had to find is
+    # the residual
+    d = ev.displacement_px if ev.residual_px is None else ev.residual_px
+    ratio = float(d / reach)
     sev = _grade2(ratio, th.displacement_doubtful, th.displacement_unusable, below=False)
     if sev is None:
         return []
+    if ev.residual_px is not None:
+        return [Reason("displacement_limit", sev,
+                       f"displacements along the section differ from the first look's field by up to "
+                       f"{d:.1f} px per frame, {100 * ratio:.0f} % of the first-pass window {reach:.0f} px "
+                       f"(limit {100 * th.displacement_doubtful:.0f} %): the flow changed during the clip or the look "
+                       "was wrong; set piv.frame_gap and piv.search_px yourself", ratio, th.displacement_doubtful)]
     need = int(np.ceil(ev.displacement_px / th.displacement_doubtful / 8.0) * 8)
     return [Reason("displacement_limit", sev,
                    f"displacements along the section reach {ev.displacement_px:.1f} px per frame, "
