@@ -396,3 +396,37 @@ def test_a_read_is_tried_again_after_a_transient_disk_io_error(tmp_path, monkeyp
                 h.query()
         finally:
             h.conn = real
+
+
+
+def test_the_check_leaves_the_side_files_another_process_has_started_to_use(tmp_path, monkeypatch):
+    """The check of an existing history opens it read-only, which creates its -wal/-shm side files. If another
+    process opens the database meanwhile (its -wal still empty), those files are now that process': removing
+    them would send its writes to a deleted file (two writers lost rows this way)."""
+    import sqlite3
+
+    import fieldtool.records.history as hist
+
+    db = tmp_path / "h.sqlite"
+    with History(db) as h:
+        fill(h)
+    assert not (tmp_path / "h.sqlite-wal").exists()
+    other = {}
+    real = hist._schema_problem
+
+    def another_process_opens_meanwhile(path):
+        other["conn"] = c = sqlite3.connect(str(path), isolation_level=None)
+        c.execute("SELECT count(*) FROM measurements").fetchone()  # opened and reading: its -wal is empty
+        return real(path)
+
+    monkeypatch.setattr(hist, "_schema_problem", another_process_opens_meanwhile)
+    monkeypatch.setattr(hist, "_OPEN", {})
+    with History(db) as h:
+        n = len(h.query())
+    c = other["conn"]
+    c.execute("UPDATE measurements SET site = 'kept' WHERE id = (SELECT max(id) FROM measurements)")
+    fresh = sqlite3.connect(str(db))
+    assert fresh.execute("SELECT count(*) FROM measurements WHERE site = 'kept'").fetchone()[0] == 1
+    assert fresh.execute("SELECT count(*) FROM measurements").fetchone()[0] == n
+    fresh.close()
+    c.close()

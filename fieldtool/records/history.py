@@ -525,8 +525,10 @@ def _check_existing(path: Path) -> None:
               "or give another path with --db / FIELDTOOL_DB; `sqlite3 FILE .recover` may rescue the rows")
     if head != _SQLITE_MAGIC:
         raise InputFileError(f"{path}: is not a SQLite database (damaged, or another kind of file); {advice}")
-    # a read-only look at a WAL database makes SQLite create the -wal/-shm side files: remove the
-    # ones this check created, so that nothing beside it changes either
+    # a read-only look at a WAL database makes SQLite create the -wal/-shm side files: when the file is
+    # refused, remove the ones this check created, so that nothing beside it changes either. A file that
+    # passes keeps them: another process may have started to use them meanwhile (removing them then loses
+    # its writes), and SQLite removes them when the last connection closes
     sides = [path.with_name(path.name + s) for s in ("-wal", "-shm")]
     existed = [p.exists() for p in sides]
 
@@ -542,9 +544,11 @@ def _check_existing(path: Path) -> None:
             problem = f"{problem}; {advice}"
         else:
             problem = _schema_problem(path)
-    finally:
+    except BaseException:
         tidy()
+        raise
     if problem is not None:
+        tidy()
         raise InputFileError(f"{path}: {problem}")
 
 
