@@ -34,6 +34,9 @@ def _print_progress(stage: str, done: int, total: int) -> None:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
+    from .plots import prerender
+
+    prerender.start()  # the figure process imports matplotlib on the idle core while this one imports the rest
     from .pipeline import run_project
     from .project import load_project
 

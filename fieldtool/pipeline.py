@@ -368,8 +368,11 @@ def roi_and_mask(project: Project, inputs: Inputs) -> tuple[tuple[int, int, int,
 def working_frames(project: Project, inputs: Inputs, cancel: Callable[[], bool] | None = None,
                    observer: _Guarded | None = None, stab_report: dict | None = None,
                    progress: Progress | None = None, stage: str = "frames",
-                   want: Callable[[int], bool] | None = None) -> Iterator[tuple[float, np.ndarray]]:
+                   want: Callable[[int], bool] | None = None, raw: bool = False) -> Iterator[tuple[float, np.ndarray]]:
     """Stream (t_s, float32 working frame): undistorted, stabilised, filtered.
+
+    ``raw``: without filters, the frames keep the decoder's uint8 (for consumers that convert only what they
+    read: the standardisation's box, STIV's lines).
 
     ``want(k)``: frames at stream positions k that fail it come as (t_s, None), decoded past but not converted
     (the fast path's rounds need only their own pairs' frames). Ignored with stabilisation, which tracks every
@@ -419,7 +422,7 @@ def working_frames(project: Project, inputs: Inputs, cancel: Callable[[], bool] 
                 progress(stage, k + 1, total)
             yield t, None
             continue
-        out = stack.apply(img) if stack is not None else img.astype(np.float32)
+        out = stack.apply(img) if stack is not None else img if raw else img.astype(np.float32)
         if observer is not None and k % log_every == 0:
             observer("frame", idx, t, img, out)
         if progress is not None:
@@ -553,12 +556,14 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
         timings[name] = round(now - t0, 3)
         t0 = now
 
-    mpl_import = None
-    if out_dir is not None:  # matplotlib (~0.6 s) and scipy.spatial (~0.1 s, the NetCDF grid) are imported while
-        # the PIV waits for its frames
-        mpl_import = threading.Thread(target=lambda: [importlib.import_module(m) for m in
-                                                      ("fieldtool.plots.discharge", "scipy.spatial")], daemon=True)
-        mpl_import.start()
+    if out_dir is not None:
+        from .plots import prerender
+
+        prerender.start()  # the figure process (plots.prerender), forked before this run starts any thread
+        # scipy.spatial (~0.1 s, the NetCDF grid) is imported while the PIV waits for its frames; so is
+        # matplotlib (~0.5 s) where no figure process draws the figures
+        modules = ("scipy.spatial",) if prerender.can_fork() else ("fieldtool.plots.discharge", "scipy.spatial")
+        threading.Thread(target=lambda: [importlib.import_module(m) for m in modules], daemon=True).start()
     from .validation import check
 
     warnings += [str(w) for w in check(project)]  # every key, before any step
@@ -628,7 +633,7 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
     obs("geometry", pair_q_fn(geom))
     obs("stage", "piv")
     prerendered = None
-    if out_dir is not None:  # the figures of the inputs are drawn while the PIV waits for its frames
+    if out_dir is not None:  # the figures of the inputs are drawn in the figure process during the PIV
         from .plots.prerender import Prerender
 
         prerendered = Prerender(project, inputs, level, mapping)
@@ -664,7 +669,7 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
         if standardize:  # every frame enters the standardisation's window; only the wanted ones are built
             want = None
         frames = working_frames(project, inputs, cancel, obs, stab if project.stabilize.enabled else None, progress,
-                                want=want)
+                                want=want, raw=standardize)  # the standardisation converts its box only
         if tap and stiv_run is not None:  # STIV samples its lines from the same stream (one decode)
             frames = stiv_run.tap(frames)
 
@@ -818,8 +823,8 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
 
     q_pairs = pairs_q(geom)
     lap("discharge")
-    if prerendered is not None:  # the velocity figures are drawn in a child process during the Monte Carlo
-        prerendered.fork_results(inputs, dres, res, U, V, geom, mapping, cs, before=[mpl_import])
+    if prerendered is not None:  # the velocity figures are drawn in the figure process during the Monte Carlo
+        prerendered.results(inputs, dres, res, U, V, geom, mapping, cs)
 
     from .assess import assess_run
 
@@ -937,8 +942,8 @@ def _write_outputs(result: RunResult, inputs: Inputs, out: Path) -> None:
 
 
 def _write_figures(result: RunResult, inputs: Inputs, out: Path) -> None:
-    """vectors.png, rectified.png, section.png (drawn in a child process during the Monte Carlo, else here)
-    and water_level.png (drawn during the PIV, else here)."""
+    """vectors.png, rectified.png, section.png (drawn by the figure process during the Monte Carlo, else here)
+    and water_level.png (drawn there during the PIV, else here)."""
     from .plots import discharge as plots
 
     files = result.files
@@ -947,14 +952,14 @@ def _write_figures(result: RunResult, inputs: Inputs, out: Path) -> None:
             ("vectors_png", "vectors.png", lambda f: plots.plot_vectors(f, inputs.first_color, result, inputs)),
             ("rectified_png", "rectified.png", lambda f: plots.plot_rectified(f, inputs.first_color, result, inputs)),
             ("section_png", "section.png", lambda f: plots.plot_section(f, inputs.cross_section, result))):
-        png = pre.png(name) if pre is not None else None  # drawn in a child during the Monte Carlo
+        png = pre.file(name) if pre is not None else None  # drawn by the figure process
         if png:
             atomic_write_bytes(out / name, png)
             files[key] = name
         else:
             files[key] = draw(out / name).name
     try:
-        png = pre.png("water_level.png") if pre is not None else None
+        png = pre.file("water_level.png") if pre is not None else None
         if png:
             atomic_write_bytes(out / "water_level.png", png)
             files["water_level_png"] = "water_level.png"

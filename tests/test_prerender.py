@@ -1,54 +1,120 @@
-"""The velocity figures are drawn in a forked child during the Monte Carlo; the parent draws any it lacks."""
+"""The figures are drawn by the figure process (plots.prerender); the parent draws any it lacks."""
 
 import os
+import tempfile
+import time
 
 import pytest
 
 from fieldtool.pipeline import run_project
-from fieldtool.plots import prerender
+from fieldtool.plots import discharge as plots
+from fieldtool.plots import prerender, report_figures
 from fieldtool.project import load_project
 
 PNG = b"\x89PNG\r\n\x1a\n"
+FIGURES = ("vectors.png", "rectified.png", "section.png", "profile.png", "gcp.png", "water_level.png")
+
+needs_fork = pytest.mark.skipif(not prerender.can_fork(), reason="no os.fork here: the parent draws every figure")
 
 
-@pytest.mark.skipif(not hasattr(os, "fork"), reason="no os.fork here: the parent draws every figure")
-def test_figures_come_from_the_forked_child(scene, monkeypatch):
-    drawn_in = {}
-    real_collect = prerender.Prerender._collect
+@pytest.fixture
+def own_tmp(monkeypatch, tmp_path):
+    """No figure process left from another test, and the temporary folders in this test's own place."""
+    if prerender._waiting is not None:
+        prerender._waiting.stop()
+        prerender._waiting = None
+    tmp = tmp_path / "tmp"
+    tmp.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp))
+    yield tmp
+    if prerender._waiting is not None:
+        prerender._waiting.stop()
+        prerender._waiting = None
 
-    def collect(self):
-        pid = self._pid
-        real_collect(self)
-        if pid is not None:  # the first call waits for the child; later ones find it reaped
-            drawn_in.update({n: (pid, n in self._png) for n in prerender.FORKED})
 
-    monkeypatch.setattr(prerender.Prerender, "_collect", collect)
+def _check_outputs(out, res):
+    for name in FIGURES:
+        data = (out / name).read_bytes()
+        assert data.startswith(PNG) and len(data) > 10_000, name
+    assert (out / "section_profile.csv").read_text().startswith("station_m,")
+    assert {"vectors_png", "rectified_png", "section_png", "profile_png", "gcp_png", "water_level_png",
+            "section_profile"} <= set(res.files)
+
+
+@needs_fork
+def test_every_figure_comes_from_the_figure_process(scene, own_tmp, monkeypatch):
+    parent = os.getpid()
+
+    def only_in_child(real):
+        def draw(*a, **k):
+            assert os.getpid() != parent, f"{real.__name__} drawn in the parent"
+            return real(*a, **k)
+        return draw
+
+    for mod, name in ((plots, "plot_vectors"), (plots, "plot_rectified"), (plots, "plot_section"),
+                      (report_figures, "write_profile"), (report_figures, "write_gcp")):
+        monkeypatch.setattr(mod, name, only_in_child(getattr(mod, name)))
     res = run_project(load_project(scene / "project.toml"), scene / "out")
-    assert drawn_in and all(pid and pid != os.getpid() and got for pid, got in drawn_in.values())
-    for name in prerender.FORKED:
-        data = (scene / "out" / name).read_bytes()
-        assert data.startswith(PNG) and len(data) > 10_000
-    assert {"vectors_png", "rectified_png", "section_png"} <= set(res.files)
-    assert not [p for p in os.listdir(os.path.dirname(res.out_dir)) if p.startswith("fieldtool-fig-")]
+    _check_outputs(scene / "out", res)
+    assert not res.warnings or not any("not written" in w for w in res.warnings)
+    assert list(own_tmp.iterdir()) == []  # the process' folder is gone with it
 
 
-def test_a_child_that_fails_leaves_its_figures_to_the_parent(scene, monkeypatch):
-    from fieldtool.plots import discharge as plots
-
+@needs_fork
+def test_a_figure_that_fails_in_the_process_is_drawn_by_the_parent(scene, own_tmp, monkeypatch):
     calls = []
     real = plots.plot_section
+    parent = os.getpid()
 
     def failing_in_child(path, cs, result):
         if os.getpid() != parent:
-            raise RuntimeError("child fails")
+            raise RuntimeError("fails in the figure process")
         calls.append(path.name)
         return real(path, cs, result)
 
-    parent = os.getpid()
     monkeypatch.setattr(plots, "plot_section", failing_in_child)
     res = run_project(load_project(scene / "project.toml"), scene / "out")
-    assert (scene / "out" / "section.png").read_bytes().startswith(PNG)
-    assert (scene / "out" / "vectors.png").read_bytes().startswith(PNG)
-    if hasattr(os, "fork"):
-        assert calls == ["section.png"]  # the child failed: the parent drew it
-    assert "section_png" in res.files
+    _check_outputs(scene / "out", res)
+    assert calls == ["section.png"]  # only the failed one was drawn again
+
+
+@needs_fork
+def test_a_process_that_dies_leaves_every_figure_to_the_parent(scene, own_tmp, monkeypatch):
+    def dies(*_):
+        os._exit(3)
+
+    monkeypatch.setattr(prerender, "_serve", dies)
+    res = run_project(load_project(scene / "project.toml"), scene / "out")
+    _check_outputs(scene / "out", res)
+    assert list(own_tmp.iterdir()) == []
+
+
+@needs_fork
+def test_a_process_that_hangs_is_killed_after_the_timeout(scene, own_tmp, monkeypatch):
+    monkeypatch.setattr(prerender, "TIMEOUT_S", 0.5)
+    monkeypatch.setattr(prerender, "_serve", lambda *_: time.sleep(60))
+    t0 = time.monotonic()
+    res = run_project(load_project(scene / "project.toml"), scene / "out")
+    _check_outputs(scene / "out", res)
+    assert time.monotonic() - t0 < 40  # one timeout, then the parent draws (not 60 s of waiting)
+    assert list(own_tmp.iterdir()) == []
+
+
+@needs_fork
+def test_a_waiting_process_ends_when_its_parent_closes_it(own_tmp):
+    prerender.start()
+    proc = prerender._waiting
+    assert proc is not None and proc.alive
+    prerender.start()  # one waits at a time
+    assert prerender._waiting is proc
+    proc.stop()
+    with pytest.raises(ChildProcessError):
+        os.waitpid(proc.pid, os.WNOHANG)  # reaped
+    assert list(own_tmp.iterdir()) == []
+
+
+def test_without_fork_the_parent_draws_everything(scene, own_tmp, monkeypatch):
+    monkeypatch.setattr(prerender, "can_fork", lambda: False)
+    res = run_project(load_project(scene / "project.toml"), scene / "out")
+    _check_outputs(scene / "out", res)
+    assert prerender._waiting is None

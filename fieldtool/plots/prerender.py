@@ -1,133 +1,284 @@
-"""Figures drawn ahead of ``pipeline.write_outputs``, while the run computes something else.
+"""Figures drawn ahead of ``pipeline.write_outputs``, in a figure process beside the run.
 
-* The GCP picture (``gcp.png``) and the water-level plot (``water_level.png``) depend on the mapping and the
-  level, not on the velocities. During the PIV the caller's thread mostly waits for the decoding and
-  standardising threads, so these two are drawn then, in a thread, as PNG bytes in memory.
-* The velocity figures (``vectors.png``, ``rectified.png``, ``section.png``) depend on the field and the
-  discharge, not on the uncertainty. :meth:`Prerender.fork_results` draws them in a forked child process
-  while the parent runs the Monte Carlo (pure Python, one core): on two cores that hides about half a second.
-  Only where ``os.fork`` exists; the child's threads of OpenCV are off, and a child that fails or takes more
-  than :data:`FORK_TIMEOUT_S` leaves its figures to the parent.
+A run's figures cost matplotlib's import (about 0.5 s) and about a second of drawing. On two cores the run's
+own threads (decoding, standardising, correlating) keep both cores busy during the PIV, and only one is busy
+while the run starts (imports, inputs, mapping). So the figures are drawn in a process of their own:
 
-``pipeline.write_outputs`` writes the bytes, and draws a figure itself when its bytes are missing: a figure
-that failed here is drawn again there, where its error is reported as before.
+* :func:`start` forks it (only where ``os.fork`` exists). ``fieldtool run`` calls it before it imports the
+  pipeline, so matplotlib is imported on the idle core while the run starts; ``pipeline.run_project`` calls it
+  too (it takes the waiting process, or forks one then).
+* :class:`Prerender` gives it two jobs:
+  - the input figures (``gcp.png``, ``water_level.png``) as soon as the mapping and the level exist;
+  - the velocity figures (``vectors.png``, ``rectified.png``, ``section.png``, ``profile.png`` with
+    ``section_profile.csv``) when the discharge is known, drawn while the parent runs the Monte Carlo.
+* A job's arguments go to the process as a pickle in a private temporary folder. The process writes its files
+  there and answers each job on a pipe with what it wrote.
+
+``pipeline.write_outputs`` copies those files into the output folder, and draws a file itself when it is
+missing: a figure that failed in the process, or a process that died or passed :data:`TIMEOUT_S`. Its error is
+then reported as before. The process ends when its job pipe closes (:meth:`Prerender.close`, or the parent's
+exit) and removes its folder.
 """
 
 from __future__ import annotations
 
 import os
+import pickle
+import select
 import shutil
 import tempfile
-import threading
 import time
 from pathlib import Path
 from types import SimpleNamespace
 
-#: the longest the parent waits for the forked figures before it draws them itself (s)
-FORK_TIMEOUT_S = 30.0
-FORKED = ("vectors.png", "rectified.png", "section.png")
+#: the longest the parent waits for a job's answer before it draws the files itself (s)
+TIMEOUT_S = 30.0
+#: files of the input job and of the results job
+INPUT_FILES = ("gcp.png", "water_level.png")
+RESULT_FILES = ("vectors.png", "rectified.png", "section.png", "profile.png", "section_profile.csv")
+
+_waiting: "_Process | None" = None  # forked by start(), not yet taken by a Prerender
 
 
-class Prerender:
-    """Start drawing at once; :meth:`png` waits for the thread and gives a figure's bytes (or None)."""
+def can_fork() -> bool:
+    """Whether figures are drawn in a figure process here (``os.fork`` exists)."""
+    return hasattr(os, "fork")
 
-    def __init__(self, project, inputs, level, mapping):
-        self._png: dict[str, bytes | None] = {}
-        self._thread = threading.Thread(target=self._run, args=(project, inputs, level, mapping), daemon=True)
-        self._thread.start()
 
-    def _run(self, project, inputs, level, mapping) -> None:
-        try:
-            from . import report_figures
-            from .water_level import plot_level
+def start() -> None:
+    """Fork the figure process now, unless one is waiting (nothing where ``os.fork`` is missing)."""
+    global _waiting
+    if _waiting is None or not _waiting.alive:
+        _waiting = _Process.fork()
 
-            result = SimpleNamespace(mapping=mapping, level=level)
-            with tempfile.TemporaryDirectory(prefix="fieldtool-fig-") as tmp:
-                out = Path(tmp)
-                for name, draw in (("gcp.png", lambda: report_figures.write_gcp(out, project, result, inputs)),
-                                   ("water_level.png", lambda: plot_level(out / "water_level.png",
-                                                                          inputs.cross_section, level))):
-                    try:
-                        written = draw()
-                    except Exception:  # noqa: BLE001 - drawn again by write_outputs, which reports it
-                        self._png[name] = None
-                        continue
-                    self._png[name] = (out / name).read_bytes() if written is not None else b""
-        except Exception:  # noqa: BLE001 - as above
-            pass
 
-    def png(self, name: str) -> bytes | None:
-        """The figure's PNG bytes; b"" when it has nothing to show (no GCPs); None when not drawn here."""
-        self._thread.join()
-        if name in FORKED:
-            self._collect()
-        return self._png.get(name)
+def _take() -> "_Process | None":
+    global _waiting
+    start()
+    proc, _waiting = _waiting, None
+    return proc
 
-    _pid: int | None = None
-    _dir: str | None = None
 
-    def fork_results(self, inputs, discharge, piv, world_u, world_v, section, mapping, cross_section,
-                     before=()) -> None:
-        """Start drawing :data:`FORKED` in a child process (nothing where ``os.fork`` is missing). ``before``:
-        threads to join first, so that no import or figure is half done in the parent when it forks."""
-        if not hasattr(os, "fork") or self._pid is not None:
-            return
-        self._thread.join()
-        for t in before:
-            t.join()
-        self._dir = tempfile.mkdtemp(prefix="fieldtool-fig-")
+class _Process:
+    """The parent's handle on the figure process: a job pipe, an answer pipe and the shared folder."""
+
+    def __init__(self, pid: int, jobs_fd: int, answers_fd: int, folder: str):
+        self.pid, self.jobs_fd, self.answers_fd, self.folder = pid, jobs_fd, answers_fd, folder
+        self.alive = True
+        self.answers: dict[int, dict[str, str]] = {}  # job -> file name -> "ok" | "none" | "failed"
+        self._pending = b""
+        self.n_jobs = 0
+
+    @classmethod
+    def fork(cls) -> "_Process | None":
+        if not can_fork():
+            return None
+        folder = tempfile.mkdtemp(prefix="fieldtool-fig-")
+        jobs_r, jobs_w = os.pipe()
+        answers_r, answers_w = os.pipe()
         try:
             pid = os.fork()
         except OSError:
-            return
-        if pid == 0:  # the child: draw, write, leave without running the parent's exit handlers
+            for fd in (jobs_r, jobs_w, answers_r, answers_w):
+                os.close(fd)
+            shutil.rmtree(folder, ignore_errors=True)
+            return None
+        if pid == 0:  # the figure process: serve, then leave without the parent's exit handlers
             code = 1
             try:
-                import cv2
-
-                cv2.setNumThreads(0)  # the parent's OpenCV worker threads do not exist here
-                from . import discharge as plots
-
-                result = SimpleNamespace(discharge=discharge, piv=piv, world_u=world_u, world_v=world_v,
-                                         section=section, mapping=mapping)
-                out = Path(self._dir)
-                plots.plot_vectors(out / "vectors.png", inputs.first_color, result, inputs)
-                plots.plot_rectified(out / "rectified.png", inputs.first_color, result, inputs)
-                plots.plot_section(out / "section.png", cross_section, result)
+                os.close(jobs_w)
+                os.close(answers_r)
+                _serve(jobs_r, answers_w, Path(folder))
                 code = 0
-            except BaseException:  # noqa: BLE001 - the parent draws them again and reports the error
+            except BaseException:  # noqa: BLE001 - the parent draws what is missing and reports the error
                 code = 1
             finally:
+                shutil.rmtree(folder, ignore_errors=True)
                 os._exit(code)
-        self._pid = pid
+        os.close(jobs_r)
+        os.close(answers_w)
+        return cls(pid, jobs_w, answers_r, folder)
 
-    def _collect(self) -> None:
-        """Wait for the forked child (at most :data:`FORK_TIMEOUT_S`) and read its figures."""
-        if self._pid is None:
-            return
-        pid, self._pid = self._pid, None
-        deadline = time.monotonic() + FORK_TIMEOUT_S
-        status = None
-        while status is None:
-            done, st = os.waitpid(pid, os.WNOHANG)
-            if done:
-                status = st
-            elif time.monotonic() > deadline:
-                os.kill(pid, 9)
-                os.waitpid(pid, 0)
-                break
-            else:
-                time.sleep(0.01)
+    def submit(self, kind: str, args: tuple) -> int | None:
+        """Hand a job over; its number, or None when the process is gone."""
+        if not self.alive:
+            return None
+        k = self.n_jobs
+        self.n_jobs += 1
         try:
-            if status is not None and os.WIFEXITED(status) and os.WEXITSTATUS(status) == 0:
-                for name in FORKED:
-                    f = Path(self._dir) / name
-                    if f.is_file():
-                        self._png[name] = f.read_bytes()
+            tmp = Path(self.folder) / f"job{k}.tmp"
+            tmp.write_bytes(pickle.dumps((kind, args), protocol=pickle.HIGHEST_PROTOCOL))
+            tmp.replace(Path(self.folder) / f"job{k}.pkl")
+            os.write(self.jobs_fd, f"{k}\n".encode())
+        except (OSError, pickle.PicklingError, TypeError, AttributeError):
+            self.stop()
+            return None
+        return k
+
+    def answer(self, k: int) -> dict[str, str]:
+        """What job ``k`` wrote (file name -> "ok" / "none" / "failed"); {} when the process died or timed out."""
+        deadline = time.monotonic() + TIMEOUT_S
+        while self.alive and k not in self.answers:
+            left = deadline - time.monotonic()
+            ready = select.select([self.answers_fd], [], [], max(left, 0.0))[0] if left > 0 else []
+            if not ready:
+                self.stop()
+                break
+            chunk = os.read(self.answers_fd, 65536)
+            if not chunk:  # the process ended
+                self.stop()
+                break
+            self._pending += chunk
+            *lines, self._pending = self._pending.split(b"\n")
+            for line in lines:
+                job, *files = line.decode().split()
+                self.answers[int(job)] = dict(f.split("=", 1) for f in files)
+        return self.answers.get(k, {})
+
+    def stop(self) -> None:
+        """Close the job pipe and reap the process (killed when it does not end within a second)."""
+        if not self.alive:
+            return
+        self.alive = False
+        for fd in (self.jobs_fd, self.answers_fd):
+            try:
+                os.close(fd)
+            except OSError:
+                pass
+        deadline = time.monotonic() + 1.0
+        while True:
+            try:
+                done, _ = os.waitpid(self.pid, os.WNOHANG)
+            except ChildProcessError:
+                break
+            if done:
+                break
+            if time.monotonic() > deadline:
+                os.kill(self.pid, 9)
+                os.waitpid(self.pid, 0)
+                break
+            time.sleep(0.005)
+        shutil.rmtree(self.folder, ignore_errors=True)
+
+
+def _serve(jobs_fd: int, answers_fd: int, folder: Path) -> None:
+    """The figure process: import the plotting modules, then draw each job as it comes."""
+    import cv2
+
+    cv2.setNumThreads(0)  # the run's threads have the cores; a figure's resize needs none of its own
+    from . import discharge as plots
+    from . import report_figures
+    from .water_level import plot_level
+
+    with os.fdopen(jobs_fd, "rb") as jobs:
+        for line in jobs:
+            k = int(line)
+            path = folder / f"job{k}.pkl"
+            kind, args = pickle.loads(path.read_bytes())
+            path.unlink()
+            out = folder / f"job{k}"
+            out.mkdir()
+            if kind == "inputs":
+                project, inputs, level, mapping = args
+                result = SimpleNamespace(mapping=mapping, level=level)
+                draws = (("gcp.png", lambda: report_figures.write_gcp(out, project, result, inputs)),
+                         ("water_level.png", lambda: plot_level(out / "water_level.png", inputs.cross_section, level)))
+            else:
+                inputs, result, cross_section = args
+                draws = (("vectors.png", lambda: plots.plot_vectors(out / "vectors.png", inputs.first_color, result,
+                                                                    inputs)),
+                         ("rectified.png", lambda: plots.plot_rectified(out / "rectified.png", inputs.first_color,
+                                                                        result, inputs)),
+                         ("section.png", lambda: plots.plot_section(out / "section.png", cross_section, result)),
+                         ("profile.png", lambda: report_figures.write_profile(out, result)))
+            status = _draw_in_two(draws, out)
+            if "profile.png" in status:
+                status["section_profile.csv"] = status["profile.png"]
+            os.write(answers_fd, (f"{k} " + " ".join(f"{n}={s}" for n, s in status.items()) + "\n").encode())
+
+
+def _draw(draws) -> dict[str, str]:
+    status = {}
+    for name, draw in draws:
+        try:
+            status[name] = "none" if draw() is None else "ok"
+        except Exception:  # noqa: BLE001 - drawn again by write_outputs, which reports it
+            status[name] = "failed"
+    return status
+
+
+def _draw_in_two(draws, out: Path) -> dict[str, str]:
+    """Draw the first half of ``draws`` in a forked child and the rest here: at the end of a run the parent
+    runs the Monte Carlo on one core, and these two share the other. A child that fails leaves its figures
+    as "failed" (the parent draws them)."""
+    half = len(draws) // 2
+    if half == 0:
+        return _draw(draws)
+    try:
+        pid = os.fork()
+    except OSError:
+        return _draw(draws)
+    if pid == 0:
+        code = 1
+        try:
+            done = _draw(draws[:half])
+            (out / "first-half.tmp").write_text(" ".join(f"{n}={st}" for n, st in done.items()))
+            (out / "first-half.tmp").replace(out / "first-half")
+            code = 0
         finally:
-            shutil.rmtree(self._dir, ignore_errors=True)
+            os._exit(code)
+    status = _draw(draws[half:])
+    os.waitpid(pid, 0)
+    try:
+        first = dict(f.split("=", 1) for f in (out / "first-half").read_text().split())
+    except OSError:
+        first = {}
+    return {**{name: first.get(name, "failed") for name, _ in draws[:half]}, **status}
+
+
+class Prerender:
+    """The run's figures, drawn in the figure process. :meth:`file` gives a file's bytes (or None)."""
+
+    def __init__(self, project, inputs, level, mapping):
+        self._proc = _take()
+        self._jobs: dict[str, int] = {}
+        if self._proc is not None:
+            self._submit("inputs", (project, inputs, level, mapping), INPUT_FILES)
+
+    @property
+    def active(self) -> bool:
+        """A figure process is drawing (False: the parent draws every figure)."""
+        return self._proc is not None and self._proc.alive
+
+    def _submit(self, kind: str, args: tuple, names: tuple[str, ...]) -> None:
+        k = self._proc.submit(kind, args)
+        if k is not None:
+            self._jobs.update(dict.fromkeys(names, k))
+
+    def results(self, inputs, discharge, piv, world_u, world_v, section, mapping, cross_section) -> None:
+        """Start drawing :data:`RESULT_FILES` (they depend on the field and the discharge, not on the Monte
+        Carlo that the parent runs meanwhile)."""
+        if self.active:
+            result = SimpleNamespace(discharge=discharge, piv=piv, world_u=world_u, world_v=world_v,
+                                     section=section, mapping=mapping)
+            self._submit("results", (inputs, result, cross_section), RESULT_FILES)
+
+    def file(self, name: str) -> bytes | None:
+        """The file's bytes; b"" when it has nothing to show (no GCPs); None when not drawn here."""
+        k = self._jobs.get(name)
+        if k is None or self._proc is None:
+            return None
+        status = self._proc.answer(k).get(name)
+        if status == "none":
+            return b""
+        if status != "ok":
+            return None
+        try:
+            return (Path(self._proc.folder) / f"job{k}" / name).read_bytes()
+        except OSError:
+            return None
 
     def close(self) -> None:
-        """Reap a child whose figures were not asked for (a run that failed after forking)."""
-        if self._pid is not None:
-            self._collect()
+        """End the figure process (its files are read by then)."""
+        if self._proc is not None:
+            self._proc.stop()

@@ -6,11 +6,10 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from matplotlib.backends.backend_agg import FigureCanvasAgg
-from matplotlib.figure import Figure
 
 from ..processing.cross_section import CrossSection
 from ..processing.water_level import LevelResult
+from .discharge import _figure, _save
 
 
 def _section_axes(ax, cs: CrossSection, result: LevelResult) -> None:
@@ -38,8 +37,7 @@ def plot_level(path, cs: CrossSection, result: LevelResult, dem_profile: dict | 
     Returns the path written."""
     path = Path(path)
     prof = dem_profile if dem_profile is not None else result.details.get("dem_profile")
-    fig = Figure(figsize=(8, 7.5 if prof else 4.5), dpi=110)
-    FigureCanvasAgg(fig)
+    fig = _figure(figsize=(8, 7.5 if prof else 4.5), dpi=110)
     title = {"value": "typed value", "width": "measured width", "dem": "adapted Hellebaut (DEM)",
              "angle_height": "angle and height", "image": "image method"}.get(result.method, result.method)
     if prof:
@@ -70,7 +68,5 @@ def plot_level(path, cs: CrossSection, result: LevelResult, dem_profile: dict | 
         ax2.set_ylabel("D (m)")
         ax2.legend(fontsize=8)
         ax2.grid(alpha=0.3)
-    fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path)
-    return path
+    return _save(fig, path)

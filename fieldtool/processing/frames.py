@@ -176,6 +176,7 @@ class FrameSource:
         cap = cv2.VideoCapture(str(self.path), cv2.CAP_ANY, [cv2.CAP_PROP_N_THREADS, _DECODER_THREADS])
         try:
             i, kept = -1, 0
+            bgr = None  # the decoder's colour frame, one buffer for the clip (only the grey copy leaves)
             while True:
                 if not cap.grab():
                     return
@@ -189,10 +190,13 @@ class FrameSource:
                 if kept % self.step == 0 and want is not None and not want(kept // self.step):
                     yield Frame(i, t, None)
                 elif kept % self.step == 0:
-                    ok, img = cap.retrieve()
+                    ok, img = cap.retrieve(bgr)
                     if not ok:
                         return
-                    yield Frame(i, t, cv2.cvtColor(img, cv2.COLOR_BGR2GRAY) if img.ndim == 3 else img)
+                    if img.ndim == 3:
+                        bgr = img
+                        img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+                    yield Frame(i, t, img)
                 kept += 1
         finally:
             cap.release()

@@ -154,22 +154,39 @@ class StiAccumulator:
             raise ParameterError("stiv: all search lines must have the same width")
         pts = np.concatenate([ln.pts_px for ln in lines], axis=1) if lines else np.zeros((1, 0, 2), np.float32)
         self.width, self.n = pts.shape[0], pts.shape[1]
-        # remap wants maps narrower than 32767: fold the samples into rows of 4096
+        # remap wants maps narrower than 32767: fold the samples into rows of 4096 (padded with the first point)
         flat = pts.reshape(-1, 2)
         rows = -(-len(flat) // 4096) if len(flat) else 1
-        padded = np.zeros((rows * 4096, 2), np.float32)
+        padded = np.empty((rows * 4096, 2), np.float32)
+        padded[:] = flat[0] if len(flat) else 0.0
         padded[:len(flat)] = flat
-        self.map_x = np.ascontiguousarray(padded[:, 0].reshape(rows, 4096))
-        self.map_y = np.ascontiguousarray(padded[:, 1].reshape(rows, 4096))
+        self._map = (np.ascontiguousarray(padded[:, 0].reshape(rows, 4096)),
+                     np.ascontiguousarray(padded[:, 1].reshape(rows, 4096)))
+        self._crop: tuple | None = None  # (rows slice, cols slice, map_x, map_y) for the frame size seen first
         self.rows: list[np.ndarray] = []
         self.times: list[float] = []
 
+    def _cropped(self, shape: tuple[int, int]) -> tuple:
+        """The frame's box that the bilinear samples read, and the maps shifted into it. Points outside the frame
+        keep the box at the frame's edge, so BORDER_REPLICATE reads as on the whole frame: same samples."""
+        if self._crop is None or self._crop[4] != shape:
+            mx, my = self._map
+            h, w = shape
+            x0 = int(np.clip(np.floor(mx.min()) - 1, 0, w - 1))
+            y0 = int(np.clip(np.floor(my.min()) - 1, 0, h - 1))
+            x1 = int(np.clip(np.floor(mx.max()) + 3, x0 + 1, w))
+            y1 = int(np.clip(np.floor(my.max()) + 3, y0 + 1, h))
+            self._crop = (slice(y0, y1), slice(x0, x1), mx - np.float32(x0), my - np.float32(y0), shape)
+        return self._crop
+
     def add(self, t_s: float, frame: np.ndarray) -> None:
-        """Sample one working frame (gray, any dtype) taken at ``t_s`` seconds."""
+        """Sample one working frame (gray, any dtype) taken at ``t_s`` seconds. Only the lines' box is read (and
+        converted to float32)."""
         if not len(self.lines):
             return
-        img = frame if frame.dtype == np.float32 else frame.astype(np.float32)
-        row = cv2.remap(img, self.map_x, self.map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        rs, cs, map_x, map_y, _ = self._cropped(frame.shape[:2])
+        img = frame[rs, cs].astype(np.float32)
+        row = cv2.remap(img, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         row = row.ravel()[:self.width * self.n].reshape(self.width, self.n)
         self.rows.append(row.mean(axis=0).astype(np.float16))
         self.times.append(float(t_s))

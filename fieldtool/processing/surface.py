@@ -109,8 +109,9 @@ def _window_dtype(box: tuple[int, int, int, int], n_win: int):
 
 
 def _stored(c: np.ndarray, dtype) -> np.ndarray:
-    """``c`` (a fresh float32 crop) as the window keeps it: itself, or rounded to float16."""
-    return c if dtype is np.float32 else c.astype(np.float16)
+    """``c`` (a fresh crop) as the window keeps it: itself (uint8 frames: exact in a quarter of float32's
+    memory; float32), or rounded to float16."""
+    return c if dtype is np.float32 or c.dtype == np.uint8 else c.astype(np.float16)
 
 
 def _recentre(frames: Iterator[tuple[float, np.ndarray]], stats: SurfaceStats, half: int, want=None):
@@ -144,7 +145,7 @@ def _recentre(frames: Iterator[tuple[float, np.ndarray]], stats: SurfaceStats, h
         if stats.static:
             out[y0:y1, x0:x1] = c16
             return t, out
-        mean = st.s1 * np.float32(1.0 / len(buf))
+        mean = np.multiply(st.s1, np.float32(1.0 / len(buf)), out=st.mean)
         np.subtract(c16, mean, out=out[y0:y1, x0:x1], dtype=np.float32)
         return t, out
 
@@ -174,7 +175,7 @@ def _standardize(frames, roi, *, margin: int, half: int, shrink: float, stats: S
     buf: deque = deque()
     times: deque = deque()
     st = _Sums()
-    box = ref = dtype = None
+    box = ref = dtype = mag = None
 
     def push(t, img):
         nonlocal box, dtype
@@ -184,7 +185,8 @@ def _standardize(frames, roi, *, margin: int, half: int, shrink: float, stats: S
             box = stats.box = _box(a.shape, roi, margin)
             dtype = _window_dtype(box, n_win)
         x0, y0, x1, y1 = box
-        c = a[y0:y1, x0:x1].astype(np.float32)
+        c = a[y0:y1, x0:x1]
+        c = c.copy() if c.dtype == np.uint8 else c.astype(np.float32)
         st.add(c)
         buf.append(_stored(c, dtype))
         times.append(float(t))
@@ -204,6 +206,7 @@ def _standardize(frames, roi, *, margin: int, half: int, shrink: float, stats: S
 
     def emit(c16: np.ndarray, t: float, mom) -> tuple[float, np.ndarray]:
         """The standardised box crop of one frame (float32)."""
+        nonlocal mag
         mean, den = mom
         o = np.empty(c16.shape, np.float32)
         stats.frames += 1
@@ -214,7 +217,9 @@ def _standardize(frames, roi, *, margin: int, half: int, shrink: float, stats: S
         o /= den
         if shrink > 0:
             tau = np.float32(shrink * 1.4826 * np.median(np.abs(o[::4, ::4])))
-            mag = np.abs(o)
+            if mag is None:
+                mag = np.empty_like(o)
+            np.abs(o, out=mag)
             mag -= tau
             np.maximum(mag, 0.0, out=mag)
             np.copysign(mag, o, out=o)
@@ -247,14 +252,15 @@ class _Sums:
     """Running per-pixel sums of I and I² over the window (float32, recomputed every ``_RESUM_EVERY`` updates)."""
 
     def __init__(self):
-        self.s1 = self.s2 = self.tmp = None
+        self.s1 = self.s2 = self.tmp = self.mean = self.sd = None
         self.updates = 0
 
     def add(self, c: np.ndarray) -> None:
+        """Add a crop (uint8, float32 or float16)."""
         if self.s1 is None:
-            self.s1, self.s2, self.tmp = (np.zeros_like(c) for _ in range(3))
-        self.s1 += c
-        np.multiply(c, c, out=self.tmp)
+            self.s1, self.s2, self.tmp, self.mean, self.sd = (np.zeros(c.shape, np.float32) for _ in range(5))
+        np.add(self.s1, c, out=self.s1)
+        np.multiply(c, c, out=self.tmp, dtype=np.float32)
         self.s2 += self.tmp
         self.updates += 1
 
@@ -274,8 +280,10 @@ class _Sums:
         self.updates = 0
 
     def moments(self, n: int) -> tuple[np.ndarray, np.ndarray]:
-        mean = self.s1 * np.float32(1.0 / n)
-        var = self.s2 * np.float32(1.0 / n)
+        """(mean, standard deviation) over the window, in two buffers that the next call overwrites."""
+        mean, var = self.mean, self.sd
+        np.multiply(self.s1, np.float32(1.0 / n), out=mean)
+        np.multiply(self.s2, np.float32(1.0 / n), out=var)
         np.multiply(mean, mean, out=self.tmp)
         var -= self.tmp
         np.maximum(var, 0.0, out=var)

@@ -37,14 +37,19 @@ def write_standard(result, project, inputs, out: Path) -> None:
     except (OSError, ValueError) as e:
         result.warnings.append(f"video metadata not read: {e}")
     from ..plots import report_figures as figs
+    from ..project import atomic_write_bytes
 
+    pre = getattr(result, "prerendered", None)  # the figure process' files (plots.prerender), or None
     try:  # the report's figures: velocity profile with its band, GCPs with distances and residuals
-        result.files["section_profile"], result.files["profile_png"] = figs.write_profile(out, result)
-        pre = getattr(result, "prerendered", None)
-        png = pre.png("gcp.png") if pre is not None else None  # drawn during the PIV (plots.prerender)
+        csv, png = (pre.file("section_profile.csv"), pre.file("profile.png")) if pre is not None else (None, None)
+        if csv and png:
+            atomic_write_bytes(out / "section_profile.csv", csv)
+            atomic_write_bytes(out / "profile.png", png)
+            result.files["section_profile"], result.files["profile_png"] = "section_profile.csv", "profile.png"
+        else:
+            result.files["section_profile"], result.files["profile_png"] = figs.write_profile(out, result)
+        png = pre.file("gcp.png") if pre is not None else None
         if png:
-            from ..project import atomic_write_bytes
-
             atomic_write_bytes(out / "gcp.png", png)
             gcp = "gcp.png"
         else:
