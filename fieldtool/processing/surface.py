@@ -24,6 +24,7 @@ from collections import deque
 from dataclasses import dataclass
 from typing import Callable, Iterable, Iterator
 
+import cv2
 import numpy as np
 
 #: frames on each side of the centred window (30 fps: about 1 s in all)
@@ -213,16 +214,18 @@ def _standardize(frames, roi, *, margin: int, half: int, shrink: float, stats: S
         if stats.static:
             o[:] = c16
             return t, o
-        np.subtract(c16, mean, out=o, dtype=np.float32)
-        o /= den
-        if shrink > 0:
-            tau = np.float32(shrink * 1.4826 * np.median(np.abs(o[::4, ::4])))
+        if c16.dtype == np.float16:
+            np.subtract(c16, mean, out=o, dtype=np.float32)
+        else:
+            cv2.subtract(c16, mean, dst=o, dtype=cv2.CV_32F)
+        cv2.divide(o, den, dst=o)
+        if shrink > 0:  # soft threshold: sign(o) max(|o| - tau, 0) = o - clip(o, -tau, tau)
+            tau = float(np.float32(shrink * 1.4826 * np.median(np.abs(o[::4, ::4]))))
             if mag is None:
                 mag = np.empty_like(o)
-            np.abs(o, out=mag)
-            mag -= tau
-            np.maximum(mag, 0.0, out=mag)
-            np.copysign(mag, o, out=o)
+            cv2.max(o, -tau, dst=mag)
+            cv2.min(mag, tau, dst=mag)
+            cv2.subtract(o, mag, dst=o)
         return t, o
 
     for t, img in it:  # fill the first window
@@ -259,9 +262,13 @@ class _Sums:
         """Add a crop (uint8, float32 or float16)."""
         if self.s1 is None:
             self.s1, self.s2, self.tmp, self.mean, self.sd = (np.zeros(c.shape, np.float32) for _ in range(5))
-        np.add(self.s1, c, out=self.s1)
-        np.multiply(c, c, out=self.tmp, dtype=np.float32)
-        self.s2 += self.tmp
+        if c.dtype == np.float16:  # OpenCV has no float16 sums
+            np.add(self.s1, c, out=self.s1)
+            np.multiply(c, c, out=self.tmp, dtype=np.float32)
+            self.s2 += self.tmp
+        else:  # one pass each, where numpy takes three
+            cv2.accumulate(c, self.s1)
+            cv2.accumulateSquare(c, self.s2)
         self.updates += 1
 
     def remove(self, c16: np.ndarray) -> None:
