@@ -13,6 +13,7 @@ $(BIN)/python:
 
 $(BASE): $(BIN)/python pyproject.toml
 	$(BIN)/pip install -q -e .
+	$(BIN)/python -m compileall -q fieldtool  # as pip does for an installed package: start-up without compiling
 	touch $(BASE)
 
 $(DEV): $(BASE)

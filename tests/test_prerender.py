@@ -118,3 +118,19 @@ def test_without_fork_the_parent_draws_everything(scene, own_tmp, monkeypatch):
     res = run_project(load_project(scene / "project.toml"), scene / "out")
     _check_outputs(scene / "out", res)
     assert prerender._waiting is None
+
+
+@needs_fork
+def test_the_run_process_never_imports_matplotlib(scene):
+    """matplotlib (about 0.5 s of import) belongs to the figure process: the run's own process leaves it alone
+    when every figure came from there."""
+    import subprocess
+    import sys
+
+    code = ("import sys; from fieldtool.cli import main; rc = main(['run', sys.argv[1], '--out', sys.argv[2], "
+            "'--quiet']); print('matplotlib' in sys.modules, rc)")
+    r = subprocess.run([sys.executable, "-c", code, str(scene / "project.toml"), str(scene / "out")],
+                       capture_output=True, text=True, timeout=300)
+    assert r.stdout.strip().splitlines()[-1] == "False 0", r.stdout + r.stderr
+    for name in FIGURES:
+        assert (scene / "out" / name).read_bytes().startswith(PNG)

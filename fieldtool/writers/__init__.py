@@ -36,7 +36,6 @@ def write_standard(result, project, inputs, out: Path) -> None:
         result.video = video_info(project, inputs.source)
     except (OSError, ValueError) as e:
         result.warnings.append(f"video metadata not read: {e}")
-    from ..plots import report_figures as figs
     from ..project import atomic_write_bytes
 
     pre = getattr(result, "prerendered", None)  # the figure process' files (plots.prerender), or None
@@ -46,13 +45,17 @@ def write_standard(result, project, inputs, out: Path) -> None:
             atomic_write_bytes(out / "section_profile.csv", csv)
             atomic_write_bytes(out / "profile.png", png)
             result.files["section_profile"], result.files["profile_png"] = "section_profile.csv", "profile.png"
-        else:
+        else:  # drawn here (matplotlib imported only then)
+            from ..plots import report_figures as figs
+
             result.files["section_profile"], result.files["profile_png"] = figs.write_profile(out, result)
         png = pre.file("gcp.png") if pre is not None else None
         if png:
             atomic_write_bytes(out / "gcp.png", png)
             gcp = "gcp.png"
         else:
+            from ..plots import report_figures as figs
+
             gcp = figs.write_gcp(out, project, result, inputs)
         if gcp is not None:
             result.files["gcp_png"] = gcp
