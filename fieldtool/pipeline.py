@@ -891,7 +891,7 @@ def write_outputs(result: RunResult, project: Project, inputs: Inputs, out: Path
         from .writers import write_standard
 
         write_standard(result, project, inputs, stage.path)  # mean_field.nc, rectified.tif (with a CRS), video metadata
-        _write_figures(result, inputs, stage.path)  # last: the forked child draws them meanwhile
+        _write_figures(result, inputs, stage.path)  # last: the figure process draws them meanwhile
         result.timings_s["outputs"] = round(time.perf_counter() - t0, 3)  # all but result.json itself
         _write_result_json(result, stage.path)
         stage.commit()
