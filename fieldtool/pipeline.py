@@ -946,20 +946,18 @@ def _write_figures(result: RunResult, inputs: Inputs, out: Path) -> None:
     and water_level.png (drawn there during the PIV, else here). matplotlib is imported only to draw here."""
     files = result.files
     pre = result.prerendered
-    for key, name, draw in (("vectors_png", "vectors.png", "plot_vectors"),
-                            ("rectified_png", "rectified.png", "plot_rectified"),
-                            ("section_png", "section.png", "plot_section")):
+    for key, name, draw in (
+            ("vectors_png", "vectors.png", lambda p, f: p.plot_vectors(f, inputs.first_color, result, inputs)),
+            ("rectified_png", "rectified.png", lambda p, f: p.plot_rectified(f, inputs.first_color, result, inputs)),
+            ("section_png", "section.png", lambda p, f: p.plot_section(f, inputs.cross_section, result))):
         png = pre.file(name) if pre is not None else None  # drawn by the figure process
         if png:
             atomic_write_bytes(out / name, png)
             files[key] = name
-            continue
-        from .plots import discharge as plots
-
-        if draw == "plot_section":
-            files[key] = plots.plot_section(out / name, inputs.cross_section, result).name
         else:
-            files[key] = getattr(plots, draw)(out / name, inputs.first_color, result, inputs).name
+            from .plots import discharge as plots
+
+            files[key] = draw(plots, out / name).name
     try:
         png = pre.file("water_level.png") if pre is not None else None
         if png:

@@ -101,6 +101,33 @@ def test_a_process_that_hangs_is_killed_after_the_timeout(scene, own_tmp, monkey
 
 
 @needs_fork
+def test_a_timeout_kills_the_process_and_the_child_drawing_for_it(scene, own_tmp, monkeypatch, tmp_path):
+    """The velocity figures are split over the figure process and a child of it: when that child hangs, the
+    timeout ends both (one process group), and the run draws the figures itself."""
+    parent = os.getpid()
+    pid_file = tmp_path / "hung.pid"
+    real = plots.plot_vectors
+
+    def hangs_outside_the_run(*a, **k):
+        if os.getpid() != parent:
+            pid_file.write_text(str(os.getpid()))
+            time.sleep(120)
+        return real(*a, **k)
+
+    monkeypatch.setattr(plots, "plot_vectors", hangs_outside_the_run)
+    monkeypatch.setattr(prerender, "TIMEOUT_S", 8.0)  # the input figures (and matplotlib's import) come first
+    res = run_project(load_project(scene / "project.toml"), scene / "out")
+    _check_outputs(scene / "out", res)
+    hung = int(pid_file.read_text())
+    time.sleep(0.2)
+    try:
+        with open(f"/proc/{hung}/stat") as fh:
+            assert fh.read().split(") ")[1][0] == "Z"  # killed, not yet reaped by init
+    except FileNotFoundError:
+        pass  # killed and reaped
+
+
+@needs_fork
 def test_a_waiting_process_ends_when_its_parent_closes_it(own_tmp):
     prerender.start()
     proc = prerender._waiting

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import os
 import pickle
-import select
+import selectors
 import shutil
 import tempfile
 import time
@@ -86,6 +86,7 @@ class _Process:
         if pid == 0:  # the figure process: serve, then leave without the parent's exit handlers
             code = 1
             try:
+                os.setpgid(0, 0)  # a group of its own: Ctrl-C is the run's to handle; a kill takes its child too
                 os.close(jobs_w)
                 os.close(answers_r)
                 _serve(jobs_r, answers_w, Path(folder))
@@ -95,6 +96,10 @@ class _Process:
             finally:
                 shutil.rmtree(folder, ignore_errors=True)
                 os._exit(code)
+        try:
+            os.setpgid(pid, pid)  # as the child does (whichever runs first)
+        except OSError:
+            pass
         os.close(jobs_r)
         os.close(answers_w)
         return cls(pid, jobs_w, answers_r, folder)
@@ -120,20 +125,26 @@ class _Process:
         deadline = time.monotonic() + TIMEOUT_S
         while self.alive and k not in self.answers:
             left = deadline - time.monotonic()
-            ready = select.select([self.answers_fd], [], [], max(left, 0.0))[0] if left > 0 else []
+            with selectors.DefaultSelector() as sel:
+                sel.register(self.answers_fd, selectors.EVENT_READ)
+                ready = left > 0 and bool(sel.select(left))
             if not ready:
                 self.stop()
                 break
-            chunk = os.read(self.answers_fd, 65536)
-            if not chunk:  # the process ended
-                self.stop()
-                break
-            self._pending += chunk
-            *lines, self._pending = self._pending.split(b"\n")
-            for line in lines:
-                job, *files = line.decode().split()
-                self.answers[int(job)] = dict(f.split("=", 1) for f in files)
+            self._read()
         return self.answers.get(k, {})
+
+    def _read(self) -> None:
+        """Read what the process answered (blocks until something comes; the pipe closed: the process ended)."""
+        chunk = os.read(self.answers_fd, 65536)
+        if not chunk:
+            self.stop()
+            return
+        self._pending += chunk
+        *lines, self._pending = self._pending.split(b"\n")
+        for line in lines:
+            job, *files = line.decode().split()
+            self.answers[int(job)] = dict(f.split("=", 1) for f in files)
 
     def stop(self) -> None:
         """Close the job pipe and reap the process (killed when it does not end within a second)."""
@@ -154,7 +165,10 @@ class _Process:
             if done:
                 break
             if time.monotonic() > deadline:
-                os.kill(self.pid, 9)
+                try:
+                    os.killpg(self.pid, 9)  # its group: the process and a child drawing for it
+                except OSError:
+                    os.kill(self.pid, 9)
                 os.waitpid(self.pid, 0)
                 break
             time.sleep(0.005)
@@ -208,9 +222,9 @@ def _draw(draws) -> dict[str, str]:
 
 
 def _draw_in_two(draws, out: Path) -> dict[str, str]:
-    """Draw the first half of ``draws`` in a forked child and the rest here: at the end of a run the parent
-    runs the Monte Carlo on one core, and these two share the other. A child that fails leaves its figures
-    as "failed" (the parent draws them)."""
+    """Draw the first half of ``draws`` in a forked child and the rest here, so that the figures use whatever
+    the run leaves of two cores (at the end of a run, its Monte Carlo takes one). A child that fails leaves
+    its figures as "failed" (the run draws them)."""
     half = len(draws) // 2
     if half == 0:
         return _draw(draws)
