@@ -230,8 +230,18 @@ def test_reopening_restores_the_step_and_values(project_path):
 
 
 CRASH_SCRIPT = textwrap.dedent("""
-    import asyncio, sys
+    import asyncio, sys, time
+    import fieldtool.pipeline as pipeline
     from fieldtool.tui.app import FieldToolApp
+
+    streamed = pipeline.working_frames
+
+    def slow_frames(*args, **kwargs):  # 50 ms a frame: the run is still going when the process is killed
+        for item in streamed(*args, **kwargs):
+            time.sleep(0.05)
+            yield item
+
+    pipeline.working_frames = slow_frames
 
     async def main():
         app = FieldToolApp(sys.argv[1])
