@@ -542,7 +542,17 @@ def _fast_summary(fast: dict | None, n_pairs: int) -> dict:
 
 def run_project(project: Project, out_dir: Path | str | None = None, *, progress: Progress | None = None,
                 cancel: Callable[[], bool] | None = None, observer: Observer | None = None) -> RunResult:
-    """Run every step of ``project``; write the results to ``out_dir`` when given."""
+    """Run every step of ``project``; write the results to ``out_dir`` when given. The figure process the run
+    draws its figures in (``plots.prerender``) ends with the run, whether it succeeds, fails or is cancelled."""
+    import contextlib
+
+    with contextlib.ExitStack() as ends:
+        return _run_project(project, out_dir, progress, cancel, observer, ends)
+
+
+def _run_project(project: Project, out_dir: Path | str | None, progress: Progress | None,
+                 cancel: Callable[[], bool] | None, observer: Observer | None, ends) -> RunResult:
+    """:func:`run_project`; ``ends`` (a contextlib.ExitStack) takes what must be closed when the run ends."""
     from .processing import piv as piv_mod
 
     warnings: list[str] = []
@@ -637,6 +647,7 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
         from .plots.prerender import Prerender
 
         prerendered = Prerender(project, inputs, level, mapping)
+        ends.callback(prerendered.close)
     stab: dict = {}
     frame_stats: dict = {}
     surface_stats = None
@@ -867,10 +878,7 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
                        uncertainty=unc, quality=qual, sections=section_entries, robust=robust_facts,
                        stiv=stiv_block, piv_fast=fast, prerendered=prerendered)
     if out_dir is not None:
-        try:
-            write_outputs(result, project, inputs, Path(out_dir))
-        finally:
-            prerendered.close()
+        write_outputs(result, project, inputs, Path(out_dir))
     obs("result", result)
     return result
 

@@ -140,6 +140,34 @@ def test_a_waiting_process_ends_when_its_parent_closes_it(own_tmp):
     assert list(own_tmp.iterdir()) == []
 
 
+@needs_fork
+def test_a_run_cancelled_during_the_piv_ends_its_figure_process(scene, own_tmp, monkeypatch):
+    """A cancelled (or failing) run must not leave its figure process waiting: a TUI session runs many."""
+    from fieldtool.errors import Cancelled
+
+    started = []
+    real_init = prerender.Prerender.__init__
+
+    def init(self, *a):
+        real_init(self, *a)
+        started.append(self._proc)
+
+    monkeypatch.setattr(prerender.Prerender, "__init__", init)
+    calls = {"n": 0}
+
+    def cancel():
+        calls["n"] += 1
+        return calls["n"] > 5  # a few frames in
+
+    with pytest.raises(Cancelled):
+        run_project(load_project(scene / "project.toml"), scene / "out", cancel=cancel)
+    assert len(started) == 1 and started[0] is not None
+    assert not started[0].alive
+    with pytest.raises(ChildProcessError):
+        os.waitpid(started[0].pid, os.WNOHANG)  # reaped
+    assert list(own_tmp.iterdir()) == []
+
+
 def test_without_fork_the_parent_draws_everything(scene, own_tmp, monkeypatch):
     monkeypatch.setattr(prerender, "can_fork", lambda: False)
     res = run_project(load_project(scene / "project.toml"), scene / "out")

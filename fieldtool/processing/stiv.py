@@ -162,7 +162,7 @@ class StiAccumulator:
         padded[:len(flat)] = flat
         self._map = (np.ascontiguousarray(padded[:, 0].reshape(rows, 4096)),
                      np.ascontiguousarray(padded[:, 1].reshape(rows, 4096)))
-        self._crop: tuple | None = None  # (rows slice, cols slice, map_x, map_y) for the frame size seen first
+        self._crop: tuple | None = None  # (rows slice, cols slice, map_x, map_y, frame shape) of the last frame size
         self.rows: list[np.ndarray] = []
         self.times: list[float] = []
 

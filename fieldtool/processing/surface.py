@@ -14,8 +14,9 @@ temporal spread brings specular pixels (bright, short-lived, not advected) down 
 no longer dominate their windows. Moving tracers pass through a pixel in a few frames, far fewer than the
 window, so they keep their contrast.
 
-The stream holds ``2 * half + 1`` crops of the box (float16) and running sums: memory is bounded whatever the
-clip length, and frames come out in order, ``half`` frames after they went in.
+The stream holds ``2 * half + 1`` crops of the box (uint8 as decoded, else float32, float16 for a very large
+box) and running sums: memory is bounded whatever the clip length, and frames come out in order, ``half``
+frames after they went in.
 """
 
 from __future__ import annotations
@@ -278,12 +279,11 @@ class _Sums:
         self.updates += 1
 
     def reset(self, buf) -> None:
+        """The sums computed again from the window's crops (running float32 sums drift)."""
         self.s1[:] = 0
         self.s2[:] = 0
-        for c16 in buf:
-            self.s1 += c16
-            np.multiply(c16, c16, out=self.tmp, dtype=np.float32)
-            self.s2 += self.tmp
+        for c in buf:
+            self.add(c)
         self.updates = 0
 
     def moments(self, n: int) -> tuple[np.ndarray, np.ndarray]:
