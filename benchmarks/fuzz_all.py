@@ -5,7 +5,7 @@ and broken inputs to the other subcommands, against a rendered 1.2 s oblique sce
 
 Prints the totals (cases, exit codes, tracebacks, multi-line errors, wrong exit codes, non-JSON
 results, damaged projects, partial output folders, hangs) and every failing case. Key cases run in
-this process (fieldtool.cli.main), file and command cases as subprocesses (a hang is a timeout).
+this process (fieldtool.cli.main.main), file and command cases as subprocesses (a hang is a timeout).
 Exit status 0 when every case passes.
 """
 
@@ -32,8 +32,8 @@ def main() -> int:
     ap.add_argument("--only", default="", help="run only cases whose id contains this")
     ap.add_argument("--json", default=None, help="also write the totals and failures here")
     args = ap.parse_args()
-    from fieldtool.cli import main as cli_main
-    from fieldtool.project import load_project
+    from fieldtool.cli.main import main as cli_main
+    from fieldtool.project.model import load_project
     from fieldtool.synthetic import presets, render_scene
 
     work = Path(args.work or tempfile.mkdtemp(prefix="fieldtool_fuzz_"))

@@ -18,8 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
-from fieldtool.pipeline import run_project
-from fieldtool.project import load_project
+from fieldtool.run.pipeline import run_project
+from fieldtool.project.model import load_project
 from fieldtool.synthetic import presets, render_scene
 
 #: one robust stage off at a time: label -> changes to the project's [piv] table

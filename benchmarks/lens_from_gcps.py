@@ -13,9 +13,9 @@ from pathlib import Path
 
 import numpy as np
 
-from fieldtool.pipeline import run_project
+from fieldtool.run.pipeline import run_project
 from fieldtool.processing.calibration import LensModel, save_calibration
-from fieldtool.project import load_project
+from fieldtool.project.model import load_project
 from fieldtool.synthetic import presets, render_scene
 
 

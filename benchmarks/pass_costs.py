@@ -33,10 +33,10 @@ from pathlib import Path
 
 import numpy as np
 
-from fieldtool import pipeline
-from fieldtool.pipeline import run_project
+from fieldtool.run import pipeline
+from fieldtool.run.pipeline import run_project
 from fieldtool.processing import piv
-from fieldtool.project import load_project
+from fieldtool.project.model import load_project
 from fieldtool.synthetic import presets, render_scene
 
 

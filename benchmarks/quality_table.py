@@ -29,9 +29,9 @@ import time
 from pathlib import Path
 
 from fieldtool.errors import FieldToolError
-from fieldtool import pipeline
-from fieldtool.pipeline import run_project
-from fieldtool.project import load_project
+from fieldtool.run import pipeline
+from fieldtool.run.pipeline import run_project
+from fieldtool.project.model import load_project
 from fieldtool.synthetic import presets, render_scene
 
 BASE = ["oblique", "nadir", "far_bank", "oblique+shake", "oblique+glints", "far_bank+glints"]

@@ -26,8 +26,8 @@ def main() -> int:
     ap.add_argument("--end-s", type=float, default=None, help="shorten the clip to this end time (s)")
     args = ap.parse_args()
 
-    from fieldtool.pipeline import run_project
-    from fieldtool.project import load_project
+    from fieldtool.run.pipeline import run_project
+    from fieldtool.project.model import load_project
     from fieldtool.viewer.rerun_log import RerunObserver
 
     class TimedObserver(RerunObserver):

@@ -16,8 +16,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from fieldtool.pipeline import run_project
-from fieldtool.project import load_project
+from fieldtool.run.pipeline import run_project
+from fieldtool.project.model import load_project
 from fieldtool.synthetic import presets, render_scene
 
 SCENES = [("oblique (demo)", "oblique", {}), ("nadir", "nadir", {}),

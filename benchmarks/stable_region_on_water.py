@@ -2,7 +2,7 @@
 
 Renders the shaky oblique scene (exact truth), runs it with the generator's stable regions (on the
 banks), then with one region replaced by a rectangle of the same size on the water: across the
-section of interest (refused by `fieldtool.validation`: measured here with the check bypassed) and on
+section of interest (refused by `fieldtool.project.validation`: measured here with the check bypassed) and on
 the water upstream of the section (not across it).
 
     nice -n 10 .venv/bin/python benchmarks/stable_region_on_water.py [--duration 2]
@@ -23,10 +23,10 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--duration", type=float, default=2.0)
     args = ap.parse_args()
-    import fieldtool.validation as V
-    from fieldtool import pipeline
+    import fieldtool.project.validation as V
+    from fieldtool.run import pipeline
     from fieldtool.errors import FieldToolError
-    from fieldtool.project import load_project
+    from fieldtool.project.model import load_project
     from fieldtool.synthetic import presets, render_scene
 
     tmp = Path(tempfile.mkdtemp(prefix="stab_water_"))

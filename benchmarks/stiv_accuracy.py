@@ -22,8 +22,8 @@ import tempfile
 import time
 from pathlib import Path
 
-from fieldtool.pipeline import run_project
-from fieldtool.project import load_project
+from fieldtool.run.pipeline import run_project
+from fieldtool.project.model import load_project
 from fieldtool.synthetic import presets, render_scene
 
 

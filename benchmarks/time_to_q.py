@@ -12,7 +12,7 @@ cleared), as the issue measured.
 
 Contestants, each a separate process started from here (interpreter start and imports included, as a user
 waits for them), in turn within every repeat (alternating runs), medians over the repeats:
-* ``fieldtool``: ``python -m fieldtool.cli run project.toml --out NEW`` with the defaults
+* ``fieldtool``: ``python -m fieldtool.cli.main run project.toml --out NEW`` with the defaults
   (``[piv] region = "section"``, pairs added until the discharge converged); all outputs (plots) written.
 * ``pyorc``: ``benchmarks/peers/pyorc_run.py`` in its own virtual environment ``benchmarks/.peers-venv``
   (created here with the pinned versions in PEERS; never the project's venv), pyorc's API recipe with the same
@@ -139,7 +139,7 @@ def timed(cmd: list[str], env: dict | None = None) -> tuple[float, int, str, flo
 def run_fieldtool(toml: Path, scratch: Path) -> dict:
     out = Path(tempfile.mkdtemp(dir=scratch))
     env = dict(os.environ, PYTHONPATH=str(REPO))
-    wall, mem, _, cpu = timed([sys.executable, "-m", "fieldtool.cli", "run", str(toml), "--out", str(out)], env)
+    wall, mem, _, cpu = timed([sys.executable, "-m", "fieldtool.cli.main", "run", str(toml), "--out", str(out)], env)
     res = json.loads((out / "result.json").read_text())
     shutil.rmtree(out, ignore_errors=True)
     return {"s": wall, "cpu": cpu, "mib": mem, "q": res["discharge_m3s"], "pairs": res.get("pairs_used"),
@@ -241,8 +241,8 @@ def profile(c: dict, top: int) -> None:
     import io
     import pstats
 
-    from fieldtool.pipeline import run_project
-    from fieldtool.project import load_project
+    from fieldtool.run.pipeline import run_project
+    from fieldtool.project.model import load_project
 
     for label, toml in (("before: region = full, all_pairs = true", "full_all.toml"), ("after: defaults", "noroi.toml")):
         proj = load_project(c["dir"] / toml)

@@ -23,9 +23,9 @@ import tempfile
 import time
 from pathlib import Path
 
-from fieldtool.project import load_project
+from fieldtool.project.model import load_project
 from fieldtool.synthetic import presets, render_scene
-from fieldtool.template import write_template
+from fieldtool.project.template import write_template
 from fieldtool.tui.app import FieldToolApp
 from fieldtool.tui.fields import fmt_num, fmt_point
 from fieldtool.tui.widgets.field_row import FieldRow

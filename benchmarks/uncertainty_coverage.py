@@ -31,10 +31,10 @@ from pathlib import Path
 
 import numpy as np
 
-from fieldtool import pipeline
-from fieldtool.pipeline import run_project
+from fieldtool.run import pipeline
+from fieldtool.run.pipeline import run_project
 from fieldtool.processing.cross_section import load_cross_section, to_csv_text
-from fieldtool.project import load_project, save_project
+from fieldtool.project.model import load_project, save_project
 from fieldtool.synthetic import presets, render_scene
 
 

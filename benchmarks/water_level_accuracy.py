@@ -23,7 +23,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from test_water_level import EDGES, LEVEL, SECTION, dem_scene, nadir_scene, oblique_scene  # noqa: E402
 
 from fieldtool.processing.water_level import compute_level, level_from_width  # noqa: E402
-from fieldtool.project import WaterLevelCfg  # noqa: E402
+from fieldtool.project.model import WaterLevelCfg  # noqa: E402
 
 
 def run_case(method: str, seed: int, tmp: Path, yaw: float = 15.0) -> tuple[float, float, float, float, dict]:

@@ -16,8 +16,8 @@ import tempfile
 from pathlib import Path
 
 from fieldtool.errors import FieldToolError
-from fieldtool.pipeline import level_and_mapping, load_inputs
-from fieldtool.project import load_project
+from fieldtool.run.pipeline import level_and_mapping, load_inputs
+from fieldtool.project.model import load_project
 from fieldtool.synthetic import presets, render_scene
 
 SCENES = [("oblique", {}), ("nadir", {}), ("far_bank", {}), ("oblique", {"glints": True}), ("nadir", {"glints": True})]

@@ -150,7 +150,7 @@ def _bad_values(tp: Any, key: str, full: bool) -> list[tuple[str, Any, bool]]:
 
 def key_cases(full: bool = True) -> list[Case]:
     """Every key of the project x its bad values."""
-    from fieldtool.project import Project
+    from fieldtool.project.model import Project
 
     cases = []
     hints = typing.get_type_hints(Project)
@@ -377,8 +377,8 @@ def judge(case: Case, rc: int, stderr: str, proj: Path, proj_bytes: bytes | None
 
 
 def run_in_process(argv: list[str]) -> tuple[int, str]:
-    """``fieldtool.cli.main(argv)`` with stdout/stderr captured: (exit code, stderr)."""
-    from fieldtool import cli
+    """``fieldtool.cli.main.main(argv)`` with stdout/stderr captured: (exit code, stderr)."""
+    from fieldtool.cli import main as cli
 
     err, out = io.StringIO(), io.StringIO()
     with contextlib.redirect_stderr(err), contextlib.redirect_stdout(out):
@@ -397,7 +397,7 @@ def run_in_process(argv: list[str]) -> tuple[int, str]:
 def run_subprocess(argv: list[str], cwd: Path, timeout: float = 240.0) -> tuple[int, str, bool]:
     env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]), FIELDTOOL_DB=str(cwd / "h.db"))
     try:
-        p = subprocess.run([sys.executable, "-m", "fieldtool.cli", *argv], cwd=cwd, capture_output=True, text=True,
+        p = subprocess.run([sys.executable, "-m", "fieldtool.cli.main", *argv], cwd=cwd, capture_output=True, text=True,
                            timeout=timeout, env=env)
         return p.returncode, p.stderr, False
     except subprocess.TimeoutExpired as e:

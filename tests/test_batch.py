@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from fieldtool.cli import main
+from fieldtool.cli.main import main
 from fieldtool.records.batch import BatchItem, plan_projects, read_levels, run_batch, run_item
 from fieldtool.records.history import History
 
@@ -37,8 +37,8 @@ def test_read_levels(tmp_path):
 @pytest.fixture(scope="module")
 def three_scenes(tmp_path_factory):
     """Three short demo scenes (one per preset) and their discharges from separate run_project calls."""
-    from fieldtool.pipeline import run_project
-    from fieldtool.project import load_project
+    from fieldtool.run.pipeline import run_project
+    from fieldtool.project.model import load_project
     from fieldtool.synthetic import presets, render_scene
 
     root = tmp_path_factory.mktemp("three")

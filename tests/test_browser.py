@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from chromium_setup import LAUNCH_ARGS, ensure_chromium
-from fieldtool.project import load_project
+from fieldtool.project.model import load_project
 from fieldtool.viewer.server import start_viewer
 
 pytestmark = pytest.mark.browser

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from chromium_setup import LAUNCH_ARGS
-from fieldtool.project import load_project
+from fieldtool.project.model import load_project
 from fieldtool.viewer.mapping import pixel_to_scene
 from fieldtool.viewer.server import start_viewer
 from test_browser import MARKERS, _locate_markers, _marker_project, chromium  # noqa: F401 - fixture

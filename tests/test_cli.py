@@ -8,7 +8,7 @@ import tomllib
 import pytest
 import tomli_w
 
-from fieldtool.cli import main
+from fieldtool.cli.main import main
 
 
 def _copy_project(scene, tmp_path, edit=None):
@@ -78,7 +78,7 @@ def test_bad_input_exit_2(short_scene, tmp_path, capsys, name, edit, message):
 
 
 def test_missing_project_via_subprocess(tmp_path):
-    res = subprocess.run([sys.executable, "-m", "fieldtool.cli", "run", str(tmp_path / "none.toml")],
+    res = subprocess.run([sys.executable, "-m", "fieldtool.cli.main", "run", str(tmp_path / "none.toml")],
                          capture_output=True, text=True)
     assert res.returncode == 2 and "project file not found" in res.stderr and "Traceback" not in res.stderr
 
@@ -90,8 +90,8 @@ def test_init_refuses_to_overwrite(tmp_path, capsys):
 
 
 def test_section_picked_right_to_left_is_swapped(short_scene):
-    from fieldtool.pipeline import run_project
-    from fieldtool.project import load_project
+    from fieldtool.run.pipeline import run_project
+    from fieldtool.project.model import load_project
 
     proj = load_project(short_scene.project_path)
     ref = run_project(proj, None)

@@ -5,7 +5,7 @@ import errno
 
 import pytest
 
-from fieldtool import cli
+from fieldtool.cli import main as cli
 
 
 def _boom_with(exc):
@@ -45,7 +45,7 @@ def test_os_errors_exit_2_naming_the_path(patched_init, capsys, code, word):
 
 
 def test_progress_line_ends_before_an_error(capsys, monkeypatch):
-    from fieldtool.console import progress_line
+    from fieldtool.cli.console import progress_line
     from fieldtool.errors import InputFileError
 
     def cmd(args):
@@ -67,7 +67,7 @@ def test_project_file_in_other_encodings(short_scene, tmp_path, encoding, capsys
     text = short_scene.project_path.read_text(encoding="utf-8").replace(
         'name = "synthetic oblique"', 'name = "Mesure à l\'écluse"')
     (tmp_path / "project.toml").write_bytes(text.encode(encoding))
-    from fieldtool.project import load_project
+    from fieldtool.project.model import load_project
 
     assert load_project(tmp_path / "project.toml").name == "Mesure à l'écluse"
     assert cli.main(["preview", str(tmp_path / "project.toml"), "--out", str(tmp_path / "p.png")]) == 0

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from fieldtool.errors import ParameterError
-from fieldtool.project import Project
+from fieldtool.project.model import Project
 from fieldtool.records.report import load_result
-from fieldtool.validation import out_path_problem, validate
+from fieldtool.project.validation import out_path_problem, validate
 from fieldtool.viewer.rerun_log import observer_from_args
 
 

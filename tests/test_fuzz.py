@@ -13,7 +13,7 @@ import fuzz_cases as F
 
 @pytest.fixture(scope="module")
 def runner(short_scene, tmp_path_factory):
-    from fieldtool.cli import main
+    from fieldtool.cli.main import main
 
     work = tmp_path_factory.mktemp("fuzz")
     scene = work / "scene"
@@ -45,7 +45,7 @@ def test_fuzz_case(runner, case, short_scene):
 
 
 def test_geometry_cases(runner, short_scene):
-    from fieldtool.project import load_project
+    from fieldtool.project.model import load_project
 
     gcp = load_project(short_scene.project_path).ortho.gcp_px
     bad = [(c.id, o.rc, o.stderr[-300:]) for c in F.geometry_cases(gcp) for o in [runner.run(c)] if not o.ok]

@@ -14,7 +14,7 @@ import pytest
 from fieldtool.processing import piv
 from fieldtool.processing.cross_section import load_cross_section
 from fieldtool.processing.frames import FrameSource
-from fieldtool.project import load_project
+from fieldtool.project.model import load_project
 from fieldtool.synthetic import presets, render_scene
 
 SHORT = {"duration_s": 0.2}

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fieldtool.cli import main
+from fieldtool.cli.main import main
 from fieldtool.errors import InputFileError, ParameterError
 from fieldtool.records.history import (
     SCHEMA_VERSION,
@@ -353,7 +353,7 @@ def test_rating_fixed_h0_and_bad_input():
 
 
 def test_record_run_of_a_project(tmp_path):
-    from fieldtool.project import project_from_dict
+    from fieldtool.project.model import project_from_dict
     from fieldtool.records.history import record_run
 
     (tmp_path / "v.mp4").write_bytes(_mp4(datetime(2022, 1, 2, 3, 4, 5, tzinfo=timezone.utc)))

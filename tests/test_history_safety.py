@@ -39,7 +39,7 @@ def _sqlite_file(path: Path, *statements: str) -> None:
     (("CREATE TABLE measurements (id INTEGER)", f"PRAGMA user_version = {SCHEMA_VERSION + 1}"), "newer fieldtool"),
 ])
 def test_foreign_or_newer_file_is_refused_byte_identical(tmp_path, statements, match):
-    from fieldtool.cli import main
+    from fieldtool.cli.main import main
 
     db = tmp_path / "h.sqlite"
     _sqlite_file(db, *statements)
@@ -62,7 +62,7 @@ def _as_reader(cmd: list[str]) -> subprocess.CompletedProcess:
         if setpriv is None:
             pytest.skip("running as root without setpriv: file modes cannot be made to bind")
         prefix = [setpriv, "--bounding-set", "-dac_override,-dac_read_search,-fowner", "--"]
-    return subprocess.run([*prefix, sys.executable, "-m", "fieldtool.cli", *cmd], capture_output=True, text=True,
+    return subprocess.run([*prefix, sys.executable, "-m", "fieldtool.cli.main", *cmd], capture_output=True, text=True,
                           env=env, timeout=120)
 
 

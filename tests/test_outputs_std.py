@@ -11,10 +11,10 @@ import rasterio
 import tomli_w
 import xarray as xr
 
-from fieldtool.cli import main
+from fieldtool.cli.main import main
 from fieldtool.errors import ParameterError
-from fieldtool.pipeline import build_mapping, load_inputs, run_project
-from fieldtool.project import load_project, project_to_dict
+from fieldtool.run.pipeline import build_mapping, load_inputs, run_project
+from fieldtool.project.model import load_project, project_to_dict
 
 OFFSET = np.array([190000.0, 330000.0])  # GCPs surveyed in Amersfoort / RD New (EPSG:28992)
 

@@ -2,10 +2,18 @@
 
 import pytest
 
-from fieldtool.project import Project, load_project, save_project
+from fieldtool.project.model import Project, load_project, save_project
 from fieldtool.viewer.mapping import PlotAxes
-from fieldtool.viewer.picks import (MODES, PointsPick, PolygonListPick, RectListPick, RectPick, StationPick,
-                                    get_field, set_field)
+from fieldtool.viewer.picks import (
+    MODES,
+    PointsPick,
+    PolygonListPick,
+    RectListPick,
+    RectPick,
+    StationPick,
+    get_field,
+    set_field,
+)
 
 
 def test_gcps_are_numbered_in_click_order_and_stop_at_four():

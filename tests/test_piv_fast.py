@@ -119,8 +119,8 @@ def test_prefetch_passes_items_errors_and_stops_on_close():
 
 
 def test_pipeline_band_and_convergence_keys_and_cache(scene):
-    from fieldtool.pipeline import run_project
-    from fieldtool.project import load_project
+    from fieldtool.run.pipeline import run_project
+    from fieldtool.project.model import load_project
 
     proj = load_project(scene / "project.toml")
     proj.roi.rect_px = []

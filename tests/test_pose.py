@@ -122,8 +122,8 @@ def test_geul_pose():
 def test_lens_fitted_from_eight_gcps(tmp_path):
     """No checkerboard: focal length and distortion fitted from 8 GCPs (X, Y, Z) on a strong barrel lens
     whose uncorrected discharge is ~+4.7 % off (benchmarks/lens_from_gcps.py); fx within 2 %, Q within 3 %."""
-    from fieldtool.pipeline import run_project
-    from fieldtool.project import load_project
+    from fieldtool.run.pipeline import run_project
+    from fieldtool.project.model import load_project
     from fieldtool.synthetic import presets, render_scene
 
     truth = render_scene(presets.get("oblique", lens_gcps=True, duration_s=2.0, checkerboard_frames=2), tmp_path / "s")

@@ -6,10 +6,10 @@ import time
 
 import pytest
 
-from fieldtool.pipeline import run_project
+from fieldtool.run.pipeline import run_project
 from fieldtool.plots import discharge as plots
 from fieldtool.plots import prerender, report_figures
-from fieldtool.project import load_project
+from fieldtool.project.model import load_project
 
 PNG = b"\x89PNG\r\n\x1a\n"
 FIGURES = ("vectors.png", "rectified.png", "section.png", "profile.png", "gcp.png", "water_level.png")
@@ -182,7 +182,7 @@ def test_the_run_process_never_imports_matplotlib(scene):
     import subprocess
     import sys
 
-    code = ("import sys; from fieldtool.cli import main; rc = main(['run', sys.argv[1], '--out', sys.argv[2], "
+    code = ("import sys; from fieldtool.cli.main import main; rc = main(['run', sys.argv[1], '--out', sys.argv[2], "
             "'--quiet']); print('matplotlib' in sys.modules, rc)")
     r = subprocess.run([sys.executable, "-c", code, str(scene / "project.toml"), str(scene / "out")],
                        capture_output=True, text=True, timeout=300)

@@ -5,8 +5,8 @@ import os
 import pytest
 
 from fieldtool.errors import InputFileError, ParameterError
-from fieldtool.project import Project, load_project, project_from_dict, project_to_dict, save_project
-from fieldtool.template import key_table_markdown, template_text
+from fieldtool.project.model import Project, load_project, project_from_dict, project_to_dict, save_project
+from fieldtool.project.template import key_table_markdown, template_text
 
 
 def test_round_trip(tmp_path):
@@ -71,8 +71,8 @@ def test_template_loads_and_documents_every_key(tmp_path):
 def test_readme_documents_every_key():
     from pathlib import Path
 
-    from fieldtool.template import README_BEGIN, README_END
+    from fieldtool.project.template import README_BEGIN, README_END
 
     text = (Path(__file__).resolve().parents[1] / "README.md").read_text()
     table = text.split(README_BEGIN, 1)[1].split(README_END, 1)[0].strip()
-    assert table == key_table_markdown(), "run `python -m fieldtool.template --readme`"
+    assert table == key_table_markdown(), "run `python -m fieldtool.project.template --readme`"

@@ -3,8 +3,8 @@
 import multiprocessing as mp
 from pathlib import Path
 
-from fieldtool.project import apply_changes, load_project, save_project
-from fieldtool.template import write_template
+from fieldtool.project.model import apply_changes, load_project, save_project
+from fieldtool.project.template import write_template
 
 
 def test_template_comments_survive_edits(tmp_path):
@@ -62,7 +62,7 @@ def test_atomic_write_keeps_links_and_devices(tmp_path):
     """A rename would replace a link (e.g. /dev/stdout) or a device by a plain file."""
     import os
 
-    from fieldtool.project import atomic_write_bytes
+    from fieldtool.project.model import atomic_write_bytes
 
     target = tmp_path / "real.txt"
     target.write_text("old")

@@ -7,14 +7,14 @@ import cv2
 import numpy as np
 import pytest
 
-from fieldtool.cli import main as cli_main
+from fieldtool.cli.main import main as cli_main
 from fieldtool.errors import GeometryError
 from fieldtool.processing import discharge as dq
 from fieldtool.processing import ortho
 from fieldtool.processing import quality as ql
 from fieldtool.processing import uncertainty as un
 from fieldtool.processing.cross_section import CrossSection
-from fieldtool.project import load_project, save_project
+from fieldtool.project.model import load_project, save_project
 
 
 def _variant(scene, name: str, change) -> Path:
@@ -186,8 +186,8 @@ def test_a_new_check_is_one_function():
 
 
 def test_quality_keys_match_the_thresholds():
-    from fieldtool.assess import thresholds
-    from fieldtool.project import Project
+    from fieldtool.run.assess import thresholds
+    from fieldtool.project.model import Project
 
     assert thresholds(Project()) == ql.Thresholds()
 

@@ -7,9 +7,9 @@ import pytest
 
 from conftest import SHARED_DATA
 from fieldtool.errors import GeometryError
-from fieldtool.pipeline import run_project
+from fieldtool.run.pipeline import run_project
 from fieldtool.processing.frames import FrameSource
-from fieldtool.project import project_from_dict
+from fieldtool.project.model import project_from_dict
 
 REAL = SHARED_DATA / "real"
 pytestmark = pytest.mark.skipif(not (REAL / "geul_dk_control.mp4").is_file(),

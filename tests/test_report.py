@@ -11,7 +11,7 @@ import cv2
 import numpy as np
 import pytest
 
-from fieldtool.cli import main
+from fieldtool.cli.main import main
 from fieldtool.errors import InputFileError
 from fieldtool.records.history import History
 from fieldtool.records.report import load_result, render_html, write_report
@@ -93,8 +93,8 @@ def test_missing_result(tmp_path, capsys):
 
 @pytest.mark.slow
 def test_report_of_a_real_run(short_scene, tmp_path):
-    from fieldtool.pipeline import run_project
-    from fieldtool.project import load_project
+    from fieldtool.run.pipeline import run_project
+    from fieldtool.project.model import load_project
 
     r = run_project(load_project(short_scene.project_path), tmp_path / "out")
     (html_path,) = write_report(tmp_path / "out")

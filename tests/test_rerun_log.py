@@ -9,8 +9,8 @@ import pytest
 from rerun.chunk import RrdReader
 
 from fieldtool.errors import ParameterError
-from fieldtool.pipeline import run_project
-from fieldtool.project import load_project
+from fieldtool.run.pipeline import run_project
+from fieldtool.project.model import load_project
 from fieldtool.viewer.rerun_log import RerunObserver, _map_arrow_s, observer_from_args
 
 EXPECTED = {"/frames/input", "/frames/filtered", "/frames/input/pair_vectors", "/frames/input/mean_field",
@@ -105,7 +105,7 @@ def test_observer_from_args_modes(tmp_path):
 
 
 def load_project_stub():
-    from fieldtool.project import Project
+    from fieldtool.project.model import Project
 
     return Project()
 
@@ -138,8 +138,8 @@ def test_rerun_path_is_confined_to_the_output_folder(short_scene, tmp_path, caps
     """A project's rerun.path never writes outside the output folder: exit 2 naming the key, nothing written."""
     import tomli_w
 
-    from fieldtool.cli import main
-    from fieldtool.project import project_to_dict, save_project
+    from fieldtool.cli.main import main
+    from fieldtool.project.model import project_to_dict, save_project
 
     project = load_project(short_scene.project_path)
     project.rerun.mode, project.rerun.path = "save", bad

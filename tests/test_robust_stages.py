@@ -163,8 +163,8 @@ def test_reject_upstream():
 
 
 def test_run_reports_robust_facts(short_scene, tmp_path):
-    from fieldtool.pipeline import run_project
-    from fieldtool.project import load_project
+    from fieldtool.run.pipeline import run_project
+    from fieldtool.project.model import load_project
 
     proj = load_project(short_scene.project_path)
     res = run_project(proj, tmp_path / "out")

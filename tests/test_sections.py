@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from fieldtool.errors import ParameterError
-from fieldtool.pipeline import run_project
-from fieldtool.project import load_project
+from fieldtool.run.pipeline import run_project
+from fieldtool.project.model import load_project
 
 
 def _section_px(truth, x_m: float) -> list[list[float]]:
@@ -42,7 +42,7 @@ def test_three_sections_each_near_the_truth(short_scene, tmp_path):
 
 
 def test_bad_extra_section_is_named(short_scene):
-    from fieldtool.validation import validate
+    from fieldtool.project.validation import validate
 
     p = load_project(short_scene.project_path)
     p.sections = [{"name": "x", "points_px": [[1.0, 2.0]]}]

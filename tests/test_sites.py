@@ -8,9 +8,9 @@ from pathlib import Path
 
 import pytest
 
-from fieldtool.cli import main
+from fieldtool.cli.main import main
 from fieldtool.errors import InputFileError, ParameterError
-from fieldtool.project import load_project, project_from_dict, project_to_dict, save_project
+from fieldtool.project.model import load_project, project_from_dict, project_to_dict, save_project
 from fieldtool.records.sites import create_site, list_sites, load_site, new_measurement, sites_dir
 
 XS = "station_m,elevation_m\n0,11\n2,10\n4,9.2\n8,9.0\n12,9.4\n14,10.1\n16,11\n"
@@ -157,7 +157,7 @@ def test_site_cli(tmp_path, capsys):
 def test_second_visit_from_site(short_scene, tmp_path):
     """Site from visit 1; visit 2 (another flow, another seed) from the site with only its video and
     level gives visit 2's true discharge; visit 1's own video through the site reproduces visit 1."""
-    from fieldtool.pipeline import run_project
+    from fieldtool.run.pipeline import run_project
     from fieldtool.synthetic import presets, render_scene
 
     first = load_project(short_scene.project_path)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from fieldtool.cli import main
+from fieldtool.cli.main import main
 from fieldtool.errors import ParameterError
 from fieldtool.records.sites import BrokenSite, check_name, list_sites
 from test_sites import make_project

@@ -11,7 +11,7 @@ from scipy.special import beta
 
 from fieldtool.errors import Cancelled
 from fieldtool.processing.cross_section import load_cross_section
-from fieldtool.project import load_project
+from fieldtool.project.model import load_project
 from fieldtool.synthetic import River, gcp_distances, gcp_world, presets, render_scene
 from fieldtool.synthetic.checkerboard import render_checkerboard
 

@@ -18,8 +18,8 @@ from pathlib import Path
 
 import pytest
 
-from fieldtool.pipeline import run_project
-from fieldtool.project import load_project, save_project
+from fieldtool.run.pipeline import run_project
+from fieldtool.project.model import load_project, save_project
 from fieldtool.tui.app import FieldToolApp
 from fieldtool.tui.screens.piv import PivScreen
 from fieldtool.tui.screens.results import ResultsScreen
@@ -163,7 +163,7 @@ def test_invalid_entries_show_messages_and_block_next(project_path):
 
 
 def test_cancel_during_piv_keeps_the_ui_and_writes_no_result(project_path, monkeypatch):
-    import fieldtool.pipeline as pipeline
+    import fieldtool.run.pipeline as pipeline
 
     streamed = pipeline.working_frames
 
@@ -231,7 +231,7 @@ def test_reopening_restores_the_step_and_values(project_path):
 
 CRASH_SCRIPT = textwrap.dedent("""
     import asyncio, sys, time
-    import fieldtool.pipeline as pipeline
+    import fieldtool.run.pipeline as pipeline
     from fieldtool.tui.app import FieldToolApp
 
     streamed = pipeline.working_frames
@@ -288,7 +288,7 @@ def test_kill_mid_piv_leaves_a_valid_project_file(project_path, tmp_path):
 
 def _slow_frames(monkeypatch, delay=0.05):
     """50 ms a frame: a run outlasts a few key presses and screen reads, whatever the CPU."""
-    import fieldtool.pipeline as pipeline
+    import fieldtool.run.pipeline as pipeline
 
     streamed = pipeline.working_frames
 

@@ -5,7 +5,7 @@ import dataclasses
 
 import pytest
 
-from fieldtool.project import Project, project_from_dict, project_to_dict
+from fieldtool.project.model import Project, project_from_dict, project_to_dict
 from fieldtool.tui.fields import Field, fmt_num
 from fieldtool.tui.session import Session
 from fieldtool.tui.steps import STEPS, fields_for

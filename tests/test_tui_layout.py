@@ -279,7 +279,7 @@ def test_filter_preview_is_large_and_written_for_the_viewer(tmp_path):
     run(go())
     png = tmp_path / "m" / "out" / "filter_preview.png"
     assert png.is_file()
-    from fieldtool.project import load_project
+    from fieldtool.project.model import load_project
     from fieldtool.viewer.images import load_display
 
     disp = load_display(load_project(tmp_path / "m" / "project.toml"), "filtered")
@@ -314,7 +314,7 @@ def test_viewer_ssh_line_is_shown(tmp_path, monkeypatch):
 def test_typing_in_the_tui_keeps_the_template_comments(tmp_path):
     """Defect: the `init` template's comments were all gone after the first save (the saving is
     helper valid's round-trip; this checks it from the TUI's keys)."""
-    from fieldtool.template import write_template
+    from fieldtool.project.template import write_template
 
     path = write_template(tmp_path / "m")
     before = path.read_text(encoding="utf-8")

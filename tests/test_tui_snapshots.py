@@ -11,8 +11,17 @@ import cv2
 import numpy as np
 import pytest
 
-from fieldtool.project import (CrossSectionCfg, OrthoCfg, Project, RoiCfg, SectionCfg, VideoCfg, WaterLevelCfg,
-                               project_to_dict, save_project)
+from fieldtool.project.model import (
+    CrossSectionCfg,
+    OrthoCfg,
+    Project,
+    RoiCfg,
+    SectionCfg,
+    VideoCfg,
+    WaterLevelCfg,
+    project_to_dict,
+    save_project,
+)
 from fieldtool.tui.app import FieldToolApp
 from fieldtool.tui.steps import STEP_IDS
 

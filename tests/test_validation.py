@@ -6,9 +6,9 @@ import os
 
 import pytest
 
-from fieldtool import validation as V
+from fieldtool.project import validation as V
 from fieldtool.errors import ParameterError
-from fieldtool.project import load_project
+from fieldtool.project.model import load_project
 
 
 @pytest.fixture()

@@ -7,7 +7,7 @@ import cv2
 import numpy as np
 import pytest
 
-from fieldtool.project import load_project
+from fieldtool.project.model import load_project
 from fieldtool.viewer.picks import MODES, PointsPick, checklist, next_mode
 from fieldtool.viewer.server import start_viewer
 from fieldtool.viewer.snap import snap_to_target

@@ -4,8 +4,15 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from fieldtool.viewer.mapping import (ImagePlane, PlotAxes, camera_pose, fit_plane, inside, pixel_to_scene,
-                                      ray_to_pixel)
+from fieldtool.viewer.mapping import (
+    ImagePlane,
+    PlotAxes,
+    camera_pose,
+    fit_plane,
+    inside,
+    pixel_to_scene,
+    ray_to_pixel,
+)
 
 
 def _plane(rot=None, pos=(0.0, 0.0, 0.0)):

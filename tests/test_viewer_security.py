@@ -12,7 +12,7 @@ from websockets.exceptions import InvalidStatus
 from websockets.sync.client import connect
 
 from fieldtool.errors import ParameterError
-from fieldtool.project import load_project
+from fieldtool.project.model import load_project
 from fieldtool.viewer import ssh_hint
 from fieldtool.viewer.guard import AccessGuard
 from fieldtool.viewer.server import start_viewer
@@ -190,7 +190,7 @@ def test_fieldtool_view_prints_the_tunnel_line_and_the_keyed_url(tmp_path):
 
     path = _tiny_project(tmp_path)
     env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]))
-    proc = subprocess.Popen([sys.executable, "-m", "fieldtool.cli", "view", str(path), "--port", "0"],
+    proc = subprocess.Popen([sys.executable, "-m", "fieldtool.cli.main", "view", str(path), "--port", "0"],
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
     try:
         lines, t0 = [], time.time()

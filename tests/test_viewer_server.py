@@ -7,7 +7,7 @@ import cv2
 import numpy as np
 import pytest
 
-from fieldtool.project import load_project, save_project
+from fieldtool.project.model import load_project, save_project
 from fieldtool.viewer.mapping import pixel_to_scene
 from fieldtool.viewer.server import start_viewer
 

@@ -25,7 +25,7 @@ from fieldtool.processing.water_level import (
     level_uncertainty_from_width,
     width_at_level,
 )
-from fieldtool.project import WaterLevelCfg
+from fieldtool.project.model import WaterLevelCfg
 
 # ---------------------------------------------------------------------------------------------
 # scenes with known truth
@@ -347,7 +347,7 @@ def test_angle_height_undistorts_edges_with_a_calibration(tmp_path):
     from fieldtool.processing.calibration import LensModel
     from fieldtool.processing.cross_section import from_shape
     from fieldtool.processing.water_level import compute_level
-    from fieldtool.project import WaterLevelCfg
+    from fieldtool.project.model import WaterLevelCfg
 
     W_img, H_img = 1920, 1080
     K = np.array([[1000.0, 0, (W_img - 1) / 2], [0, 1000.0, (H_img - 1) / 2], [0, 0, 1]])

@@ -12,7 +12,7 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from ..project import atomic_write_bytes
+from fieldtool.project.model import atomic_write_bytes
 
 
 def _figure(dpi: float = 100, **kwargs) -> Figure:

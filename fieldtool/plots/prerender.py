@@ -180,9 +180,9 @@ def _serve(jobs_fd: int, answers_fd: int, folder: Path) -> None:
     import cv2
 
     cv2.setNumThreads(0)  # the run's threads have the cores; a figure's resize needs none of its own
-    from . import discharge as plots
-    from . import report_figures
-    from .water_level import plot_level
+    from fieldtool.plots import discharge as plots
+    from fieldtool.plots import report_figures
+    from fieldtool.plots.water_level import plot_level
 
     with os.fdopen(jobs_fd, "rb") as jobs:
         for line in jobs:

@@ -12,10 +12,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ..processing import discharge as dq
-from ..processing.ortho import NAMES, PAIRS
-from ..project import atomic_write_bytes
-from .discharge import _figure, _save, _show, _working_rgb
+from fieldtool.processing import discharge as dq
+from fieldtool.processing.ortho import NAMES, PAIRS
+from fieldtool.project.model import atomic_write_bytes
+from fieldtool.plots.discharge import _figure, _save, _show, _working_rgb
 
 
 def profile_band(result) -> dict[str, np.ndarray]:

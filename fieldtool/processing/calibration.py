@@ -25,8 +25,8 @@ import cv2
 import numpy as np
 import tomli_w
 
-from ..errors import Cancelled, InputFileError, ParameterError
-from ..project import atomic_write_bytes
+from fieldtool.errors import Cancelled, InputFileError, ParameterError
+from fieldtool.project.model import atomic_write_bytes
 
 MIN_VIEWS = 5  # fewer boards than this do not constrain 5 distortion coefficients reliably
 _FIND_FLAGS = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_FAST_CHECK

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import GeometryError, InputFileError, ParameterError
+from fieldtool.errors import GeometryError, InputFileError, ParameterError
 
 SHAPES = ("rectangular", "trapezoidal", "parabolic", "free")
 

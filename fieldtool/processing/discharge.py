@@ -26,9 +26,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..errors import GeometryError, ParameterError
-from .cross_section import CrossSection
-from .ortho import OrthoMapping, check_in_frame
+from fieldtool.errors import GeometryError, ParameterError
+from fieldtool.processing.cross_section import CrossSection
+from fieldtool.processing.ortho import OrthoMapping, check_in_frame
 
 SAMPLES_PER_SUB = 7
 

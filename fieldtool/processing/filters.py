@@ -20,7 +20,7 @@ from typing import Any, Callable, Iterable
 import cv2
 import numpy as np
 
-from ..errors import Cancelled, ParameterError
+from fieldtool.errors import Cancelled, ParameterError
 
 
 @dataclass(frozen=True)

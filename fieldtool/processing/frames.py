@@ -17,7 +17,7 @@ from typing import Iterator, NamedTuple
 import cv2
 import numpy as np
 
-from ..errors import InputFileError, ParameterError
+from fieldtool.errors import InputFileError, ParameterError
 
 IMAGE_EXTS = {".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp"}
 

@@ -12,7 +12,7 @@ import math
 import cv2
 import numpy as np
 
-from ..errors import ParameterError
+from fieldtool.errors import ParameterError
 
 _SHIFT = 4  # cv2.fillPoly fixed-point bits: vertices placed to 1/16 px
 

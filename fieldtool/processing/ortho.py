@@ -21,7 +21,7 @@ from typing import Callable
 import cv2
 import numpy as np
 
-from ..errors import FieldToolError, GeometryError, ParameterError
+from fieldtool.errors import FieldToolError, GeometryError, ParameterError
 
 PAIRS = ((0, 1), (1, 2), (2, 3), (3, 0), (0, 2), (1, 3))  # L1..L6 as index pairs of P1..P4
 NAMES = ("L1=|P1P2|", "L2=|P2P3|", "L3=|P3P4|", "L4=|P4P1|", "L5=|P1P3|", "L6=|P2P4|")

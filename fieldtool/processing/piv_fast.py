@@ -25,7 +25,7 @@ from typing import Callable, Iterable, Iterator
 
 import numpy as np
 
-from .uncertainty import bootstrap_ci
+from fieldtool.processing.uncertainty import bootstrap_ci
 
 REGIONS = ("section", "roi", "full")
 

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from ..errors import GeometryError, ParameterError
+from fieldtool.errors import GeometryError, ParameterError
 
 MIN_GCPS = 6
 

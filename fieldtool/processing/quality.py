@@ -372,7 +372,7 @@ def section_evidence(sample_px: np.ndarray, normal: np.ndarray, x: np.ndarray, y
     valid_fraction, peak : (ny, nx) per-node fraction of valid pairs and median correlation peak.
     first_guess : (ny, nx, 2) px per pair by which the first pass moved its windows (``PivResult.first_guess``).
     """
-    from .discharge import sample_field
+    from fieldtool.processing.discharge import sample_field
 
     pts = np.asarray(sample_px, float).reshape(-1, 2)
     out: dict = {}

@@ -21,8 +21,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from ..errors import GeometryError, ParameterError
-from .masks import check_polygon, check_roi, rasterize
+from fieldtool.errors import GeometryError, ParameterError
+from fieldtool.processing.masks import check_polygon, check_roi, rasterize
 
 _WIN = (15, 15)  # Lucas-Kanade window (px)
 _LEVELS = 3  # pyramid levels above the full image

@@ -38,8 +38,8 @@ import numpy as np
 import scipy.fft as sfft
 from scipy.ndimage import uniform_filter1d
 
-from ..errors import ParameterError
-from .ortho import OrthoMapping
+from fieldtool.errors import ParameterError
+from fieldtool.processing.ortho import OrthoMapping
 
 METHODS = ("fft", "tensor")
 

@@ -11,10 +11,10 @@ from typing import Callable
 
 import numpy as np
 
-from ..errors import FieldToolError
-from .cross_section import CrossSection
-from .discharge import fill_velocity, manning_factors, section_geometry, section_samples
-from .ortho import OrthoMapping
+from fieldtool.errors import FieldToolError
+from fieldtool.processing.cross_section import CrossSection
+from fieldtool.processing.discharge import fill_velocity, manning_factors, section_geometry, section_samples
+from fieldtool.processing.ortho import OrthoMapping
 
 
 def bootstrap_ci(values, level: float = 0.95, n_boot: int = 1000, seed: int = 0,

@@ -42,10 +42,10 @@ from typing import Callable
 
 import numpy as np
 
-from ..errors import GeometryError, InputFileError, ParameterError
-from ..project import WaterLevelCfg
-from .cross_section import CrossSection
-from .ortho import OrthoMapping
+from fieldtool.errors import GeometryError, InputFileError, ParameterError
+from fieldtool.project.model import WaterLevelCfg
+from fieldtool.processing.cross_section import CrossSection
+from fieldtool.processing.ortho import OrthoMapping
 
 
 def _argrelextrema(*args, **kwargs):

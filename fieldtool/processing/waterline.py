@@ -21,7 +21,7 @@ import cv2
 import numpy as np
 from scipy.ndimage import gaussian_filter1d
 
-from ..errors import GeometryError, ParameterError
+from fieldtool.errors import GeometryError, ParameterError
 
 
 def extend_line(p0, p1, factor: float, shape: tuple[int, int]) -> np.ndarray:

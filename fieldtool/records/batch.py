@@ -2,7 +2,7 @@
 
 Items are project files: either given as a list, or written from a site for every video of a folder
 (with the water level of each video from a CSV, or one level for all). Each item runs
-:func:`fieldtool.pipeline.run_project` into its own output folder; a failing item is reported with
+:func:`fieldtool.run.pipeline.run_project` into its own output folder; a failing item is reported with
 its reason and does not stop the others.
 
 Executors:
@@ -35,9 +35,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
-from ..errors import FieldToolError, InputFileError, ParameterError
-from .history import History, input_hash, video_datetime
-from .sites import Site, new_measurement
+from fieldtool.errors import FieldToolError, InputFileError, ParameterError
+from fieldtool.records.history import History, input_hash, video_datetime
+from fieldtool.records.sites import Site, new_measurement
 
 VIDEO_EXTS = {".mp4", ".mov", ".avi", ".mkv", ".m4v", ".mts", ".m2ts", ".mpg", ".mpeg", ".wmv", ".webm", ".3gp"}
 
@@ -94,7 +94,7 @@ def read_levels(path: Path | str) -> dict[str, float]:
     ``name``) and a level column (``water_level_m``, ``level_m`` or ``level``); comma or semicolon.
     Keys are video file names (as written, and their stem)."""
     path = Path(path)
-    from ..textfile import read_text
+    from fieldtool.project.textfile import read_text
 
     text = read_text(path, "levels file")
     head = text.splitlines()[0] if text.strip() else ""
@@ -184,7 +184,7 @@ def plan_projects(paths: list[Path | str], *, out_root: Path | str | None = None
 def read_list(path: Path | str) -> list[str]:
     """Project files listed one per line in a text file ('#' comments; relative to the list's folder)."""
     path = Path(path)
-    from ..textfile import read_text
+    from fieldtool.project.textfile import read_text
 
     lines = read_text(path, "list of projects").splitlines()
     out = []
@@ -204,7 +204,7 @@ def _single_threaded() -> None:
     """One OpenCV and one FFT thread in this process: the batch already uses every core."""
     import cv2
 
-    from ..processing.piv import set_fft_workers
+    from fieldtool.processing.piv import set_fft_workers
 
     cv2.setNumThreads(1)
     set_fft_workers(1)
@@ -219,8 +219,8 @@ def run_item(item: BatchItem, single_thread: bool = False) -> ItemResult:
     try:
         if single_thread:
             _single_threaded()
-        from ..pipeline import _json_default, run_project
-        from ..project import load_project, project_to_dict
+        from fieldtool.run.pipeline import _json_default, run_project
+        from fieldtool.project.model import load_project, project_to_dict
 
         project = load_project(item.project_path)
         res.video_path = str(project.resolve(project.video.path)) if project.video.path else ""
@@ -255,7 +255,7 @@ OnDone = Callable[[ItemResult, int, int], None]
 
 
 # imported once by the fork server, so that each worker process starts with them loaded
-_PRELOAD = ["fieldtool.pipeline", "fieldtool.processing.piv", "fieldtool.plots.discharge", "fieldtool.records.batch"]
+_PRELOAD = ["fieldtool.run.pipeline", "fieldtool.processing.piv", "fieldtool.plots.discharge", "fieldtool.records.batch"]
 
 
 def _mp_context():
@@ -376,7 +376,7 @@ def run_batch(items: list[BatchItem], *, history: History | None = None, workers
                 r.ok, r.error = False, f"ran, but could not be recorded in the history: {e}"
         if r.ok and reports and not r.skipped:
             try:
-                from .report import write_report
+                from fieldtool.records.report import write_report
 
                 m = history.get(r.history_id) if history is not None and r.history_id else None
                 write_report(r.item.out_dir, measurement=m)
@@ -392,7 +392,7 @@ def run_batch(items: list[BatchItem], *, history: History | None = None, workers
             continue
         if skip_existing and history is not None:
             try:
-                from ..project import load_project, project_to_dict
+                from fieldtool.project.model import load_project, project_to_dict
 
                 p = load_project(it.project_path)
                 h = input_hash(project_to_dict(p), p.root)

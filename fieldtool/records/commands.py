@@ -10,7 +10,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from ..errors import ParameterError
+from fieldtool.errors import ParameterError
 
 
 def _add_db(p: argparse.ArgumentParser, under_history: bool = False) -> None:
@@ -31,7 +31,7 @@ def _add_filters(p: argparse.ArgumentParser) -> None:
 
 
 def _filters(args) -> dict:
-    from .history import parse_time
+    from fieldtool.records.history import parse_time
 
     until = args.until
     if until and len(until.strip()) == 10:  # a bare date: the whole day
@@ -41,14 +41,14 @@ def _filters(args) -> dict:
 
 
 def _open_history(args, create: bool):
-    from .history import History, resolve_db_path
+    from fieldtool.records.history import History, resolve_db_path
 
     return History(resolve_db_path(args.db), create=create)
 
 
 def _history_or_none(args):
     """The history for reading, or None when there is none yet (nothing recorded)."""
-    from .history import resolve_db_path
+    from fieldtool.records.history import resolve_db_path
 
     path = resolve_db_path(args.db)
     if not path.exists():
@@ -67,7 +67,7 @@ def _fmt(v, spec=".4f") -> str:
 
 
 def cmd_site_create(args) -> int:
-    from .sites import create_site, load_site_project, sites_dir
+    from fieldtool.records.sites import create_site, load_site_project, sites_dir
 
     project = load_site_project(args.from_project)
     site = create_site(args.name, project, sites_dir(args.sites), description=args.description or "",
@@ -78,7 +78,7 @@ def cmd_site_create(args) -> int:
 
 
 def cmd_site_list(args) -> int:
-    from .sites import list_sites, sites_dir
+    from fieldtool.records.sites import list_sites, sites_dir
 
     root = sites_dir(args.sites)
     broken: list = []
@@ -95,7 +95,7 @@ def cmd_site_list(args) -> int:
 
 
 def cmd_site_show(args) -> int:
-    from .sites import SITE_FILE, describe, load_site, sites_dir
+    from fieldtool.records.sites import SITE_FILE, describe, load_site, sites_dir
 
     site = load_site(args.name, sites_dir(args.sites))
     if args.toml:
@@ -106,7 +106,7 @@ def cmd_site_show(args) -> int:
 
 
 def cmd_site_new_measurement(args) -> int:
-    from .sites import load_site, new_measurement, sites_dir
+    from fieldtool.records.sites import load_site, new_measurement, sites_dir
 
     site = load_site(args.name, sites_dir(args.sites))
     video = Path(args.video)
@@ -117,7 +117,7 @@ def cmd_site_new_measurement(args) -> int:
     if not args.run:
         print(f"run it with: fieldtool run {proj}   (or add --run to compute and record it now)")
         return 0
-    from .batch import BatchItem, run_batch
+    from fieldtool.records.batch import BatchItem, run_batch
 
     item = BatchItem(label=video.name, project_path=str(proj), out_dir=str(out / "results"), site=site.name)
     with _open_history(args, create=True) as hist:
@@ -176,8 +176,8 @@ def cmd_history_show(args) -> int:
 
 
 def cmd_history_export(args) -> int:
-    from ..project import atomic_write_bytes
-    from .history import export_csv
+    from fieldtool.project.model import atomic_write_bytes
+    from fieldtool.records.history import export_csv
 
     with _open_history(args, create=False) as hist:
         text = export_csv(hist, hist.query(**_filters(args)))
@@ -192,8 +192,8 @@ def cmd_history_export(args) -> int:
 def cmd_history_add(args) -> int:
     import json
 
-    from .history import input_hash, video_datetime
-    from .report import load_result
+    from fieldtool.records.history import input_hash, video_datetime
+    from fieldtool.records.report import load_result
 
     result_dir = Path(args.result_dir)
     summary, _, _ = load_result(result_dir)
@@ -250,7 +250,7 @@ def cmd_history_stats(args) -> int:
 
 
 def cmd_history_rating(args) -> int:
-    from .rating import fit_rating, plot_rating
+    from fieldtool.records.rating import fit_rating, plot_rating
 
     with _open_history(args, create=False) as hist:
         rows = [m for m in hist.query(site=args.site) if m.discharge_m3s is not None and m.water_level_m is not None]
@@ -277,8 +277,8 @@ def cmd_history_rating(args) -> int:
 
 
 def cmd_report(args) -> int:
-    from .history import resolve_db_path
-    from .report import write_report
+    from fieldtool.records.history import resolve_db_path
+    from fieldtool.records.report import write_report
 
     if (args.result_dir is None) == (args.id is None):
         raise ParameterError("give a run's output folder, or --id N of a measurement in the history")
@@ -304,7 +304,7 @@ def cmd_report(args) -> int:
 
 
 def cmd_batch(args) -> int:
-    from .batch import plan_projects, plan_site_folder, read_levels, read_list, run_batch
+    from fieldtool.records.batch import plan_projects, plan_site_folder, read_levels, read_list, run_batch
 
     if args.videos:
         if not args.site:
@@ -314,7 +314,7 @@ def cmd_batch(args) -> int:
             raise ParameterError("give either --videos (a folder of videos of one site) or project files, not both")
         if args.levels is None and args.level is None:
             raise ParameterError("--videos needs the water levels: --levels CSV (video,water_level_m) or --level M")
-        from .sites import load_site, sites_dir
+        from fieldtool.records.sites import load_site, sites_dir
 
         site = load_site(args.site, sites_dir(args.sites))
         out = Path(args.out) if args.out else Path(args.videos) / "fieldtool_out"

@@ -35,8 +35,8 @@ from datetime import datetime, timedelta, timezone
 from pathlib import Path
 from typing import Any, Iterator
 
-from ..errors import InputFileError, ParameterError
-from . import user_data_dir
+from fieldtool.errors import InputFileError, ParameterError
+from fieldtool.records import user_data_dir
 
 SCHEMA_VERSION = 1
 BUSY_TIMEOUT_S = 60.0
@@ -760,11 +760,11 @@ def input_hash(project_dict: dict, root: Path | str) -> str:
 
 
 def record_run(project, summary: dict, out_dir: Path | str, *, site: str = "", db: str | Path | None = None) -> int:
-    """Record a finished run of ``project`` (a :class:`fieldtool.project.Project`) whose
+    """Record a finished run of ``project`` (a :class:`fieldtool.project.model.Project`) whose
     ``summary`` is ``RunResult.summary()`` and whose results are in ``out_dir``: hashes the inputs,
     reads the video's date, and writes one row to the history at ``db`` (None = the default).
     Returns the new measurement id. For `fieldtool run --record`."""
-    from ..project import project_to_dict
+    from fieldtool.project.model import project_to_dict
 
     video = project.resolve(project.video.path) if project.video.path else None
     vt = video_datetime(video) if video is not None else (None, None)

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 from scipy.optimize import curve_fit
 
-from ..errors import ParameterError
+from fieldtool.errors import ParameterError
 
 B_RANGE = (0.3, 6.0)  # exponents outside this are not a river's control
 
@@ -195,7 +195,7 @@ def plot_rating(path: Path | str, curve: RatingCurve | None, h, q, *, ref_h=None
     fig.tight_layout()
     import io
 
-    from ..project import atomic_write_bytes
+    from fieldtool.project.model import atomic_write_bytes
 
     buf = io.BytesIO()
     fig.savefig(buf, format=path.suffix.lstrip(".").lower() or "png")

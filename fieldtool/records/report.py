@@ -15,11 +15,11 @@ import json
 from datetime import datetime, timezone
 from pathlib import Path
 
-from .. import __version__
-from ..errors import InputFileError
-from ..project import atomic_write_bytes
-from .history import Measurement, Reference
-from .report_content import budget_rows, discharge_text, header_rows, parameter_rows
+from fieldtool import __version__
+from fieldtool.errors import InputFileError
+from fieldtool.project.model import atomic_write_bytes
+from fieldtool.records.history import Measurement, Reference
+from fieldtool.records.report_content import budget_rows, discharge_text, header_rows, parameter_rows
 
 # plots of result.json "files", in report order, with captions
 PLOTS = (

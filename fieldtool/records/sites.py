@@ -25,10 +25,17 @@ from pathlib import Path
 
 import tomli_w
 
-from ..errors import InputFileError, ParameterError
-from ..project import Project, atomic_write_bytes, load_project, project_from_dict, project_to_dict, save_project
-from . import user_data_dir
-from .history import utc_now
+from fieldtool.errors import InputFileError, ParameterError
+from fieldtool.project.model import (
+    Project,
+    atomic_write_bytes,
+    load_project,
+    project_from_dict,
+    project_to_dict,
+    save_project,
+)
+from fieldtool.records import user_data_dir
+from fieldtool.records.history import utc_now
 
 SITE_FILE = "site.toml"
 _NAME_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}")  # used with fullmatch: "$" lets a final newline in
@@ -244,7 +251,7 @@ def new_measurement(site: Site, video: Path | str, level_m: float | None, out_di
     """Write ``out_dir/project.toml`` for a new visit of ``site`` with copies of the site's files.
 
     Only the video and the water level (m) are new; everything else comes from the site.
-    Returns the project file's path; run it with ``fieldtool run`` or :func:`fieldtool.pipeline.run_project`.
+    Returns the project file's path; run it with ``fieldtool run`` or :func:`fieldtool.run.pipeline.run_project`.
 
     Raises
     ------
@@ -297,7 +304,7 @@ def describe(site: Site) -> list[str]:
         lines.append(f"cross-section {cs.shape}, top width {cs.top_width_m} m, depth {cs.depth_m} m")
     else:
         try:
-            from ..processing.cross_section import load_cross_section
+            from fieldtool.processing.cross_section import load_cross_section
 
             x = load_cross_section(p.resolve(cs.path))
             lines.append(f"cross-section {cs.path}: {len(x.station)} points, stations {x.station.min():.2f}-"

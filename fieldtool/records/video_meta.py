@@ -17,7 +17,7 @@ import struct
 from datetime import datetime, timedelta, timezone
 from pathlib import Path
 
-from .history import _iso, video_datetime
+from fieldtool.records.history import _iso, video_datetime
 
 _MKV_EPOCH = datetime(2001, 1, 1, tzinfo=timezone.utc)
 _EBML_MAGIC = b"\x1a\x45\xdf\xa3"

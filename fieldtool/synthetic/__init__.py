@@ -5,8 +5,8 @@
 >>> truth.discharge_m3s, truth.project_path                          # doctest: +SKIP
 """
 
-from . import presets
-from .camera import Camera
-from .scene import River, SceneSpec, SceneTruth, gcp_distances, gcp_world, render_scene
+from fieldtool.synthetic import presets
+from fieldtool.synthetic.camera import Camera
+from fieldtool.synthetic.scene import River, SceneSpec, SceneTruth, gcp_distances, gcp_world, render_scene
 
 __all__ = ["Camera", "River", "SceneSpec", "SceneTruth", "gcp_distances", "gcp_world", "presets", "render_scene"]

@@ -12,7 +12,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .camera import Camera, render_canvas
+from fieldtool.synthetic.camera import Camera, render_canvas
 
 _TEX_PER_SQUARE = 40
 

@@ -38,9 +38,9 @@ from __future__ import annotations
 
 from dataclasses import replace
 
-from ..errors import ParameterError
-from .camera import Camera
-from .scene import River, SceneSpec
+from fieldtool.errors import ParameterError
+from fieldtool.synthetic.camera import Camera
+from fieldtool.synthetic.scene import River, SceneSpec
 
 NAMES = ("oblique", "nadir", "far_bank")
 DISTORTION = (-0.25, 0.03, 0.0, 0.0, 0.0)

@@ -28,9 +28,9 @@ import cv2
 import numpy as np
 from scipy import integrate
 
-from ..errors import Cancelled, ParameterError
-from ..processing.cross_section import CrossSection, to_csv_text
-from ..project import (
+from fieldtool.errors import Cancelled, ParameterError
+from fieldtool.processing.cross_section import CrossSection, to_csv_text
+from fieldtool.project.model import (
     CalibrationCfg,
     CrossSectionCfg,
     OrthoCfg,
@@ -44,7 +44,7 @@ from ..project import (
     atomic_write_bytes,
     save_project,
 )
-from .camera import Camera, render_canvas
+from fieldtool.synthetic.camera import Camera, render_canvas
 
 
 @dataclass(frozen=True)
@@ -506,7 +506,7 @@ def frame_times(spec: SceneSpec) -> list[float]:
     n = spec.n_frames
     if spec.drop_fraction <= 0:
         return [i / spec.fps for i in range(n)]
-    from .mkv import TIMECODE_SCALE_NS, ticks_of
+    from fieldtool.synthetic.mkv import TIMECODE_SCALE_NS, ticks_of
 
     rng = _aux_rng(spec, 1)
     f = min(max(spec.drop_fraction, 0.0), 0.8)
@@ -726,7 +726,7 @@ def render_scene(
     video_path = out / spec.video_name
     times = frame_times(spec)
     if spec.drop_fraction > 0:
-        from .mkv import MkvWriter
+        from fieldtool.synthetic.mkv import MkvWriter
 
         writer = MkvWriter(video_path, (w, h), quality=95)
         write = writer.write
@@ -828,7 +828,7 @@ def render_scene(
         proj.stabilize = StabilizeCfg(enabled=True, regions_px=_bank_regions(spec, _bank_mask(spec, ras)))
     cb_path = None
     if cam.has_distortion:
-        from .checkerboard import render_checkerboard
+        from fieldtool.synthetic.checkerboard import render_checkerboard
 
         cb_path = out / "checkerboard.mp4"
         render_checkerboard(cam, cb_path, n_frames=spec.checkerboard_frames, square_m=spec.checkerboard_square_m,

@@ -15,22 +15,22 @@ from textual.app import App, SystemCommand
 from textual.screen import Screen
 from textual.worker import Worker, WorkerState
 
-from . import keys
-from .jobs import Job, describe_error
-from .screens.base import StepScreen
-from .screens.calibration import CalibrationScreen
-from .screens.cross_section import CrossSectionScreen
-from .screens.filters import FiltersScreen
-from .screens.ortho import OrthoScreen
-from .screens.piv import PivScreen
-from .screens.results import ResultsScreen
-from .screens.roi import RoiScreen
-from .screens.section import SectionScreen
-from .screens.video import VideoScreen
-from .screens.water_level import WaterLevelScreen
-from .session import Session, open_session
-from .steps import STEP_IDS, STEPS
-from .viewer_link import ssh_line
+from fieldtool.tui import keys
+from fieldtool.tui.jobs import Job, describe_error
+from fieldtool.tui.screens.base import StepScreen
+from fieldtool.tui.screens.calibration import CalibrationScreen
+from fieldtool.tui.screens.cross_section import CrossSectionScreen
+from fieldtool.tui.screens.filters import FiltersScreen
+from fieldtool.tui.screens.ortho import OrthoScreen
+from fieldtool.tui.screens.piv import PivScreen
+from fieldtool.tui.screens.results import ResultsScreen
+from fieldtool.tui.screens.roi import RoiScreen
+from fieldtool.tui.screens.section import SectionScreen
+from fieldtool.tui.screens.video import VideoScreen
+from fieldtool.tui.screens.water_level import WaterLevelScreen
+from fieldtool.tui.session import Session, open_session
+from fieldtool.tui.steps import STEP_IDS, STEPS
+from fieldtool.tui.viewer_link import ssh_line
 
 SCREENS_BY_STEP: dict[str, type[StepScreen]] = {
     s.STEP: s for s in (CrossSectionScreen, VideoScreen, CalibrationScreen, OrthoScreen, WaterLevelScreen, RoiScreen,
@@ -189,7 +189,7 @@ class FieldToolApp(App):
             self.notify(f"viewer at {self.viewer_url} · over SSH: {ssh_line(self.viewer)}", timeout=10)
             return
         try:
-            from ..viewer.server import start_viewer
+            from fieldtool.viewer.server import start_viewer
         except ImportError as e:
             self.notify(f"the viewer is not available ({e}); type pixel points as 'x, y'", severity="warning")
             return
@@ -238,7 +238,7 @@ class FieldToolApp(App):
         """Switch the viewer to the pick mode that fills ``key`` (a pixel field got the focus)."""
         if self.viewer is None:
             return
-        from ..viewer.picks import MODES
+        from fieldtool.viewer.picks import MODES
 
         base = key.split("[")[0]
         for name, spec in MODES.items():

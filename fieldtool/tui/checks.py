@@ -1,7 +1,7 @@
 """Whether each step's entries are right, for the sidebar marks and the "next" key.
 
 Three layers, cheapest first: the TUI's own field checks (``fields.field_errors``) and the
-project's validation layer (``fieldtool.validation`` through ``steps.step_problems``), both in
+project's validation layer (``fieldtool.project.validation`` through ``steps.step_problems``), both in
 ``Session.step_errors``; then the core's own check of the step (``core_check``: it reads the clip,
 builds the cross-section, solves the GCPs, computes a typed level), which catches what needs the
 files and the other steps: a start past the end
@@ -13,8 +13,8 @@ from __future__ import annotations
 
 import json
 
-from ..errors import FieldToolError, ParameterError
-from ..project import project_to_dict
+from fieldtool.errors import FieldToolError, ParameterError
+from fieldtool.project.model import project_to_dict
 
 # project tables each step's core check reads (its cache key)
 _INPUTS = ("video", "cross_section", "calibration")
@@ -33,15 +33,15 @@ CORE_TABLES = {
 
 def core_check(session, step: str) -> None:
     """The core's check of ``step`` on the session's project; raises FieldToolError with the message."""
-    from ..pipeline import build_mapping, level_and_mapping, piv_params, roi_and_mask
+    from fieldtool.run.pipeline import build_mapping, level_and_mapping, piv_params, roi_and_mask
 
     p = session.project
     if step == "cross_section":
-        from .screens.cross_section import build_cross_section
+        from fieldtool.tui.screens.cross_section import build_cross_section
 
         build_cross_section(p)
     elif step == "video":  # the clip alone (not the lens, whose step comes after)
-        from ..processing.frames import FrameSource, read_color_frame
+        from fieldtool.processing.frames import FrameSource, read_color_frame
 
         v = p.video
         if not v.path:
@@ -53,7 +53,7 @@ def core_check(session, step: str) -> None:
                                  "or lower video.step")
     elif step == "calibration":
         if session.ui.get("calibration_mode") != "skip" and p.calibration.path:
-            from ..processing.calibration import load_calibration
+            from fieldtool.processing.calibration import load_calibration
 
             load_calibration(p.resolve(p.calibration.path))
     elif step == "ortho":
@@ -66,11 +66,11 @@ def core_check(session, step: str) -> None:
     elif step == "roi":
         roi_and_mask(p, session.inputs())
     elif step == "filters":
-        from ..processing.filters import FilterStack
+        from fieldtool.processing.filters import FilterStack
 
         FilterStack.from_config(p.filters)
     elif step == "piv":
-        from ..processing import piv as piv_mod
+        from fieldtool.processing import piv as piv_mod
 
         inputs = session.inputs()
         roi, _ = roi_and_mask(p, inputs)
@@ -82,7 +82,7 @@ def core_check(session, step: str) -> None:
 def section_geometry(session):
     """(section geometry, level result, cross-section) of the session's project, with the same
     checks as `fieldtool run` (``pipeline.build_section``)."""
-    from ..pipeline import build_section, level_and_mapping
+    from fieldtool.run.pipeline import build_section, level_and_mapping
 
     p = session.project
     inputs = session.inputs()

@@ -1,4 +1,4 @@
-"""`fieldtool tui [PROJECT]`: registered into the CLI by fieldtool.cli."""
+"""`fieldtool tui [PROJECT]`: registered into the CLI by fieldtool.cli.main."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import argparse
 
 
 def cmd_tui(args: argparse.Namespace) -> int:
-    from .app import FieldToolApp
+    from fieldtool.tui.app import FieldToolApp
 
     app = FieldToolApp(args.project)
     app.run()

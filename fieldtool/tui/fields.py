@@ -17,7 +17,7 @@ import typing
 from dataclasses import dataclass
 from typing import Any, Callable
 
-from ..project import Project
+from fieldtool.project.model import Project
 
 _INDEX = re.compile(r"^(.*)\[(\d+)\]$")
 _SEP = re.compile(r"\s*[,\s]\s*")

@@ -14,9 +14,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import piv_cache
-from ..errors import GeometryError, ParameterError
-from ..project import Project, project_to_dict
+from fieldtool.run import piv_cache
+from fieldtool.errors import GeometryError, ParameterError
+from fieldtool.project.model import Project, project_to_dict
 
 
 class Job:
@@ -60,7 +60,7 @@ def has_section(project: Project) -> bool:
 
 def run_full(project: Project, out_dir: Path, job: Job) -> dict:
     """Every step (pipeline.run_project), results written to ``out_dir``; returns the summary."""
-    from ..pipeline import run_project
+    from fieldtool.run.pipeline import run_project
 
     res = run_project(project, out_dir, progress=job.progress, cancel=job.cancelled)
     return res.summary()
@@ -78,9 +78,9 @@ def _piv_setup(project: Project, inputs):
 
     The key is the PIV cache's (``piv_cache.piv_key``) on every PIV input; it is None when a speed
     limit is set but the mapping cannot be built yet."""
-    from ..errors import FieldToolError
-    from ..pipeline import level_and_mapping, piv_params, roi_and_mask
-    from ..processing import piv as piv_mod
+    from fieldtool.errors import FieldToolError
+    from fieldtool.run.pipeline import level_and_mapping, piv_params, roi_and_mask
+    from fieldtool.processing import piv as piv_mod
 
     try:
         _, mapping = level_and_mapping(project, inputs)
@@ -123,8 +123,8 @@ def run_piv_only(project: Project, job: Job, out_dir: Path | None = None) -> dic
     The level and mapping are used when they can be computed (speed limit, m/s statistics). The
     field is saved at once under ``out_dir/tui_piv`` (the PIV cache's format and key): quitting before
     a section exists loses nothing, the PIV step shows it again when the project is reopened."""
-    from ..pipeline import _Sized, load_inputs, working_frames
-    from ..processing import piv as piv_mod
+    from fieldtool.run.pipeline import _Sized, load_inputs, working_frames
+    from fieldtool.processing import piv as piv_mod
 
     job.progress("inputs", 0, 0)
     inputs = load_inputs(project)
@@ -146,7 +146,7 @@ def run_piv_only(project: Project, job: Job, out_dir: Path | None = None) -> dic
 def cached_piv(project: Project, inputs, out_dir: Path) -> dict | None:
     """The PIV step's summary of the field a PIV-only run saved in ``out_dir`` for the project's
     current PIV inputs, or None (none, other inputs, unreadable)."""
-    from ..errors import FieldToolError
+    from fieldtool.errors import FieldToolError
 
     try:
         mapping, _, _, _, _, key = _piv_setup(project, inputs)
@@ -162,7 +162,7 @@ def cached_piv(project: Project, inputs, out_dir: Path) -> dict | None:
 
 def run_calibration(project: Project, job: Job) -> dict:
     """Calibrate from the checkerboard video and write the lens file named by calibration.path."""
-    from ..processing.calibration import calibrate_video, save_calibration
+    from fieldtool.processing.calibration import calibrate_video, save_calibration
 
     c = project.calibration
     if not c.path:
@@ -177,7 +177,7 @@ def run_calibration(project: Project, job: Job) -> dict:
 
 def run_stabilization(project: Project, job: Job) -> dict:
     """Register the clip on its first frame (filters off) and report the residual motion."""
-    from ..pipeline import load_inputs, working_frames
+    from fieldtool.run.pipeline import load_inputs, working_frames
 
     p = snapshot(project)
     p.filters = []
@@ -192,7 +192,7 @@ def run_stabilization(project: Project, job: Job) -> dict:
 
 def describe_error(title: str, error: BaseException | None, took: float) -> tuple[str, bool]:
     """Text for a run that did not finish, and whether it is an error (a cancel is not)."""
-    from ..errors import Cancelled, FieldToolError
+    from fieldtool.errors import Cancelled, FieldToolError
 
     if isinstance(error, Cancelled) or error is None:
         return f"{title} cancelled after {took:.1f} s; nothing was changed", False

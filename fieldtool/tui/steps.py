@@ -10,8 +10,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Callable
 
-from ..project import Project
-from .fields import Field
+from fieldtool.project.model import Project
+from fieldtool.tui.fields import Field
 
 # ---------------------------------------------------------------------------------------------
 # small validators: value, project -> message or None
@@ -432,8 +432,8 @@ def fields_for(step: str, ui: dict) -> list[Field]:
 
 
 def step_problems(step: str, project: Project, *, files: bool = True):
-    """Problems of the validation layer (``fieldtool.validation``) on the tables a step edits."""
-    from ..validation import validate
+    """Problems of the validation layer (``fieldtool.project.validation``) on the tables a step edits."""
+    from fieldtool.project.validation import validate
 
     tables = STEP_BY_ID[step].tables if step in STEP_BY_ID else ()
     return [p for p in validate(project, files=files) if p.key.split(".")[0].split("[")[0] in tables]

@@ -8,9 +8,9 @@ import threading
 
 
 def cmd_view(args: argparse.Namespace) -> int:
-    from .images import KINDS
-    from .picks import MODES
-    from .server import start_viewer
+    from fieldtool.viewer.images import KINDS
+    from fieldtool.viewer.picks import MODES
+    from fieldtool.viewer.server import start_viewer
 
     if args.mode and args.mode not in MODES:
         print(f"fieldtool: error: --mode {args.mode!r}: one of {', '.join(MODES)}", file=sys.stderr)

@@ -1,6 +1,6 @@
 """The images the viewer shows, each with the mapping between its pixels and raw-frame pixels.
 
-Picks are stored in raw-frame pixels (see fieldtool.project). A :class:`Display` knows how to map
+Picks are stored in raw-frame pixels (see fieldtool.project.model). A :class:`Display` knows how to map
 raw-frame points onto itself (``to_display``) and back (``from_display``), so the same picks can be
 drawn and clicked on the first frame, on the undistorted frame and on the orthorectified map.
 
@@ -20,9 +20,9 @@ from typing import Callable
 import cv2
 import numpy as np
 
-from ..errors import FieldToolError, InputFileError, ParameterError
-from ..project import Project
-from .mapping import PlotAxes
+from fieldtool.errors import FieldToolError, InputFileError, ParameterError
+from fieldtool.project.model import Project
+from fieldtool.viewer.mapping import PlotAxes
 
 KINDS = {
     "frame": "First frame",
@@ -64,7 +64,7 @@ def _rgb(bgr: np.ndarray) -> np.ndarray:
 
 
 def _first_frame(project: Project) -> np.ndarray:
-    from ..processing.frames import read_color_frame
+    from fieldtool.processing.frames import read_color_frame
 
     v = project.video
     if not v.path:
@@ -76,7 +76,7 @@ def lens_of(project: Project):
     """The lens model of the project, or None without calibration.path."""
     if not project.calibration.path:
         return None
-    from ..processing.calibration import load_calibration
+    from fieldtool.processing.calibration import load_calibration
 
     return load_calibration(project.resolve(project.calibration.path))
 
@@ -118,7 +118,7 @@ def load_display(project: Project, kind: str) -> Display:
 
 
 def _ortho(project: Project) -> Display:
-    from ..pipeline import build_mapping, compute_level, load_inputs
+    from fieldtool.run.pipeline import build_mapping, compute_level, load_inputs
 
     inputs = load_inputs(project)
     level = None
@@ -147,13 +147,13 @@ def _ortho(project: Project) -> Display:
 
 
 def _dem_plot(project: Project) -> Display:
-    from ..processing import water_level as wl
-    from .plot_image import Curve, render_plot
+    from fieldtool.processing import water_level as wl
+    from fieldtool.viewer.plot_image import Curve, render_plot
 
     cfg = project.water_level
     if not cfg.dem_path:
         raise ParameterError("water_level.dem_path: no DEM given; the DEM plot needs the bank's DEM (TIFF)")
-    from ..pipeline import load_cross_section
+    from fieldtool.run.pipeline import load_cross_section
 
     cs = load_cross_section(project)
     dem = wl.read_dem(project.resolve(cfg.dem_path))

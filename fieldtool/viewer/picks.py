@@ -25,7 +25,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from .mapping import PlotAxes
+from fieldtool.viewer.mapping import PlotAxes
 
 
 def _pt(x: float, y: float, exact: bool = False) -> list[float]:
@@ -440,7 +440,7 @@ def save_field(project_path, path: str, value: Any) -> Any:
     """Set one dotted field in the project file, merged with what other programs saved meanwhile
     (``project.apply_changes``: this one key, comments kept, atomic). Returns the project as
     saved. The one place the viewer writes the project file."""
-    from ..project import apply_changes
+    from fieldtool.project.model import apply_changes
 
     return apply_changes(project_path, {path: value})
 

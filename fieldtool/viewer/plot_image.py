@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from .mapping import PlotAxes
+from fieldtool.viewer.mapping import PlotAxes
 
 
 @dataclass

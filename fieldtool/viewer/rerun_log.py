@@ -1,6 +1,6 @@
 """Stream a run to rerun so a supervisor can watch what the tool computes.
 
-:class:`RerunObserver` is a pipeline :class:`~fieldtool.pipeline.Observer`. It logs, on the
+:class:`RerunObserver` is a pipeline :class:`~fieldtool.run.pipeline.Observer`. It logs, on the
 ``time`` (s, clip time) and ``pair`` / ``frame`` (index) timelines:
 
 =====================================  ==========================================================
@@ -54,8 +54,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ..errors import InputFileError, ParameterError
-from ..pipeline import Observer
+from fieldtool.errors import InputFileError, ParameterError
+from fieldtool.run.pipeline import Observer
 
 MODES = ("off", "save", "connect", "serve")
 PROFILE_SCALE = 10.0  # section profile: 1 m/s is drawn as 10 "metres" of station, so both axes read well
@@ -157,7 +157,7 @@ class RerunObserver(Observer):
             self.urls["viewer"] = url or DEFAULT_URL
             self.rec.connect_grpc(self.urls["viewer"], default_blueprint=blueprint())
         elif mode == "serve":
-            from .rerun_web import OfflineWebViewer, disable_rerun_analytics
+            from fieldtool.viewer.rerun_web import OfflineWebViewer, disable_rerun_analytics
 
             disable_rerun_analytics()
             self.urls["grpc"] = self.rec.serve_grpc(grpc_port=grpc_port, default_blueprint=blueprint())
@@ -346,7 +346,7 @@ class RerunObserver(Observer):
 
     def _profile(self, res) -> None:
         """Surface velocity along the section with the 2.5-97.5 % band of the pair fields."""
-        from ..plots.report_figures import profile_band
+        from fieldtool.plots.report_figures import profile_band
 
         rr = self.rr
         b = profile_band(res)

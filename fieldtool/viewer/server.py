@@ -33,13 +33,21 @@ from typing import Any, Callable
 
 import numpy as np
 
-from ..errors import FieldToolError, ParameterError
-from ..project import load_project
-from .guard import AccessGuard, install, page_path, ssh_hint
-from .images import FRAME_LIKE, KINDS, Display, lens_of, load_display, load_field
-from .mapping import ImagePlane, camera_pose, fit_plane, inside, pixel_to_scene, ray_to_pixel, zoom_about_cursor
-from .picks import MODES, PickState, checklist, get_field, next_mode, save_field
-from .snap import snap_to_target
+from fieldtool.errors import FieldToolError, ParameterError
+from fieldtool.project.model import load_project
+from fieldtool.viewer.guard import AccessGuard, install, page_path, ssh_hint
+from fieldtool.viewer.images import FRAME_LIKE, KINDS, Display, lens_of, load_display, load_field
+from fieldtool.viewer.mapping import (
+    ImagePlane,
+    camera_pose,
+    fit_plane,
+    inside,
+    pixel_to_scene,
+    ray_to_pixel,
+    zoom_about_cursor,
+)
+from fieldtool.viewer.picks import MODES, PickState, checklist, get_field, next_mode, save_field
+from fieldtool.viewer.snap import snap_to_target
 
 LOOPBACK = ("127.0.0.1", "localhost", "::1")
 FOV_RAD = np.deg2rad(50.0)

@@ -14,8 +14,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from ..errors import FieldToolError
-from .geotiff import check_crs
+from fieldtool.errors import FieldToolError
+from fieldtool.writers.geotiff import check_crs
 
 
 def check(project) -> None:
@@ -29,14 +29,14 @@ def write_standard(result, project, inputs, out: Path) -> None:
     A writer that fails (a library missing, a disk error) leaves a warning; the run's own files
     are unaffected.
     """
-    from ..records.video_meta import video_info
-    from . import geotiff, netcdf
+    from fieldtool.records.video_meta import video_info
+    from fieldtool.writers import geotiff, netcdf
 
     try:
         result.video = video_info(project, inputs.source)
     except (OSError, ValueError) as e:
         result.warnings.append(f"video metadata not read: {e}")
-    from ..project import atomic_write_bytes
+    from fieldtool.project.model import atomic_write_bytes
 
     pre = getattr(result, "prerendered", None)  # the figure process' files (plots.prerender), or None
     try:  # the report's figures: velocity profile with its band, GCPs with distances and residuals
@@ -46,7 +46,7 @@ def write_standard(result, project, inputs, out: Path) -> None:
             atomic_write_bytes(out / "profile.png", png)
             result.files["section_profile"], result.files["profile_png"] = "section_profile.csv", "profile.png"
         else:  # drawn here (matplotlib imported only then)
-            from ..plots import report_figures as figs
+            from fieldtool.plots import report_figures as figs
 
             result.files["section_profile"], result.files["profile_png"] = figs.write_profile(out, result)
         png = pre.file("gcp.png") if pre is not None else None
@@ -54,7 +54,7 @@ def write_standard(result, project, inputs, out: Path) -> None:
             atomic_write_bytes(out / "gcp.png", png)
             gcp = "gcp.png"
         else:
-            from ..plots import report_figures as figs
+            from fieldtool.plots import report_figures as figs
 
             gcp = figs.write_gcp(out, project, result, inputs)
         if gcp is not None:

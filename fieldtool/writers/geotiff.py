@@ -18,8 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import ParameterError
-from ..project import atomic_path
+from fieldtool.errors import ParameterError
+from fieldtool.project.model import atomic_path
 
 GEOREF_METHODS = ("world", "pose")
 

@@ -24,9 +24,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import __version__
-from ..project import atomic_path
-from .geotiff import crs_of
+from fieldtool import __version__
+from fieldtool.project.model import atomic_path
+from fieldtool.writers.geotiff import crs_of
 
 MAX_CELLS = 300  # per side: the PIV grid has far fewer nodes; a finer grid only costs time
 
@@ -155,7 +155,7 @@ def build_dataset(result, project) -> dict:
         "time_bnds": (("time", "nv"), np.array([[t0, t1]]), {}, plain),
     }
     if crs is not None:
-        from .geotiff import cf_grid_mapping
+        from fieldtool.writers.geotiff import cf_grid_mapping
 
         variables["crs"] = ((), np.int32(0), cf_grid_mapping(crs), {})
     d = result.discharge

@@ -8,13 +8,13 @@ from textual.containers import Horizontal, VerticalScroll
 from textual.screen import Screen
 from textual.widgets import Footer, OptionList, Static
 
-from .. import keys
-from ...errors import FieldToolError
-from ..checks import is_missing
-from ..fields import Field
-from ..steps import STEP_BY_ID, STEP_IDS, fields_for
-from ..widgets.chrome import HelpLine, StatusLine, StepList, TitleBar
-from ..widgets.field_row import FieldRow, field_id
+from fieldtool.tui import keys
+from fieldtool.errors import FieldToolError
+from fieldtool.tui.checks import is_missing
+from fieldtool.tui.fields import Field
+from fieldtool.tui.steps import STEP_BY_ID, STEP_IDS, fields_for
+from fieldtool.tui.widgets.chrome import HelpLine, StatusLine, StepList, TitleBar
+from fieldtool.tui.widgets.field_row import FieldRow, field_id
 
 GENERAL_HELP = "tab / shift+tab: next / previous field · enter: open a list · ctrl+p: jump to a step"
 
@@ -201,7 +201,7 @@ class StepScreen(Screen):
 
     def step_check(self) -> None:
         """Check the step with the core functions; raise FieldToolError with the user's message."""
-        from ..checks import core_check
+        from fieldtool.tui.checks import core_check
 
         core_check(self.session, self.STEP)
 

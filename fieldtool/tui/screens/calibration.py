@@ -7,10 +7,10 @@ from textual.markup import escape
 from textual.containers import Horizontal
 from textual.widgets import Label, Select, Static
 
-from ...errors import FieldToolError, ParameterError
-from .. import keys
-from ..steps import CALIBRATION_MODES
-from .base import StepScreen
+from fieldtool.errors import FieldToolError, ParameterError
+from fieldtool.tui import keys
+from fieldtool.tui.steps import CALIBRATION_MODES
+from fieldtool.tui.screens.base import StepScreen
 
 
 class CalibrationScreen(StepScreen):
@@ -78,7 +78,7 @@ class CalibrationScreen(StepScreen):
                     f"(diagonal {fd:.1f})")
 
     def _load(self):
-        from ...processing.calibration import load_calibration
+        from fieldtool.processing.calibration import load_calibration
 
         if not self.project.calibration.path:
             raise ParameterError("calibration.path: no calibration file given")
@@ -98,7 +98,7 @@ class CalibrationScreen(StepScreen):
         return True
 
     def action_run(self) -> None:
-        from .. import jobs
+        from fieldtool.tui import jobs
 
         msgs = [r.current_error() for r in self.rows if r.display]
         msgs = [m for m in msgs if m]

@@ -4,11 +4,11 @@ from __future__ import annotations
 
 from textual.app import ComposeResult
 
-from ...errors import FieldToolError
-from ...processing import cross_section as xs
-from .. import keys
-from ..widgets.plots import SectionPlot
-from .base import StepScreen
+from fieldtool.errors import FieldToolError
+from fieldtool.processing import cross_section as xs
+from fieldtool.tui import keys
+from fieldtool.tui.widgets.plots import SectionPlot
+from fieldtool.tui.screens.base import StepScreen
 
 
 def build_cross_section(project) -> xs.CrossSection:
@@ -50,7 +50,7 @@ class CrossSectionScreen(StepScreen):
 
     def action_write_csv(self) -> None:
         """Write the created shape's points to a CSV beside the project (reusable with 'load a file')."""
-        from ...project import atomic_write_bytes
+        from fieldtool.project.model import atomic_write_bytes
 
         try:
             cs = build_cross_section(self.project)

@@ -11,12 +11,12 @@ from textual.app import ComposeResult
 from textual.containers import Horizontal
 from textual.widgets import Input, Label, OptionList, Select, Static
 
-from ...errors import FieldToolError, ParameterError
-from ...processing.filters import FILTERS, FilterStack
-from .. import keys
-from ..fields import DECIMAL_HINT, fmt_num
-from ..widgets.plots import GrayImage
-from .base import StepScreen
+from fieldtool.errors import FieldToolError, ParameterError
+from fieldtool.processing.filters import FILTERS, FilterStack
+from fieldtool.tui import keys
+from fieldtool.tui.fields import DECIMAL_HINT, fmt_num
+from fieldtool.tui.widgets.plots import GrayImage
+from fieldtool.tui.screens.base import StepScreen
 
 
 def parse_params(text: str, name: str) -> dict:
@@ -132,9 +132,9 @@ class FiltersScreen(StepScreen):
     def action_run(self) -> None:
         """Filter the first frame: small before/after here, large in a preview screen, and the
         filtered frame written to out/filter_preview.png for the viewer."""
-        from ...processing.filters import preview
-        from ...project import atomic_write_bytes
-        from .preview import PNG, PreviewScreen
+        from fieldtool.processing.filters import preview
+        from fieldtool.project.model import atomic_write_bytes
+        from fieldtool.tui.screens.preview import PNG, PreviewScreen
 
         try:
             inputs = self.session.inputs()
@@ -175,7 +175,7 @@ class FiltersScreen(StepScreen):
         raise ParameterError("video: the range holds no frame")
 
     def roi(self, inputs):
-        from ...pipeline import roi_and_mask
+        from fieldtool.run.pipeline import roi_and_mask
 
         return roi_and_mask(self.project, inputs)[0]
 

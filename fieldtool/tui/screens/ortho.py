@@ -7,9 +7,9 @@ from textual.app import ComposeResult
 from textual.markup import escape
 from textual.widgets import Static
 
-from ...errors import FieldToolError
-from .. import keys
-from .base import StepScreen
+from fieldtool.errors import FieldToolError
+from fieldtool.tui import keys
+from fieldtool.tui.screens.base import StepScreen
 
 SCHEMATIC = ("P1 ──L1── P2   bank 1\n"
              "│ ╲      ╱ │   L5 = |P1P3|, L6 = |P2P4|\n"
@@ -40,7 +40,7 @@ class OrthoScreen(StepScreen):
             info.update("ctrl+r solves the GCP geometry and reports its residual")
 
     def mapping(self):
-        from ...pipeline import build_mapping
+        from fieldtool.run.pipeline import build_mapping
 
         return build_mapping(self.project, self.session.inputs(), None)
 

@@ -6,9 +6,9 @@ import numpy as np
 from textual.app import ComposeResult
 from textual.widgets import Static
 
-from .. import keys
-from ..widgets.plots import VectorGrid
-from .base import StepScreen
+from fieldtool.tui import keys
+from fieldtool.tui.widgets.plots import VectorGrid
+from fieldtool.tui.screens.base import StepScreen
 
 
 class PivScreen(StepScreen):
@@ -54,7 +54,7 @@ class PivScreen(StepScreen):
         grid.set_field(u, v)
 
     def action_run(self) -> None:
-        from .. import jobs
+        from fieldtool.tui import jobs
 
         msgs = self.errors()
         if msgs:

@@ -12,7 +12,7 @@ from textual.containers import Horizontal, Vertical
 from textual.screen import ModalScreen
 from textual.widgets import Footer, Static
 
-from ..widgets.plots import GrayImage
+from fieldtool.tui.widgets.plots import GrayImage
 
 PNG = "filter_preview.png"
 

@@ -8,8 +8,8 @@ from textual.app import ComposeResult
 from textual.markup import escape
 from textual.widgets import DataTable, Static
 
-from .. import keys
-from .base import StepScreen
+from fieldtool.tui import keys
+from fieldtool.tui.screens.base import StepScreen
 
 # (header, csv column, decimals)
 COLUMNS = (("#", "subsection", None), ("from m", "station_from_m", 2), ("to m", "station_to_m", 2),
@@ -159,7 +159,7 @@ class ResultsScreen(StepScreen):
         self.focus_first()
 
     def action_run(self) -> None:
-        from .. import jobs
+        from fieldtool.tui import jobs
 
         bad = [st for st in ("cross_section", "video", "calibration", "ortho", "water_level", "roi", "filters", "piv",
                              "section") if self.session.step_errors(st)]

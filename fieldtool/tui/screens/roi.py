@@ -6,8 +6,8 @@ from textual.app import ComposeResult
 from textual.markup import escape
 from textual.widgets import Static
 
-from ...errors import FieldToolError
-from .base import StepScreen
+from fieldtool.errors import FieldToolError
+from fieldtool.tui.screens.base import StepScreen
 
 
 class RoiScreen(StepScreen):
@@ -31,7 +31,7 @@ class RoiScreen(StepScreen):
                     "pick the ROI as two corners (top-left, bottom-right) and each mask as 3+ corners in the viewer")
 
     def check(self):
-        from ...pipeline import roi_and_mask
+        from fieldtool.run.pipeline import roi_and_mask
 
         return roi_and_mask(self.project, self.session.inputs())
 

@@ -7,9 +7,9 @@ from textual.app import ComposeResult
 from textual.markup import escape
 from textual.widgets import Static
 
-from ...errors import FieldToolError
-from .. import keys
-from .base import StepScreen
+from fieldtool.errors import FieldToolError
+from fieldtool.tui import keys
+from fieldtool.tui.screens.base import StepScreen
 
 
 class SectionScreen(StepScreen):
@@ -21,7 +21,7 @@ class SectionScreen(StepScreen):
         yield Static("", id="section-info")
 
     def geometry(self):
-        from ..checks import section_geometry
+        from fieldtool.tui.checks import section_geometry
 
         return section_geometry(self.session)
 
@@ -35,7 +35,7 @@ class SectionScreen(StepScreen):
         except FieldToolError as e:
             info.update(f"[red]{escape(str(e))}[/red]")
             return
-        from ...processing.discharge import default_alpha
+        from fieldtool.processing.discharge import default_alpha
 
         e = geom.station_edges
         depth = cs.wetted_area(level.level_m, e[0], e[-1]) / max(e[-1] - e[0], 1e-9)

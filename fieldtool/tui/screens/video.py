@@ -6,9 +6,9 @@ from textual.app import ComposeResult
 from textual.markup import escape
 from textual.widgets import Static
 
-from ...errors import FieldToolError
-from .. import keys
-from .base import StepScreen
+from fieldtool.errors import FieldToolError
+from fieldtool.tui import keys
+from fieldtool.tui.screens.base import StepScreen
 
 
 class VideoScreen(StepScreen):
@@ -55,7 +55,7 @@ class VideoScreen(StepScreen):
             self.refresh_bindings()
 
     def action_run(self) -> None:
-        from .. import jobs
+        from fieldtool.tui import jobs
 
         if self.errors():
             self.show_errors(self.errors())

@@ -6,11 +6,11 @@ from textual.app import ComposeResult
 from textual.markup import escape
 from textual.widgets import Static
 
-from ...errors import FieldToolError
-from .. import keys
-from ..widgets.plots import SectionPlot
-from .base import StepScreen
-from .cross_section import build_cross_section
+from fieldtool.errors import FieldToolError
+from fieldtool.tui import keys
+from fieldtool.tui.widgets.plots import SectionPlot
+from fieldtool.tui.screens.base import StepScreen
+from fieldtool.tui.screens.cross_section import build_cross_section
 
 
 class WaterLevelScreen(StepScreen):
@@ -23,7 +23,7 @@ class WaterLevelScreen(StepScreen):
         yield SectionPlot(id="plot")
 
     def compute(self):
-        from ...pipeline import level_and_mapping
+        from fieldtool.run.pipeline import level_and_mapping
 
         inputs = self.session.inputs()
         level, _ = level_and_mapping(self.project, inputs)

@@ -8,7 +8,7 @@ from rich.text import Text
 from textual.widgets import OptionList, Static
 from textual.widgets.option_list import Option
 
-from ..steps import STEPS
+from fieldtool.tui.steps import STEPS
 
 # sidebar mark per step state: ✓ validates, · something to enter, ! changed since the last result, ✗ invalid
 MARKS = {"ok": ("✓", "green"), "todo": ("·", "yellow"), "stale": ("!", "red"), "invalid": ("✗", "bold red")}

@@ -13,9 +13,9 @@ from textual.containers import Horizontal, Vertical
 from textual.message import Message
 from textual.widgets import Input, Label, Select, Static
 
-from ..checks import is_missing
-from ..fields import Field
-from .path_suggester import PathSuggester
+from fieldtool.tui.checks import is_missing
+from fieldtool.tui.fields import Field
+from fieldtool.tui.widgets.path_suggester import PathSuggester
 
 
 def field_id(field: Field) -> str:

@@ -23,8 +23,8 @@ from typing import Any
 
 import tomli_w
 
-from .errors import InputFileError, ParameterError
-from .keyspec import key
+from fieldtool.errors import InputFileError, ParameterError
+from fieldtool.project.keyspec import key
 
 Point = list[float]
 
@@ -269,7 +269,7 @@ class Project:
     section: SectionCfg = field(default_factory=SectionCfg)
     stiv: StivCfg = field(default_factory=StivCfg)
     # more sections of interest on the same field: [{name = "upstream", points_px = [[x, y], [x, y]],
-    # cross_section = "upstream.csv"}, ...]; see fieldtool/sections.py
+    # cross_section = "upstream.csv"}, ...]; see fieldtool/run/sections.py
     sections: list[dict[str, Any]] = key(factory=list, max_items=20)
     rerun: RerunCfg = field(default_factory=RerunCfg)
     quality: QualityCfg = field(default_factory=QualityCfg)
@@ -383,7 +383,7 @@ def project_to_dict(project: Project) -> dict:
 
 def _parse_toml(path: Path) -> dict:
     """The parsed TOML of a project file in any encoding fieldtool reads (see ``textfile``)."""
-    from .textfile import read_text
+    from fieldtool.project.textfile import read_text
 
     text = read_text(path, "project file")
     try:
@@ -494,7 +494,7 @@ def _dump_roundtrip(path: Path, data: dict) -> bytes:
     import tomlkit
 
     try:
-        from .textfile import read_text
+        from fieldtool.project.textfile import read_text
 
         doc = tomlkit.parse(read_text(path, "project file")) if path.exists() else None
     except Exception:  # noqa: BLE001 - an unreadable old file is replaced by a plain new one

@@ -1,7 +1,7 @@
 """Declarations of project keys: unit, range, shape and path rules, attached to the Project
 dataclass fields as metadata (``key(...)`` is ``dataclasses.field`` plus a ``KeySpec``).
 
-The rules are enforced by ``fieldtool.validation``; a field without a declaration is still checked
+The rules are enforced by ``fieldtool.project.validation``; a field without a declaration is still checked
 there from its type annotation (finite, bounded numbers, non-ragged lists, safe text). Anyone adding
 a key to ``project.py`` declares it the same way, on the field's own line::
 

@@ -12,7 +12,7 @@ import stat
 import warnings
 from pathlib import Path
 
-from .errors import FieldToolWarning, InputFileError
+from fieldtool.errors import FieldToolWarning, InputFileError
 
 MAX_TEXT_BYTES = 64 * 1024 * 1024  # a project file or a table larger than this is not one
 

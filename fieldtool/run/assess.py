@@ -11,9 +11,9 @@ import dataclasses
 
 import numpy as np
 
-from .processing import quality as ql
-from .processing import uncertainty as un
-from .processing.ortho import OrthoMapping
+from fieldtool.processing import quality as ql
+from fieldtool.processing import uncertainty as un
+from fieldtool.processing.ortho import OrthoMapping
 
 
 def thresholds(project) -> ql.Thresholds:
@@ -35,7 +35,7 @@ def sigmas(project, level) -> un.McSigmas:
 
 def _mapping_fn(project, inputs, mapping: OrthoMapping):
     """(gcp_px working, gcp_ref, level) -> H, rebuilt as the run's method did; with the GCP inputs."""
-    from .processing import ortho
+    from fieldtool.processing import ortho
 
     o = project.ortho
     if o.method == "distances":
@@ -56,7 +56,7 @@ def _mapping_fn(project, inputs, mapping: OrthoMapping):
 
         return fn, px, world.ravel()
     if o.method == "pose":
-        from .processing import pose
+        from fieldtool.processing import pose
 
         raw = np.asarray(o.gcp_px, float)
         world = np.asarray(o.gcp_world_m, float)

@@ -17,9 +17,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import FieldToolError, ParameterError
-from .processing import discharge as dq
-from .processing import ortho
+from fieldtool.errors import FieldToolError, ParameterError
+from fieldtool.processing import discharge as dq
+from fieldtool.processing import ortho
 
 SECTION_KEYS = {"name": str, "points_px": list, "cross_section": str, "station_offset_m": (int, float)}
 
@@ -65,9 +65,9 @@ def parse(project) -> list[SectionSpec]:
 def measure(project, inputs, spec: SectionSpec, level, mapping, res, U, V, frame_stats: dict, pair_q_of) -> dict:
     """Discharge, interval and grade of one extra section on the run's field; never raises for a bad section
     (its entry then holds ``error``)."""
-    from .assess import assess_run
-    from .pipeline import build_section
-    from .processing import cross_section as xs
+    from fieldtool.run.assess import assess_run
+    from fieldtool.run.pipeline import build_section
+    from fieldtool.processing import cross_section as xs
 
     entry: dict = {"name": spec.name, "points_px": spec.points_px}
     try:

@@ -15,15 +15,15 @@ import threading
 import time
 from pathlib import Path
 
-from . import __version__
-from .console import end_progress_line, progress_line
-from .errors import Cancelled, FieldToolError, InputFileError
+from fieldtool import __version__
+from fieldtool.cli.console import end_progress_line, progress_line
+from fieldtool.errors import Cancelled, FieldToolError, InputFileError
 
 EXTENSIONS = (
     "fieldtool.tui.commands",
     "fieldtool.viewer.commands",
     "fieldtool.records.commands",
-    "fieldtool.commands",
+    "fieldtool.cli.commands",
 )
 
 
@@ -34,13 +34,13 @@ def _print_progress(stage: str, done: int, total: int) -> None:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    from .plots import prerender
+    from fieldtool.plots import prerender
 
     prerender.start()  # the figure process imports matplotlib on the idle core while this one imports the rest
-    from .pipeline import run_project
-    from .project import load_project
+    from fieldtool.run.pipeline import run_project
+    from fieldtool.project.model import load_project
 
-    from .validation import check
+    from fieldtool.project.validation import check
 
     project = load_project(args.project)
     out = Path(args.out) if args.out else Path(args.project).resolve().parent / "out"
@@ -49,7 +49,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     check(project)  # every key, before any step (run_project checks again: other callers rely on it)
     observer = None
     if args.rerun or project.rerun.mode != "off":
-        from .viewer.rerun_log import observer_from_args
+        from fieldtool.viewer.rerun_log import observer_from_args
 
         observer = observer_from_args(project, args, out)
     t0 = time.perf_counter()
@@ -77,7 +77,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         print("PIV field     reused from the output folder (same clip, corrections and PIV parameters)")
     print(f"results in    {out}  ({time.perf_counter() - t0:.1f} s)")
     if args.record:
-        from .records.history import record_run
+        from fieldtool.records.history import record_run
 
         mid = record_run(project, s, out, site=args.site or project.site, db=args.db)
         print(f"recorded      history id {mid}")
@@ -96,7 +96,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def cmd_init(args: argparse.Namespace) -> int:
-    from .template import write_template
+    from fieldtool.project.template import write_template
 
     path = write_template(Path(args.dir), force=args.force)
     print(f"wrote {path}; edit it, then: fieldtool run {path}")
@@ -104,9 +104,9 @@ def cmd_init(args: argparse.Namespace) -> int:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    from .pipeline import run_project
-    from .project import load_project
-    from .synthetic import presets, render_scene
+    from fieldtool.run.pipeline import run_project
+    from fieldtool.project.model import load_project
+    from fieldtool.synthetic import presets, render_scene
 
     out = Path(args.out)
     t0 = time.perf_counter()
@@ -191,7 +191,7 @@ def _os_error_message(e: OSError) -> str:
 
 
 def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
-    from .errors import FieldToolWarning
+    from fieldtool.errors import FieldToolWarning
 
     if issubclass(category, FieldToolWarning):
         end_progress_line()
@@ -209,7 +209,7 @@ def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     debug = "--debug" in argv or bool(os.environ.get("FIELDTOOL_DEBUG"))
     argv = [a for a in argv if a != "--debug"]
-    from .errors import FieldToolWarning
+    from fieldtool.errors import FieldToolWarning
 
     with warnings.catch_warnings():
         warnings.simplefilter("always", FieldToolWarning)

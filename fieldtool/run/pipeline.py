@@ -20,13 +20,14 @@ from typing import Callable, Iterator
 
 import numpy as np
 
-from . import __version__, piv_cache, stiv_stage
-from .errors import Cancelled, FieldToolError, GeometryError, InputFileError, ParameterError
-from .processing import cross_section as xs
-from .processing import discharge as dq
-from .processing import ortho
-from .processing.frames import FrameSource, read_color_frame
-from .project import Project, atomic_write_bytes, project_to_dict
+from fieldtool import __version__
+from fieldtool.run import piv_cache, stiv_stage
+from fieldtool.errors import Cancelled, FieldToolError, GeometryError, InputFileError, ParameterError
+from fieldtool.processing import cross_section as xs
+from fieldtool.processing import discharge as dq
+from fieldtool.processing import ortho
+from fieldtool.processing.frames import FrameSource, read_color_frame
+from fieldtool.project.model import Project, atomic_write_bytes, project_to_dict
 
 Progress = Callable[[str, int, int], None]
 
@@ -107,7 +108,7 @@ class RunResult:
     stiv: dict | None = None  # STIV beside PIV per subsection (stiv_stage.finish); None when [stiv] enabled = false
     uncertainty: object | None = None  # processing.uncertainty.McResult
     quality: object | None = None  # processing.quality.Quality
-    sections: list = field(default_factory=list)  # several sections: the main one first (fieldtool.sections)
+    sections: list = field(default_factory=list)  # several sections: the main one first (fieldtool.run.sections)
     robust: dict | None = None  # facts of the robust stages (processing/surface.py, robust.py, planning.py)
     piv_fast: dict | None = None  # region box and pair sampling of the fast path (see piv_region / run_piv_fast)
     video: dict = field(default_factory=dict)  # the clip's metadata (records.video_meta.video_info)
@@ -161,7 +162,7 @@ class RunResult:
 
 
 def _sections_summary(entries: list) -> dict | None:
-    from .sections import summarize
+    from fieldtool.run.sections import summarize
 
     return summarize(entries) if entries else None
 
@@ -187,7 +188,7 @@ def load_inputs(project: Project) -> Inputs:
     v = project.video
     if not v.path:
         raise ParameterError("video.path: no video given; set the clip to analyse")
-    from .validation import path_problem
+    from fieldtool.project.validation import path_problem
 
     msg = path_problem(project.resolve(v.path), "video.path", kind="video")  # a FIFO must not block the open
     if msg:
@@ -195,7 +196,7 @@ def load_inputs(project: Project) -> Inputs:
     src = FrameSource(project.resolve(v.path), v.start_s, v.end_s, v.step, v.frame_interval_s)
     lens = None
     if project.calibration.path:
-        from .processing.calibration import load_calibration
+        from fieldtool.processing.calibration import load_calibration
 
         lens = load_calibration(project.resolve(project.calibration.path))
     first = read_color_frame(project.resolve(v.path), v.start_s, v.frame_interval_s)
@@ -206,7 +207,7 @@ def detect_waterline(project: Project, inputs: Inputs, mapping: ortho.OrthoMappi
     """Water edges found along the search line in the clip's first frames (processing.waterline): the
     project's ``water_level.search_line_px``, else the section's points lengthened by 40 % each way; with a
     ``mapping``, also along 2 lines each side of it, ``water_level.search_spacing_m`` apart on the water."""
-    from .processing import waterline
+    from fieldtool.processing import waterline
 
     wl = project.water_level
     if wl.search_line_px:
@@ -227,13 +228,13 @@ def detect_waterline(project: Project, inputs: Inputs, mapping: ortho.OrthoMappi
 
 def compute_level(project: Project, inputs: Inputs, mapping: ortho.OrthoMapping | None):
     """Water level by the project's method (see processing.water_level)."""
-    from .processing.water_level import compute_level as _compute
+    from fieldtool.processing.water_level import compute_level as _compute
 
     detected = detect_waterline(project, inputs, mapping) if project.water_level.method == "waterline" else None
     sec = project.section
     station_of = None  # with a surveyed station of the section's first point, each edge gives a level too
     if detected is not None and sec.station_offset_m is not None and np.shape(sec.points_px) == (2, 2):
-        from .processing.waterline import station_function
+        from fieldtool.processing.waterline import station_function
 
         station_of = station_function(inputs.to_working(sec.points_px), mapping, sec.station_offset_m)
     fov = inputs.lens.fov_deg() if inputs.lens is not None else None
@@ -269,7 +270,7 @@ def build_mapping(project: Project, inputs: Inputs, level_m: float | None) -> or
         ortho.check_gcp_residuals(m, inputs.to_working(raw), o.max_residual_m, o.accept_residual)
         return m
     if o.method == "pose":
-        from .processing import pose
+        from fieldtool.processing import pose
 
         if level_m is None:
             raise ParameterError("ortho.method = pose needs the water level first")
@@ -280,7 +281,7 @@ def build_mapping(project: Project, inputs: Inputs, level_m: float | None) -> or
             if not o.fit_lens:
                 raise ParameterError("ortho.method = pose needs the camera intrinsics: set calibration.path, or set "
                                      "ortho.fit_lens = true to fit focal length and k1 from 8+ GCPs")
-            from .processing.calibration import LensModel
+            from fieldtool.processing.calibration import LensModel
 
             h, w = shape
             K, dist, p, lens_fit = pose.fit_lens(raw, world, (w, h))
@@ -358,7 +359,7 @@ def roi_and_mask(project: Project, inputs: Inputs) -> tuple[tuple[int, int, int,
         roi = (int(x0), int(y0), int(x1), int(y1))
     mask = None
     if project.roi.masks_px:
-        from .processing.masks import rasterize
+        from fieldtool.processing.masks import rasterize
 
         polys = [inputs.to_working(p).tolist() if len(p) >= 3 else p for p in project.roi.masks_px]
         mask = rasterize((h, w), polys)
@@ -377,7 +378,7 @@ def working_frames(project: Project, inputs: Inputs, cancel: Callable[[], bool] 
     ``want(k)``: frames at stream positions k that fail it come as (t_s, None), decoded past but not converted
     (the fast path's rounds need only their own pairs' frames). Ignored with stabilisation, which tracks every
     frame, and with a filter stack marked ``temporal``."""
-    from .processing.filters import FilterStack
+    from fieldtool.processing.filters import FilterStack
 
     # filters work inside the ROI only (thesis 9.2.7): banks and sky do not set their statistics
     stack = FilterStack.from_config(project.filters, roi=roi_and_mask(project, inputs)[0]) if project.filters else None
@@ -397,7 +398,7 @@ def working_frames(project: Project, inputs: Inputs, cancel: Callable[[], bool] 
                 img = inputs.lens.undistort(img)
             if project.stabilize.enabled:
                 if stabilizer is None:
-                    from .processing.stabilize import Stabilizer
+                    from fieldtool.processing.stabilize import Stabilizer
 
                     st = project.stabilize
                     regions = [inputs.to_working([[r[0], r[1]], [r[2], r[3]]]).ravel().tolist() for r in st.regions_px]
@@ -464,7 +465,7 @@ class _Sized:
 
 
 def piv_params(project: Project):
-    from .processing.piv import PivParams
+    from fieldtool.processing.piv import PivParams
 
     p = project.piv
     return PivParams(window_px=p.window_px, overlap_px=p.overlap_px, search_px=p.search_px, passes=p.passes,
@@ -477,7 +478,7 @@ def piv_region(project: Project, inputs: Inputs, params, roi, segments) -> tuple
     """The box PIV correlates (working-image px), by ``[piv] region``: ``section`` a band around the section
     segment(s) (list of (2, 2) working-image points) within the ROI, ``roi`` the ROI (None = whole frame),
     ``full`` the whole frame (None)."""
-    from .processing import piv_fast
+    from fieldtool.processing import piv_fast
 
     region = project.piv.region
     if region not in piv_fast.REGIONS:
@@ -500,8 +501,8 @@ def run_piv_fast(make_frames, n_pairs: int, gap: int, params, roi, mask, max_spe
     pairs_used, converged, ...)."""
     from dataclasses import asdict
 
-    from .processing import piv as piv_mod
-    from .processing import piv_fast
+    from fieldtool.processing import piv as piv_mod
+    from fieldtool.processing import piv_fast
 
     if not (isinstance(rel_ci, (int, float)) and np.isfinite(rel_ci) and rel_ci > 0):
         raise ParameterError(f"piv.converge_rel_ci: {rel_ci!r} must be a number above 0 (0.005 = +-0.5 %)")
@@ -553,7 +554,7 @@ def run_project(project: Project, out_dir: Path | str | None = None, *, progress
 def _run_project(project: Project, out_dir: Path | str | None, progress: Progress | None,
                  cancel: Callable[[], bool] | None, observer: Observer | None, ends) -> RunResult:
     """:func:`run_project`; ``ends`` (a contextlib.ExitStack) takes what must be closed when the run ends."""
-    from .processing import piv as piv_mod
+    from fieldtool.processing import piv as piv_mod
 
     warnings: list[str] = []
     obs = _Guarded(observer, warnings)
@@ -567,21 +568,21 @@ def _run_project(project: Project, out_dir: Path | str | None, progress: Progres
         t0 = now
 
     if out_dir is not None:
-        from .plots import prerender
+        from fieldtool.plots import prerender
 
         prerender.start()  # the figure process (plots.prerender), forked before this run starts any thread
         # scipy.spatial (~0.1 s, the NetCDF grid) is imported while the PIV waits for its frames; so is
         # matplotlib (~0.5 s) where no figure process draws the figures
         modules = ("scipy.spatial",) if prerender.can_fork() else ("fieldtool.plots.discharge", "scipy.spatial")
         threading.Thread(target=lambda: [importlib.import_module(m) for m in modules], daemon=True).start()
-    from .validation import check
+    from fieldtool.project.validation import check
 
     warnings += [str(w) for w in check(project)]  # every key, before any step
-    from .sections import parse as parse_sections
+    from fieldtool.run.sections import parse as parse_sections
 
     extra_sections = parse_sections(project)
     obs("stage", "inputs")
-    from .writers import check as check_outputs
+    from fieldtool.writers import check as check_outputs
 
     check_outputs(project)  # a wrong ortho.crs_epsg stops the run before any work
     inputs = load_inputs(project)
@@ -600,7 +601,7 @@ def _run_project(project: Project, out_dir: Path | str | None, progress: Progres
     params = piv_params(project)
     # stationary-pattern removal standardises each pixel over a window of frames: a clip shorter than that
     # window (e.g. 1 s of natural texture) would lose its own texture to the window's mean
-    from .processing.surface import HALF_WINDOW
+    from fieldtool.processing.surface import HALF_WINDOW
 
     n_clip = inputs.source.estimated_count() or 0
     standardize = project.piv.remove_stationary and (n_clip == 0 or n_clip >= 2 * HALF_WINDOW + 1)
@@ -608,7 +609,7 @@ def _run_project(project: Project, out_dir: Path | str | None, progress: Progres
         warnings.append(f"piv.remove_stationary: the clip has {n_clip} frames, fewer than the {2 * HALF_WINDOW + 1} its "
                         "time window needs; glints and other patterns fixed in the image are not removed")
     if standardize:
-        from .processing.surface import MIN_TEXTURE
+        from fieldtool.processing.surface import MIN_TEXTURE
         from dataclasses import replace
 
         params = replace(params, min_texture=MIN_TEXTURE)
@@ -617,7 +618,7 @@ def _run_project(project: Project, out_dir: Path | str | None, progress: Progres
     roi = piv_region(project, inputs, params, roi, segments)
     near = None
     if project.piv.region == "section" and roi is not None:  # in the band's box, only the nodes near the sections
-        from .processing.piv_fast import node_reach_px
+        from fieldtool.processing.piv_fast import node_reach_px
 
         near = ([np.asarray(sg, float)[:2] for sg in segments],
                 node_reach_px(params.window_px, params.overlap_px, params.passes))
@@ -644,7 +645,7 @@ def _run_project(project: Project, out_dir: Path | str | None, progress: Progres
     obs("stage", "piv")
     prerendered = None
     if out_dir is not None:  # the figures of the inputs are drawn in the figure process during the PIV
-        from .plots.prerender import Prerender
+        from fieldtool.plots.prerender import Prerender
 
         prerendered = Prerender(project, inputs, level, mapping)
         ends.callback(prerendered.close)
@@ -653,7 +654,7 @@ def _run_project(project: Project, out_dir: Path | str | None, progress: Progres
     surface_stats = None
     plan = None
     if standardize:
-        from .processing.surface import SurfaceStats
+        from fieldtool.processing.surface import SurfaceStats
 
         surface_stats = SurfaceStats()
 
@@ -670,7 +671,7 @@ def _run_project(project: Project, out_dir: Path | str | None, progress: Progres
     decoded: list[float] = []
     from dataclasses import replace as _replace
 
-    from .processing import planning
+    from fieldtool.processing import planning
 
     def piv_stream(want=None, tap: bool = False):
         """The frames PIV reads: working frames, duplicate count, stationary-pattern removal (which needs every
@@ -691,9 +692,9 @@ def _run_project(project: Project, out_dir: Path | str | None, progress: Progres
 
         frames = _count_identical(tracked(frames), frame_stats)
         if standardize:
-            from .processing import surface
+            from fieldtool.processing import surface
 
-            from .processing.piv_fast import threaded
+            from fieldtool.processing.piv_fast import threaded
 
             surface_stats.frames = 0  # each round of the fast path standardises the clip again: count one pass
             frames = threaded(frames)  # decoding (and STIV's sampling) in a thread of its own
@@ -733,7 +734,7 @@ def _run_project(project: Project, out_dir: Path | str | None, progress: Progres
     # the first look share: its reader thread decodes and standardises every frame, but builds only the frames
     # of the round's pairs, spread over the clip; a further round (a new pass) only when not converged
     elif not project.piv.all_pairs and n_exp > 2:
-        from .processing.piv_fast import Prefetched, prefetch
+        from fieldtool.processing.piv_fast import Prefetched, prefetch
 
         first = None
         if standardize:  # round 1 reads the stream the first look started; want is set when round 1 begins
@@ -773,7 +774,7 @@ def _run_project(project: Project, out_dir: Path | str | None, progress: Progres
         if cache_dir is not None:
             piv_cache.save(cache_dir, key, res, stab or None, {**fast, "frame_stats": frame_stats})
     else:
-        from .processing.piv_fast import prefetch
+        from fieldtool.processing.piv_fast import prefetch
 
         frames = plan_pairs(piv_stream(tap=True))
         reader = prefetch(frames)
@@ -815,7 +816,7 @@ def _run_project(project: Project, out_dir: Path | str | None, progress: Progres
     if zr is not None:
         robust_facts["zero_peak_removed_nodes"] = int(np.count_nonzero(zr))
     if project.piv.reject_upstream:
-        from .processing import robust
+        from fieldtool.processing import robust
 
         v_clean, rejected = robust.reject_upstream(v_sub)
         robust_facts["upstream_rejected"] = [int(i) for i in np.flatnonzero(rejected)]
@@ -824,7 +825,7 @@ def _run_project(project: Project, out_dir: Path | str | None, progress: Progres
             warnings.append(f"{int(rejected.sum())} subsection(s) went upstream while the section goes downstream "
                             "(wind ripples, standing waves or glints); rejected and filled from their neighbours")
     stiv_block, dres = stiv_stage.finish(stiv_run, project, geom, cs, level.level_m, dres, res, U, V)
-    from .processing.robust import width_share
+    from fieldtool.processing.robust import width_share
 
     robust_facts["filled_subsections"] = [int(i) for i in np.flatnonzero(dres.velocity_filled)]
     robust_facts["filled_width_share"] = width_share(dres.station_from, dres.station_to, dres.velocity_filled)
@@ -837,7 +838,7 @@ def _run_project(project: Project, out_dir: Path | str | None, progress: Progres
     if prerendered is not None:  # the velocity figures are drawn in the figure process during the Monte Carlo
         prerendered.results(inputs, dres, res, U, V, geom, mapping, cs)
 
-    from .assess import assess_run
+    from fieldtool.run.assess import assess_run
 
     try:
         unc, qual = assess_run(project, inputs, level, mapping, geom, res, U, V, dres, q_pairs, frame_stats)
@@ -847,7 +848,7 @@ def _run_project(project: Project, out_dir: Path | str | None, progress: Progres
     stiv_stage.add_reason(qual, stiv_block)  # "PIV and STIV disagree ..." (doubtful)
     section_entries = []
     if extra_sections:
-        from . import sections as secs
+        from fieldtool.run import sections as secs
 
         main = {"name": "main", "points_px": np.asarray(sec.points_px, float).tolist(), "discharge_m3s": dres.discharge_m3s,
                 "discharge_ci95_m3s": (list(unc.ci95_m3s) if unc is not None and np.all(np.isfinite(unc.ci95_m3s))
@@ -862,7 +863,7 @@ def _run_project(project: Project, out_dir: Path | str | None, progress: Progres
         summ = secs.summarize(section_entries)
         if qual is not None and summ is not None and summ["cv"] is not None \
                 and summ["cv"] > project.quality.sections_cv_doubtful:
-            from .processing.quality import Reason
+            from fieldtool.processing.quality import Reason
 
             qual.reasons.append(Reason("sections_disagree", "doubtful",
                                        f"the {summ['n']} sections' discharges differ by a coefficient of variation of "
@@ -889,14 +890,14 @@ def _run_project(project: Project, out_dir: Path | str | None, progress: Progres
 
 def write_outputs(result: RunResult, project: Project, inputs: Inputs, out: Path) -> None:
     """result.json, subsections.csv, mean_field.npz/.npy and the PNG plots, each written atomically."""
-    from .outdir import Staging
+    from fieldtool.run.outdir import Staging
 
     t0 = time.perf_counter()
     project_file_inside = out.exists() and out.resolve() in (project.root.resolve(), *project.root.resolve().parents)
     stage = Staging(out, in_place=project_file_inside)
     try:
         _write_outputs(result, inputs, stage.path)
-        from .writers import write_standard
+        from fieldtool.writers import write_standard
 
         write_standard(result, project, inputs, stage.path)  # mean_field.nc, rectified.tif (with a CRS), video metadata
         _write_figures(result, inputs, stage.path)  # last: the figure process draws them meanwhile
@@ -911,7 +912,7 @@ def write_outputs(result: RunResult, project: Project, inputs: Inputs, out: Path
 
 def _write_result_json(result: RunResult, out: Path) -> None:
     """result.json, strict JSON: a non-finite number is written as null and named in the warnings."""
-    from .outdir import strict_json
+    from fieldtool.run.outdir import strict_json
 
     extra: list[str] = []
     summary = strict_json(result.summary(), extra)
@@ -963,7 +964,7 @@ def _write_figures(result: RunResult, inputs: Inputs, out: Path) -> None:
             atomic_write_bytes(out / name, png)
             files[key] = name
         else:
-            from .plots import discharge as plots
+            from fieldtool.plots import discharge as plots
 
             files[key] = draw(plots, out / name).name
     try:
@@ -972,7 +973,7 @@ def _write_figures(result: RunResult, inputs: Inputs, out: Path) -> None:
             atomic_write_bytes(out / "water_level.png", png)
             files["water_level_png"] = "water_level.png"
         else:
-            from .plots.water_level import plot_level
+            from fieldtool.plots.water_level import plot_level
 
             files["water_level_png"] = plot_level(out / "water_level.png", inputs.cross_section, result.level).name
     except FieldToolError as e:

@@ -7,7 +7,7 @@ import argparse
 import math
 from pathlib import Path
 
-from .errors import InputFileError, ParameterError
+from fieldtool.errors import InputFileError, ParameterError
 
 
 def _corners(text: str) -> tuple[int, int]:
@@ -19,10 +19,10 @@ def _corners(text: str) -> tuple[int, int]:
 
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
-    from .processing.calibration import calibrate_video, save_calibration
+    from fieldtool.processing.calibration import calibrate_video, save_calibration
 
-    from .console import end_progress_line, progress_line
-    from .validation import path_problem
+    from fieldtool.cli.console import end_progress_line, progress_line
+    from fieldtool.project.validation import path_problem
 
     def progress(done: int, total: int) -> None:
         progress_line(f"frames searched: {done}/{total}")
@@ -48,7 +48,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     print(f"FOV x / y / diag   {fov[0]:.2f} / {fov[1]:.2f} / {fov[2]:.2f} deg")
     print(f"saved              {args.out}")
     if args.project:
-        from .project import apply_changes
+        from fieldtool.project.model import apply_changes
 
         apply_changes(args.project, {"calibration.path": str(Path(args.out).resolve())})  # only this key
         print(f"project            {args.project}: calibration.path set")
@@ -58,11 +58,11 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 def cmd_preview(args: argparse.Namespace) -> int:
     import cv2
 
-    from .pipeline import load_inputs, working_frames
-    from .processing.filters import preview
-    from .project import atomic_write_bytes, load_project
+    from fieldtool.run.pipeline import load_inputs, working_frames
+    from fieldtool.processing.filters import preview
+    from fieldtool.project.model import atomic_write_bytes, load_project
 
-    from .validation import check
+    from fieldtool.project.validation import check
 
     project = load_project(args.project)
     _check_out_file(args.out, "--out")
@@ -75,7 +75,7 @@ def cmd_preview(args: argparse.Namespace) -> int:
         first = next(iter(inputs.source)).image
         if inputs.lens is not None:
             first = inputs.lens.undistort(first)
-        from .pipeline import roi_and_mask
+        from fieldtool.run.pipeline import roi_and_mask
 
         out = preview(project.filters, first, roi=roi_and_mask(project, inputs)[0])
     ok, buf = cv2.imencode(".png", out)

@@ -4,7 +4,7 @@ Every key is checked the same way before any step runs: its type, unit range, fi
 shape of point lists, path rules (length, control characters, a regular readable file where a file
 is read: never a pipe, a device or a folder), bounded sizes, and simple geometry (coincident or
 collinear GCPs, degenerate ROI and regions). The rules of each key are declared beside the Project
-dataclasses (``fieldtool.keyspec.key``); an undeclared key is still checked from its type
+dataclasses (``fieldtool.project.keyspec.key``); an undeclared key is still checked from its type
 annotation (finite numbers within +-1e12, non-ragged lists, safe text).
 
 API::
@@ -31,8 +31,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterable
 
-from .errors import FieldToolError, ParameterError
-from .keyspec import KeySpec, spec_of
+from fieldtool.errors import FieldToolError, ParameterError
+from fieldtool.project.keyspec import KeySpec, spec_of
 
 # bounds for what no declaration bounds
 NUMBER_LIMIT = 1e12  # |x| of any number
@@ -68,7 +68,7 @@ class Problem:
 
 
 def validate(project, *, files: bool = True) -> list[Problem]:
-    """Every problem of ``project`` (a ``fieldtool.project.Project``), in key order.
+    """Every problem of ``project`` (a ``fieldtool.project.model.Project``), in key order.
 
     Never raises: a check that cannot run is itself reported as a problem of its key.
     """
@@ -252,7 +252,7 @@ _probe_cache: dict[tuple, tuple[int, int] | str] = {}
 
 def frame_size(path: Path, key: str = "video.path") -> tuple[int, int] | str:
     """(width, height) of a clip from its header (cached on path, size and mtime), or a message."""
-    from .processing.frames import FrameSource
+    from fieldtool.processing.frames import FrameSource
 
     try:
         st = os.stat(path)
@@ -281,7 +281,7 @@ _clip_cache: dict[tuple, str | None] = {}
 def clip_problem(path: Path, start_s: float, end_s: float | None, step: int, interval: float | None) -> str | None:
     """Why the clip cannot be read over this range ("key: message"), or None; cached on the file's
     size and mtime, so that the TUI may ask on every keystroke."""
-    from .processing.frames import FrameSource
+    from fieldtool.processing.frames import FrameSource
 
     try:
         st = os.stat(path)
@@ -347,7 +347,7 @@ class _Validator:
     # -- driver ---------------------------------------------------------------------------------
     def run(self) -> None:
         p = self.p
-        from .project import Project
+        from fieldtool.project.model import Project
 
         hints = typing.get_type_hints(Project)
         for f in dataclasses.fields(Project):
@@ -562,7 +562,7 @@ class _Validator:
         """Several sections: each table's keys, its two points, and its cross-section file."""
         if not self.ok("sections") or not isinstance(self.p.sections, list):
             return
-        from .sections import parse
+        from fieldtool.run.sections import parse
 
         try:
             specs = parse(self.p)
@@ -581,7 +581,7 @@ class _Validator:
             if _depth(item, NESTING_LIMIT) > NESTING_LIMIT:
                 self.err(f"filters[{i}]", f"nested more than {NESTING_LIMIT} levels deep; give plain values")
                 return
-        from .processing.filters import FilterStack
+        from fieldtool.processing.filters import FilterStack
 
         try:
             FilterStack.from_config(fl)
@@ -593,7 +593,7 @@ class _Validator:
                 self.background_memory(i, item)
 
     def background_memory(self, i: int, item: dict) -> None:
-        from .processing.filters import FILTERS
+        from fieldtool.processing.filters import FILTERS
 
         samples = item.get("samples")
         if samples is None:
@@ -729,7 +729,7 @@ class _Validator:
 
     def dem_header(self) -> None:
         """The DEM's size from its header (GDAL), before anything reads its cells."""
-        from .processing.water_level import MAX_DEM_CELLS
+        from fieldtool.processing.water_level import MAX_DEM_CELLS
 
         path = self.p.resolve(self.p.water_level.dem_path)
         try:
@@ -784,7 +784,7 @@ def _range_text(spec: KeySpec) -> str:
 
 
 def _key_order() -> list[str]:
-    from .project import Project
+    from fieldtool.project.model import Project
 
     out = []
     proj = Project()
@@ -798,7 +798,7 @@ def _key_order() -> list[str]:
 
 def describe(keys: Iterable[str] | None = None) -> dict[str, KeySpec | None]:
     """Declarations of the project's keys ("video.start_s" -> KeySpec or None if undeclared)."""
-    from .project import Project
+    from fieldtool.project.model import Project
 
     out: dict[str, KeySpec | None] = {}
     proj = Project()

@@ -14,10 +14,10 @@ from typing import Callable, Iterator
 
 import numpy as np
 
-from .errors import ParameterError
-from .processing import discharge as dq
-from .processing import stiv
-from .project import Project
+from fieldtool.errors import ParameterError
+from fieldtool.processing import discharge as dq
+from fieldtool.processing import stiv
+from fieldtool.project.model import Project
 
 SOURCES = ("piv", "stiv", "combined")
 
@@ -177,7 +177,7 @@ def add_reason(quality, block: dict | None) -> None:
     """Add the PIV/STIV disagreement to the quality verdict (doubtful; a good grade becomes doubtful)."""
     if quality is None or not block or not block.get("disagreement_reason"):
         return
-    from .processing.quality import Reason
+    from fieldtool.processing.quality import Reason
 
     quality.reasons.append(Reason(**block["disagreement_reason"]))
     if quality.grade == "good":

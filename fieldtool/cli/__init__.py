@@ -1,0 +1,1 @@
+"""The command line: ``fieldtool ...`` subcommands (``main``), their handlers and the console output."""
