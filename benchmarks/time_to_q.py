@@ -45,8 +45,14 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parent
 PEERS_VENV = HERE / ".peers-venv"
-PEERS = ["pyopenrivercam==0.9.10", "ffpiv==0.2.1"]  # pinned (pip index versions pyopenrivercam, Nov 2026)
-PYORC_RESOLUTION_M, PYORC_WINDOW = 0.02, 16
+# pinned (pip index versions, Dec 2026): pyorc and its engine, OpenPIV with its Rust backend, PyAV for the floor
+PEERS = ["pyopenrivercam==0.9.10", "ffpiv==0.2.1", "openpiv==0.26.1", "openpiv-rust==0.26.1", "av==18.1.0"]
+# pyorc's main settings as a competent user sweeps them (resolution m, window px): the most accurate on the sweep
+# clip is used on every clip (``--sweep`` measures it and writes SETTINGS; without it the last sweep's is used)
+PYORC_SWEEP = [(r, w) for r in (0.01, 0.02, 0.03, 0.05) for w in (10, 16, 24, 32)]
+# the thesis' method on OpenPIV's Rust backend: window px (overlap half of it) and peak-to-peak s2n threshold
+THESIS_SWEEP = [(w, s) for w in (16, 24, 32, 48, 64) for s in (0.0, 1.05, 1.2)]
+SETTINGS = HERE / "peer_settings.json"
 
 
 # --------------------------------------------------------------------------------------------- clips
@@ -57,7 +63,9 @@ def clips(root: Path, names: list[str]) -> list[dict]:
     from fieldtool.synthetic import presets, render_scene
 
     plan = {"720p_8s": lambda: presets.get("oblique", duration_s=8.0),
-            "1080p_30s": lambda: presets.get("oblique", duration_s=30.0, camera__width_px=1920, camera__height_px=1080)}
+            "1080p_30s": lambda: presets.get("oblique", duration_s=30.0, camera__width_px=1920, camera__height_px=1080),
+            "4k_drone": lambda: presets.get("drone_4k") if "drone_4k" in getattr(presets, "HARD_NAMES", ())
+            else presets.get("nadir", duration_s=8.0, camera__width_px=3840, camera__height_px=2160)}
     if "fast_1080p" in getattr(presets, "NAMES", ()) + tuple(getattr(presets, "HARD_NAMES", ())):
         plan["fast_1080p"] = lambda: presets.get("fast_1080p")
     out = []
@@ -83,8 +91,9 @@ def clips(root: Path, names: list[str]) -> list[dict]:
     return out
 
 
-def pyorc_job(c: dict) -> Path:
-    """The job file of pyorc_run.py: what a pyorc user enters for this clip (see the module docstring)."""
+def pyorc_job(c: dict, setting: tuple[float, int]) -> Path:
+    """The job file of pyorc_run.py: what a pyorc user enters for this clip (see the module docstring), at
+    ``setting`` = (resolution m, window px)."""
     import tomllib
 
     d, spec, tr = c["dir"], c["spec"], c["truth"]
@@ -96,14 +105,49 @@ def pyorc_job(c: dict) -> Path:
     job = {"video": str(d / spec.video_name), "width": spec.camera.width_px, "height": spec.camera.height_px,
            "n_frames": int(tr["n_frames"]), "gcp_px": proj["ortho"]["gcp_px"],
            "gcp_xy_m": [g[:2] for g in tr["gcp_world_m"]], "level_m": float(tr["water_level_m"]),
-           "window_size": PYORC_WINDOW, "resolution_m": PYORC_RESOLUTION_M,
+           "window_size": int(setting[1]), "resolution_m": float(setting[0]),
            # pyorc spans its grid from the first edge of the box towards the third corner: start on the left bank
            "bbox_xy_m": [[xs - half, y_hi], [xs + half, y_hi], [xs + half, y_lo], [xs - half, y_lo]],
            "transect_xyz_m": [[float(xs), float(r.y_of_station(s)), float(z)] for s, z in cs],
            "alpha": float(proj["section"].get("alpha") or 0.85), "s_max": 3.0 * float(r.u_max_ms)}
-    path = d / "pyorc_job.json"
+    path = d / f"pyorc_job_{setting[0]:g}_{setting[1]}.json"
     path.write_text(json.dumps(job))
     return path
+
+
+def thesis_job(c: dict, setting: tuple[int, float]) -> Path:
+    """The job file of openpiv_thesis.py at ``setting`` = (window px, s2n threshold): the clip, the generated
+    project's ROI (the box the thesis' user draws), and the geometry the thesis' steps compute before the
+    discharge (homography of the GCPs, the section's subsection centres, their areas, the section's normal)."""
+    from fieldtool.processing import discharge as dq
+    from fieldtool.project.model import load_project
+    from fieldtool.run import pipeline
+
+    d, spec, tr = c["dir"], c["spec"], c["truth"]
+    proj = load_project(d / "project.toml")
+    inputs = pipeline.load_inputs(proj)
+    level, mapping = pipeline.level_and_mapping(proj, inputs)
+    geom = pipeline.build_section(proj, inputs, level.level_m, mapping)
+    area, _ = dq.subsection_areas(geom, inputs.cross_section, level.level_m)
+    alpha = dq.resolve_alpha(proj.section.alpha, inputs.cross_section, level.level_m)
+    w, s2n = setting
+    job = {"video": str(d / spec.video_name), "n_frames": int(tr["n_frames"]), "fps": float(tr["fps"]),
+           "roi_px": [int(v) for v in proj.roi.rect_px], "window_px": int(w), "overlap_px": int(w) // 2,
+           "search_px": int(w), "s2n_min": float(s2n), "backend": "rust", "H": np.asarray(mapping.H).tolist(),
+           "centres_px": geom.sample_img.mean(axis=1).tolist(), "areas_m2": np.asarray(area).tolist(),
+           "normal": np.asarray(geom.normal).tolist(), "alpha": float(alpha)}
+    path = d / f"thesis_job_{w}_{s2n:g}.json"
+    path.write_text(json.dumps(job))
+    return path
+
+
+def best_settings() -> dict:
+    """The peers' most accurate settings from the last ``--sweep`` (else pyorc's 0.03 m / 32 px, the issue's
+    sweep, and the thesis' window 32 with no s2n threshold)."""
+    if SETTINGS.is_file():
+        s = json.loads(SETTINGS.read_text())
+        return {"pyorc": tuple(s["pyorc"]), "thesis": tuple(s["thesis"])}
+    return {"pyorc": (0.03, 32), "thesis": (32, 0.0)}
 
 
 # --------------------------------------------------------------------------------------------- processes
@@ -146,10 +190,37 @@ def run_fieldtool(toml: Path, scratch: Path) -> dict:
             "converged": res.get("converged"), "piv_s": res["timings_s"].get("frames_and_piv")}
 
 
-def run_pyorc(job: Path) -> dict:
-    wall, mem, text, cpu = timed([str(peers_python()), str(HERE / "peers" / "pyorc_run.py"), str(job)])
+def run_peer(script: str, job: Path) -> dict:
+    """One run of a peer's script in the peers' venv (pyorc_run.py, openpiv_thesis.py, decode_floor.py)."""
+    wall, mem, text, cpu = timed([str(peers_python()), str(HERE / "peers" / script), str(job)])
     res = json.loads(text.strip().splitlines()[-1])
-    return {"s": wall, "cpu": cpu, "mib": mem, "q": res["discharge_m3s"], "pairs": None}
+    return {"s": wall, "cpu": cpu, "mib": mem, "q": res.get("discharge_m3s"), "pairs": res.get("pairs"),
+            "frames": res.get("frames")}
+
+
+def sweep(c: dict) -> None:
+    """Each peer's main settings on one clip; the most accurate (smallest |error|) is written to SETTINGS."""
+    truth = c["truth"]["discharge_m3s"]
+    best = {}
+    for name, script, grid, job in (("pyorc", "pyorc_run.py", PYORC_SWEEP, pyorc_job),
+                                    ("thesis", "openpiv_thesis.py", THESIS_SWEEP, thesis_job)):
+        print(f"\n== sweep of {name} on {c['name']} (true Q {truth:.4f} m³/s)")
+        rows = []
+        for setting in grid:
+            try:
+                r = run_peer(script, job(c, setting))
+            except RuntimeError as e:
+                print(f"{str(setting):18s} failed: {str(e)[-200:]}")
+                continue
+            if r["q"] is None:
+                print(f"{str(setting):18s} no valid vector on the section")
+                continue
+            err = 100.0 * (r["q"] / truth - 1.0)
+            rows.append((abs(err), setting))
+            print(f"{str(setting):18s} {r['s']:7.2f} s {r['q']:9.4f} m³/s {err:+8.2f} %")
+        best[name] = min(rows)[1]
+        print(f"most accurate {name} setting: {best[name]}")
+    SETTINGS.write_text(json.dumps({**best, "clip": c["name"]}))
 
 
 def end_to_end(cs: list[dict], repeats: int, with_pyorc: bool, scratch: Path, reference: bool = True) -> None:
@@ -161,24 +232,31 @@ def end_to_end(cs: list[dict], repeats: int, with_pyorc: bool, scratch: Path, re
     for c in cs:
         truth = c["truth"]["discharge_m3s"]
         err = lambda q: 100.0 * (q / truth - 1.0)  # noqa: E731
-        job = pyorc_job(c)
+        best = best_settings()
+        jobs = {"pyorc": ("pyorc_run.py", pyorc_job(c, best["pyorc"])),
+                "thesis (OpenPIV rust)": ("openpiv_thesis.py", thesis_job(c, best["thesis"])),
+                "decode only (PyAV)": ("decode_floor.py", c["dir"] / c["spec"].video_name)}
         load0 = os.getloadavg()
         ref = run_fieldtool(c["dir"] / "full_all.toml", scratch) if reference else None
-        runs = {"fieldtool": [], "pyorc": []}
+        runs = {"fieldtool": [], "pyorc": [], "thesis (OpenPIV rust)": [], "decode only (PyAV)": []}
         for _ in range(repeats):  # alternating: each repeat runs each contestant once, in turn
             runs["fieldtool"].append(run_fieldtool(c["dir"] / "noroi.toml", scratch))
             if with_pyorc:
-                runs["pyorc"].append(run_pyorc(job))
+                for name, (script, job) in jobs.items():
+                    runs[name].append(run_peer(script, job))
         load1 = os.getloadavg()
         print(f"\n== {c['name']}: {c['truth']['n_frames']} frames, true Q {truth:.4f} m³/s; "
               f"{os.cpu_count()} cores, load average {load0[0]:.2f} before, {load1[0]:.2f} after")
+        print(f"peer settings (most accurate of the sweep on {json.loads(SETTINGS.read_text())['clip'] if SETTINGS.is_file() else 'the issue'}): "
+              f"pyorc resolution {best['pyorc'][0]} m, window {best['pyorc'][1]} px; thesis window "
+              f"{best['thesis'][0]} px, overlap {best['thesis'][0] // 2} px, s2n {best['thesis'][1]}")
         print(f"{'contestant':34s} {'median s':>9s} {'runs s':>26s} {'CPU s':>7s} {'Q m³/s':>9s} {'error %':>8s} "
               f"{'pairs':>6s} {'peak MiB':>9s}")
         rows = ([("fieldtool full frame, all pairs", [ref])] if ref else []) + [(k, v) for k, v in runs.items() if v]
         med = {}
         for name, rs in rows:
             t = [r["s"] for r in rs]
-            q = float(np.median([r["q"] for r in rs]))
+            q = float(np.median([r["q"] for r in rs])) if rs[0]["q"] is not None else float("nan")
             med[name] = float(np.median(t))
             pairs = rs[-1]["pairs"]
             cpu = float(np.median([r["cpu"] for r in rs]))
@@ -190,11 +268,16 @@ def end_to_end(cs: list[dict], repeats: int, with_pyorc: bool, scratch: Path, re
                   f"error")
         print(f"fieldtool default: {med['fieldtool']:.2f} s for a {c['truth']['n_frames'] / c['truth']['fps']:.0f} s "
               f"clip")
-        if runs["pyorc"]:
-            per = np.median([p["s"] / f["s"] for p, f in zip(runs["pyorc"], runs["fieldtool"])])
-            cpu_ratio = np.median([r["cpu"] for r in runs["pyorc"]]) / np.median([r["cpu"] for r in runs["fieldtool"]])
-            print(f"pyorc / fieldtool: {med['pyorc'] / med['fieldtool']:.2f}x (ratio of medians), "
-                  f"{per:.2f}x (median of per-run ratios), {cpu_ratio:.2f}x in CPU seconds")
+        for peer in ("pyorc", "thesis (OpenPIV rust)"):
+            if runs[peer]:
+                per = np.median([p["s"] / f["s"] for p, f in zip(runs[peer], runs["fieldtool"])])
+                cpu_ratio = np.median([r["cpu"] for r in runs[peer]]) / np.median([r["cpu"] for r in runs["fieldtool"]])
+                print(f"{peer} / fieldtool: {med[peer] / med['fieldtool']:.2f}x (ratio of medians), "
+                      f"{per:.2f}x (median of per-run ratios), {cpu_ratio:.2f}x in CPU seconds")
+        if runs["decode only (PyAV)"]:
+            fl = runs["decode only (PyAV)"]
+            print(f"fieldtool / decode-only floor: {med['fieldtool'] / med['decode only (PyAV)']:.2f}x "
+                  f"({fl[-1]['frames']} frames decoded by PyAV)")
 
 
 # --------------------------------------------------------------------------------------------- engines
@@ -263,7 +346,8 @@ def profile(c: dict, top: int) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--root", default=os.path.join(tempfile.gettempdir(), "ft_time_to_q"), help="clip folder")
-    ap.add_argument("--clips", default="720p_8s,1080p_30s,fast_1080p")
+    ap.add_argument("--clips", default="720p_8s,1080p_30s,fast_1080p,4k_drone")
+    ap.add_argument("--sweep", action="store_true", help="sweep the peers' settings on the first clip first")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--no-pyorc", action="store_true", help="fieldtool only")
     ap.add_argument("--no-reference", action="store_true", help="without the full-frame all-pairs fieldtool run")
@@ -284,6 +368,8 @@ def main() -> None:
         if args.profile:
             profile(cs[0], 25)
             return
+        if args.sweep:
+            sweep(cs[0])
         end_to_end(cs, args.repeats, not args.no_pyorc, scratch, reference=not args.no_reference)
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
