@@ -297,6 +297,9 @@ def engines(runs: int, n_pairs: int, ens_pairs: int, scratch: Path) -> None:
     table = list(pvo.ENGINES[:3]) + [pvo.ENGINES[4], pvo.ENGINES[5]]
     times = {name: [] for name, _, _ in table}
     times["ffpiv (numba) single pass"] = []
+    rust = {"OpenPIV rust single pass": "single_pairs_per_s", "OpenPIV rust windef 64->32": "two_pass_pairs_per_s"}
+    for name in rust:
+        times[name] = []
     py = peers_python()
     for _ in range(runs):
         for name, fn, which in table:
@@ -306,6 +309,11 @@ def engines(runs: int, n_pairs: int, ens_pairs: int, scratch: Path) -> None:
         out = subprocess.run([str(py), str(HERE / "peers" / "ffpiv_rate.py"), str(stack), "32", "16"],
                              capture_output=True, text=True, check=True).stdout
         times["ffpiv (numba) single pass"].append(json.loads(out.strip().splitlines()[-1])["pairs_per_s"])
+        out = subprocess.run([str(py), str(HERE / "peers" / "openpiv_rate.py"), str(stack), "rust"],
+                             capture_output=True, text=True, check=True).stdout
+        rates = json.loads(out.strip().splitlines()[-1])
+        for name, key in rust.items():
+            times[name].append(rates[key])
     print(f"\nEngines: 1920x1080, window 32, overlap 16, {n_pairs} pairs per call ({ens_pairs} for the ensemble), "
           f"{runs} alternating runs, {os.cpu_count()} cores, load average {os.getloadavg()[0]:.2f} at the end")
     print(f"{'engine':36s} {'median pairs/s':>14s} {'runs':>28s} {'vs fieldtool single':>20s}")
@@ -313,6 +321,10 @@ def engines(runs: int, n_pairs: int, ens_pairs: int, scratch: Path) -> None:
     for name, v in times.items():
         m = float(np.median(v))
         print(f"{name:36s} {m:14.2f} {' '.join(f'{x:.2f}' for x in v):>28s} {m / base:19.2f}x")
+    for ours_name, peer in (("fieldtool single pass (mean)", "OpenPIV rust single pass"),
+                            ("fieldtool 2 passes 64->32 (mean)", "OpenPIV rust windef 64->32")):
+        if ours_name in times and times[peer]:
+            print(f"{ours_name} / {peer}: {np.median(times[ours_name]) / np.median(times[peer]):.2f}x")
 
 
 # --------------------------------------------------------------------------------------------- profile
