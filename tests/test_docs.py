@@ -42,7 +42,7 @@ def test_guide_builds_strict_without_warnings(built_site):
 def test_every_page_of_the_nav_is_built(built_site):
     _, site = built_site
     for page in sorted((ROOT / "docs").glob("*.md")):
-        built = site / ("index.html" if page.stem == "index" else f"{page.stem}/index.html")
+        built = site / f"{page.stem}.html"
         assert built.is_file(), f"{page.name} was not built"
 
 
@@ -60,6 +60,6 @@ def test_keys_page_is_in_the_guide(built_site):
     _, site = built_site
     rows = [line for line in (ROOT / "docs" / "keys.md").read_text(encoding="utf-8").splitlines()
             if line.startswith("| `")]
-    html = (site / "keys" / "index.html").read_text(encoding="utf-8")
+    html = (site / "keys.html").read_text(encoding="utf-8")
     assert len(rows) > 100
     assert html.count("<tr>") >= len(rows)
