@@ -1,11 +1,11 @@
-# Two entry points for a fresh machine (Python 3.11+): `make demo` and `make test`.
+# Two entry points for a fresh machine (Python 3.11+): `make demo` and `make test`; `make docs` builds the guide.
 PY ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 BASE := $(VENV)/.installed-base
 DEV := $(VENV)/.installed-dev
 
-.PHONY: demo test bench clean
+.PHONY: demo test docs bench clean
 
 $(BIN)/python:
 	$(PY) -m venv $(VENV)
@@ -26,8 +26,12 @@ demo: $(BASE)
 test: $(DEV)
 	$(BIN)/python -m pytest -q
 
+# The user guide (mkdocs, material theme) into site/, offline; open site/index.html.
+docs: $(DEV)
+	NO_MKDOCS_2_WARNING=1 $(BIN)/python -m mkdocs build --strict -d site
+
 bench: $(DEV)
 	$(BIN)/python benchmarks/piv_vs_openpiv.py
 
 clean:
-	rm -rf $(VENV) demo_out
+	rm -rf $(VENV) demo_out site

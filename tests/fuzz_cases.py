@@ -1,4 +1,4 @@
-"""The fuzz table: every key of the project file (the README key table is generated from the same
+"""The fuzz table: every key of the project file (the key table of docs/keys.md is generated from the same
 dataclasses) x bad values, broken files, and broken inputs to the other subcommands; and the
 checks every case must pass: exit 0/2/3 (2 where the value cannot be right), one line per error,
 no traceback, the project file's bytes unchanged, no partial output folder (a folder that held a

@@ -1,12 +1,20 @@
 """Project file: round trip, atomic save, clear errors for unknown keys and wrong types."""
 
 import os
+from pathlib import Path
 
 import pytest
 
 from fieldtool.errors import InputFileError, ParameterError
 from fieldtool.project.model import Project, load_project, project_from_dict, project_to_dict, save_project
-from fieldtool.project.template import key_table_markdown, template_text
+from fieldtool.project.template import (
+    KEYS_BEGIN,
+    KEYS_END,
+    KEYS_PAGE,
+    key_table_markdown,
+    template_text,
+    update_keys_page,
+)
 
 
 def test_round_trip(tmp_path):
@@ -68,11 +76,20 @@ def test_template_loads_and_documents_every_key(tmp_path):
                 assert f"`{section}.{k}`" in table
 
 
-def test_readme_documents_every_key():
-    from pathlib import Path
+def test_keys_page_documents_every_key():
+    """docs/keys.md holds the table the key declarations give today (regenerate it with --docs)."""
+    text = KEYS_PAGE.read_text(encoding="utf-8")
+    assert KEYS_PAGE == Path(__file__).resolve().parents[1] / "docs" / "keys.md"
+    table = text.split(KEYS_BEGIN, 1)[1].split(KEYS_END, 1)[0].strip()
+    assert table == key_table_markdown(), "run `python -m fieldtool.project.template --docs`"
 
-    from fieldtool.project.template import README_BEGIN, README_END
 
-    text = (Path(__file__).resolve().parents[1] / "README.md").read_text()
-    table = text.split(README_BEGIN, 1)[1].split(README_END, 1)[0].strip()
-    assert table == key_table_markdown(), "run `python -m fieldtool.project.template --readme`"
+def test_keys_page_update_rewrites_only_the_table(tmp_path):
+    """The generator replaces a stale table between the markers and keeps the page's own text."""
+    page = tmp_path / "keys.md"
+    page.write_text(f"# Keys\n\nintro\n\n{KEYS_BEGIN}\n| stale |\n{KEYS_END}\n\nafter\n", encoding="utf-8")
+    assert update_keys_page(page) is True
+    text = page.read_text(encoding="utf-8")
+    assert text.startswith("# Keys\n\nintro\n\n") and text.endswith("\n\nafter\n")
+    assert "| stale |" not in text and key_table_markdown() in text
+    assert update_keys_page(page) is False
