@@ -17,6 +17,7 @@ from fieldtool.processing.filters import FilterStack
 from fieldtool.processing.stabilize import Stabilizer
 from fieldtool.project.model import Project
 from fieldtool.run.geometry import roi_and_mask
+from fieldtool.run.clip_pass import DecodeCount
 from fieldtool.run.inputs import Inputs
 from fieldtool.run.observer import Guarded, Progress
 
@@ -24,7 +25,8 @@ from fieldtool.run.observer import Guarded, Progress
 def working_frames(project: Project, inputs: Inputs, cancel: Callable[[], bool] | None = None,
                    observer: Guarded | None = None, stab_report: dict | None = None,
                    progress: Progress | None = None, stage: str = "frames",
-                   want: Callable[[int], bool] | None = None, raw: bool = False) -> Iterator[tuple[float, np.ndarray]]:
+                   want: Callable[[int], bool] | None = None, raw: bool = False,
+                   count: DecodeCount | None = None) -> Iterator[tuple[float, np.ndarray]]:
     """Stream (t_s, float32 working frame): undistorted, stabilised, filtered.
 
     ``raw``: without filters, the frames keep the decoder's uint8 (for consumers that convert only what they
@@ -32,7 +34,9 @@ def working_frames(project: Project, inputs: Inputs, cancel: Callable[[], bool] 
 
     ``want(k)``: frames at stream positions k that fail it come as (t_s, None), decoded past but not converted
     (the fast path's rounds need only their own pairs' frames). Ignored with stabilisation, which tracks every
-    frame, and with a filter stack marked ``temporal``."""
+    frame, and with a filter stack marked ``temporal``.
+
+    ``count``: every frame the decoder delivers is counted in ``count.frames`` (a filter's prepass too)."""
     # filters work inside the ROI only (thesis 9.2.7): banks and sky do not set their statistics
     stack = FilterStack.from_config(project.filters, roi=roi_and_mask(project, inputs)[0]) if project.filters else None
     if project.stabilize.enabled or getattr(stack, "temporal", False):
@@ -43,6 +47,8 @@ def working_frames(project: Project, inputs: Inputs, cancel: Callable[[], bool] 
     def corrected() -> Iterator[tuple[int, float, np.ndarray]]:
         nonlocal stabilizer
         for fr in (inputs.source if want is None else inputs.source.iter_wanted(want)):
+            if count is not None:
+                count.frames += 1
             img = fr.image
             if img is None:
                 yield fr.index, fr.t_s, None

@@ -19,6 +19,7 @@ import numpy as np
 from fieldtool.errors import ParameterError
 from fieldtool.processing import piv as piv_mod
 from fieldtool.processing import piv_fast
+from fieldtool.run.clip_pass import KeptFrames
 
 
 def run_piv_fast(make_frames, n_pairs: int, gap: int, params, roi, mask, max_speed, cancel, on_pair, pair_q,
@@ -52,15 +53,18 @@ def run_piv_fast(make_frames, n_pairs: int, gap: int, params, roi, mask, max_spe
 class SharedFirstRound:
     """``make_frames(want)`` for :func:`run_piv_fast`: the first call hands the stream the first look started
     (``reader``, a ``prefetch`` still reading, its frames ``first``), setting the ``want`` its frames are
-    built for; every later call opens a new stream with ``stream(want=...)``."""
+    built for; every later call replays the frames round 1's pass kept (``kept``, run/clip_pass.py) or, when
+    one it wants was not kept, opens a new stream with ``stream(want=...)``."""
 
     def __init__(self, stream: Callable[..., Iterator], reader: "piv_fast.prefetch | None", first: Iterator | None,
-                 round1_want: list):
+                 round1_want: list, kept: "KeptFrames | None" = None):
         self.stream, self.reader, self.first, self.round1_want = stream, reader, first, round1_want
+        self.kept = kept
 
     def __call__(self, want=None):
         if self.first is None:
-            return self.stream(want=want)
+            replay = self.kept.replay(want) if self.kept is not None and want is not None else None
+            return replay if replay is not None else self.stream(want=want)  # a new pass when a frame was not kept
         self.round1_want[0] = want
         frames, self.first = piv_fast.Prefetched(self.first, self.reader.close), None
         return frames

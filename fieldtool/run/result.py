@@ -97,7 +97,8 @@ def fast_summary(fast: dict | None, n_pairs: int) -> dict:
     fast = fast or {}
     out = {"pairs_used": int(fast.get("pairs_used", n_pairs)), "converged": fast.get("converged")}
     if fast:
-        out["piv_sampling"] = {k: fast.get(k) for k in ("pairs_total", "rel_ci", "threshold", "min_pairs", "rounds")
+        out["piv_sampling"] = {k: fast.get(k) for k in ("pairs_total", "rel_ci", "threshold", "min_pairs", "rounds",
+                                                                 "frames_decoded", "frames_in_range")
                                if k in fast}
         out["piv_region"] = {k: fast.get(k) for k in ("region", "box_px", "roi_px")}
     return out

@@ -22,7 +22,7 @@ from fieldtool.processing import piv_fast, planning, surface
 from fieldtool.processing.piv import PivParams
 from fieldtool.project.model import Project
 from fieldtool.run import frames as frames_mod
-from fieldtool.run import piv_cache, piv_rounds, stiv_stage
+from fieldtool.run import clip_pass, piv_cache, piv_rounds, stiv_stage
 from fieldtool.run.geometry import Sections
 from fieldtool.run.inputs import Inputs
 from fieldtool.run.observer import Guarded, Progress
@@ -124,6 +124,7 @@ class _Streams:
         self.frame_stats: dict = {}
         self.surface_stats = surface.SurfaceStats() if s.standardize else None
         self.decoded: list[float] = []
+        self.count = clip_pass.DecodeCount()
 
     def stream(self, want=None, tap: bool = False):
         """The frames PIV reads: working frames, duplicate count, stationary-pattern removal (which needs every
@@ -135,7 +136,8 @@ class _Streams:
             want = None
         frames = frames_mod.working_frames(project, self.inputs, self.cancel, self.obs,
                                            self.stab if project.stabilize.enabled else None, self.progress,
-                                           want=want, raw=s.standardize)  # the standardisation converts its box only
+                                           want=want, raw=s.standardize,  # the standardisation converts its box only
+                                           count=self.count)
         if tap and s.stiv_run is not None:  # STIV samples its lines from the same stream (one decode)
             frames = s.stiv_run.tap(frames)
         frames = frames_mod.count_identical(self._tracked(frames), self.frame_stats)
@@ -148,8 +150,9 @@ class _Streams:
         return frames
 
     def _tracked(self, it):
-        for t, img in it:
+        for k, (t, img) in enumerate(it, start=1):
             self.decoded[:] = [t]
+            self.count.in_range = max(self.count.in_range, k)
             yield t, img
 
     def plan_pairs(self, frames):
@@ -208,27 +211,39 @@ def measure_velocity(project: Project, inputs: Inputs, s: PivSetup, pair_q: Call
         res = _all_pairs(project, inputs, st, n_exp, on_pair, fast, warnings)
     if cached is None and cache_dir is not None:
         piv_cache.save(cache_dir, key, res, st.stab or None, {**fast, "frame_stats": st.frame_stats})
+    if cached is None:  # what the PIV's streams decoded (a reused field decodes nothing for it)
+        fast.update(frames_decoded=st.count.frames, frames_in_range=st.count.in_range)
     stiv_stage.ensure_sampled(s.stiv_run, lambda: frames_mod.working_frames(project, inputs, cancel))
     return Velocimetry(res, st.stab, st.frame_stats, st.surface_stats, st.plan, fast, cached is not None)
 
 
 def _rounds(project: Project, st: _Streams, n_exp: int, pair_q, on_pair, fast: dict):
-    """The fast path: rounds of pairs until the discharge converged (run/piv_rounds.py)."""
+    """The fast path: rounds of pairs until the discharge converged (run/piv_rounds.py). With the
+    standardisation, round 1's pass keeps the frames later rounds will want (run/clip_pass.py)."""
     s = st.s
+    kept = None
     if s.standardize:  # round 1 reads the stream the first look started; want is set when round 1 begins
+        kept = clip_pass.KeptFrames(st.surface_stats)
         round1_want: list = [None]
-        reader1 = piv_fast.prefetch(st.stream(want=lambda k: round1_want[0] is None or round1_want[0](k), tap=True))
-        make_frames = piv_rounds.SharedFirstRound(st.stream, reader1, st.plan_pairs(reader1), round1_want)
+        reader1 = piv_fast.prefetch(kept.keeping(st.stream(
+            want=lambda k: round1_want[0] is None or round1_want[0](k) or kept.wants(k), tap=True)))
+        make_frames = piv_rounds.SharedFirstRound(st.stream, reader1, st.plan_pairs(reader1), round1_want, kept)
     else:  # STIV then reads the clip by itself
         st.plan_pairs(st.stream(want=lambda k: k <= planning.LOOK_PAIRS))  # the first look reads the first frames
         make_frames = piv_rounds.SharedFirstRound(st.stream, None, None, [None])
     params = st.params
     gap = max(1, int(params.frame_gap))
+    if kept is not None:
+        # the box the standardisation processes (processing.surface: the PIV's box grown by its margin)
+        # round 1 standardises with the search area set before the plan
+        box = surface._box(st.inputs.shape, s.roi, max(64, s.params.search_px or 0))
+        kept.plan(n_exp - gap, min(max(int(project.piv.min_pairs), 2), n_exp - gap), gap, box)
     try:
         if n_exp - gap >= 2:
+            drain = s.standardize and (s.stiv_run is not None or kept is not None)  # the pass reaches the clip's end
             res, conv = piv_rounds.run_piv_fast(make_frames, n_exp - gap, gap, params, s.roi, s.mask, s.max_speed,
                                                 st.cancel, on_pair, pair_q, project.piv.converge_rel_ci,
-                                                project.piv.min_pairs, drain_first=s.standardize and s.stiv_run is not None,
+                                                project.piv.min_pairs, drain_first=drain,
                                                 near=s.near, first_guess=st.plan.guess)
             fast.update(conv)
         else:

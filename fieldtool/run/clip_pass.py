@@ -1,0 +1,97 @@
+"""One decode per clip: the rounds of pairs read the frames of one pass over the video.
+
+The fast path (run/piv_rounds.py) adds pairs in rounds until the discharge converged. Each round used to read
+the clip again: decoding, undistorting and standardising every frame once more for a few more pairs, which on
+a long clip costs more than the correlation. Here round 1's pass (the one the first look, the
+standardisation window and STIV share) also keeps, in memory, the standardised frames that later rounds
+will likely want: the frames of the next pairs in the convergence order (``piv_fast.pair_order``, the order
+the rounds take them in), as many as :data:`KEEP_BYTES` holds. Round 1 then reads the clip to its end, and a
+later round replays the kept frames instead of decoding. A round that wants a frame not kept (a clip too
+long for the budget) reads the clip again, as before; ``frames_decoded`` in result.json then exceeds
+``frames_in_range``.
+
+The frames replayed are the very arrays a new pass would build (the standardisation is deterministic), so
+the field and the discharge are the same as with a new pass. Only the standardised box is kept (outside it
+the frames are 0, see processing/surface.py), as float32.
+"""
+
+from __future__ import annotations
+
+from typing import Callable, Iterator
+
+import numpy as np
+
+from fieldtool.processing import piv_fast
+
+#: memory the kept frames may take (bytes): ~430 standardised boxes of 600 x 500 px
+KEEP_BYTES = 512 * 2**20
+
+
+class DecodeCount:
+    """Frames the decoder delivered, over every pass (``frames``), and the frames of one whole pass
+    (``in_range``: the most positions one stream reached)."""
+
+    def __init__(self) -> None:
+        self.frames = 0
+        self.in_range = 0
+
+
+class KeptFrames:
+    """The frames of round 1's pass that later rounds may want, by stream position; and every position's
+    time. ``plan(...)`` chooses them once round 1's pairs are known; ``keeping(frames)`` stores them as the
+    pass goes by; ``replay(want)`` is a later round's stream, or None when a wanted frame was not kept."""
+
+    def __init__(self, stats, budget_bytes: int | None = None):
+        # stats: processing.surface.SurfaceStats; budget: KEEP_BYTES by default
+        self.stats, self.budget = stats, int(KEEP_BYTES if budget_bytes is None else budget_bytes)
+        self.keep: frozenset | None = None  # None until planned: every frame built is kept
+        self.frames: dict[int, np.ndarray] = {}
+        self.times: list[float] = []
+        self.complete = False  # the pass reached the clip's end
+
+    def plan(self, n_pairs_total: int, first_round: int, gap: int, box: tuple[int, int, int, int]) -> None:
+        """Keep the frames of the pairs after round 1's ``first_round`` ones, in the convergence order, within
+        the budget; ``box`` is the box the standardisation will process (px), which sets a frame's bytes."""
+        x0, y0, x1, y1 = box
+        n_fit = self.budget // max(1, (x1 - x0) * (y1 - y0) * 4)
+        keep: set = set()
+        for p in piv_fast.pair_order(n_pairs_total)[first_round:]:
+            if len(keep | {int(p), int(p) + gap}) > n_fit:
+                break
+            keep.update((int(p), int(p) + gap))
+        keep.add(0)  # every round reads position 0 (it sets the frame size)
+        self.keep = frozenset(keep)
+        for k in list(self.frames):  # kept before the plan (the first look's frames): only those wanted stay
+            if k not in self.keep:
+                self.frames.pop(k, None)
+
+    def wants(self, k: int) -> bool:
+        """Whether the frame at position ``k`` must be built (to be kept)."""
+        keep = self.keep
+        return keep is None or k in keep
+
+    def keeping(self, frames: Iterator) -> Iterator:
+        """The stream, unchanged, with the kept positions' frames stored (their box, copied)."""
+        for k, (t, img) in enumerate(frames):
+            self.times.append(float(t))
+            if img is not None and self.wants(k) and not self.stats.static:  # static: frames passed unchanged,
+                self.frames[k] = self._crop(img).copy()  # not kept (a later round reads the clip again)
+            yield t, img
+        self.complete = True
+
+    def _crop(self, img: np.ndarray) -> np.ndarray:
+        x0, y0, x1, y1 = self.stats.box
+        return img[y0:y1, x0:x1]
+
+    def _whole(self, crop: np.ndarray) -> np.ndarray:
+        out = np.zeros(self.stats.shape, np.float32)
+        x0, y0, x1, y1 = self.stats.box
+        out[y0:y1, x0:x1] = crop
+        return out
+
+    def replay(self, want: Callable[[int], bool]) -> Iterator | None:
+        """A later round's stream from the kept frames (every position, (t_s, None) where ``want`` is false),
+        or None when the pass did not reach the end or a wanted frame was not kept."""
+        if not self.complete or any(want(k) and k not in self.frames for k in range(len(self.times))):
+            return None
+        return ((t, self._whole(self.frames[k]) if want(k) else None) for k, t in enumerate(self.times))
