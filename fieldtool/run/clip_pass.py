@@ -12,7 +12,9 @@ long for the budget) reads the clip again, as before; ``frames_decoded`` in resu
 
 The frames replayed are the very arrays a new pass would build (the standardisation is deterministic), so
 the field and the discharge are the same as with a new pass. Only the standardised box is kept (outside it
-the frames are 0, see processing/surface.py), as float32.
+the frames are 0, see processing/surface.py), as float32. Without the standardisation
+(``piv.remove_stationary = false``) the working frames are kept whole, and STIV, when on, samples round 1's
+pass too (every frame is then built).
 """
 
 from __future__ import annotations
@@ -41,9 +43,11 @@ class KeptFrames:
     time. ``plan(...)`` chooses them once round 1's pairs are known; ``keeping(frames)`` stores them as the
     pass goes by; ``replay(want)`` is a later round's stream, or None when a wanted frame was not kept."""
 
-    def __init__(self, stats, budget_bytes: int | None = None):
-        # stats: processing.surface.SurfaceStats; budget: KEEP_BYTES by default
-        self.stats, self.budget = stats, int(KEEP_BYTES if budget_bytes is None else budget_bytes)
+    def __init__(self, stats=None, shape: tuple[int, int] | None = None, budget_bytes: int | None = None):
+        # stats: processing.surface.SurfaceStats (frames are 0 outside stats.box: the box is kept), or None:
+        # working frames of ``shape`` (H, W), kept whole; budget: KEEP_BYTES by default
+        self.stats, self.shape = stats, shape
+        self.budget = int(KEEP_BYTES if budget_bytes is None else budget_bytes)
         self.keep: frozenset | None = None  # None until planned: every frame built is kept
         self.frames: dict[int, np.ndarray] = {}
         self.times: list[float] = []
@@ -74,16 +78,23 @@ class KeptFrames:
         """The stream, unchanged, with the kept positions' frames stored (their box, copied)."""
         for k, (t, img) in enumerate(frames):
             self.times.append(float(t))
-            if img is not None and self.wants(k) and not self.stats.static:  # static: frames passed unchanged,
+            if img is not None and self.wants(k) and not self._static():  # static: frames passed unchanged,
                 self.frames[k] = self._crop(img).copy()  # not kept (a later round reads the clip again)
             yield t, img
         self.complete = True
 
+    def _static(self) -> bool:
+        return self.stats is not None and self.stats.static
+
     def _crop(self, img: np.ndarray) -> np.ndarray:
+        if self.stats is None:
+            return img
         x0, y0, x1, y1 = self.stats.box
         return img[y0:y1, x0:x1]
 
     def _whole(self, crop: np.ndarray) -> np.ndarray:
+        if self.stats is None:
+            return crop.copy()  # the round may write into its frames
         out = np.zeros(self.stats.shape, np.float32)
         x0, y0, x1, y1 = self.stats.box
         out[y0:y1, x0:x1] = crop

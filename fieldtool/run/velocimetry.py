@@ -4,7 +4,8 @@ space-time images on its search lines, sampled from the same frame stream.
 :func:`setup` fixes what the PIV needs besides the frames (parameters, the box it correlates, the nodes near
 the sections, the speed limit, STIV's lines); :func:`measure_velocity` streams the frames through the
 stationary-pattern removal and the first look (frame gap, search area) into the PIV: in rounds of pairs
-until the discharge converged (run/piv_rounds.py) or every pair at once (``[piv] all_pairs``), or takes the
+until the discharge converged (run/piv_rounds.py; one decode of the clip for every round,
+run/clip_pass.py) or every pair at once (``[piv] all_pairs``), or takes the
 field from the output folder's PIV cache (run/piv_cache.py) when only the geometry changed.
 """
 
@@ -134,6 +135,8 @@ class _Streams:
         want_std = want
         if s.standardize:  # every frame enters the standardisation's window; only the wanted ones are built
             want = None
+        elif tap and s.stiv_run is not None:  # STIV samples every frame of the stream it taps
+            want = None
         frames = frames_mod.working_frames(project, self.inputs, self.cancel, self.obs,
                                            self.stab if project.stabilize.enabled else None, self.progress,
                                            want=want, raw=s.standardize,  # the standardisation converts its box only
@@ -201,10 +204,10 @@ def measure_velocity(project: Project, inputs: Inputs, s: PivSetup, pair_q: Call
         extra = dict(extra or {})
         st.frame_stats.update(extra.pop("frame_stats", None) or {})  # identical frames are still a reason on reuse
         fast.update(extra)
-    # pairs are added in rounds until the discharge converged (piv_fast.converge). With the stationary-pattern
-    # removal every frame of its window must be read, so the first round is one streamed pass that STIV and
-    # the first look share: its reader thread decodes and standardises every frame, but builds only the frames
-    # of the round's pairs, spread over the clip; a further round (a new pass) only when not converged
+    # pairs are added in rounds until the discharge converged (piv_fast.converge). The first round is one
+    # streamed pass that STIV and the first look share: its reader thread decodes (and standardises) every
+    # frame, but builds only the frames of the round's pairs, spread over the clip, and those kept for the
+    # later rounds, which replay them (run/clip_pass.py; a new pass only for a frame the budget left out)
     elif not project.piv.all_pairs and n_exp > 2:
         res = _rounds(project, st, n_exp, pair_q, on_pair, fast)
     else:
@@ -218,29 +221,25 @@ def measure_velocity(project: Project, inputs: Inputs, s: PivSetup, pair_q: Call
 
 
 def _rounds(project: Project, st: _Streams, n_exp: int, pair_q, on_pair, fast: dict):
-    """The fast path: rounds of pairs until the discharge converged (run/piv_rounds.py). With the
-    standardisation, round 1's pass keeps the frames later rounds will want (run/clip_pass.py)."""
+    """The fast path: rounds of pairs until the discharge converged (run/piv_rounds.py). Round 1 reads the
+    stream the first look started (its want is set when round 1 begins); that pass also keeps the frames later
+    rounds will want (run/clip_pass.py), and STIV samples its lines from it."""
     s = st.s
-    kept = None
-    if s.standardize:  # round 1 reads the stream the first look started; want is set when round 1 begins
-        kept = clip_pass.KeptFrames(st.surface_stats)
-        round1_want: list = [None]
-        reader1 = piv_fast.prefetch(kept.keeping(st.stream(
-            want=lambda k: round1_want[0] is None or round1_want[0](k) or kept.wants(k), tap=True)))
-        make_frames = piv_rounds.SharedFirstRound(st.stream, reader1, st.plan_pairs(reader1), round1_want, kept)
-    else:  # STIV then reads the clip by itself
-        st.plan_pairs(st.stream(want=lambda k: k <= planning.LOOK_PAIRS))  # the first look reads the first frames
-        make_frames = piv_rounds.SharedFirstRound(st.stream, None, None, [None])
+    kept = clip_pass.KeptFrames(st.surface_stats if s.standardize else None, st.inputs.shape)
+    round1_want: list = [None]
+    reader1 = piv_fast.prefetch(kept.keeping(st.stream(
+        want=lambda k: round1_want[0] is None or round1_want[0](k) or kept.wants(k), tap=True)))
+    make_frames = piv_rounds.SharedFirstRound(st.stream, reader1, st.plan_pairs(reader1), round1_want, kept)
     params = st.params
     gap = max(1, int(params.frame_gap))
-    if kept is not None:
-        # the box the standardisation processes (processing.surface: the PIV's box grown by its margin)
-        # round 1 standardises with the search area set before the plan
-        box = surface._box(st.inputs.shape, s.roi, max(64, s.params.search_px or 0))
-        kept.plan(n_exp - gap, min(max(int(project.piv.min_pairs), 2), n_exp - gap), gap, box)
+    h, w = st.inputs.shape
+    # the box of a kept frame: the standardisation's (processing.surface: the PIV's box grown by the search area
+    # set before the plan, as round 1 standardises), else the whole frame
+    box = surface._box((h, w), s.roi, max(64, s.params.search_px or 0)) if s.standardize else (0, 0, w, h)
+    kept.plan(n_exp - gap, min(max(int(project.piv.min_pairs), 2), n_exp - gap), gap, box)
+    drain = s.stiv_run is not None or len(kept.keep) > 1  # the pass reaches the clip's end
     try:
         if n_exp - gap >= 2:
-            drain = s.standardize and (s.stiv_run is not None or kept is not None)  # the pass reaches the clip's end
             res, conv = piv_rounds.run_piv_fast(make_frames, n_exp - gap, gap, params, s.roi, s.mask, s.max_speed,
                                                 st.cancel, on_pair, pair_q, project.piv.converge_rel_ci,
                                                 project.piv.min_pairs, drain_first=drain,
