@@ -6,7 +6,7 @@ folder (a ``piv_cache.npz`` left in the output folder would be reused and hide a
 
     python benchmarks/same_results.py --baseline /tmp/baseline oblique nadir ...
 
-reads ``BASELINE/<scene>/scene/project.toml`` and ``BASELINE/<scene>/results/result.json``; prints one line
+runs the fieldtool that PYTHONPATH (or the environment) gives; reads ``BASELINE/<scene>/scene/project.toml`` and ``BASELINE/<scene>/results/result.json``; prints one line
 per scene (``same`` or the differing keys, dotted paths, with both values) and exits 1 when any differs.
 ``--tolerance`` (relative, default 0) lets numbers differ by that much (for changes that are meant to move
 the results slightly); the differences are still printed, with their relative size.
@@ -53,7 +53,9 @@ def diff(a, b, path: str = "", out: list | None = None) -> list:
 
 def run_scene(project: Path, out: Path) -> int:
     cmd = [sys.executable, "-m", "fieldtool.cli", "run", str(project), "--out", str(out)]
-    r = subprocess.run(cmd, capture_output=True, text=True, env=os.environ.copy())
+    # run from the output folder: ``python -m`` puts the current folder first on sys.path, so the fieldtool
+    # measured is the one PYTHONPATH (or the environment) gives, not a checkout the script was started in
+    r = subprocess.run(cmd, capture_output=True, text=True, env=os.environ.copy(), cwd=out.parent)
     if r.returncode not in (0, 3):
         sys.stderr.write(r.stdout + r.stderr)
     return r.returncode
@@ -73,6 +75,7 @@ def main(argv: list[str] | None = None) -> int:
         want = json.loads((base / scene / "results" / "result.json").read_text())
         with tempfile.TemporaryDirectory() as tmp:
             out = Path(args.keep) / scene if args.keep else Path(tmp) / "out"
+            out.parent.mkdir(parents=True, exist_ok=True)
             rc = run_scene(base / scene / "scene" / "project.toml", out)
             got_file = out / "result.json"
             if not got_file.exists():

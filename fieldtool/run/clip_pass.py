@@ -13,8 +13,8 @@ long for the budget) reads the clip again, as before; ``frames_decoded`` in resu
 The frames replayed are the very arrays a new pass would build (the standardisation is deterministic), so
 the field and the discharge are the same as with a new pass. Only the standardised box is kept (outside it
 the frames are 0, see processing/surface.py), as float32. Without the standardisation
-(``piv.remove_stationary = false``) the working frames are kept whole, and STIV, when on, samples round 1's
-pass too (every frame is then built).
+(``piv.remove_stationary = false``) the working frames are kept whole (as uint8 without filters: whole grey
+levels, exact), and STIV, when on, samples round 1's pass too (every frame is then built).
 """
 
 from __future__ import annotations
@@ -53,11 +53,13 @@ class KeptFrames:
         self.times: list[float] = []
         self.complete = False  # the pass reached the clip's end
 
-    def plan(self, n_pairs_total: int, first_round: int, gap: int, box: tuple[int, int, int, int]) -> None:
+    def plan(self, n_pairs_total: int, first_round: int, gap: int, box: tuple[int, int, int, int],
+             bytes_per_px: int = 4) -> None:
         """Keep the frames of the pairs after round 1's ``first_round`` ones, in the convergence order, within
-        the budget; ``box`` is the box the standardisation will process (px), which sets a frame's bytes."""
+        the budget; ``box`` is the box kept of each frame (px) and ``bytes_per_px`` what a pixel takes (4:
+        float32; 1: whole working frames of whole grey levels, kept as uint8)."""
         x0, y0, x1, y1 = box
-        n_fit = self.budget // max(1, (x1 - x0) * (y1 - y0) * 4)
+        n_fit = self.budget // max(1, (x1 - x0) * (y1 - y0) * int(bytes_per_px))
         keep: set = set()
         for p in piv_fast.pair_order(n_pairs_total)[first_round:]:
             if len(keep | {int(p), int(p) + gap}) > n_fit:
@@ -79,22 +81,28 @@ class KeptFrames:
         for k, (t, img) in enumerate(frames):
             self.times.append(float(t))
             if img is not None and self.wants(k) and not self._static():  # static: frames passed unchanged,
-                self.frames[k] = self._crop(img).copy()  # not kept (a later round reads the clip again)
+                self.frames[k] = self._stored(img)  # not kept (a later round reads the clip again)
             yield t, img
         self.complete = True
 
     def _static(self) -> bool:
         return self.stats is not None and self.stats.static
 
-    def _crop(self, img: np.ndarray) -> np.ndarray:
-        if self.stats is None:
-            return img
-        x0, y0, x1, y1 = self.stats.box
-        return img[y0:y1, x0:x1]
+    def _stored(self, img: np.ndarray) -> np.ndarray:
+        """What is kept of a frame: the standardised box (float32), or the whole working frame, as uint8 when
+        its values are whole grey levels (no filter: exact), else as it is."""
+        if self.stats is not None:
+            x0, y0, x1, y1 = self.stats.box
+            return img[y0:y1, x0:x1].copy()
+        if img.dtype == np.float32:
+            u8 = img.astype(np.uint8)
+            if np.array_equal(u8, img):
+                return u8
+        return img.copy()
 
     def _whole(self, crop: np.ndarray) -> np.ndarray:
-        if self.stats is None:
-            return crop.copy()  # the round may write into its frames
+        if self.stats is None:  # a fresh array (the round may write into its frames), float32 as built
+            return crop.astype(np.float32) if crop.dtype == np.uint8 else crop.copy()
         out = np.zeros(self.stats.shape, np.float32)
         x0, y0, x1, y1 = self.stats.box
         out[y0:y1, x0:x1] = crop

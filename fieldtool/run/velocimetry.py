@@ -236,7 +236,9 @@ def _rounds(project: Project, st: _Streams, n_exp: int, pair_q, on_pair, fast: d
     # the box of a kept frame: the standardisation's (processing.surface: the PIV's box grown by the search area
     # set before the plan, as round 1 standardises), else the whole frame
     box = surface._box((h, w), s.roi, max(64, s.params.search_px or 0)) if s.standardize else (0, 0, w, h)
-    kept.plan(n_exp - gap, min(max(int(project.piv.min_pairs), 2), n_exp - gap), gap, box)
+    # whole working frames without filters hold whole grey levels: kept as uint8 (clip_pass.KeptFrames._stored)
+    bytes_px = 1 if not s.standardize and not project.filters else 4
+    kept.plan(n_exp - gap, min(max(int(project.piv.min_pairs), 2), n_exp - gap), gap, box, bytes_px)
     drain = s.stiv_run is not None or len(kept.keep) > 1  # the pass reaches the clip's end
     try:
         if n_exp - gap >= 2:
