@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fieldtool.run import pipeline
+from fieldtool.run import outputs
 from fieldtool.run.pipeline import run_project
 from fieldtool.processing import piv
 from fieldtool.project.model import load_project
@@ -50,7 +50,7 @@ def main() -> None:
     if args.masked_speed:
         masked_speed(args.runs)
         return
-    pipeline.write_outputs = lambda *a, **k: None  # the numbers only
+    outputs.write_outputs = lambda *a, **k: None  # the numbers only
 
     grads: list[np.ndarray] = []
     deform = piv._Engine._deform

@@ -29,7 +29,7 @@ import time
 from pathlib import Path
 
 from fieldtool.errors import FieldToolError
-from fieldtool.run import pipeline
+from fieldtool.run import outputs
 from fieldtool.run.pipeline import run_project
 from fieldtool.project.model import load_project
 from fieldtool.synthetic import presets, render_scene
@@ -53,7 +53,7 @@ def main() -> None:
     ap.add_argument("--seeds", default="0", help="render seeds, e.g. 0,1,2")
     ap.add_argument("--keep", default="", help="folder that keeps the scenes and their PIV fields between runs")
     args = ap.parse_args()
-    pipeline.write_outputs = lambda *a, **k: None  # the numbers only
+    outputs.write_outputs = lambda *a, **k: None  # the numbers only
     print(f"load average {os.getloadavg()[0]:.1f}; clips of {args.duration:g} s")
     print("| scene | seed | true Q (m³/s) | Q (m³/s) | error | grade | 95 % interval (m³/s) | ±% | truth inside | reasons "
           "| PIV | STIV | combined | STIV s | run CPU s |")

@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fieldtool.run import pipeline
+from fieldtool.run import outputs
 from fieldtool.run.pipeline import run_project
 from fieldtool.processing.cross_section import load_cross_section, to_csv_text
 from fieldtool.project.model import load_project, save_project
@@ -97,7 +97,7 @@ def main() -> None:
     ap.add_argument("--first-seed", type=int, default=1)
     ap.add_argument("--csv", default="", help="write every run to this CSV")
     args = ap.parse_args()
-    pipeline.write_outputs = lambda *a, **k: None  # only the summary is needed
+    outputs.write_outputs = lambda *a, **k: None  # only the summary is needed
     print(f"load average {os.getloadavg()[0]:.1f}")
     rows: list[dict] = []
     with tempfile.TemporaryDirectory() as tmp:

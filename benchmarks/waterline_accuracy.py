@@ -16,7 +16,8 @@ import tempfile
 from pathlib import Path
 
 from fieldtool.errors import FieldToolError
-from fieldtool.run.pipeline import level_and_mapping, load_inputs
+from fieldtool.run.geometry import level_and_mapping
+from fieldtool.run.inputs import load_inputs
 from fieldtool.project.model import load_project
 from fieldtool.synthetic import presets, render_scene
 

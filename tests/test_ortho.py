@@ -109,7 +109,8 @@ def test_scale_without_gcps_spans_the_outer_water_edges():
     would make every velocity 8.3 % too low."""
     from types import SimpleNamespace
 
-    from fieldtool.run.pipeline import Inputs, build_mapping
+    from fieldtool.run.geometry import build_mapping
+    from fieldtool.run.inputs import Inputs
     from fieldtool.processing.cross_section import CrossSection
     from fieldtool.project.model import Project
 

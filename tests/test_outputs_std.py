@@ -13,7 +13,9 @@ import xarray as xr
 
 from fieldtool.cli.main import main
 from fieldtool.errors import ParameterError
-from fieldtool.run.pipeline import build_mapping, load_inputs, run_project
+from fieldtool.run.geometry import build_mapping
+from fieldtool.run.inputs import load_inputs
+from fieldtool.run.pipeline import run_project
 from fieldtool.project.model import load_project, project_to_dict
 
 OFFSET = np.array([190000.0, 330000.0])  # GCPs surveyed in Amersfoort / RD New (EPSG:28992)

@@ -4,7 +4,8 @@ import os
 
 import pytest
 
-from fieldtool.run.pipeline import Observer, run_project
+from fieldtool.run.observer import Observer
+from fieldtool.run.pipeline import run_project
 from fieldtool.project.model import load_project
 
 

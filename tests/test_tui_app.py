@@ -163,16 +163,16 @@ def test_invalid_entries_show_messages_and_block_next(project_path):
 
 
 def test_cancel_during_piv_keeps_the_ui_and_writes_no_result(project_path, monkeypatch):
-    import fieldtool.run.pipeline as pipeline
+    import fieldtool.run.frames as frames_mod
 
-    streamed = pipeline.working_frames
+    streamed = frames_mod.working_frames
 
     def slow_frames(*args, **kwargs):  # 50 ms a frame: the run outlasts the key press, whatever the CPU
         for item in streamed(*args, **kwargs):
             time.sleep(0.05)
             yield item
 
-    monkeypatch.setattr(pipeline, "working_frames", slow_frames)
+    monkeypatch.setattr(frames_mod, "working_frames", slow_frames)
 
     async def run():
         p = load_project(project_path)
@@ -231,17 +231,17 @@ def test_reopening_restores_the_step_and_values(project_path):
 
 CRASH_SCRIPT = textwrap.dedent("""
     import asyncio, sys, time
-    import fieldtool.run.pipeline as pipeline
+    import fieldtool.run.frames as frames_mod
     from fieldtool.tui.app import FieldToolApp
 
-    streamed = pipeline.working_frames
+    streamed = frames_mod.working_frames
 
     def slow_frames(*args, **kwargs):  # 50 ms a frame: the run is still going when the process is killed
         for item in streamed(*args, **kwargs):
             time.sleep(0.05)
             yield item
 
-    pipeline.working_frames = slow_frames
+    frames_mod.working_frames = slow_frames
 
     async def main():
         app = FieldToolApp(sys.argv[1])
@@ -288,16 +288,16 @@ def test_kill_mid_piv_leaves_a_valid_project_file(project_path, tmp_path):
 
 def _slow_frames(monkeypatch, delay=0.05):
     """50 ms a frame: a run outlasts a few key presses and screen reads, whatever the CPU."""
-    import fieldtool.run.pipeline as pipeline
+    import fieldtool.run.frames as frames_mod
 
-    streamed = pipeline.working_frames
+    streamed = frames_mod.working_frames
 
     def slow_frames(*args, **kwargs):
         for item in streamed(*args, **kwargs):
             time.sleep(delay)
             yield item
 
-    monkeypatch.setattr(pipeline, "working_frames", slow_frames)
+    monkeypatch.setattr(frames_mod, "working_frames", slow_frames)
 
 
 def screen_lines(app) -> list[str]:

@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 
 from fieldtool.errors import GeometryError
-from fieldtool.run.pipeline import level_and_mapping, load_inputs
+from fieldtool.run.geometry import level_and_mapping
+from fieldtool.run.inputs import load_inputs
 from fieldtool.processing.cross_section import CrossSection
 from fieldtool.processing.ortho import from_scale
 from fieldtool.processing.water_level import waterline_level

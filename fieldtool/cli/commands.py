@@ -58,7 +58,8 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 def cmd_preview(args: argparse.Namespace) -> int:
     import cv2
 
-    from fieldtool.run.pipeline import load_inputs, working_frames
+    from fieldtool.run.frames import working_frames
+    from fieldtool.run.inputs import load_inputs
     from fieldtool.processing.filters import preview
     from fieldtool.project.model import atomic_write_bytes, load_project
 
@@ -75,7 +76,7 @@ def cmd_preview(args: argparse.Namespace) -> int:
         first = next(iter(inputs.source)).image
         if inputs.lens is not None:
             first = inputs.lens.undistort(first)
-        from fieldtool.run.pipeline import roi_and_mask
+        from fieldtool.run.geometry import roi_and_mask
 
         out = preview(project.filters, first, roi=roi_and_mask(project, inputs)[0])
     ok, buf = cv2.imencode(".png", out)

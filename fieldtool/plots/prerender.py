@@ -1,4 +1,4 @@
-"""Figures drawn ahead of ``pipeline.write_outputs``, in a figure process beside the run.
+"""Figures drawn ahead of ``run.outputs.write_outputs``, in a figure process beside the run.
 
 A run's figures cost matplotlib's import (about 0.5 s) and about a second of drawing. On two cores the run's
 own threads (decoding, standardising, correlating) keep both cores busy during the PIV, and only one is busy
@@ -14,7 +14,7 @@ while the run starts (imports, inputs, mapping). So the figures are drawn in a p
 * A job's arguments go to the process as a pickle in a private temporary folder. The process writes its files
   there and answers each job on a pipe with what it wrote.
 
-``pipeline.write_outputs`` copies those files into the output folder, and draws a file itself when it is
+``run.outputs.write_outputs`` copies those files into the output folder, and draws a file itself when it is
 missing: a figure that failed in the process, or a process that died or passed :data:`TIMEOUT_S`. Its error is
 then reported as before. The process ends when its job pipe closes (:meth:`Prerender.close`, or the parent's
 exit) and removes its folder.

@@ -851,18 +851,9 @@ def analyze(
     engine = _make_engine(backend, shape, params, levels, box, mask, near, first_guess)
     if not isinstance(engine, _Engine):  # only the CPU engine moves its windows by it
         first_guess = None
-    fin = levels[-1]
-    X, Y = np.meshgrid(fin.xc, fin.yc)
-    node_mask = np.zeros((fin.ny, fin.nx), dtype=bool)
-    if mask is not None:
-        node_mask = mask[np.rint(Y).astype(int).clip(0, shape[0] - 1), np.rint(X).astype(int).clip(0, shape[1] - 1)]
-    outside = None if near is None else ~near[-1]
-    if outside is not None:
-        node_mask = node_mask | outside
-    if max_speed_px_s is not None:
-        max_speed_px_s = np.broadcast_to(np.asarray(max_speed_px_s, dtype=np.float64), (fin.ny, fin.nx))
+    nodes = _final_nodes(levels[-1], shape, mask, near, max_speed_px_s)
 
-    ens = _Ensemble(engine, fin, params.snr_min) if params.averaging == "ensemble" else None
+    ens = _Ensemble(engine, nodes.fin, params.snr_min) if params.averaging == "ensemble" else None
     if ens is not None:
         ens.remove_zero = params.remove_zero_peak
     # ensemble: per-pair vectors (inverse FFT + peaks of the final pass) only on every stride-th pair
@@ -874,92 +865,144 @@ def analyze(
         ens, per_pair, n_done = carry.ensemble, carry.per_pair, carry.n_pairs
         if ens is not None:
             ens.engine = engine
-    gap = max(1, int(params.frame_gap))
     wanted = None if select is None else frozenset(int(k) for k in select)
-    last_wanted = max(wanted) if wanted else -1
-
-    def prep(k: int, img):
-        """Frame k's spectra; with ``select``: None when no selected pair uses it (it may come undecoded),
-        and only what a pair's second frame needs when it is not the first frame of a selected pair."""
-        if wanted is None:
-            return engine.prepare(img)
-        if k not in wanted and k - gap not in wanted:
-            return None
-        img = _check_frame(k, img, shape)
-        if type(engine).prepare is not _Engine.prepare:
-            return engine.prepare(img)
-        return engine.prepare(img, as_a=k in wanted, as_b=k - gap in wanted)
-
-    history = deque([(prep(0, first), float(t_prev))], maxlen=gap)  # the last `gap` frames, oldest first
-    t_last = float(t_prev)
-    i = 0
-    for i_frame, (t, img) in enumerate(it, start=1):
-        if wanted is not None and i_frame - gap > last_wanted:  # hook of ``select``: no selected pair left
-            break
-        if cancel is not None and cancel():
-            raise Cancelled(f"PIV cancelled by the user after {i} pairs")
-        if wanted is None:
-            img = _check_frame(i_frame, img, shape)
-        t = float(t)
-        if not t > t_last:
-            raise InputFileError(
-                f"frames: timestamps must increase; frame {i_frame} is at {t:.6f} s after {t_last:.6f} s"
-            )
-        t_last = t
-        cur = prep(i_frame, img)
-        if len(history) < gap:  # the first frames only fill the history
-            history.append((cur, t))
-            continue
-        prev, t_prev = history[0]
-        dt = t - t_prev
-        if wanted is not None and i not in wanted:  # hook of ``select``: this pair is skipped
-            i += 1
-            if progress is not None:
-                progress(i, total)
-            history.append((cur, t))
-            continue
-        cb = None
-        if ens is not None:
-            cb = ens.add_fn(dt, node_mask)
-        if subsample and i % stride:
-            engine.correlate(prev, cur, cancel=cancel, ensemble=cb, peaks=False)
-        else:
-            dx, dy, pk = engine.correlate(prev, cur, cancel=cancel, ensemble=cb)
-            snr = pk.snr.reshape(dx.shape)
-            ok = _pair_validity(dx, dy, pk.ok.reshape(dx.shape), snr, dt, params, node_mask, max_speed_px_s)
-            u = np.where(ok, dx / dt, np.nan).astype(np.float32)
-            v = np.where(ok, dy / dt, np.nan).astype(np.float32)
-            tm = 0.5 * (t + t_prev)
-            for key, val in (("u", u), ("v", v), ("t", tm), ("dt", dt), ("index", i),
-                             ("snr", np.where(node_mask, np.nan, snr).astype(np.float32)),
-                             ("p2m", pk.p2m.reshape(dx.shape).astype(np.float32)),
-                             ("peak", pk.peak.reshape(dx.shape).astype(np.float32))):
-                per_pair[key].append(val)
-            if subsample and not total and len(per_pair["u"]) >= 2 * ENSEMBLE_PAIRS:  # keep every other one
-                per_pair = {key: val[::2] for key, val in per_pair.items()}
-                stride *= 2
-            if on_pair is not None:
-                on_pair(i, tm, X, Y, u, v, ok)
-        i += 1
-        if progress is not None:
-            progress(i, total)
-        history.append((cur, t))
-    if i == 0:
-        if gap > 1:
-            raise ParameterError(f"piv.frame_gap: {gap} frames between the images of a pair, but the selected time "
-                                 "range holds no such pair; lower piv.frame_gap or widen video.start_s / video.end_s")
-        raise ParameterError("video: only 1 frame in the selected time range; PIV needs at least 2 — widen "
-                             "video.start_s / video.end_s or lower video.step")
+    loop = _PairLoop(engine, params, nodes, ens, wanted, subsample, stride, per_pair, total, shape)
+    i = loop.run(it, first, t_prev, cancel, progress, on_pair)
+    per_pair = loop.per_pair
     if wanted is not None:
         i = n_done + len(wanted & set(range(i)))
         if not per_pair["u"]:
             raise ParameterError("video: none of the selected pairs is in the clip; PIV needs at least 2 frames")
+    return _time_average(per_pair, ens, nodes, params, i, wanted, first_guess)
 
+
+@dataclass
+class _Nodes:
+    """The final pass' nodes: grid ``fin``, centres X, Y (px), ``node_mask`` (True: no vector: masked, or
+    outside the band of ``near``, which is ``outside``), and the speed limit per node (px/s) or None."""
+
+    fin: object
+    X: np.ndarray
+    Y: np.ndarray
+    node_mask: np.ndarray
+    outside: np.ndarray | None
+    max_speed: np.ndarray | None
+
+
+def _final_nodes(fin, shape, mask, near, max_speed_px_s) -> _Nodes:
+    X, Y = np.meshgrid(fin.xc, fin.yc)
+    node_mask = np.zeros((fin.ny, fin.nx), dtype=bool)
+    if mask is not None:
+        node_mask = mask[np.rint(Y).astype(int).clip(0, shape[0] - 1), np.rint(X).astype(int).clip(0, shape[1] - 1)]
+    outside = None if near is None else ~near[-1]
+    if outside is not None:
+        node_mask = node_mask | outside
+    if max_speed_px_s is not None:
+        max_speed_px_s = np.broadcast_to(np.asarray(max_speed_px_s, dtype=np.float64), (fin.ny, fin.nx))
+    return _Nodes(fin, X, Y, node_mask, outside, max_speed_px_s)
+
+
+class _PairLoop:
+    """The pairs of one :func:`analyze` call: each frame's spectra prepared once, kept for ``frame_gap``
+    frames, each pair correlated (or skipped by ``select``), its vectors validated and collected in
+    ``per_pair``; the ensemble sums grow on the way."""
+
+    def __init__(self, engine, params: PivParams, nodes: _Nodes, ens, wanted, subsample: bool, stride: int,
+                 per_pair: dict, total: int, shape):
+        self.engine, self.params, self.nodes, self.ens, self.wanted = engine, params, nodes, ens, wanted
+        self.subsample, self.stride, self.per_pair, self.total, self.shape = subsample, stride, per_pair, total, shape
+        self.gap = max(1, int(params.frame_gap))
+
+    def prep(self, k: int, img):
+        """Frame k's spectra; with ``select``: None when no selected pair uses it (it may come undecoded),
+        and only what a pair's second frame needs when it is not the first frame of a selected pair."""
+        engine, wanted, gap = self.engine, self.wanted, self.gap
+        if wanted is None:
+            return engine.prepare(img)
+        if k not in wanted and k - gap not in wanted:
+            return None
+        img = _check_frame(k, img, self.shape)
+        if type(engine).prepare is not _Engine.prepare:
+            return engine.prepare(img)
+        return engine.prepare(img, as_a=k in wanted, as_b=k - gap in wanted)
+
+    def run(self, it, first, t_prev, cancel, progress, on_pair) -> int:
+        """Read the frames after ``first``; returns the number of pairs passed (correlated or skipped)."""
+        wanted, gap, total, shape = self.wanted, self.gap, self.total, self.shape
+        last_wanted = max(wanted) if wanted else -1
+        history = deque([(self.prep(0, first), float(t_prev))], maxlen=gap)  # the last `gap` frames, oldest first
+        t_last = float(t_prev)
+        i = 0
+        for i_frame, (t, img) in enumerate(it, start=1):
+            if wanted is not None and i_frame - gap > last_wanted:  # hook of ``select``: no selected pair left
+                break
+            if cancel is not None and cancel():
+                raise Cancelled(f"PIV cancelled by the user after {i} pairs")
+            if wanted is None:
+                img = _check_frame(i_frame, img, shape)
+            t = float(t)
+            if not t > t_last:
+                raise InputFileError(
+                    f"frames: timestamps must increase; frame {i_frame} is at {t:.6f} s after {t_last:.6f} s"
+                )
+            t_last = t
+            cur = self.prep(i_frame, img)
+            if len(history) < gap:  # the first frames only fill the history
+                history.append((cur, t))
+                continue
+            prev, t_prev = history[0]
+            if wanted is None or i in wanted:  # else the hook of ``select``: this pair is skipped
+                self.pair(i, prev, cur, t_prev, t, cancel, on_pair)
+            i += 1
+            if progress is not None:
+                progress(i, total)
+            history.append((cur, t))
+        if i == 0:
+            if gap > 1:
+                raise ParameterError(f"piv.frame_gap: {gap} frames between the images of a pair, but the selected "
+                                     "time range holds no such pair; lower piv.frame_gap or widen video.start_s / "
+                                     "video.end_s")
+            raise ParameterError("video: only 1 frame in the selected time range; PIV needs at least 2 — widen "
+                                 "video.start_s / video.end_s or lower video.step")
+        return i
+
+    def pair(self, i: int, prev, cur, t_prev: float, t: float, cancel, on_pair) -> None:
+        """Correlate pair ``i`` (frames at ``t_prev`` and ``t`` s); its vectors (px/s) join ``per_pair``."""
+        engine, params, nd, per_pair = self.engine, self.params, self.nodes, self.per_pair
+        dt = t - t_prev
+        cb = None
+        if self.ens is not None:
+            cb = self.ens.add_fn(dt, nd.node_mask)
+        if self.subsample and i % self.stride:
+            engine.correlate(prev, cur, cancel=cancel, ensemble=cb, peaks=False)
+            return
+        dx, dy, pk = engine.correlate(prev, cur, cancel=cancel, ensemble=cb)
+        snr = pk.snr.reshape(dx.shape)
+        ok = _pair_validity(dx, dy, pk.ok.reshape(dx.shape), snr, dt, params, nd.node_mask, nd.max_speed)
+        u = np.where(ok, dx / dt, np.nan).astype(np.float32)
+        v = np.where(ok, dy / dt, np.nan).astype(np.float32)
+        tm = 0.5 * (t + t_prev)
+        for key, val in (("u", u), ("v", v), ("t", tm), ("dt", dt), ("index", i),
+                         ("snr", np.where(nd.node_mask, np.nan, snr).astype(np.float32)),
+                         ("p2m", pk.p2m.reshape(dx.shape).astype(np.float32)),
+                         ("peak", pk.peak.reshape(dx.shape).astype(np.float32))):
+            per_pair[key].append(val)
+        if self.subsample and not self.total and len(per_pair["u"]) >= 2 * ENSEMBLE_PAIRS:  # keep every other one
+            self.per_pair = {key: val[::2] for key, val in per_pair.items()}
+            self.stride *= 2
+        if on_pair is not None:
+            on_pair(i, tm, nd.X, nd.Y, u, v, ok)
+
+
+def _time_average(per_pair: dict, ens, nodes: _Nodes, params: PivParams, n_pairs: int, wanted,
+                  first_guess) -> PivResult:
+    """The time-averaged field of the pairs (ensemble, mean or median), validated and filled, as a PivResult."""
+    fin = nodes.fin
     u_pairs, v_pairs = np.stack(per_pair["u"]), np.stack(per_pair["v"])
     n_valid = np.sum(np.isfinite(u_pairs), axis=0)
     vf = n_valid / float(len(u_pairs))
-    if outside is not None:
-        vf = np.where(outside, np.nan, vf)
+    if nodes.outside is not None:
+        vf = np.where(nodes.outside, np.nan, vf)
     with np.errstate(all="ignore"):
         snr_med = _nanmedian_t(np.stack(per_pair["snr"]))
         p2m_med = _nanmedian_t(np.stack(per_pair["p2m"]))
@@ -977,18 +1020,17 @@ def analyze(
             u_avg, v_avg = _nanmedian_t(u_pairs), _nanmedian_t(v_pairs)
         ens_ok = n_valid > 0
     u_avg, v_avg, valid, replaced = _finish_average(
-        u_avg.astype(np.float64), v_avg.astype(np.float64), ens_ok, vf, node_mask, max_speed_px_s,
+        u_avg.astype(np.float64), v_avg.astype(np.float64), ens_ok, vf, nodes.node_mask, nodes.max_speed,
         float(np.median(dts)), params,
     )
     return PivResult(
-        x=X, y=Y, u=u_avg, v=v_avg, valid=valid, valid_fraction=vf, u_pairs=u_pairs, v_pairs=v_pairs,
+        x=nodes.X, y=nodes.Y, u=u_avg, v=v_avg, valid=valid, valid_fraction=vf, u_pairs=u_pairs, v_pairs=v_pairs,
         t_pairs=np.asarray(per_pair["t"]), snr=snr_med, params=params, peak2mean=p2m_med, peak=peak_med,
         replaced=replaced, ensemble_snr=ens_snr, dt_s=dts, pair_index=np.asarray(per_pair["index"], dtype=np.int64),
-        n_pairs=i, zero_peak_removed=None if ens is None else ens.zero_removed,
+        n_pairs=n_pairs, zero_peak_removed=None if ens is None else ens.zero_removed,
         first_guess=None if first_guess is None else _guess_at(fin, *first_guess, whole=False).reshape(fin.ny, fin.nx, 2),
-        carry=_Carry(ens, per_pair, i) if wanted is not None else None,
+        carry=_Carry(ens, per_pair, n_pairs) if wanted is not None else None,
     )
-
 
 @dataclass
 class _Carry:

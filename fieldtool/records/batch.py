@@ -219,7 +219,8 @@ def run_item(item: BatchItem, single_thread: bool = False) -> ItemResult:
     try:
         if single_thread:
             _single_threaded()
-        from fieldtool.run.pipeline import _json_default, run_project
+        from fieldtool.run.outputs import json_default
+        from fieldtool.run.pipeline import run_project
         from fieldtool.project.model import load_project, project_to_dict
 
         project = load_project(item.project_path)
@@ -228,7 +229,7 @@ def run_item(item: BatchItem, single_thread: bool = False) -> ItemResult:
         if res.video_path:
             res.video_time = video_datetime(res.video_path)
         result = run_project(project, item.out_dir)
-        res.summary = json.loads(json.dumps(result.summary(), default=_json_default))
+        res.summary = json.loads(json.dumps(result.summary(), default=json_default))
         res.ok = True
     except FieldToolError as e:
         res.error = str(e)

@@ -359,7 +359,14 @@ def cmd_batch(args) -> int:
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add `site`, `history`, `report` and `batch` to the fieldtool command line."""
-    # site
+    _register_site(sub)
+    _register_history(sub)
+    _register_report(sub)
+    _register_batch(sub)
+
+
+def _register_site(sub: argparse._SubParsersAction) -> None:
+    """`fieldtool site create | list | show | new-measurement`."""
     p = sub.add_parser("site", help="sites: the fixed inputs of a station (create, list, show, new-measurement)")
     ss = p.add_subparsers(dest="site_command", metavar="SITE_COMMAND")
     p.set_defaults(func=lambda a: (p.print_help(), 2)[1])
@@ -395,7 +402,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     _add_db(q)
     q.set_defaults(func=cmd_site_new_measurement)
 
-    # history
+
+def _register_history(sub: argparse._SubParsersAction) -> None:
+    """`fieldtool history list | show | export | add | reference | delete | stats | rating`."""
     p = sub.add_parser("history", help="measurement history: list, show, export, add, reference, stats, rating")
     hs = p.add_subparsers(dest="history_command", metavar="HISTORY_COMMAND")
     _add_db(p)
@@ -454,7 +463,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     _add_db(q, under_history=True)
     q.set_defaults(func=cmd_history_rating)
 
-    # report
+
+def _register_report(sub: argparse._SubParsersAction) -> None:
+    """`fieldtool report`."""
     p = sub.add_parser("report", help="self-contained HTML report (and PDF) of a measurement")
     p.add_argument("result_dir", nargs="?", help="a run's output folder (holds result.json)")
     p.add_argument("--id", type=int, help="or: a measurement id from the history")
@@ -463,7 +474,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     _add_db(p)
     p.set_defaults(func=cmd_report)
 
-    # batch
+
+def _register_batch(sub: argparse._SubParsersAction) -> None:
+    """`fieldtool batch`."""
     p = sub.add_parser("batch", help="run many measurements on all local cores or a Dask cluster")
     p.add_argument("projects", nargs="*", help="project files to run")
     p.add_argument("--list", help="text file with one project file per line")

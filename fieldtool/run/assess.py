@@ -11,6 +11,7 @@ import dataclasses
 
 import numpy as np
 
+from fieldtool.processing import ortho, pose
 from fieldtool.processing import quality as ql
 from fieldtool.processing import uncertainty as un
 from fieldtool.processing.ortho import OrthoMapping
@@ -35,8 +36,6 @@ def sigmas(project, level) -> un.McSigmas:
 
 def _mapping_fn(project, inputs, mapping: OrthoMapping):
     """(gcp_px working, gcp_ref, level) -> H, rebuilt as the run's method did; with the GCP inputs."""
-    from fieldtool.processing import ortho
-
     o = project.ortho
     if o.method == "distances":
         px = inputs.to_working(np.asarray(o.gcp_px, float))
@@ -56,8 +55,6 @@ def _mapping_fn(project, inputs, mapping: OrthoMapping):
 
         return fn, px, world.ravel()
     if o.method == "pose":
-        from fieldtool.processing import pose
-
         raw = np.asarray(o.gcp_px, float)
         world = np.asarray(o.gcp_world_m, float)
         lens = inputs.lens

@@ -13,11 +13,14 @@ from __future__ import annotations
 
 import ctypes
 import json
+import math
 import os
 import shutil
 import tempfile
 import time
 from pathlib import Path
+
+import numpy as np
 
 _RENAME_EXCHANGE = 2
 _AT_FDCWD = -100
@@ -120,10 +123,6 @@ def _umask() -> int:
 def strict_json(obj, warnings: list[str] | None = None, where: str = "") -> object:
     """``obj`` with every non-finite float replaced by None (JSON has no NaN/Infinity); each
     replacement is named in ``warnings``."""
-    import math
-
-    import numpy as np
-
     if isinstance(obj, dict):
         return {k: strict_json(v, warnings, f"{where}.{k}" if where else str(k)) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):

@@ -19,6 +19,7 @@ import numpy as np
 
 from fieldtool import __version__
 from fieldtool.processing.frames import sequence_files
+from fieldtool.processing.piv import REVISION, PivParams, PivResult
 from fieldtool.project.model import Project, atomic_write_bytes, project_to_dict
 
 FILE = "piv_cache.npz"
@@ -51,8 +52,6 @@ def piv_key(project: Project, max_speed_px_s: np.ndarray | None, box_px=None, ne
     if near is not None:
         parts["near"] = [[np.round(np.asarray(sg, float), 3).tolist() for sg in near[0]], [round(r, 3) for r in near[1]]]
     parts["version"] = __version__
-    from fieldtool.processing.piv import REVISION
-
     parts["engine_revision"] = REVISION
     return hashlib.sha256(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()
 
@@ -74,8 +73,6 @@ def save(folder: Path, key: str, res, stabilization: dict | None, extra: dict | 
 def load(folder: Path, key: str, with_extra: bool = False):
     """``(PivResult, stabilization report)`` saved under ``key``, or None (absent, other key, unreadable);
     ``with_extra``: ``(PivResult, stabilization report, extra)``."""
-    from fieldtool.processing.piv import PivParams, PivResult
-
     path = folder / FILE
     if not path.is_file():
         return None

@@ -17,6 +17,7 @@ import numpy as np
 from fieldtool.errors import ParameterError
 from fieldtool.processing import discharge as dq
 from fieldtool.processing import stiv
+from fieldtool.processing.quality import Reason
 from fieldtool.project.model import Project
 
 SOURCES = ("piv", "stiv", "combined")
@@ -177,8 +178,6 @@ def add_reason(quality, block: dict | None) -> None:
     """Add the PIV/STIV disagreement to the quality verdict (doubtful; a good grade becomes doubtful)."""
     if quality is None or not block or not block.get("disagreement_reason"):
         return
-    from fieldtool.processing.quality import Reason
-
     quality.reasons.append(Reason(**block["disagreement_reason"]))
     if quality.grade == "good":
         quality.grade = "doubtful"

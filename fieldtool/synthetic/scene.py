@@ -45,6 +45,8 @@ from fieldtool.project.model import (
     save_project,
 )
 from fieldtool.synthetic.camera import Camera, render_canvas
+from fieldtool.synthetic.checkerboard import render_checkerboard
+from fieldtool.synthetic.mkv import MkvWriter
 
 
 @dataclass(frozen=True)
@@ -635,32 +637,30 @@ def _open_writer(path: Path, fourcc: str, fps: float, size: tuple[int, int]) -> 
     return wr
 
 
-def render_scene(
-    spec: SceneSpec,
-    out_dir: Path | str,
-    progress: Callable[[int, int], None] | None = None,
-    cancel: Callable[[], bool] | None = None,
-) -> SceneTruth:
-    """Render ``spec`` into ``out_dir``: the video, ``cross_section.csv``, ``project.toml`` (what a
-    hydrologist would enter) and ``truth.json`` (never read by the pipeline). Distorted cameras
-    also get ``checkerboard.mp4``. Frames are streamed to the writer.
+@dataclass
+class _Particles:
+    """The tracers on the water (periodic in X over the raster's range) and the raster layer they are splatted
+    into: rows ``r0`` .. ``r0 + ly`` of the world raster, ``lx`` columns, mapped to the canvas by ``H_layer``."""
 
-    Returns the :class:`SceneTruth`; ``seconds_per_frame`` is the measured render+encode time.
-    """
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    cam, river = spec.camera, spec.river
-    w, h = cam.width_px, cam.height_px
-    rng = np.random.default_rng(spec.seed)
-    truth = river.truth()
+    x0: np.ndarray  # X at t = 0 (m)
+    u: np.ndarray  # surface velocity (m/s, along +X)
+    cls: np.ndarray  # diameter class
+    weight: np.ndarray  # splat weight
+    vi: np.ndarray  # layer row (int) and its fraction: particles move along X only
+    fv: np.ndarray
+    band: np.ndarray | None  # in the band that empties after spec.empty_after_s
+    sig_t: list[float]  # blur sigma of each class (raster px)
+    n: int
+    x_lo: float
+    x_len: float
+    ly: int
+    lx: int
+    H_layer: np.ndarray
 
-    # ---- image geometry: ideal canvas (enlarged when the lens distorts) ----
-    map_x, map_y, offset, canvas, T = render_canvas(cam)
-    H_world = T @ cam.plane_homography(river.level_m)  # world (X, Y) -> canvas px
-    ras = _raster_for_view(spec, offset, canvas)
-    H_static = H_world @ ras.to_world
-    static_tex = _static_texture(spec, ras, rng)
 
+def _seed_particles(spec: SceneSpec, ras: _Raster, H_static: np.ndarray, rng: np.random.Generator) -> _Particles:
+    """Uniform tracers on the water, none on the island nor in the patches left empty (draws from ``rng``)."""
+    river = spec.river
     # particle layer: the water rows of the raster plus a blur margin
     Xr, Yr = ras.xy()
     max_d = max(spec.particle_diameters_m)
@@ -697,112 +697,132 @@ def render_scene(
     if spec.empty_after_s > 0 and spec.empty_band_m[1] > spec.empty_band_m[0]:
         s_edge = river.y_left_edge - py
         band = (s_edge >= spec.empty_band_m[0]) & (s_edge <= spec.empty_band_m[1])
+    return _Particles(px0, pu, cls, weight, vi, fv, band, sig_t, n_part, x_lo, x_len, ly, lx, H_layer)
 
-    shake = _shake_matrices(spec, rng)
-    shaken = spec.shake_px > 0 or spec.shake_deg > 0
-    static_img = None
-    if not shaken:
-        static_img = cv2.warpPerspective(static_tex, H_static, canvas, flags=cv2.INTER_LINEAR,
-                                         borderMode=cv2.BORDER_CONSTANT, borderValue=0.5)
 
-    # section geometry on frame 0 (through the lens)
+def _section_and_gcps(spec: SceneSpec) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(section's two water edges px on frame 0 through the lens, GCP world points, their px)."""
+    cam, river = spec.camera, spec.river
     xs = river.x_section_m
     skew = np.tan(np.radians(spec.section_skew_deg)) * river.width_m / 2.0
     sec_world = np.array([[xs + skew, river.y_left_edge, river.level_m], [xs - skew, river.y_right_edge, river.level_m]])
-    sec_px = cam.project(sec_world)
     gw = gcp_world(spec)
-    g_px = cam.project(gw)
+    return cam.project(sec_world), gw, cam.project(gw)
 
-    glint_layers = None
-    if spec.glints > 0:
-        L = spec.roi_half_length_m
-        quad_w = np.array([[xs - L, river.y_left_edge - 0.3, river.level_m], [xs + L, river.y_left_edge - 0.3, river.level_m],
-                           [xs + L, river.y_right_edge + 0.3, river.level_m], [xs - L, river.y_right_edge + 0.3, river.level_m]])
-        glint_layers = _glint_layers(spec, rng, cam.project(quad_w))
-    sec_glints = _section_glint_layers(spec) if spec.section_glints > 0 else None
-    flicker_rng = _aux_rng(spec, 5)
-    ripples = _ripples(spec, offset, canvas) if spec.ripple_amp > 0 else None
 
-    video_path = out / spec.video_name
-    times = frame_times(spec)
+class _FrameRenderer:
+    """Draws frame ``i`` at ``t`` (BGR uint8): the tracers advected to ``t``, the static texture, ripples, the
+    lens, shake, glints, sensor noise and JPEG loss. Draws the glints' flicker and the noise from ``rng``, in
+    frame order."""
+
+    def __init__(self, spec: SceneSpec, ras: _Raster, parts: _Particles, static_tex: np.ndarray,
+                 H_static: np.ndarray, shake: np.ndarray, canvas: tuple[int, int], map_x, map_y,
+                 rng: np.random.Generator, glint_layers, sec_glints, flicker_rng: np.random.Generator, ripples):
+        cam = spec.camera
+        self.spec, self.ras, self.p, self.static_tex, self.H_static = spec, ras, parts, static_tex, H_static
+        self.shake, self.canvas, self.map_x, self.map_y, self.rng = shake, canvas, map_x, map_y, rng
+        # the glint layers, the section's glints (with their own flicker generator) and the ripples
+        self.glint_layers, self.sec_glints, self.flicker_rng, self.ripples = glint_layers, sec_glints, flicker_rng, ripples
+        self.shaken = spec.shake_px > 0 or spec.shake_deg > 0
+        self.static_img = None
+        if not self.shaken:
+            self.static_img = cv2.warpPerspective(static_tex, H_static, canvas, flags=cv2.INTER_LINEAR,
+                                                  borderMode=cv2.BORDER_CONSTANT, borderValue=0.5)
+        self.noise = np.empty((cam.height_px, cam.width_px), np.float32)
+
+    def _tracers(self, i: int, t: float) -> tuple[np.ndarray, np.ndarray]:
+        """The tracers splatted, blurred and warped to the canvas; and the frame's shake homography."""
+        spec, p, canvas, cam = self.spec, self.p, self.canvas, self.spec.camera
+        x = p.x_lo + np.mod(p.x0 - p.x_lo + p.u * t, p.x_len)
+        u_cols = (x - self.ras.x0) / self.ras.res
+        ui = np.floor(u_cols).astype(np.int64)
+        fu = u_cols - ui
+        img = np.zeros((canvas[1], canvas[0]), np.float32)
+        Hs = self.shake[i] if (self.shaken and not cam.has_distortion) else np.eye(3)
+        w_now = p.weight if p.band is None else np.where(
+            p.band, p.weight * np.clip((spec.empty_after_s + 0.2 - t) / 0.2, 0, 1), p.weight)
+        fv, vi, lx, ly, layer_size = p.fv, p.vi, p.lx, p.ly, p.ly * p.lx
+        for c in range(len(spec.particle_diameters_m)):
+            sel = p.cls == c
+            acc = np.zeros(layer_size, np.float64)
+            for du, dv, wt in ((0, 0, (1 - fu) * (1 - fv)), (1, 0, fu * (1 - fv)), (0, 1, (1 - fu) * fv), (1, 1, fu * fv)):
+                cc = np.clip(ui[sel] + du, 0, lx - 1)
+                rr = np.clip(vi[sel] + dv, 0, ly - 1)
+                acc += np.bincount(rr * lx + cc, weights=(wt[sel] * w_now[sel]), minlength=layer_size)
+            layer = cv2.GaussianBlur(acc.reshape(ly, lx).astype(np.float32), (0, 0), p.sig_t[c])
+            img += cv2.warpPerspective(layer, Hs @ p.H_layer, canvas, flags=cv2.INTER_LINEAR,
+                                       borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        return img, Hs
+
+    def render(self, i: int, t: float) -> np.ndarray:
+        """Frame ``i`` at ``t`` s, BGR uint8."""
+        spec, canvas, cam, shaken = self.spec, self.canvas, self.spec.camera, self.shaken
+        w, h = cam.width_px, cam.height_px
+        img, Hs = self._tracers(i, t)
+        if self.static_img is None:
+            img += cv2.warpPerspective(self.static_tex, Hs @ self.H_static, canvas, flags=cv2.INTER_LINEAR,
+                                       borderMode=cv2.BORDER_CONSTANT, borderValue=0.5)
+        else:
+            img += self.static_img
+        if self.ripples is not None:
+            rip = _ripple_image(self.ripples, t, canvas)
+            img += cv2.warpPerspective(rip, Hs, canvas) if shaken and not cam.has_distortion else rip
+        if cam.has_distortion:
+            img = cv2.remap(img, self.map_x, self.map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                            borderValue=0.5)
+            if shaken:
+                img = cv2.warpAffine(img, self.shake[i][:2], (w, h), flags=cv2.INTER_LINEAR,
+                                     borderMode=cv2.BORDER_REFLECT)
+        if self.glint_layers is not None:
+            flick = 0.7 + 0.3 * self.rng.uniform(size=2)
+            img += flick[0] * self.glint_layers[0] + flick[1] * self.glint_layers[1]
+        if self.sec_glints is not None:
+            layers, (gx0, gy0, gx1, gy1) = self.sec_glints
+            lit = ((self.flicker_rng.uniform(size=len(layers)) < spec.glint_duty)
+                   * self.flicker_rng.uniform(0.6, 1.2, len(layers)))
+            img[gy0:gy1, gx0:gx1] += np.tensordot(lit.astype(np.float32), layers, axes=1)
+        img *= 255.0
+        if spec.noise_sigma > 0:
+            self.noise[:] = self.rng.standard_normal((h, w), dtype=np.float32)
+            img += spec.noise_sigma * self.noise
+        frame = np.clip(img + 0.5, 0, 255).astype(np.uint8)
+        if spec.jpeg_quality > 0:
+            enc = cv2.imencode(".jpg", frame, [cv2.IMWRITE_JPEG_QUALITY, int(spec.jpeg_quality)])[1]
+            frame = cv2.imdecode(enc, cv2.IMREAD_GRAYSCALE)
+        return cv2.cvtColor(frame, cv2.COLOR_GRAY2BGR)
+
+
+def _write_video(spec: SceneSpec, video_path: Path, times: list[float], draw: Callable[[int, float], np.ndarray],
+                 progress: Callable[[int, int], None] | None, cancel: Callable[[], bool] | None) -> float:
+    """Stream the frames ``draw(i, t)`` into the video (MJPEG in Matroska with dropped frames, else
+    ``spec.fourcc``); returns the render+encode seconds per frame."""
+    cam = spec.camera
+    w, h = cam.width_px, cam.height_px
     if spec.drop_fraction > 0:
-        from fieldtool.synthetic.mkv import MkvWriter
-
         writer = MkvWriter(video_path, (w, h), quality=95)
         write = writer.write
     else:
         writer = _open_writer(video_path, spec.fourcc, spec.fps, (w, h))
         write = lambda img, _t: writer.write(img)  # noqa: E731
     n = len(times)
-    layer_size = ly * lx
-    noise = np.empty((h, w), np.float32)
     t_start = time.perf_counter()
     try:
         for i, t in enumerate(times):
             if cancel is not None and cancel():
                 raise Cancelled("scene rendering cancelled")
-            x = x_lo + np.mod(px0 - x_lo + pu * t, x_len)
-            u_cols = (x - ras.x0) / ras.res
-            ui = np.floor(u_cols).astype(np.int64)
-            fu = u_cols - ui
-            img = np.zeros((canvas[1], canvas[0]), np.float32)
-            Hs = shake[i] if (shaken and not cam.has_distortion) else np.eye(3)
-            w_now = weight if band is None else np.where(band, weight * np.clip((spec.empty_after_s + 0.2 - t) / 0.2, 0, 1), weight)
-            for c in range(n_cls):
-                sel = cls == c
-                acc = np.zeros(layer_size, np.float64)
-                for du, dv, wt in ((0, 0, (1 - fu) * (1 - fv)), (1, 0, fu * (1 - fv)), (0, 1, (1 - fu) * fv), (1, 1, fu * fv)):
-                    cc = np.clip(ui[sel] + du, 0, lx - 1)
-                    rr = np.clip(vi[sel] + dv, 0, ly - 1)
-                    acc += np.bincount(rr * lx + cc, weights=(wt[sel] * w_now[sel]), minlength=layer_size)
-                layer = cv2.GaussianBlur(acc.reshape(ly, lx).astype(np.float32), (0, 0), sig_t[c])
-                img += cv2.warpPerspective(layer, Hs @ H_layer, canvas, flags=cv2.INTER_LINEAR,
-                                           borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-            if static_img is None:
-                img += cv2.warpPerspective(static_tex, Hs @ H_static, canvas, flags=cv2.INTER_LINEAR,
-                                           borderMode=cv2.BORDER_CONSTANT, borderValue=0.5)
-            else:
-                img += static_img
-            if ripples is not None:
-                rip = _ripple_image(ripples, t, canvas)
-                img += cv2.warpPerspective(rip, Hs, canvas) if shaken and not cam.has_distortion else rip
-            if cam.has_distortion:
-                img = cv2.remap(img, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0.5)
-                if shaken:
-                    img = cv2.warpAffine(img, shake[i][:2], (w, h), flags=cv2.INTER_LINEAR,
-                                         borderMode=cv2.BORDER_REFLECT)
-            if glint_layers is not None:
-                flick = 0.7 + 0.3 * rng.uniform(size=2)
-                img += flick[0] * glint_layers[0] + flick[1] * glint_layers[1]
-            if sec_glints is not None:
-                layers, (gx0, gy0, gx1, gy1) = sec_glints
-                lit = (flicker_rng.uniform(size=len(layers)) < spec.glint_duty) * flicker_rng.uniform(0.6, 1.2, len(layers))
-                img[gy0:gy1, gx0:gx1] += np.tensordot(lit.astype(np.float32), layers, axes=1)
-            img *= 255.0
-            if spec.noise_sigma > 0:
-                noise[:] = rng.standard_normal((h, w), dtype=np.float32)
-                img += spec.noise_sigma * noise
-            frame = np.clip(img + 0.5, 0, 255).astype(np.uint8)
-            if spec.jpeg_quality > 0:
-                enc = cv2.imencode(".jpg", frame, [cv2.IMWRITE_JPEG_QUALITY, int(spec.jpeg_quality)])[1]
-                frame = cv2.imdecode(enc, cv2.IMREAD_GRAYSCALE)
-            write(cv2.cvtColor(frame, cv2.COLOR_GRAY2BGR), t)
+            write(draw(i, t), t)
             if progress is not None:
                 progress(i + 1, n)
     finally:
         writer.release()
-    spf = (time.perf_counter() - t_start) / max(n, 1)
+    return (time.perf_counter() - t_start) / max(n, 1)
 
-    # ---- what the hydrologist enters ----
-    cs = river.survey(spec.survey_spacing_m)
-    if spec.section_skew_deg:  # surveyed along the skewed line: stations stretched by 1 / cos
-        cs = CrossSection(cs.station / np.cos(np.radians(spec.section_skew_deg)), cs.elevation)
-    cs_path = out / "cross_section.csv"
-    atomic_write_bytes(cs_path, to_csv_text(cs).encode("utf-8"))
-    click = rng.normal(0.0, spec.click_error_px, g_px.shape)
-    gcp_clicked = g_px + click
 
-    # ROI: bounding box of the water within x_section +- roi_half_length (sampled edges, lens included)
+def _roi_rect(spec: SceneSpec) -> list[float]:
+    """ROI: bounding box of the water within x_section +- roi_half_length (sampled edges, lens included)."""
+    cam, river = spec.camera, spec.river
+    w, h = cam.width_px, cam.height_px
+    xs = river.x_section_m
     L = spec.roi_half_length_m
     tt = np.linspace(-L, L, 41)
     ee = np.linspace(river.y_right_edge, river.y_left_edge, 41)
@@ -815,21 +835,31 @@ def render_scene(
     bpx = cam.project(border)
     rx0, ry0 = np.clip(bpx.min(axis=0), 0, [w - 1, h - 1])
     rx1, ry1 = np.clip(bpx.max(axis=0), 0, [w - 1, h - 1])
+    return [float(np.floor(rx0)), float(np.floor(ry0)), float(np.ceil(rx1)), float(np.ceil(ry1))]
 
+
+def _write_project(spec: SceneSpec, out: Path, ras: _Raster, sec_px: np.ndarray, gw: np.ndarray,
+                   gcp_clicked: np.ndarray, shaken: bool) -> tuple[Path, Path, Path | None]:
+    """What the hydrologist enters: cross_section.csv, project.toml (and checkerboard.mp4 for a distorted
+    lens); returns (project, cross-section, checkerboard or None) paths."""
+    cam, river = spec.camera, spec.river
+    cs = river.survey(spec.survey_spacing_m)
+    if spec.section_skew_deg:  # surveyed along the skewed line: stations stretched by 1 / cos
+        cs = CrossSection(cs.station / np.cos(np.radians(spec.section_skew_deg)), cs.elevation)
+    cs_path = out / "cross_section.csv"
+    atomic_write_bytes(cs_path, to_csv_text(cs).encode("utf-8"))
     proj = Project(name=f"synthetic {spec.name}")
     proj.video = VideoCfg(path=spec.video_name)
     proj.cross_section = CrossSectionCfg(path=cs_path.name)
     proj.ortho = OrthoCfg(method="distances", gcp_px=_r(gcp_clicked[:4]), distances_m=[round(d, 4) for d in gcp_distances(gw)])
     proj.water_level = WaterLevelCfg(method="value", value_m=float(river.level_m))
     proj.section = SectionCfg(points_px=_r(sec_px), n_sub=spec.n_sub, alpha=float(river.alpha))
-    proj.roi = RoiCfg(rect_px=[float(np.floor(rx0)), float(np.floor(ry0)), float(np.ceil(rx1)), float(np.ceil(ry1))])
+    proj.roi = RoiCfg(rect_px=_roi_rect(spec))
     proj.piv = PivCfg(window_px=spec.piv_window_px, overlap_px=spec.piv_overlap_px)
     if shaken:
         proj.stabilize = StabilizeCfg(enabled=True, regions_px=_bank_regions(spec, _bank_mask(spec, ras)))
     cb_path = None
     if cam.has_distortion:
-        from fieldtool.synthetic.checkerboard import render_checkerboard
-
         cb_path = out / "checkerboard.mp4"
         render_checkerboard(cam, cb_path, n_frames=spec.checkerboard_frames, square_m=spec.checkerboard_square_m,
                             seed=spec.seed + 1, fps=spec.fps, fourcc=spec.fourcc)
@@ -837,7 +867,13 @@ def render_scene(
                                           square_mm=spec.checkerboard_square_m * 1000.0, n_frames=20)
     proj_path = out / "project.toml"
     save_project(proj, proj_path)
+    return proj_path, cs_path, cb_path
 
+
+def _section_motion(spec: SceneSpec) -> list[float]:
+    """Image motion (px per frame) on the section at 10, 50 and 90 % of the width."""
+    cam, river = spec.camera, spec.river
+    xs = river.x_section_m
     motion = []
     for frac in (0.1, 0.5, 0.9):
         s = river.s_left + frac * river.width_m
@@ -845,41 +881,96 @@ def render_scene(
         u = float(river.surface_velocity(s))
         a = cam.project(np.array([[xs, y, river.level_m], [xs + u / spec.fps, y, river.level_m]]))
         motion.append(float(np.linalg.norm(a[1] - a[0])))
+    return motion
 
-    res = SceneTruth(
-        discharge_m3s=truth["discharge_m3s"], water_level_m=river.level_m, alpha=river.alpha,
-        wetted_width_m=truth["wetted_width_m"], wetted_area_m2=truth["wetted_area_m2"],
-        mean_velocity_ms=truth["mean_velocity_ms"], K=cam.K.copy(), R=cam.R.copy(), t=cam.t.copy(),
-        dist=cam.dist_array.copy(), gcp_world_m=gw, gcp_px=g_px, section_px=sec_px, video_path=video_path,
-        project_path=proj_path, cross_section_path=cs_path, truth_path=out / "truth.json", n_frames=n,
-        fps=spec.fps, seconds_per_frame=spf, section_motion_px=motion, checkerboard_path=cb_path, spec=spec,
-    )
-    truth_doc = {
+
+def _truth_doc(spec: SceneSpec, truth: dict, res: "SceneTruth", gcp_clicked: np.ndarray, ras: _Raster, n_part: int,
+               times: list[float]) -> dict:
+    """truth.json: the generator's truth, camera, GCPs and the spec's fields that are set."""
+    cam = spec.camera
+    doc = {
         **truth,
         "scene": spec.name,
-        "n_frames": n,
+        "n_frames": res.n_frames,
         "fps": spec.fps,
         "timestamps": ("container timestamps (Matroska, 10 µs ticks), listed in frame_times_s" if spec.drop_fraction > 0
                        else "frame i at i / fps seconds"),
         "camera": {"K": cam.K.tolist(), "R": cam.R.tolist(), "t": cam.t.tolist(), "rvec": cam.rvec.tolist(),
                    "dist": cam.dist_array.tolist(), "position_m": list(cam.position_m), "target_m": list(cam.target_m)},
-        "gcp_world_m": gw.tolist(),
-        "gcp_px_exact": g_px.tolist(),
+        "gcp_world_m": res.gcp_world_m.tolist(),
+        "gcp_px_exact": res.gcp_px.tolist(),
         "gcp_px_clicked": gcp_clicked.tolist(),
-        "section_px": sec_px.tolist(),
-        "section_motion_px_per_frame_at_10_50_90pct": motion,
+        "section_px": res.section_px.tolist(),
+        "section_motion_px_per_frame_at_10_50_90pct": res.section_motion_px,
         "raster_res_m": ras.res,
         "n_particles": n_part,
-        "seconds_per_frame": spf,
+        "seconds_per_frame": res.seconds_per_frame,
         "codec": "MJPEG in Matroska (variable frame rate)" if spec.drop_fraction > 0 else spec.fourcc,
-        "checkerboard_video": cb_path.name if cb_path else None,
+        "checkerboard_video": res.checkerboard_path.name if res.checkerboard_path else None,
         "spec": _jsonable({k: v for k, v in asdict(spec).items() if k not in _VARIANT_DEFAULTS or v != _VARIANT_DEFAULTS[k]}),
     }
     if spec.drop_fraction > 0:
-        truth_doc["frame_times_s"] = times
+        doc["frame_times_s"] = times
     if spec.section_skew_deg:
-        truth_doc["section_note"] = (f"section surveyed at {spec.section_skew_deg:g} deg to the flow's normal; "
-                                     "cross-section stations run along it")
+        doc["section_note"] = (f"section surveyed at {spec.section_skew_deg:g} deg to the flow's normal; "
+                               "cross-section stations run along it")
+    return doc
+
+
+def render_scene(
+    spec: SceneSpec,
+    out_dir: Path | str,
+    progress: Callable[[int, int], None] | None = None,
+    cancel: Callable[[], bool] | None = None,
+) -> SceneTruth:
+    """Render ``spec`` into ``out_dir``: the video, ``cross_section.csv``, ``project.toml`` (what a
+    hydrologist would enter) and ``truth.json`` (never read by the pipeline). Distorted cameras
+    also get ``checkerboard.mp4``. Frames are streamed to the writer.
+
+    Returns the :class:`SceneTruth`; ``seconds_per_frame`` is the measured render+encode time.
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    cam, river = spec.camera, spec.river
+    rng = np.random.default_rng(spec.seed)  # drawn in this order: texture, tracers, shake, glints, frames, clicks
+    truth = river.truth()
+
+    # ---- image geometry: ideal canvas (enlarged when the lens distorts) ----
+    map_x, map_y, offset, canvas, T = render_canvas(cam)
+    H_world = T @ cam.plane_homography(river.level_m)  # world (X, Y) -> canvas px
+    ras = _raster_for_view(spec, offset, canvas)
+    H_static = H_world @ ras.to_world
+    static_tex = _static_texture(spec, ras, rng)
+    parts = _seed_particles(spec, ras, H_static, rng)
+    shake = _shake_matrices(spec, rng)
+    sec_px, gw, g_px = _section_and_gcps(spec)  # section geometry on frame 0 (through the lens)
+
+    glint_layers = None
+    if spec.glints > 0:
+        xs, L = river.x_section_m, spec.roi_half_length_m
+        quad_w = np.array([[xs - L, river.y_left_edge - 0.3, river.level_m], [xs + L, river.y_left_edge - 0.3, river.level_m],
+                           [xs + L, river.y_right_edge + 0.3, river.level_m], [xs - L, river.y_right_edge + 0.3, river.level_m]])
+        glint_layers = _glint_layers(spec, rng, cam.project(quad_w))
+    renderer = _FrameRenderer(spec, ras, parts, static_tex, H_static, shake, canvas, map_x, map_y, rng, glint_layers,
+                              _section_glint_layers(spec) if spec.section_glints > 0 else None, _aux_rng(spec, 5),
+                              _ripples(spec, offset, canvas) if spec.ripple_amp > 0 else None)
+
+    video_path = out / spec.video_name
+    times = frame_times(spec)
+    spf = _write_video(spec, video_path, times, renderer.render, progress, cancel)
+
+    gcp_clicked = g_px + rng.normal(0.0, spec.click_error_px, g_px.shape)
+    proj_path, cs_path, cb_path = _write_project(spec, out, ras, sec_px, gw, gcp_clicked, renderer.shaken)
+    res = SceneTruth(
+        discharge_m3s=truth["discharge_m3s"], water_level_m=river.level_m, alpha=river.alpha,
+        wetted_width_m=truth["wetted_width_m"], wetted_area_m2=truth["wetted_area_m2"],
+        mean_velocity_ms=truth["mean_velocity_ms"], K=cam.K.copy(), R=cam.R.copy(), t=cam.t.copy(),
+        dist=cam.dist_array.copy(), gcp_world_m=gw, gcp_px=g_px, section_px=sec_px, video_path=video_path,
+        project_path=proj_path, cross_section_path=cs_path, truth_path=out / "truth.json", n_frames=len(times),
+        fps=spec.fps, seconds_per_frame=spf, section_motion_px=_section_motion(spec), checkerboard_path=cb_path,
+        spec=spec,
+    )
+    truth_doc = _truth_doc(spec, truth, res, gcp_clicked, ras, parts.n, times)
     atomic_write_bytes(res.truth_path, json.dumps(truth_doc, indent=2).encode("utf-8"))
     return res
 

@@ -33,7 +33,8 @@ CORE_TABLES = {
 
 def core_check(session, step: str) -> None:
     """The core's check of ``step`` on the session's project; raises FieldToolError with the message."""
-    from fieldtool.run.pipeline import build_mapping, level_and_mapping, piv_params, roi_and_mask
+    from fieldtool.run.geometry import build_mapping, level_and_mapping, roi_and_mask
+    from fieldtool.run.velocimetry import piv_params
 
     p = session.project
     if step == "cross_section":
@@ -81,8 +82,8 @@ def core_check(session, step: str) -> None:
 
 def section_geometry(session):
     """(section geometry, level result, cross-section) of the session's project, with the same
-    checks as `fieldtool run` (``pipeline.build_section``)."""
-    from fieldtool.run.pipeline import build_section, level_and_mapping
+    checks as `fieldtool run` (``run.geometry.build_section``)."""
+    from fieldtool.run.geometry import build_section, level_and_mapping
 
     p = session.project
     inputs = session.inputs()

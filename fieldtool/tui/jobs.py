@@ -79,7 +79,8 @@ def _piv_setup(project: Project, inputs):
     The key is the PIV cache's (``piv_cache.piv_key``) on every PIV input; it is None when a speed
     limit is set but the mapping cannot be built yet."""
     from fieldtool.errors import FieldToolError
-    from fieldtool.run.pipeline import level_and_mapping, piv_params, roi_and_mask
+    from fieldtool.run.geometry import level_and_mapping, roi_and_mask
+    from fieldtool.run.velocimetry import piv_params
     from fieldtool.processing import piv as piv_mod
 
     try:
@@ -123,7 +124,8 @@ def run_piv_only(project: Project, job: Job, out_dir: Path | None = None) -> dic
     The level and mapping are used when they can be computed (speed limit, m/s statistics). The
     field is saved at once under ``out_dir/tui_piv`` (the PIV cache's format and key): quitting before
     a section exists loses nothing, the PIV step shows it again when the project is reopened."""
-    from fieldtool.run.pipeline import _Sized, load_inputs, working_frames
+    from fieldtool.run.frames import Sized, working_frames
+    from fieldtool.run.inputs import load_inputs
     from fieldtool.processing import piv as piv_mod
 
     job.progress("inputs", 0, 0)
@@ -134,7 +136,7 @@ def run_piv_only(project: Project, job: Job, out_dir: Path | None = None) -> dic
                             job.progress)
     n_expected = inputs.source.estimated_count()
     if n_expected:
-        frames = _Sized(frames, n_expected)  # the same pair plan as the discharge run
+        frames = Sized(frames, n_expected)  # the same pair plan as the discharge run
     res = piv_mod.analyze(frames, params, roi=roi, mask=mask, max_speed_px_s=max_speed, cancel=job.cancelled)
     if out_dir is not None and key is not None:
         folder = Path(out_dir) / PREVIEW_DIR
@@ -177,7 +179,8 @@ def run_calibration(project: Project, job: Job) -> dict:
 
 def run_stabilization(project: Project, job: Job) -> dict:
     """Register the clip on its first frame (filters off) and report the residual motion."""
-    from fieldtool.run.pipeline import load_inputs, working_frames
+    from fieldtool.run.frames import working_frames
+    from fieldtool.run.inputs import load_inputs
 
     p = snapshot(project)
     p.filters = []

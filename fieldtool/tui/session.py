@@ -92,8 +92,8 @@ class Session:
 
     # -- inputs (cross-section, clip, lens), cached on their tables ------------------------------
     def inputs(self):
-        """pipeline.Inputs for the current project; loaded again only when their tables change."""
-        from fieldtool.run.pipeline import load_inputs
+        """run.inputs.Inputs for the current project; loaded again only when their tables change."""
+        from fieldtool.run.inputs import load_inputs
 
         d = project_to_dict(self.project)
         key = json.dumps([d.get(t) for t in ("video", "cross_section", "calibration")], sort_keys=True)

@@ -118,7 +118,8 @@ def load_display(project: Project, kind: str) -> Display:
 
 
 def _ortho(project: Project) -> Display:
-    from fieldtool.run.pipeline import build_mapping, compute_level, load_inputs
+    from fieldtool.run.geometry import build_mapping, compute_level
+    from fieldtool.run.inputs import load_inputs
 
     inputs = load_inputs(project)
     level = None
@@ -153,7 +154,7 @@ def _dem_plot(project: Project) -> Display:
     cfg = project.water_level
     if not cfg.dem_path:
         raise ParameterError("water_level.dem_path: no DEM given; the DEM plot needs the bank's DEM (TIFF)")
-    from fieldtool.run.pipeline import load_cross_section
+    from fieldtool.run.inputs import load_cross_section
 
     cs = load_cross_section(project)
     dem = wl.read_dem(project.resolve(cfg.dem_path))

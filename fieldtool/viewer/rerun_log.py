@@ -1,6 +1,6 @@
 """Stream a run to rerun so a supervisor can watch what the tool computes.
 
-:class:`RerunObserver` is a pipeline :class:`~fieldtool.run.pipeline.Observer`. It logs, on the
+:class:`RerunObserver` is a pipeline :class:`~fieldtool.run.observer.Observer`. It logs, on the
 ``time`` (s, clip time) and ``pair`` / ``frame`` (index) timelines:
 
 =====================================  ==========================================================
@@ -55,7 +55,7 @@ import cv2
 import numpy as np
 
 from fieldtool.errors import InputFileError, ParameterError
-from fieldtool.run.pipeline import Observer
+from fieldtool.run.observer import Observer
 
 MODES = ("off", "save", "connect", "serve")
 PROFILE_SCALE = 10.0  # section profile: 1 m/s is drawn as 10 "metres" of station, so both axes read well

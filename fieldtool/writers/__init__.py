@@ -6,7 +6,7 @@
 - the report's figures ``profile.png`` / ``section_profile.csv`` and ``gcp.png``
   (:mod:`fieldtool.plots.report_figures`), and the clip's metadata in ``result.json`` ``video``.
 
-:func:`write_standard` is the one hook ``pipeline.write_outputs`` calls; :func:`check` is called
+:func:`write_standard` is the one hook ``run.outputs.write_outputs`` calls; :func:`check` is called
 before any work so that a wrong CRS stops the run at once (exit 2).
 """
 

@@ -175,7 +175,7 @@ class FiltersScreen(StepScreen):
         raise ParameterError("video: the range holds no frame")
 
     def roi(self, inputs):
-        from fieldtool.run.pipeline import roi_and_mask
+        from fieldtool.run.geometry import roi_and_mask
 
         return roi_and_mask(self.project, inputs)[0]
 

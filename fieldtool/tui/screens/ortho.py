@@ -40,7 +40,7 @@ class OrthoScreen(StepScreen):
             info.update("ctrl+r solves the GCP geometry and reports its residual")
 
     def mapping(self):
-        from fieldtool.run.pipeline import build_mapping
+        from fieldtool.run.geometry import build_mapping
 
         return build_mapping(self.project, self.session.inputs(), None)
 

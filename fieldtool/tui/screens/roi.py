@@ -31,7 +31,7 @@ class RoiScreen(StepScreen):
                     "pick the ROI as two corners (top-left, bottom-right) and each mask as 3+ corners in the viewer")
 
     def check(self):
-        from fieldtool.run.pipeline import roi_and_mask
+        from fieldtool.run.geometry import roi_and_mask
 
         return roi_and_mask(self.project, self.session.inputs())
 

@@ -23,7 +23,7 @@ class WaterLevelScreen(StepScreen):
         yield SectionPlot(id="plot")
 
     def compute(self):
-        from fieldtool.run.pipeline import level_and_mapping
+        from fieldtool.run.geometry import level_and_mapping
 
         inputs = self.session.inputs()
         level, _ = level_and_mapping(self.project, inputs)

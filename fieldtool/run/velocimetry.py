@@ -1,0 +1,282 @@
+"""Stage 5, velocimetry: the PIV field of the clip's frame pairs (px/s on the working image) and STIV's
+space-time images on its search lines, sampled from the same frame stream.
+
+:func:`setup` fixes what the PIV needs besides the frames (parameters, the box it correlates, the nodes near
+the sections, the speed limit, STIV's lines); :func:`measure_velocity` streams the frames through the
+stationary-pattern removal and the first look (frame gap, search area) into the PIV: in rounds of pairs
+until the discharge converged (run/piv_rounds.py; one decode of the clip for every round,
+run/clip_pass.py) or every pair at once (``[piv] all_pairs``), or takes the
+field from the output folder's PIV cache (run/piv_cache.py) when only the geometry changed.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from fieldtool.errors import ParameterError
+from fieldtool.processing import piv as piv_mod
+from fieldtool.processing import piv_fast, planning, surface
+from fieldtool.processing.piv import PivParams
+from fieldtool.project.model import Project
+from fieldtool.run import frames as frames_mod
+from fieldtool.run import clip_pass, piv_cache, piv_rounds, stiv_stage
+from fieldtool.run.geometry import Sections
+from fieldtool.run.inputs import Inputs
+from fieldtool.run.observer import Guarded, Progress
+
+
+def piv_params(project: Project):
+    p = project.piv
+    return PivParams(window_px=p.window_px, overlap_px=p.overlap_px, search_px=p.search_px, passes=p.passes,
+                     snr_min=p.snr_min, averaging=p.averaging, median_threshold=p.median_threshold,
+                     std_threshold=p.std_threshold, min_valid_fraction=p.min_valid_fraction, engine=p.engine,
+                     frame_gap=p.frame_gap or 1, remove_zero_peak=p.remove_zero_peak)
+
+
+def piv_region(project: Project, inputs: Inputs, params, roi, segments) -> tuple[int, int, int, int] | None:
+    """The box PIV correlates (working-image px), by ``[piv] region``: ``section`` a band around the section
+    segment(s) (list of (2, 2) working-image points) within the ROI, ``roi`` the ROI (None = whole frame),
+    ``full`` the whole frame (None)."""
+    region = project.piv.region
+    if region not in piv_fast.REGIONS:
+        raise ParameterError(f"piv.region: {region!r} is not one of {', '.join(piv_fast.REGIONS)}")
+    if region == "full":
+        return None
+    if region == "roi":
+        return roi
+    margin = piv_fast.band_margin_px(params.window_px, params.overlap_px, params.passes, params.search_px)
+    w0 = params.window_px * 2 ** (params.passes - 1)
+    side = max(w0, int(params.search_px or 0)) + 2 * (params.window_px - params.overlap_px) * 2 ** (params.passes - 1)
+    return piv_fast.section_band(inputs.shape, segments, margin, roi, min_side_px=side)
+
+
+@dataclass
+class PivSetup:
+    """What the PIV needs besides the frames. ``roi`` is the box it correlates (working px, None = the whole
+    frame), ``roi_user`` the user's ROI; ``near`` the section segments and node reach (px) of
+    ``[piv] region = "section"``; ``max_speed`` the speed limit per node (px/s) or None."""
+
+    params: PivParams
+    standardize: bool  # stationary-pattern removal (processing.surface) on
+    roi: tuple[int, int, int, int] | None
+    roi_user: tuple[int, int, int, int] | None
+    mask: np.ndarray | None
+    near: tuple | None
+    max_speed: np.ndarray | None
+    stiv_run: stiv_stage.StivRun | None
+
+
+def setup(project: Project, inputs: Inputs, mapping, sections: Sections, warnings: list[str]) -> PivSetup:
+    """The PIV's parameters, box and speed limit, and STIV's lines (see :class:`PivSetup`)."""
+    roi, mask = sections.roi, sections.mask
+    stiv_run = stiv_stage.start(project, mapping, sections.geom, inputs.shape, roi, mask)
+    params = piv_params(project)
+    # stationary-pattern removal standardises each pixel over a window of frames: a clip shorter than that
+    # window (e.g. 1 s of natural texture) would lose its own texture to the window's mean
+    n_clip = inputs.source.estimated_count() or 0
+    standardize = project.piv.remove_stationary and (n_clip == 0 or n_clip >= 2 * surface.HALF_WINDOW + 1)
+    if project.piv.remove_stationary and not standardize:
+        warnings.append(f"piv.remove_stationary: the clip has {n_clip} frames, fewer than the "
+                        f"{2 * surface.HALF_WINDOW + 1} its time window needs; glints and other patterns fixed in "
+                        "the image are not removed")
+    if standardize:
+        params = replace(params, min_texture=surface.MIN_TEXTURE)
+    box = piv_region(project, inputs, params, roi, sections.segments)
+    near = None
+    if project.piv.region == "section" and box is not None:  # in the band's box, only the nodes near the sections
+        near = ([np.asarray(sg, float)[:2] for sg in sections.segments],
+                piv_fast.node_reach_px(params.window_px, params.overlap_px, params.passes))
+    x, y = piv_mod.grid(inputs.shape, params, box)
+    max_speed = None
+    if project.piv.max_velocity_ms is not None:
+        max_speed = project.piv.max_velocity_ms / mapping.scale_m_per_px(x, y)
+    return PivSetup(params, bool(standardize), box, roi, mask, near, max_speed, stiv_run)
+
+
+@dataclass
+class Velocimetry:
+    """The velocimetry stage's output: the PIV field (``processing.piv.PivResult``) and what the frames
+    told on the way. ``fast`` holds the fast path's facts (region, box, pairs used, convergence)."""
+
+    piv: object
+    stabilization: dict
+    frame_stats: dict  # {"pairs": n, "identical": n} of consecutive frames
+    surface_stats: object | None  # processing.surface.SurfaceStats with the standardisation on
+    plan: object | None  # processing.planning.Plan (None when the field was reused)
+    fast: dict
+    reused: bool  # the field came from the output folder's piv_cache.npz
+
+
+class _Streams:
+    """The frame streams the PIV reads and the pair plan (frame gap, search area) the first look sets; holds
+    what every stream adds to as it is read (stabilisation report, identical frames, last time decoded)."""
+
+    def __init__(self, project: Project, inputs: Inputs, s: PivSetup, cancel, obs: Guarded,
+                 progress: Progress | None, warnings: list[str]):
+        self.project, self.inputs, self.s, self.cancel, self.obs, self.progress = project, inputs, s, cancel, obs, progress
+        self.warnings = warnings
+        self.params = s.params
+        self.plan = None
+        self.stab: dict = {}
+        self.frame_stats: dict = {}
+        self.surface_stats = surface.SurfaceStats() if s.standardize else None
+        self.decoded: list[float] = []
+        self.count = clip_pass.DecodeCount()
+
+    def stream(self, want=None, tap: bool = False):
+        """The frames PIV reads: working frames, duplicate count, stationary-pattern removal (which needs every
+        frame of its time window: then every frame is decoded and ``want`` only chooses the standardised frames
+        that are built). ``tap``: STIV samples its lines from this stream."""
+        project, s = self.project, self.s
+        want_std = want
+        if s.standardize:  # every frame enters the standardisation's window; only the wanted ones are built
+            want = None
+        elif tap and s.stiv_run is not None:  # STIV samples every frame of the stream it taps
+            want = None
+        frames = frames_mod.working_frames(project, self.inputs, self.cancel, self.obs,
+                                           self.stab if project.stabilize.enabled else None, self.progress,
+                                           want=want, raw=s.standardize,  # the standardisation converts its box only
+                                           count=self.count)
+        if tap and s.stiv_run is not None:  # STIV samples its lines from the same stream (one decode)
+            frames = s.stiv_run.tap(frames)
+        frames = frames_mod.count_identical(self._tracked(frames), self.frame_stats)
+        if s.standardize:
+            self.surface_stats.frames = 0  # each round of the fast path standardises the clip again: count one pass
+            frames = piv_fast.threaded(frames)  # decoding (and STIV's sampling) in a thread of its own
+            frames = surface.standardize(frames, s.roi, margin=max(64, self.params.search_px or 0),
+                                         half=surface.HALF_WINDOW, shrink=surface.SHRINK, stats=self.surface_stats,
+                                         want=want_std)
+        return frames
+
+    def _tracked(self, it):
+        for k, (t, img) in enumerate(it, start=1):
+            self.decoded[:] = [t]
+            self.count.in_range = max(self.count.in_range, k)
+            yield t, img
+
+    def plan_pairs(self, frames):
+        """The pair plan: from a first look at the frames (``processing.planning.first_look``) unless the user
+        set ``piv.frame_gap``; returns the frames, the looked ones included."""
+        project, params = self.project, self.params
+        if project.piv.frame_gap is None:
+            plan, frames = planning.first_look(frames, params, self.s.roi, self.s.mask)
+            if params.search_px is not None or params.engine != "fieldtool":  # the user's search area, or an
+                plan.guess = None  # engine that cannot move its windows: the wider search area instead
+            if plan.guess is not None:
+                plan.search_px = None  # the first pass starts from the look's field
+            self.params = replace(params, frame_gap=plan.frame_gap, search_px=params.search_px or plan.search_px)
+            if plan.frame_gap > 1 or plan.search_px or plan.guess is not None:
+                self.warnings.append(
+                    f"piv: from a first look at {plan.pairs_looked} pairs (slow nodes {plan.slow_px_per_frame:.1f}, "
+                    f"fast nodes {plan.fast_px_per_frame:.1f} px per frame) pairs are {plan.frame_gap} frame(s) apart"
+                    + (f" and the first pass searches {plan.search_px} px" if plan.search_px else "")
+                    + (" and the first pass starts from the look's field" if plan.guess is not None else "")
+                    + "; set piv.frame_gap (and piv.search_px) to choose yourself")
+        else:
+            plan = planning.Plan(frame_gap=int(project.piv.frame_gap), search_px=params.search_px, chosen="user")
+        self.plan = plan
+        return frames
+
+
+def measure_velocity(project: Project, inputs: Inputs, s: PivSetup, pair_q: Callable[..., float],
+                     cache_dir: Path | None, cancel, obs: Guarded, progress: Progress | None,
+                     warnings: list[str]) -> Velocimetry:
+    """The PIV field of the clip (and STIV's sampling on the way). ``pair_q(x, y, u, v)`` is the discharge of
+    one pair's field on the main section (m³/s), which the rounds converge on; ``cache_dir``: the folder whose
+    PIV cache is read and written (None: neither)."""
+    st = _Streams(project, inputs, s, cancel, obs, progress, warnings)
+    key = piv_cache.piv_key(project, s.max_speed, s.roi, s.near) if cache_dir is not None else ""
+    cached = piv_cache.load(cache_dir, key, with_extra=True) if cache_dir is not None else None
+    fast = {"region": project.piv.region, "box_px": None if s.roi is None else list(s.roi),
+            "roi_px": None if s.roi_user is None else list(s.roi_user)}
+
+    def on_pair(i, t, xx, yy, u, v, valid):
+        obs("pair", i, t, xx, yy, u, v, valid)
+
+    n_exp = inputs.source.estimated_count()
+    if cached is not None:
+        res, stab_cached, extra = cached
+        st.stab.update(stab_cached or {})
+        extra = dict(extra or {})
+        st.frame_stats.update(extra.pop("frame_stats", None) or {})  # identical frames are still a reason on reuse
+        fast.update(extra)
+    # pairs are added in rounds until the discharge converged (piv_fast.converge). The first round is one
+    # streamed pass that STIV and the first look share: its reader thread decodes (and standardises) every
+    # frame, but builds only the frames of the round's pairs, spread over the clip, and those kept for the
+    # later rounds, which replay them (run/clip_pass.py; a new pass only for a frame the budget left out)
+    elif not project.piv.all_pairs and n_exp > 2:
+        res = _rounds(project, st, n_exp, pair_q, on_pair, fast)
+    else:
+        res = _all_pairs(project, inputs, st, n_exp, on_pair, fast, warnings)
+    if cached is None and cache_dir is not None:
+        piv_cache.save(cache_dir, key, res, st.stab or None, {**fast, "frame_stats": st.frame_stats})
+    if cached is None:  # what the PIV's streams decoded (a reused field decodes nothing for it)
+        fast.update(frames_decoded=st.count.frames, frames_in_range=st.count.in_range)
+    stiv_stage.ensure_sampled(s.stiv_run, lambda: frames_mod.working_frames(project, inputs, cancel))
+    return Velocimetry(res, st.stab, st.frame_stats, st.surface_stats, st.plan, fast, cached is not None)
+
+
+def _rounds(project: Project, st: _Streams, n_exp: int, pair_q, on_pair, fast: dict):
+    """The fast path: rounds of pairs until the discharge converged (run/piv_rounds.py). Round 1 reads the
+    stream the first look started (its want is set when round 1 begins); that pass also keeps the frames later
+    rounds will want (run/clip_pass.py), and STIV samples its lines from it."""
+    s = st.s
+    kept = clip_pass.KeptFrames(st.surface_stats if s.standardize else None, st.inputs.shape)
+    round1_want: list = [None]
+    reader1 = piv_fast.prefetch(kept.keeping(st.stream(
+        want=lambda k: round1_want[0] is None or round1_want[0](k) or kept.wants(k), tap=True)))
+    make_frames = piv_rounds.SharedFirstRound(st.stream, reader1, st.plan_pairs(reader1), round1_want, kept)
+    params = st.params
+    gap = max(1, int(params.frame_gap))
+    h, w = st.inputs.shape
+    # the box of a kept frame: the standardisation's (processing.surface: the PIV's box grown by the search area
+    # set before the plan, as round 1 standardises), else the whole frame
+    box = surface._box((h, w), s.roi, max(64, s.params.search_px or 0)) if s.standardize else (0, 0, w, h)
+    # whole working frames without filters hold whole grey levels: kept as uint8 (clip_pass.KeptFrames._stored)
+    bytes_px = 1 if not s.standardize and not project.filters else 4
+    kept.plan(n_exp - gap, min(max(int(project.piv.min_pairs), 2), n_exp - gap), gap, box, bytes_px)
+    drain = s.stiv_run is not None or len(kept.keep) > 1  # the pass reaches the clip's end
+    try:
+        if n_exp - gap >= 2:
+            res, conv = piv_rounds.run_piv_fast(make_frames, n_exp - gap, gap, params, s.roi, s.mask, s.max_speed,
+                                                st.cancel, on_pair, pair_q, project.piv.converge_rel_ci,
+                                                project.piv.min_pairs, drain_first=drain,
+                                                near=s.near, first_guess=st.plan.guess)
+            fast.update(conv)
+        else:
+            frames = make_frames()
+            try:
+                res = piv_mod.analyze(frames, params, roi=s.roi, mask=s.mask, max_speed_px_s=s.max_speed,
+                                      cancel=st.cancel, on_pair=on_pair, near=s.near, first_guess=st.plan.guess)
+            finally:
+                getattr(frames, "close", lambda: None)()
+            fast.update(pairs_used=int(res.n_pairs or 0), converged=None)
+    finally:  # round 1's reader thread stops even when the rounds never started (a key refused)
+        make_frames.close()
+    return res
+
+
+def _all_pairs(project: Project, inputs: Inputs, st: _Streams, n_exp: int, on_pair, fast: dict,
+               warnings: list[str]):
+    """Every pair in one streamed pass (``[piv] all_pairs``, or a clip of 2 frames)."""
+    s = st.s
+    reader = piv_fast.prefetch(st.plan_pairs(st.stream(tap=True)))
+    frames = reader
+    if n_exp:
+        frames = frames_mod.Sized(frames, n_exp)  # lets the ensemble plan which pairs get per-pair vectors
+    try:
+        res = piv_mod.analyze(frames, st.params, roi=s.roi, mask=s.mask, max_speed_px_s=s.max_speed,
+                              progress=None, cancel=st.cancel, on_pair=on_pair, near=s.near, first_guess=st.plan.guess)
+    finally:
+        reader.close()
+    fast.update(pairs_used=int(res.n_pairs or 0), converged=None)
+    v, fps = project.video, getattr(getattr(inputs.source, "info", None), "fps", 0) or 0
+    decoded = st.decoded
+    if v.end_s is not None and decoded and fps > 0 and decoded[0] < v.end_s - (v.step + 1) / fps:
+        warnings.append(f"video.end_s: the clip decoded only up to {decoded[0]:.2f} s of the {v.end_s:g} s asked "
+                        f"(its container claims more); the measurement covers {v.start_s:g}-{decoded[0]:.2f} s")
+    return res

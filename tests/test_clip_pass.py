@@ -1,0 +1,76 @@
+"""One decode per clip (run/clip_pass.py): the rounds of pairs replay the frames round 1's pass kept, and
+give the field a new pass would."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from fieldtool.processing.surface import SurfaceStats
+from fieldtool.project.model import load_project
+from fieldtool.run import clip_pass
+from fieldtool.run.pipeline import run_project
+
+
+def _stream(n: int, shape=(40, 60), box=(10, 5, 50, 30)):
+    """Frames that are 0 outside ``box``, as the standardisation's are, with their times."""
+    rng = np.random.default_rng(1)
+    for k in range(n):
+        img = np.zeros(shape, np.float32)
+        x0, y0, x1, y1 = box
+        img[y0:y1, x0:x1] = rng.standard_normal((y1 - y0, x1 - x0)).astype(np.float32)
+        yield 0.1 * k, img
+
+
+def _stats(shape=(40, 60), box=(10, 5, 50, 30)) -> SurfaceStats:
+    return SurfaceStats(frames=0, box=box, shape=shape)
+
+
+def test_replay_gives_the_kept_frames_and_none_where_not_wanted():
+    frames = list(_stream(12))
+    kept = clip_pass.KeptFrames(_stats())
+    kept.plan(n_pairs_total=11, first_round=2, gap=1, box=(10, 5, 50, 30))
+    got = list(kept.keeping(iter(frames)))
+    assert [t for t, _ in got] == [t for t, _ in frames]  # the stream passes unchanged
+    want = {k for k in range(12) if kept.wants(k)}
+    replay = list(kept.replay(want.__contains__))
+    assert len(replay) == 12
+    for k, (t, img) in enumerate(replay):
+        assert t == frames[k][0]
+        if k in want:
+            assert np.array_equal(img, frames[k][1])  # the same array a new pass would build
+        else:
+            assert img is None
+
+
+def test_replay_refuses_a_frame_not_kept_and_an_unfinished_pass():
+    kept = clip_pass.KeptFrames(_stats(), budget_bytes=3 * 40 * 25 * 4)  # three boxes
+    kept.plan(n_pairs_total=11, first_round=0, gap=1, box=(10, 5, 50, 30))
+    assert sum(kept.wants(k) for k in range(12)) <= 3 + 1  # the budget, and position 0
+    it = kept.keeping(_stream(12))
+    next(it)
+    assert kept.replay(lambda k: k == 0) is None  # the pass has not reached the clip's end
+    list(it)
+    assert kept.replay(lambda k: True) is None  # a wanted frame was not kept: the round reads the clip again
+    assert kept.replay(lambda k: k == 0) is not None
+
+
+@pytest.mark.parametrize("standardize", [True, False])
+def test_rounds_decode_each_frame_once_and_match_a_new_pass(scene, monkeypatch, standardize):
+    proj = load_project(scene / "project.toml")
+    proj.piv.min_pairs = 4
+    proj.piv.frame_gap = 1
+    proj.piv.converge_rel_ci = 1e-6  # never converged: rounds until every pair is in
+    proj.piv.remove_stationary = standardize
+    one = run_project(proj, None)
+    s = one.summary()["piv_sampling"]
+    assert s["rounds"] >= 2
+    assert s["frames_decoded"] == s["frames_in_range"] == 36  # one pass: the later rounds replay its frames
+    monkeypatch.setattr(clip_pass, "KEEP_BYTES", 0)  # nothing kept: each round reads the clip again
+    again = run_project(proj, None)
+    s2 = again.summary()["piv_sampling"]
+    assert s2["rounds"] == s["rounds"] and s2["frames_in_range"] == 36
+    assert s2["frames_decoded"] >= 2 * 36 - 1  # round 2 reads the clip again (up to its last pair)
+    # the replayed frames are those a new pass builds: the same field, the same discharge
+    assert np.array_equal(one.piv.u, again.piv.u, equal_nan=True)
+    assert one.discharge.discharge_m3s == again.discharge.discharge_m3s
