@@ -121,13 +121,14 @@ def thesis_job(c: dict, setting: tuple[int, float]) -> Path:
     discharge (homography of the GCPs, the section's subsection centres, their areas, the section's normal)."""
     from fieldtool.processing import discharge as dq
     from fieldtool.project.model import load_project
-    from fieldtool.run import pipeline
+    from fieldtool.run import geometry
+    from fieldtool.run.inputs import load_inputs
 
     d, spec, tr = c["dir"], c["spec"], c["truth"]
     proj = load_project(d / "project.toml")
-    inputs = pipeline.load_inputs(proj)
-    level, mapping = pipeline.level_and_mapping(proj, inputs)
-    geom = pipeline.build_section(proj, inputs, level.level_m, mapping)
+    inputs = load_inputs(proj)
+    level, mapping = geometry.level_and_mapping(proj, inputs)
+    geom = geometry.build_section(proj, inputs, level.level_m, mapping)
     area, _ = dq.subsection_areas(geom, inputs.cross_section, level.level_m)
     alpha = dq.resolve_alpha(proj.section.alpha, inputs.cross_section, level.level_m)
     w, s2n = setting
