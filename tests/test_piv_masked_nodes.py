@@ -3,23 +3,23 @@
 import numpy as np
 import pytest
 
-from fieldtool.processing import piv
+from fieldtool.processing import piv, piv_engine
 from fieldtool.processing.piv import PivParams, analyze
 
 from tests.test_piv import particle_clip, rankine
 
 
 def _count_windows(monkeypatch, side: bool = False) -> list:
-    """A list that gets, for each call of ``piv._window_spectra``, the number of windows it transformed (or, with
+    """A list that gets, for each call of ``piv_engine._window_spectra``, the number of windows it transformed (or, with
     ``side``, their side in px)."""
     got = []
-    spectra = piv._window_spectra
+    spectra = piv_engine._window_spectra
 
     def counting(img, oy, ox, lv, size, idx=None):
         got.append(size if side else lv.ny * lv.nx if idx is None else len(idx))
         return spectra(img, oy, ox, lv, size, idx)
 
-    monkeypatch.setattr(piv, "_window_spectra", counting)
+    monkeypatch.setattr(piv_engine, "_window_spectra", counting)
     return got
 
 
@@ -41,7 +41,7 @@ def test_skipping_masked_nodes_gives_the_same_vectors(monkeypatch, averaging, sa
     skip = analyze(frames, params, mask=mask)
     n_skip = sum(calls)
     calls.clear()
-    monkeypatch.setattr(piv, "_SKIP_MASKED", False)
+    monkeypatch.setattr(piv_engine, "_SKIP_MASKED", False)
     full = analyze(frames, params, mask=mask)
     n_full = sum(calls)
     inside = mask[np.rint(full.y).astype(int), np.rint(full.x).astype(int)]
@@ -100,8 +100,8 @@ def test_search_area_spectra_only_for_the_frames_that_need_them(monkeypatch):
     res = analyze(iter(frames), params, select=sel)
     # first level: 32 px windows (A, padded to 48), 48 px search areas (B); final level: 16 px windows
     assert sizes.count(48) == 3 and sizes.count(32) == 3 and sizes.count(16) == 3 + 3  # A frames, deformed Bs
-    full_prepare = piv._Engine.prepare
-    monkeypatch.setattr(piv._Engine, "prepare", lambda self, frame, as_a=True, as_b=True: full_prepare(self, frame))
+    full_prepare = piv_engine._Engine.prepare
+    monkeypatch.setattr(piv_engine._Engine, "prepare", lambda self, frame, as_a=True, as_b=True: full_prepare(self, frame))
     sizes.clear()
     every = analyze(iter(frames), params, select=sel)
     assert sizes.count(48) == 6 and sizes.count(32) == 6
