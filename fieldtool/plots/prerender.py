@@ -177,12 +177,14 @@ class _Process:
 
 def _serve(jobs_fd: int, answers_fd: int, folder: Path) -> None:
     """The figure process: import the plotting modules, then draw each job as it comes."""
+    # lazy, and the reason for this process: matplotlib (0.3-0.5 s to import) and OpenCV load here, not in the run
     import cv2
 
-    cv2.setNumThreads(0)  # the run's threads have the cores; a figure's resize needs none of its own
     from fieldtool.plots import discharge as plots
     from fieldtool.plots import report_figures
-    from fieldtool.plots.water_level import plot_level
+    from fieldtool.plots import water_level as level_plots
+
+    cv2.setNumThreads(0)  # the run's threads have the cores; a figure's resize needs none of its own
 
     with os.fdopen(jobs_fd, "rb") as jobs:
         for line in jobs:
@@ -196,7 +198,7 @@ def _serve(jobs_fd: int, answers_fd: int, folder: Path) -> None:
                 project, inputs, level, mapping = args
                 result = SimpleNamespace(mapping=mapping, level=level)
                 draws = (("gcp.png", lambda: report_figures.write_gcp(out, project, result, inputs)),
-                         ("water_level.png", lambda: plot_level(out / "water_level.png", inputs.cross_section, level)))
+                         ("water_level.png", lambda: level_plots.plot_level(out / "water_level.png", inputs.cross_section, level)))
             else:
                 inputs, result, cross_section = args
                 draws = (("vectors.png", lambda: plots.plot_vectors(out / "vectors.png", inputs.first_color, result,

@@ -12,33 +12,15 @@ from pathlib import Path
 
 import numpy as np
 
+from fieldtool.plots.discharge import _figure, _save, _show, _working_rgb
 from fieldtool.processing import discharge as dq
 from fieldtool.processing.ortho import NAMES, PAIRS
 from fieldtool.project.model import atomic_write_bytes
-from fieldtool.plots.discharge import _figure, _save, _show, _working_rgb
-
-
-def profile_band(result) -> dict[str, np.ndarray]:
-    """Per-subsection velocity (m/s) of the mean field and the 2.5 / 97.5 % of the per-pair fields."""
-    d, p, g = result.discharge, result.piv, result.section
-    per_pair = []
-    for k in range(len(p.u_pairs)):
-        U, V = result.mapping.rectify_velocity(p.x, p.y, p.u_pairs[k], p.v_pairs[k])
-        per_pair.append(dq.subsection_velocity(g, p.x, p.y, U, V))
-    vp = np.array(per_pair) if per_pair else np.full((0, len(d.area_m2)), np.nan)
-    with np.errstate(all="ignore"):
-        n = np.sum(np.isfinite(vp), axis=0)
-        lo = np.where(n >= 3, np.nanpercentile(np.where(np.isfinite(vp), vp, np.nan), 2.5, axis=0)
-                      if len(vp) else np.nan, np.nan)
-        hi = np.where(n >= 3, np.nanpercentile(np.where(np.isfinite(vp), vp, np.nan), 97.5, axis=0)
-                      if len(vp) else np.nan, np.nan)
-    return {"station_m": 0.5 * (d.station_from + d.station_to), "velocity_ms": np.asarray(d.surface_velocity_ms),
-            "filled": np.asarray(d.velocity_filled, bool), "p025_ms": lo, "p975_ms": hi, "n_pairs": n}
 
 
 def write_profile(out: Path, result) -> tuple[str, str]:
     """``section_profile.csv`` and ``profile.png``; returns their names."""
-    b = profile_band(result)
+    b = dq.profile_band(result.discharge, result.piv, result.section, result.mapping)
     rows = ["station_m,surface_velocity_ms,velocity_filled,pairs_p025_ms,pairs_p975_ms,n_pairs"]
     for i in range(len(b["station_m"])):
         f = [f"{b['station_m'][i]:.4f}", f"{b['velocity_ms'][i]:.5f}", str(int(b["filled"][i])),

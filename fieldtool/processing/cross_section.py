@@ -292,7 +292,7 @@ def parse_xy_text(text: str, source: str = "cross-section") -> CrossSection:
 
 def _spreadsheet_rows(path: Path) -> list[tuple[int, list[str]]]:
     """Cells of the first sheet of an .xlsx/.ods workbook as text rows (row numbers from 1)."""
-    import pandas as pd
+    import pandas as pd  # lazy: pandas (0.2-0.4 s) only for an .xlsx/.ods cross-section
 
     engine = "odf" if path.suffix.lower() == ".ods" else "openpyxl"
     try:

@@ -337,3 +337,24 @@ def check_section(geom: SectionGeometry, cs: CrossSection, level: float, min_len
         raise GeometryError(
             f"section: {txt} (tolerance {tol:.2f} m, section.edge_tolerance_m){' — the section crosses a bank' if over else ''}; "
             "check section.points_px and section.station_offset_m")
+
+
+def profile_band(d, piv, section, mapping) -> dict[str, np.ndarray]:
+    """Per-subsection surface velocity (m/s) of the mean field, with the 2.5 / 97.5 % of the per-pair fields.
+
+    ``d``: the run's discharge result; ``piv``: its PIV result (per-pair fields ``u_pairs``, ``v_pairs``, px/s);
+    ``section``: its section geometry; ``mapping``: the ortho mapping. Returns station_m (subsection centres, m),
+    velocity_ms, filled (bool), p025_ms / p975_ms (NaN where fewer than 3 pairs measured), n_pairs."""
+    per_pair = []
+    for k in range(len(piv.u_pairs)):
+        U, V = mapping.rectify_velocity(piv.x, piv.y, piv.u_pairs[k], piv.v_pairs[k])
+        per_pair.append(subsection_velocity(section, piv.x, piv.y, U, V))
+    vp = np.array(per_pair) if per_pair else np.full((0, len(d.area_m2)), np.nan)
+    with np.errstate(all="ignore"):
+        n = np.sum(np.isfinite(vp), axis=0)
+        lo = np.where(n >= 3, np.nanpercentile(np.where(np.isfinite(vp), vp, np.nan), 2.5, axis=0)
+                      if len(vp) else np.nan, np.nan)
+        hi = np.where(n >= 3, np.nanpercentile(np.where(np.isfinite(vp), vp, np.nan), 97.5, axis=0)
+                      if len(vp) else np.nan, np.nan)
+    return {"station_m": 0.5 * (d.station_from + d.station_to), "velocity_ms": np.asarray(d.surface_velocity_ms),
+            "filled": np.asarray(d.velocity_filled, bool), "p025_ms": lo, "p975_ms": hi, "n_pairs": n}

@@ -20,6 +20,8 @@ Two pieces, both pure (numpy in, numpy/dataclasses out), used by the pipeline ar
 from __future__ import annotations
 
 import math
+import queue
+import threading
 from dataclasses import dataclass
 from typing import Callable, Iterable, Iterator
 
@@ -221,9 +223,6 @@ class prefetch:
     _END = object()
 
     def __init__(self, source: Iterable, depth: int = 4):
-        import queue
-        import threading
-
         self._q: "queue.Queue" = queue.Queue(maxsize=max(1, int(depth)))
         self._stop = threading.Event()
         self._done = False
@@ -231,8 +230,6 @@ class prefetch:
         self._thread.start()
 
     def _fill(self, it: Iterator) -> None:
-        import queue
-
         try:
             for item in it:
                 while not self._stop.is_set():
@@ -253,8 +250,6 @@ class prefetch:
         self._put_final((self._END, None))
 
     def _put_final(self, item) -> None:
-        import queue
-
         while not self._stop.is_set():
             try:
                 self._q.put(item, timeout=0.1)

@@ -15,6 +15,8 @@ from typing import Callable, Iterable
 
 import numpy as np
 
+from fieldtool.processing.discharge import sample_field
+
 GRADES = ("good", "doubtful", "unusable")
 
 
@@ -372,8 +374,6 @@ def section_evidence(sample_px: np.ndarray, normal: np.ndarray, x: np.ndarray, y
     valid_fraction, peak : (ny, nx) per-node fraction of valid pairs and median correlation peak.
     first_guess : (ny, nx, 2) px per pair by which the first pass moved its windows (``PivResult.first_guess``).
     """
-    from fieldtool.processing.discharge import sample_field
-
     pts = np.asarray(sample_px, float).reshape(-1, 2)
     out: dict = {}
     su, sv = sample_field(x, y, np.asarray(u_px_s, float), np.asarray(v_px_s, float), pts)

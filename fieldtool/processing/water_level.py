@@ -36,20 +36,22 @@ Two deliberate departures from the thesis text, both stated where they are used:
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
+import cv2
 import numpy as np
 
 from fieldtool.errors import GeometryError, InputFileError, ParameterError
-from fieldtool.project.model import WaterLevelCfg
 from fieldtool.processing.cross_section import CrossSection
 from fieldtool.processing.ortho import OrthoMapping
+from fieldtool.project.model import WaterLevelCfg
 
 
 def _argrelextrema(*args, **kwargs):
-    """scipy.signal.argrelextrema, imported on first use: scipy.signal costs 0.4 s to import and only the
+    """scipy.signal.argrelextrema, imported on first use: scipy.signal costs 0.4-1 s to import and only the
     DEM method needs it."""
     from scipy.signal import argrelextrema
 
@@ -280,15 +282,29 @@ def _from_width(cs: CrossSection, width_m: float, width_sigma_m: float, method: 
 MAX_DEM_CELLS = 200_000_000  # 1.6 GB as float64: a bank DEM larger than this is to be cropped first
 
 
+def _rasterio():
+    """rasterio, imported on first use: it costs 0.1-0.3 s to import (GDAL) and only the DEM method reads a raster."""
+    import rasterio
+
+    return rasterio
+
+
+def dem_size(path: Path) -> tuple[int, int]:
+    """(width, height) in cells of a DEM raster, from its header alone (GDAL's warnings silenced); raises what
+    rasterio raises for a file that is not a raster."""
+    rasterio = _rasterio()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        with rasterio.open(path) as ds:
+            return ds.width, ds.height
+
+
 def read_dem(path: Path) -> np.ndarray:
     """Elevations (m) of a DEM in any raster format GDAL reads (GeoTIFF, ASCII grid, IMG, VRT, ...), as
     float, its no-data value and non-finite cells as NaN; first band. The size is checked from the header
     before any cell is read."""
-    import warnings
-
-    import rasterio
-    from rasterio.errors import NotGeoreferencedWarning, RasterioIOError
-
+    rasterio = _rasterio()
+    NotGeoreferencedWarning, RasterioIOError = rasterio.errors.NotGeoreferencedWarning, rasterio.errors.RasterioIOError
     if not path.is_file():
         raise InputFileError(f"{path}: DEM file not found (water_level.dem_path); give a raster of elevations in metres")
     try:
@@ -491,7 +507,7 @@ def offcentre_solution(alpha_low: float, alpha_high: float, dh_m: float, shift: 
         L, H = x
         return np.array([_subtended(H, L, shift) - alpha_low, _subtended(H + dh_m, L, shift) - alpha_high])
 
-    from scipy.optimize import least_squares  # here: importing scipy.optimize costs 0.3-0.5 s of a run
+    from scipy.optimize import least_squares  # lazy: scipy.optimize costs 0.2-0.5 s; only angle_height
     sol = least_squares(res, np.asarray(guess, float), bounds=([1e-6, 1e-6], [np.inf, np.inf]), xtol=1e-14, ftol=1e-14, gtol=1e-14)
     if not sol.success or np.max(np.abs(sol.fun)) > 1e-9:
         raise GeometryError(f"off-centre solution did not converge (residual {np.max(np.abs(sol.fun)):.2e} rad)")
@@ -568,8 +584,6 @@ def angle_height_width(edges1_px, edges2_px, shape1: tuple[int, int], shape2: tu
 
 
 def _read_shape(path: Path, key: str) -> tuple[int, int]:
-    import cv2
-
     if not path.is_file():
         raise InputFileError(f"{path}: image not found ({key})")
     img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)

@@ -36,6 +36,7 @@ from pathlib import Path
 from typing import Any, Iterator
 
 from fieldtool.errors import InputFileError, ParameterError
+from fieldtool.project.model import project_to_dict
 from fieldtool.records import user_data_dir
 
 SCHEMA_VERSION = 1
@@ -764,8 +765,6 @@ def record_run(project, summary: dict, out_dir: Path | str, *, site: str = "", d
     ``summary`` is ``RunResult.summary()`` and whose results are in ``out_dir``: hashes the inputs,
     reads the video's date, and writes one row to the history at ``db`` (None = the default).
     Returns the new measurement id. For `fieldtool run --record`."""
-    from fieldtool.project.model import project_to_dict
-
     video = project.resolve(project.video.path) if project.video.path else None
     vt = video_datetime(video) if video is not None else (None, None)
     h = input_hash(project_to_dict(project), project.root)

@@ -10,7 +10,6 @@ from __future__ import annotations
 import base64
 import csv
 import html
-import io
 import json
 from datetime import datetime, timezone
 from pathlib import Path
@@ -19,19 +18,16 @@ from fieldtool import __version__
 from fieldtool.errors import InputFileError
 from fieldtool.project.model import atomic_write_bytes
 from fieldtool.records.history import Measurement, Reference
-from fieldtool.records.report_content import budget_rows, discharge_text, header_rows, parameter_rows
-
-# plots of result.json "files", in report order, with captions
-PLOTS = (
-    ("profile_png", "Surface velocity along the section, with the spread of the frame-pair fields"),
-    ("vectors_png", "Surface velocity vectors on the first frame"),
-    ("rectified_png", "Rectified image with the velocity field (world metres)"),
-    ("section_png", "Cross-section, water level and subsection velocities / discharges"),
-    ("gcp_png", "Ground control points with the taped distances and their residuals"),
-    ("water_level_png", "Water level determination"),
-    ("stabilization_png", "Stabilisation"),
+from fieldtool.records.report_content import COLUMN_NAMES as _COLUMN_NAMES
+from fieldtool.records.report_content import (
+    GRADE_COLOURS,
+    PLOTS,
+    budget_rows,
+    discharge_text,
+    header_rows,
+    parameter_rows,
 )
-GRADE_COLOURS = {"good": "#1a7f37", "doubtful": "#9a6700", "unusable": "#cf222e"}
+from fieldtool.records.report_content import fmt_value as _f
 
 
 def load_result(result_dir: Path | str) -> tuple[dict, dict[str, bytes], list[dict]]:
@@ -73,15 +69,6 @@ def inside(folder: Path, name: str) -> Path | None:
     root = folder.resolve()
     target = (root / p).resolve()
     return target if root in target.parents else None
-
-
-def _f(v, fmt: str = ".4f", unit: str = "") -> str:
-    if v is None:
-        return "–"
-    try:
-        return f"{float(v):{fmt}}{(' ' + unit) if unit else ''}"
-    except (TypeError, ValueError):
-        return html.escape(str(v))
 
 
 def _e(v) -> str:
@@ -256,94 +243,12 @@ def render_html(summary: dict, images: dict[str, bytes], subsections: list[dict]
     return "\n".join(out)
 
 
-_COLUMN_NAMES = {"subsection": "#", "station_from_m": "from (m)", "station_to_m": "to (m)", "area_m2": "area (m²)",
-                 "mean_depth_m": "mean depth (m)", "surface_velocity_ms": "surface velocity (m/s)",
-                 "velocity_filled": "filled", "discharge_m3s": "Q (m³/s)"}
-
-
-def _pdf_text_page(fig, summary, measurement, references) -> None:
-    """Page 1 of the PDF: header, Q with interval and grade, result and parameters."""
-    inputs = summary.get("inputs") or {}
-    t = discharge_text(summary)
-    y = 0.955
-    fig.text(0.06, y, f"Discharge measurement — {inputs.get('name', 'measurement')}", fontsize=15, weight="bold")
-    y -= 0.035
-    for k, v in header_rows(summary, measurement):
-        fig.text(0.06, y, k, fontsize=9, color="0.35")
-        fig.text(0.24, y, v, fontsize=9, weight="bold")
-        y -= 0.018
-    y -= 0.015
-    fig.text(0.06, y, f"Q = {t['q']}", fontsize=18, weight="bold")
-    if t["grade"]:
-        fig.text(0.62, y + 0.004, f" {t['grade'].upper()} ", fontsize=12, weight="bold", color="white",
-                 bbox={"boxstyle": "round,pad=0.3", "fc": GRADE_COLOURS.get(t["grade"], "0.4"), "lw": 0})
-    y -= 0.025
-    fig.text(0.06, y, f"95 % interval {t['ci']} ({t['rel']})" if t["ci"] else "no 95 % interval in this result",
-             fontsize=10)
-    y -= 0.02
-    for sev, msg in t["reasons"][:8]:
-        fig.text(0.08, y, f"• {sev}: {msg}"[:130], fontsize=8.5)
-        y -= 0.016
-    if summary.get("discharge_p05_m3s") is not None:
-        fig.text(0.06, y, f"spread of single frame pairs (5–95 %): {_f(summary.get('discharge_p05_m3s'), '.3f')} – "
-                          f"{_f(summary.get('discharge_p95_m3s'), '.3f')} m³/s over {summary.get('n_pairs', '?')} pairs",
-                 fontsize=8, color="0.35")
-        y -= 0.02
-    y -= 0.01
-    res = [("Water level", f"{_f(summary.get('water_level_m'), '.3f', 'm')} ± {_f(summary.get('water_level_uncertainty_m'), '.3f', 'm')}"),
-           ("Wetted area / width", f"{_f(summary.get('wetted_area_m2'), '.3f', 'm²')} / {_f(summary.get('wetted_width_m'), '.3f', 'm')}"),
-           ("Mean velocity, α", f"{_f(summary.get('mean_velocity_ms'), '.3f', 'm/s')}, α = {_f(summary.get('alpha'), '.2f')}")]
-    res += [(f"Reference ({r.method})", f"{_f(r.discharge_m3s, '.3f')} m³/s") for r in references]
-    for k, v in res:
-        fig.text(0.06, y, k, fontsize=9, color="0.35")
-        fig.text(0.30, y, v, fontsize=9)
-        y -= 0.017
-    y -= 0.012
-    fig.text(0.06, y, "Parameters", fontsize=11, weight="bold")
-    y -= 0.02
-    for a, b, c in parameter_rows(inputs):
-        if y < 0.04:
-            break
-        fig.text(0.06, y, a, fontsize=8, color="0.35")
-        fig.text(0.26, y, b, fontsize=8)
-        fig.text(0.50, y, c[:70], fontsize=8)
-        y -= 0.0155
-
-
 def render_pdf(summary: dict, images: dict[str, bytes], subsections: list[dict], *,
                measurement: Measurement | None = None, references: list[Reference] = ()) -> bytes:
-    """The report as PDF bytes (A4): a summary page, then the figures two per page (matplotlib)."""
-    import matplotlib.image as mpimg
-    from matplotlib.backends.backend_pdf import PdfPages
-    from matplotlib.figure import Figure
+    """The report as PDF bytes (A4): a summary page, then the figures two per page (plots.report_pdf)."""
+    from fieldtool.plots import report_pdf  # lazy: matplotlib (0.3-0.5 s) only for --pdf
 
-    buf = io.BytesIO()
-    with PdfPages(buf) as pdf:
-        fig = Figure(figsize=(8.27, 11.69))
-        _pdf_text_page(fig, summary, measurement, references)
-        pdf.savefig(fig)
-        captions = dict(PLOTS)
-        order = [k for k, _ in PLOTS if k in images] + sorted(k for k in images if k not in captions)
-        for first in range(0, len(order), 2):
-            fig = Figure(figsize=(8.27, 11.69))
-            for slot, key in enumerate(order[first:first + 2]):
-                ax = fig.add_axes([0.06, 0.53 - 0.47 * slot, 0.88, 0.42])
-                ax.imshow(mpimg.imread(io.BytesIO(images[key]), format="png"))
-                ax.axis("off")
-                fig.text(0.5, 0.51 - 0.47 * slot, captions.get(key, key), ha="center", fontsize=9)
-            pdf.savefig(fig)
-        if subsections:
-            fig = Figure(figsize=(8.27, 11.69))
-            cols = [c for c in _COLUMN_NAMES if c in subsections[0]]
-            ax = fig.add_axes([0.06, 0.05, 0.88, 0.85])
-            ax.axis("off")
-            ax.set_title("Subsections", loc="left")
-            tab = ax.table(cellText=[[r[c] for c in cols] for r in subsections],
-                           colLabels=[_COLUMN_NAMES[c] for c in cols], loc="upper center")
-            tab.auto_set_font_size(False)
-            tab.set_fontsize(7.5)
-            pdf.savefig(fig)
-    return buf.getvalue()
+    return report_pdf.render_pdf(summary, images, subsections, measurement=measurement, references=references)
 
 
 def write_report(result_dir: Path | str, out: Path | str | None = None, *, pdf: bool = False,

@@ -10,7 +10,34 @@
 
 from __future__ import annotations
 
+import html
 from pathlib import Path
+
+# plots of result.json "files", in report order, with captions
+PLOTS = (
+    ("profile_png", "Surface velocity along the section, with the spread of the frame-pair fields"),
+    ("vectors_png", "Surface velocity vectors on the first frame"),
+    ("rectified_png", "Rectified image with the velocity field (world metres)"),
+    ("section_png", "Cross-section, water level and subsection velocities / discharges"),
+    ("gcp_png", "Ground control points with the taped distances and their residuals"),
+    ("water_level_png", "Water level determination"),
+    ("stabilization_png", "Stabilisation"),
+)
+GRADE_COLOURS = {"good": "#1a7f37", "doubtful": "#9a6700", "unusable": "#cf222e"}
+# columns of the subsection table, with their headings
+COLUMN_NAMES = {"subsection": "#", "station_from_m": "from (m)", "station_to_m": "to (m)", "area_m2": "area (m²)",
+                 "mean_depth_m": "mean depth (m)", "surface_velocity_ms": "surface velocity (m/s)",
+                 "velocity_filled": "filled", "discharge_m3s": "Q (m³/s)"}
+
+
+def fmt_value(v, fmt: str = ".4f", unit: str = "") -> str:
+    """``v`` formatted with ``fmt`` and its unit; "–" for None, the escaped text of what is not a number."""
+    if v is None:
+        return "–"
+    try:
+        return f"{float(v):{fmt}}{(' ' + unit) if unit else ''}"
+    except (TypeError, ValueError):
+        return html.escape(str(v))
 
 
 def _num(v, fmt: str = ".3f", unit: str = "") -> str:

@@ -45,6 +45,8 @@ from fieldtool.project.model import (
     save_project,
 )
 from fieldtool.synthetic.camera import Camera, render_canvas
+from fieldtool.synthetic.checkerboard import render_checkerboard
+from fieldtool.synthetic.mkv import TIMECODE_SCALE_NS, MkvWriter, ticks_of
 
 
 @dataclass(frozen=True)
@@ -506,7 +508,6 @@ def frame_times(spec: SceneSpec) -> list[float]:
     n = spec.n_frames
     if spec.drop_fraction <= 0:
         return [i / spec.fps for i in range(n)]
-    from fieldtool.synthetic.mkv import TIMECODE_SCALE_NS, ticks_of
 
     rng = _aux_rng(spec, 1)
     f = min(max(spec.drop_fraction, 0.0), 0.8)
@@ -726,8 +727,6 @@ def render_scene(
     video_path = out / spec.video_name
     times = frame_times(spec)
     if spec.drop_fraction > 0:
-        from fieldtool.synthetic.mkv import MkvWriter
-
         writer = MkvWriter(video_path, (w, h), quality=95)
         write = writer.write
     else:
@@ -828,8 +827,6 @@ def render_scene(
         proj.stabilize = StabilizeCfg(enabled=True, regions_px=_bank_regions(spec, _bank_mask(spec, ras)))
     cb_path = None
     if cam.has_distortion:
-        from fieldtool.synthetic.checkerboard import render_checkerboard
-
         cb_path = out / "checkerboard.mp4"
         render_checkerboard(cam, cb_path, n_frames=spec.checkerboard_frames, square_m=spec.checkerboard_square_m,
                             seed=spec.seed + 1, fps=spec.fps, fourcc=spec.fourcc)

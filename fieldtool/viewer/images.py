@@ -21,8 +21,13 @@ import cv2
 import numpy as np
 
 from fieldtool.errors import FieldToolError, InputFileError, ParameterError
+from fieldtool.processing import water_level as wl
+from fieldtool.processing.calibration import load_calibration
+from fieldtool.processing.frames import read_color_frame
 from fieldtool.project.model import Project
+from fieldtool.run.pipeline import build_mapping, compute_level, load_cross_section, load_inputs
 from fieldtool.viewer.mapping import PlotAxes
+from fieldtool.viewer.plot_image import Curve, render_plot
 
 KINDS = {
     "frame": "First frame",
@@ -64,8 +69,6 @@ def _rgb(bgr: np.ndarray) -> np.ndarray:
 
 
 def _first_frame(project: Project) -> np.ndarray:
-    from fieldtool.processing.frames import read_color_frame
-
     v = project.video
     if not v.path:
         raise ParameterError("video.path: no video given; set the clip to analyse")
@@ -76,7 +79,6 @@ def lens_of(project: Project):
     """The lens model of the project, or None without calibration.path."""
     if not project.calibration.path:
         return None
-    from fieldtool.processing.calibration import load_calibration
 
     return load_calibration(project.resolve(project.calibration.path))
 
@@ -118,8 +120,6 @@ def load_display(project: Project, kind: str) -> Display:
 
 
 def _ortho(project: Project) -> Display:
-    from fieldtool.run.pipeline import build_mapping, compute_level, load_inputs
-
     inputs = load_inputs(project)
     level = None
     if project.ortho.method in ("none", "pose"):
@@ -147,13 +147,9 @@ def _ortho(project: Project) -> Display:
 
 
 def _dem_plot(project: Project) -> Display:
-    from fieldtool.processing import water_level as wl
-    from fieldtool.viewer.plot_image import Curve, render_plot
-
     cfg = project.water_level
     if not cfg.dem_path:
         raise ParameterError("water_level.dem_path: no DEM given; the DEM plot needs the bank's DEM (TIFF)")
-    from fieldtool.run.pipeline import load_cross_section
 
     cs = load_cross_section(project)
     dem = wl.read_dem(project.resolve(cfg.dem_path))

@@ -25,6 +25,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from fieldtool.project.model import apply_changes
 from fieldtool.viewer.mapping import PlotAxes
 
 
@@ -440,8 +441,6 @@ def save_field(project_path, path: str, value: Any) -> Any:
     """Set one dotted field in the project file, merged with what other programs saved meanwhile
     (``project.apply_changes``: this one key, comments kept, atomic). Returns the project as
     saved. The one place the viewer writes the project file."""
-    from fieldtool.project.model import apply_changes
-
     return apply_changes(project_path, {path: value})
 
 

@@ -50,12 +50,18 @@ from __future__ import annotations
 import sys
 import uuid
 from pathlib import Path
+from urllib.parse import urlparse
 
 import cv2
 import numpy as np
+import rerun as rr
+import rerun.blueprint as rrb
+from scipy.spatial import cKDTree
 
 from fieldtool.errors import InputFileError, ParameterError
+from fieldtool.processing import discharge as dq
 from fieldtool.run.pipeline import Observer
+from fieldtool.viewer.rerun_web import OfflineWebViewer, disable_rerun_analytics
 
 MODES = ("off", "save", "connect", "serve")
 PROFILE_SCALE = 10.0  # section profile: 1 m/s is drawn as 10 "metres" of station, so both axes read well
@@ -68,8 +74,6 @@ SERIES = {"pair_m3s": ("per-pair Q (one frame pair's field)", [150, 150, 150]),
 
 def blueprint():
     """The supervisor's layout: frame + live vectors (large) | map, section profile, discharge over time."""
-    import rerun.blueprint as rrb
-
     return rrb.Blueprint(
         rrb.Horizontal(
             rrb.Spatial2DView(origin="/frames/input", name="Current frame and live vectors (px)"),
@@ -124,8 +128,6 @@ class RerunObserver(Observer):
     def __init__(self, mode: str = "save", *, path: str | Path | None = None, url: str | None = None,
                  grpc_port: int = GRPC_PORT, web_port: int = WEB_PORT, max_side_px: int = 640,
                  jpeg_quality: int = 75, recording=None):
-        import rerun as rr
-
         self.rr = rr
         self.mode = mode
         self.max_side_px = max_side_px
@@ -157,8 +159,6 @@ class RerunObserver(Observer):
             self.urls["viewer"] = url or DEFAULT_URL
             self.rec.connect_grpc(self.urls["viewer"], default_blueprint=blueprint())
         elif mode == "serve":
-            from fieldtool.viewer.rerun_web import OfflineWebViewer, disable_rerun_analytics
-
             disable_rerun_analytics()
             self.urls["grpc"] = self.rec.serve_grpc(grpc_port=grpc_port, default_blueprint=blueprint())
             self.web = OfflineWebViewer(self.urls["grpc"], grpc_port, web_port)
@@ -346,10 +346,8 @@ class RerunObserver(Observer):
 
     def _profile(self, res) -> None:
         """Surface velocity along the section with the 2.5-97.5 % band of the pair fields."""
-        from fieldtool.plots.report_figures import profile_band
-
         rr = self.rr
-        b = profile_band(res)
+        b = dq.profile_band(res.discharge, res.piv, res.section, res.mapping)
         k = -PROFILE_SCALE  # screen y down: velocity up
         s, v = b["station_m"], b["velocity_ms"]
         band = np.isfinite(b["p025_ms"]) & np.isfinite(b["p975_ms"])
@@ -385,8 +383,6 @@ class RerunObserver(Observer):
 
 def _map_arrow_s(XY: np.ndarray, U: np.ndarray, V: np.ndarray) -> float:
     """Seconds of displacement per map arrow so that a fast (90th percentile) arrow spans 0.9 node spacing."""
-    from scipy.spatial import cKDTree
-
     if len(XY) < 2:
         return 1.0
     spacing = float(np.median(cKDTree(XY).query(XY, k=2)[0][:, 1]))
@@ -446,8 +442,6 @@ def confined_rrd_path(rel: str, out_dir: str | Path, key: str = "rerun.path") ->
 
 def check_url(url: str, key: str = "rerun.url") -> str:
     """The viewer URL, checked: ``rerun+http(s)://HOST:PORT/proxy`` or ``rerun://HOST:PORT/proxy``."""
-    from urllib.parse import urlparse
-
     u = urlparse(url)
     if u.scheme not in ("rerun", "rerun+http", "rerun+https") or not u.hostname or u.path != "/proxy":
         raise ParameterError(f"{key}: {url!r} is not a rerun viewer address; write it as "

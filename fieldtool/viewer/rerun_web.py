@@ -22,6 +22,8 @@ import threading
 import urllib.request
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 
+import rerun as rr
+
 _EXTERNAL_LINKS = re.compile(r"<link[^>]*(fonts\.googleapis\.com|fonts\.gstatic\.com)[^>]*/?>\s*", re.S)
 _RERUN_SITE_SCRIPT = re.compile(r'if \(window\.location\.hostname == "app\.rerun\.io"\) \{.*?\n      \}', re.S)
 
@@ -59,8 +61,6 @@ class OfflineWebViewer:
         self.server: ThreadingHTTPServer | None = None
 
     def start(self) -> str:
-        import rerun as rr
-
         disable_rerun_analytics()
         rr.serve_web_viewer(web_port=self.internal_port, open_browser=False, connect_to=self.grpc_url)
         upstream = f"http://127.0.0.1:{self.internal_port}"

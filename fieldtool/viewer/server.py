@@ -25,13 +25,18 @@ power to edit the project, reachable from the network: it is an explicit option 
 from __future__ import annotations
 
 import contextlib
+import gzip
 import io
 import threading
 import warnings
 from pathlib import Path
 from typing import Any, Callable
+from urllib.parse import parse_qs
 
 import numpy as np
+import viser
+from websockets.datastructures import Headers
+from websockets.http11 import Response
 
 from fieldtool.errors import FieldToolError, ParameterError
 from fieldtool.project.model import load_project
@@ -163,8 +168,6 @@ def start_viewer(project_path: str | Path, host: str = "127.0.0.1", port: int | 
     on_pick : called as ``on_pick(field, value)`` after each saved pick, from a server thread;
         ``field`` is the dotted project key (``"ortho.gcp_px"``).
     """
-    import viser
-
     path = Path(project_path).resolve()
     project = load_project(path)
     remembered = int(getattr(getattr(project, "viewer", None), "port", 0) or 0)
@@ -220,8 +223,6 @@ class _Routes:
 
     def page(self) -> tuple[bytes, bytes]:
         if self._page is None:
-            import gzip
-
             html = page_path().read_text(encoding="utf-8")
             if "</body>" not in html:
                 raise FieldToolError("viser's page has no </body>: cannot add the zoom script; please report this")
@@ -231,11 +232,6 @@ class _Routes:
         return self._page, self._page_gz
 
     def __call__(self, rest: str, request):
-        from urllib.parse import parse_qs
-
-        from websockets.datastructures import Headers
-        from websockets.http11 import Response
-
         path, _, query = rest.partition("?")
         if path in ("/", "/index.html"):
             raw, gz = self.page()

@@ -8,9 +8,9 @@ from textual.containers import Horizontal, VerticalScroll
 from textual.screen import Screen
 from textual.widgets import Footer, OptionList, Static
 
-from fieldtool.tui import keys
 from fieldtool.errors import FieldToolError
-from fieldtool.tui.checks import is_missing
+from fieldtool.tui import keys
+from fieldtool.tui.checks import core_check, is_missing
 from fieldtool.tui.fields import Field
 from fieldtool.tui.steps import STEP_BY_ID, STEP_IDS, fields_for
 from fieldtool.tui.widgets.chrome import HelpLine, StatusLine, StepList, TitleBar
@@ -201,8 +201,6 @@ class StepScreen(Screen):
 
     def step_check(self) -> None:
         """Check the step with the core functions; raise FieldToolError with the user's message."""
-        from fieldtool.tui.checks import core_check
-
         core_check(self.session, self.STEP)
 
     def show_errors(self, msgs: list[str]) -> None:

@@ -8,7 +8,7 @@ from textual.app import ComposeResult
 from textual.markup import escape
 from textual.widgets import DataTable, Static
 
-from fieldtool.tui import keys
+from fieldtool.tui import jobs, keys
 from fieldtool.tui.screens.base import StepScreen
 
 # (header, csv column, decimals)
@@ -159,8 +159,6 @@ class ResultsScreen(StepScreen):
         self.focus_first()
 
     def action_run(self) -> None:
-        from fieldtool.tui import jobs
-
         bad = [st for st in ("cross_section", "video", "calibration", "ortho", "water_level", "roi", "filters", "piv",
                              "section") if self.session.step_errors(st)]
         if bad:

@@ -8,7 +8,9 @@ from textual.markup import escape
 from textual.widgets import Static
 
 from fieldtool.errors import FieldToolError
+from fieldtool.processing.discharge import default_alpha
 from fieldtool.tui import keys
+from fieldtool.tui.checks import section_geometry
 from fieldtool.tui.screens.base import StepScreen
 
 
@@ -21,8 +23,6 @@ class SectionScreen(StepScreen):
         yield Static("", id="section-info")
 
     def geometry(self):
-        from fieldtool.tui.checks import section_geometry
-
         return section_geometry(self.session)
 
     def refresh_view(self, checked: bool = False) -> None:
@@ -35,7 +35,6 @@ class SectionScreen(StepScreen):
         except FieldToolError as e:
             info.update(f"[red]{escape(str(e))}[/red]")
             return
-        from fieldtool.processing.discharge import default_alpha
 
         e = geom.station_edges
         depth = cs.wetted_area(level.level_m, e[0], e[-1]) / max(e[-1] - e[0], 1e-9)

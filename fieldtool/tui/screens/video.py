@@ -7,7 +7,7 @@ from textual.markup import escape
 from textual.widgets import Static
 
 from fieldtool.errors import FieldToolError
-from fieldtool.tui import keys
+from fieldtool.tui import jobs, keys
 from fieldtool.tui.screens.base import StepScreen
 
 
@@ -55,8 +55,6 @@ class VideoScreen(StepScreen):
             self.refresh_bindings()
 
     def action_run(self) -> None:
-        from fieldtool.tui import jobs
-
         if self.errors():
             self.show_errors(self.errors())
             return
