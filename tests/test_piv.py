@@ -269,7 +269,7 @@ def test_progress_total_and_on_pair():
     analyze(frames, PivParams(), progress=lambda d, t: calls.append((d, t)),
             on_pair=lambda i, t, x, y, u, v, ok: pairs.append((i, t, u.shape, ok.dtype)))
     assert calls == [(1, 2), (2, 2)]
-    assert [p[0] for p in pairs] == [0, 1] and pairs[0][1] == pytest.approx(0.25) and pairs[0][3] == bool
+    assert [p[0] for p in pairs] == [0, 1] and pairs[0][1] == pytest.approx(0.25) and pairs[0][3] == np.dtype(bool)
 
 
 @pytest.mark.parametrize(

@@ -4,8 +4,8 @@ import os
 
 import pytest
 
-from fieldtool.run.pipeline import Observer, run_project
 from fieldtool.project.model import load_project
+from fieldtool.run.pipeline import Observer, run_project
 
 
 def test_reused_when_only_the_section_changes(scene):

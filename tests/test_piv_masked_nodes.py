@@ -5,7 +5,6 @@ import pytest
 
 from fieldtool.processing import piv, piv_engine
 from fieldtool.processing.piv import PivParams, analyze
-
 from tests.test_piv import particle_clip, rankine
 
 
@@ -78,7 +77,7 @@ def test_nodes_far_from_the_section_are_skipped_and_the_near_ones_unchanged(monk
     assert n_near < 0.8 * n_full
     fin_dist = np.array([[np.hypot(*(p - seg[0] - np.clip((p - seg[0]) @ (seg[1] - seg[0]) / np.sum((seg[1] - seg[0]) ** 2),
                                                              0, 1) * (seg[1] - seg[0])))
-                          for p in np.stack([x, y], -1)] for x, y in zip(full.x, full.y)])
+                          for p in np.stack([x, y], -1)] for x, y in zip(full.x, full.y, strict=True)])
     inside = fin_dist <= reach[1]
     assert 0.2 < inside.mean() < 0.8
     assert np.isnan(near.valid_fraction[~inside]).all() and not near.valid[~inside].any()

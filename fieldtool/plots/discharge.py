@@ -3,9 +3,8 @@ section profile with subsection velocities. Axes: image pixels (x right, y down)
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import io
+from pathlib import Path
 
 import cv2
 import numpy as np

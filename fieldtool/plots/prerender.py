@@ -28,6 +28,7 @@ import selectors
 import shutil
 import tempfile
 import time
+from functools import partial
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -37,7 +38,7 @@ TIMEOUT_S = 30.0
 INPUT_FILES = ("gcp.png", "water_level.png")
 RESULT_FILES = ("vectors.png", "rectified.png", "section.png", "profile.png", "section_profile.csv")
 
-_waiting: "_Process | None" = None  # forked by start(), not yet taken by a Prerender
+_waiting: _Process | None = None  # forked by start(), not yet taken by a Prerender
 
 
 def can_fork() -> bool:
@@ -52,7 +53,7 @@ def start() -> None:
         _waiting = _Process.fork()
 
 
-def _take() -> "_Process | None":
+def _take() -> _Process | None:
     global _waiting
     start()
     proc, _waiting = _waiting, None
@@ -70,7 +71,7 @@ class _Process:
         self.n_jobs = 0
 
     @classmethod
-    def fork(cls) -> "_Process | None":
+    def fork(cls) -> _Process | None:
         if not can_fork():
             return None
         folder = tempfile.mkdtemp(prefix="fieldtool-fig-")
@@ -197,16 +198,17 @@ def _serve(jobs_fd: int, answers_fd: int, folder: Path) -> None:
             if kind == "inputs":
                 project, inputs, level, mapping = args
                 result = SimpleNamespace(mapping=mapping, level=level)
-                draws = (("gcp.png", lambda: report_figures.write_gcp(out, project, result, inputs)),
-                         ("water_level.png", lambda: level_plots.plot_level(out / "water_level.png", inputs.cross_section, level)))
+                draws = (("gcp.png", partial(report_figures.write_gcp, out, project, result, inputs)),
+                         ("water_level.png", partial(level_plots.plot_level, out / "water_level.png",
+                                                     inputs.cross_section, level)))
             else:
                 inputs, result, cross_section = args
-                draws = (("vectors.png", lambda: plots.plot_vectors(out / "vectors.png", inputs.first_color, result,
-                                                                    inputs)),
-                         ("rectified.png", lambda: plots.plot_rectified(out / "rectified.png", inputs.first_color,
-                                                                        result, inputs)),
-                         ("section.png", lambda: plots.plot_section(out / "section.png", cross_section, result)),
-                         ("profile.png", lambda: report_figures.write_profile(out, result)))
+                draws = (("vectors.png", partial(plots.plot_vectors, out / "vectors.png", inputs.first_color, result,
+                                                 inputs)),
+                         ("rectified.png", partial(plots.plot_rectified, out / "rectified.png", inputs.first_color,
+                                                   result, inputs)),
+                         ("section.png", partial(plots.plot_section, out / "section.png", cross_section, result)),
+                         ("profile.png", partial(report_figures.write_profile, out, result)))
             status = _draw_in_two(draws, out)
             if "profile.png" in status:
                 status["section_profile.csv"] = status["profile.png"]

@@ -58,7 +58,7 @@ def gcp_table(project, result, to_working=None) -> list[dict]:
     o = project.ortho
     rows = []
     if m.method == "distances" and m.gcp_world is not None and len(o.distances_m) == 6:
-        for (i, j), name, L in zip(PAIRS, NAMES, o.distances_m):
+        for (i, j), name, L in zip(PAIRS, NAMES, o.distances_m, strict=True):
             fit = float(np.hypot(*(m.gcp_world[j] - m.gcp_world[i])))
             rows.append({"name": name, "measured_m": float(L), "fitted_m": fit, "residual_m": fit - float(L)})
     elif m.method in ("world", "pose") and len(o.gcp_world_m):
@@ -68,7 +68,7 @@ def gcp_table(project, result, to_working=None) -> list[dict]:
             px = np.asarray(o.gcp_px, float)
             got = m.image_to_world(px if to_working is None else to_working(px))
             res = np.hypot(*(got - world).T)
-        for k, (w, r) in enumerate(zip(world, res)):
+        for k, (w, r) in enumerate(zip(world, res, strict=True)):
             rows.append({"name": f"P{k + 1} ({w[0]:.3f}, {w[1]:.3f})", "measured_m": None, "fitted_m": None,
                          "residual_m": float(r)})
     return rows
@@ -87,7 +87,7 @@ def write_gcp(out: Path, project, result, inputs) -> str | None:
     _show(ax, rgb, (-0.5, w - 0.5, h - 0.5, -0.5))
     rows = gcp_table(project, result, inputs.to_working)
     if o.method == "distances" and len(px) == 4:
-        for (i, j), row in zip(PAIRS, rows):
+        for (i, j), row in zip(PAIRS, rows, strict=False):  # no rows when the distances are not 6
             ax.plot(px[[i, j], 0], px[[i, j], 1], "-", color="yellow", lw=1.2, alpha=0.9)
             mid = px[[i, j]].mean(axis=0)
             ax.annotate(f"{row['name'].split('=')[0]} {row['measured_m']:.3f} m\nres {1000 * row['residual_m']:+.1f} mm",

@@ -257,7 +257,7 @@ def parse_rows(rows: list[tuple[int, list[str]]], source: str, comma_decimal: bo
             if not pts and not any(v is not None for v in vals):  # a header line
                 si, zi, fs, fz = _header_columns(cells, source, lineno)
                 continue
-            bad = next(c for c, v in zip(cells, vals) if v is None)
+            bad = next(c for c, v in zip(cells, vals, strict=True) if v is None)
             hint = " (use a decimal point, or ';' between fields when the decimals are commas)" if "," in bad else ""
             raise InputFileError(f"{source}, line {lineno}: {bad!r} is not a number; expected 'station, elevation' "
                                  f"in metres{hint}")
@@ -336,5 +336,5 @@ def load_cross_section(path: Path | str) -> CrossSection:
 
 def to_csv_text(cs: CrossSection) -> str:
     """CSV text of a cross-section, with a header, that :func:`parse_xy_text` reads back."""
-    lines = ["station_m,elevation_m"] + [f"{s:.4f},{z:.4f}" for s, z in zip(cs.station, cs.elevation)]
+    lines = ["station_m,elevation_m"] + [f"{s:.4f},{z:.4f}" for s, z in zip(cs.station, cs.elevation, strict=True)]
     return "\n".join(lines) + "\n"

@@ -236,7 +236,7 @@ def subsection_areas(geom: SectionGeometry, cs: CrossSection, level: float) -> t
     """Wetted area (m²) and mean depth (m) of each subsection (trapezoidal rule on the cross-section)."""
     cs.check_level(level)
     edges = geom.station_edges
-    area = np.array([cs.wetted_area(level, a, b) for a, b in zip(edges[:-1], edges[1:])])
+    area = np.array([cs.wetted_area(level, a, b) for a, b in zip(edges[:-1], edges[1:], strict=True)])
     widths = np.diff(edges)
     return area, np.where(widths > 0, area / np.where(widths > 0, widths, 1), 0.0)
 

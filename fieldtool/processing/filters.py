@@ -14,8 +14,9 @@ returns float32 clipped to 0-255, as the thesis sets out-of-range pixels to the 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
-from typing import Any, Callable, Iterable
+from typing import Any
 
 import cv2
 import numpy as np
@@ -322,7 +323,7 @@ class FilterStack:
 
     @classmethod
     def from_config(cls, items: list[dict], key: str = "filters",
-                    roi: tuple[int, int, int, int] | None = None) -> "FilterStack":
+                    roi: tuple[int, int, int, int] | None = None) -> FilterStack:
         """Stack from the project's ``filters`` list; ParameterError names e.g. ``filters[2].gamma``."""
         if items is None:
             items = []

@@ -61,8 +61,8 @@ from __future__ import annotations
 
 import warnings
 from collections import deque
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
-from typing import Callable, Iterable
 
 import numpy as np
 
@@ -223,7 +223,7 @@ def analyze(
         segs = [np.asarray(sg, float).reshape(2, 2) for sg in segs]
         if len(reach) != len(levels) or not segs:
             raise ValueError("analyze(near=...): one reach per pass and at least one segment")
-        near = [near_nodes(lv, segs, r) for lv, r in zip(levels, reach)]  # per pass, the nodes correlated
+        near = [near_nodes(lv, segs, r) for lv, r in zip(levels, reach, strict=True)]  # per pass, the nodes correlated
     engine = _make_engine(backend, shape, params, levels, box, mask, near, first_guess)
     if not isinstance(engine, _Engine):  # only the CPU engine moves its windows by it
         first_guess = None

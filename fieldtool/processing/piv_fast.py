@@ -22,8 +22,8 @@ from __future__ import annotations
 import math
 import queue
 import threading
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
-from typing import Callable, Iterable, Iterator
 
 import numpy as np
 
@@ -223,7 +223,7 @@ class prefetch:
     _END = object()
 
     def __init__(self, source: Iterable, depth: int = 4):
-        self._q: "queue.Queue" = queue.Queue(maxsize=max(1, int(depth)))
+        self._q: queue.Queue = queue.Queue(maxsize=max(1, int(depth)))
         self._stop = threading.Event()
         self._done = False
         self._thread = threading.Thread(target=self._fill, args=(iter(source),), daemon=True)

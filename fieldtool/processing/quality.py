@@ -10,8 +10,8 @@ Units: m, s, m/s, m³/s; displacements in px per frame (of the working image); a
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
-from typing import Callable, Iterable
 
 import numpy as np
 
@@ -31,7 +31,9 @@ class Reason:
     threshold: float | None = None
 
     def to_dict(self) -> dict:
-        f = (lambda x: float(x) if x is not None and np.isfinite(x) else None)
+        def f(x):
+            return float(x) if x is not None and np.isfinite(x) else None
+
         return {"code": self.code, "severity": self.severity, "message": self.message, "value": f(self.value),
                 "threshold": f(self.threshold)}
 

@@ -37,9 +37,9 @@ Two deliberate departures from the thesis text, both stated where they are used:
 from __future__ import annotations
 
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
 
 import cv2
 import numpy as np
@@ -106,7 +106,7 @@ def _pieces(cs: CrossSection) -> list[_Piece]:
     top = _top_level(cs)
     levels = np.unique(np.r_[z[(z > cs.bed_min) & (z < top)], cs.bed_min, top])
     out = []
-    for z_lo, z_hi in zip(levels[:-1], levels[1:]):
+    for z_lo, z_hi in zip(levels[:-1], levels[1:], strict=True):
         wet = z < 0.5 * (z_lo + z_hi)
         idx = np.nonzero(wet)[0]
         runs = np.split(idx, np.nonzero(np.diff(idx) > 1)[0] + 1)

@@ -11,8 +11,8 @@ from pathlib import Path
 
 import tomli_w
 
-from fieldtool.project import model as pj
 from fieldtool.errors import InputFileError
+from fieldtool.project import model as pj
 
 _FIELD = re.compile(r"^\s+(\w+):\s*[^=]+?(?:=.*?)?\s+#\s*(.*)$")
 

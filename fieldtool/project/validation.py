@@ -27,9 +27,10 @@ import re
 import stat
 import types
 import typing
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any
 
 from fieldtool.errors import FieldToolError, ParameterError
 from fieldtool.processing.filters import FILTERS, FilterStack

@@ -29,11 +29,12 @@ import re
 import sqlite3
 import struct
 import time
+from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, fields
-from datetime import datetime, timedelta, timezone
+from datetime import UTC, datetime, timedelta
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
 from fieldtool.errors import InputFileError, ParameterError
 from fieldtool.project.model import project_to_dict
@@ -101,11 +102,11 @@ def resolve_db_path(arg: str | Path | None) -> Path:
 
 
 def utc_now() -> str:
-    return _iso(datetime.now(timezone.utc))
+    return _iso(datetime.now(UTC))
 
 
 def _iso(dt: datetime) -> str:
-    return dt.astimezone(timezone.utc).replace(microsecond=0).strftime("%Y-%m-%dT%H:%M:%SZ")
+    return dt.astimezone(UTC).replace(microsecond=0).strftime("%Y-%m-%dT%H:%M:%SZ")
 
 
 def parse_time(text: str, what: str = "time") -> str:
@@ -116,7 +117,7 @@ def parse_time(text: str, what: str = "time") -> str:
     except ValueError:
         raise ParameterError(f"{what}: {text!r} is not a date; write it as 2024-05-01 or 2024-05-01T10:22") from None
     if dt.tzinfo is None:
-        dt = dt.replace(tzinfo=timezone.utc)
+        dt = dt.replace(tzinfo=UTC)
     return _iso(dt)
 
 
@@ -263,7 +264,7 @@ class History:
             _OPEN[self._key] -= 1
         self.conn.close()
 
-    def __enter__(self) -> "History":
+    def __enter__(self) -> History:
         return self
 
     def __exit__(self, *exc) -> None:
@@ -455,14 +456,14 @@ class History:
                 continue  # a single method: its line would repeat 'all'
             q = [p[0] for p in pairs]
             ref = [p[1] for p in pairs]
-            err = [100.0 * (a - b) / b for a, b in zip(q, ref)]
+            err = [100.0 * (a - b) / b for a, b in zip(q, ref, strict=True)]
             n = len(err)
             out.append(ErrorStats(
                 site=s, method=method, n=n, bias_percent=sum(err) / n,
                 mean_abs_percent=sum(abs(e) for e in err) / n,
                 rmse_percent=math.sqrt(sum(e * e for e in err) / n),
                 max_abs_percent=max(abs(e) for e in err),
-                rmse_m3s=math.sqrt(sum((a - b) ** 2 for a, b in zip(q, ref)) / n)))
+                rmse_m3s=math.sqrt(sum((a - b) ** 2 for a, b in zip(q, ref, strict=True)) / n)))
         return out
 
     def integrity_ok(self) -> bool:
@@ -535,7 +536,7 @@ def _check_existing(path: Path) -> None:
 
     def tidy() -> None:
         if not existed[0] and sides[0].exists() and sides[0].stat().st_size == 0:
-            for p, had in zip(sides, existed):
+            for p, had in zip(sides, existed, strict=True):
                 if not had:
                     p.unlink(missing_ok=True)
 
@@ -642,7 +643,7 @@ def export_csv(hist: History, rows: list[Measurement]) -> str:
 # ---------------------------------------------------------------------------------------------
 # what identifies a run: when the video was taken, and a hash of the inputs
 
-_MP4_EPOCH = datetime(1904, 1, 1, tzinfo=timezone.utc)
+_MP4_EPOCH = datetime(1904, 1, 1, tzinfo=UTC)
 _CHUNK = 1 << 20
 
 
@@ -688,7 +689,7 @@ def _mp4_creation_time(path: Path) -> datetime | None:
                     if secs == 0:
                         return None
                     dt = _MP4_EPOCH + timedelta(seconds=secs)
-                    if dt.year < 1990 or dt > datetime.now(timezone.utc) + timedelta(days=1):
+                    if dt.year < 1990 or dt > datetime.now(UTC) + timedelta(days=1):
                         return None
                     return dt
                 return None
@@ -715,10 +716,10 @@ def video_datetime(video: Path | str) -> tuple[str | None, str | None]:
     dt = _mp4_creation_time(files[0]) if len(files) == 1 else None
     if dt is not None:
         return _iso(dt), "container"
-    return _iso(datetime.fromtimestamp(files[0].stat().st_mtime, timezone.utc)), "file mtime"
+    return _iso(datetime.fromtimestamp(files[0].stat().st_mtime, UTC)), "file mtime"
 
 
-def hash_file(path: Path, h: "hashlib._Hash | None" = None) -> str:
+def hash_file(path: Path, h: hashlib._Hash | None = None) -> str:
     """SHA-256 of a file, read in 1 MiB chunks."""
     h = h or hashlib.sha256()
     with path.open("rb") as fh:

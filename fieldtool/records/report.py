@@ -11,7 +11,7 @@ import base64
 import csv
 import html
 import json
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 
 from fieldtool import __version__
@@ -237,7 +237,7 @@ def render_html(summary: dict, images: dict[str, bytes], subsections: list[dict]
     if measurement is not None and measurement.input_hash:
         out.append(f"<p class='muted'>history id {measurement.id}; input hash (SHA-256 of parameters and input "
                    f"files): <code>{_e(measurement.input_hash)}</code></p>")
-    now = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+    now = datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC")
     out.append(f"<p class='muted'>report written {now} by fieldtool {_e(__version__)}; the run used fieldtool "
                f"{_e(summary.get('fieldtool_version', '?'))}. Every value of the run: result.json.</p></body></html>")
     return "\n".join(out)

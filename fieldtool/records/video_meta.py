@@ -14,12 +14,12 @@ frame reader (OpenCV's view of the container), as the run used them.
 from __future__ import annotations
 
 import struct
-from datetime import datetime, timedelta, timezone
+from datetime import UTC, datetime, timedelta
 from pathlib import Path
 
 from fieldtool.records.history import _iso, video_datetime
 
-_MKV_EPOCH = datetime(2001, 1, 1, tzinfo=timezone.utc)
+_MKV_EPOCH = datetime(2001, 1, 1, tzinfo=UTC)
 _EBML_MAGIC = b"\x1a\x45\xdf\xa3"
 _SEGMENT, _INFO, _DATE_UTC = 0x18538067, 0x1549A966, 0x4461
 _CLUSTER = 0x1F43B675

@@ -20,9 +20,9 @@ from __future__ import annotations
 
 import json
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Callable
 
 import cv2
 import numpy as np
@@ -250,7 +250,7 @@ class SceneSpec:
     def n_frames(self) -> int:
         return int(round(self.duration_s * self.fps))
 
-    def with_(self, **changes) -> "SceneSpec":
+    def with_(self, **changes) -> SceneSpec:
         """A copy with fields replaced; ``river__x`` / ``camera__x`` change a field of those parts."""
         river = {k[7:]: v for k, v in changes.items() if k.startswith("river__")}
         cam = {k[8:]: v for k, v in changes.items() if k.startswith("camera__")}

@@ -8,8 +8,9 @@ cancels) and relays picks from the viewer. Everything else lives in screens/ and
 from __future__ import annotations
 
 import time
+from collections.abc import Callable, Iterable
 from pathlib import Path
-from typing import Any, Callable, Iterable
+from typing import Any
 
 from textual.app import App, SystemCommand
 from textual.screen import Screen

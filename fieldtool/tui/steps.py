@@ -7,8 +7,8 @@ key (the calibration mode), kept in the session's ``ui`` dict.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 from fieldtool.project.model import Project
 from fieldtool.project.validation import validate

@@ -27,10 +27,10 @@ import ipaddress
 import secrets
 import socket
 import threading
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from http import HTTPStatus
 from pathlib import Path
-from typing import Callable, Iterator
 from urllib.parse import urlsplit
 
 import viser

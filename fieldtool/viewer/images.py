@@ -13,9 +13,9 @@ the water plane), ``image1`` / ``image2`` (the two nadir images of the angle-and
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
 import cv2
 import numpy as np

@@ -20,8 +20,9 @@ divergence  water_level.divergence_station_m    dem_plot            station (m) 
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 

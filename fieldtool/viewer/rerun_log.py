@@ -277,7 +277,7 @@ class RerunObserver(Observer):
         # geometry; again here when it was not, or when the section was swapped after the run
         if self._pair_q is None or res.section.swapped:
             self._q_pairs = []
-            for k, (t, q) in enumerate(zip(t_pairs, res.q_pairs)):
+            for k, (t, q) in enumerate(zip(t_pairs, res.q_pairs, strict=False)):
                 self._time(t, pair=k)
                 self._log_q(q)
         if self._first is None:
@@ -360,7 +360,7 @@ class RerunObserver(Observer):
                                                                  radii=0.08))
         every = max(1, int(np.ceil(fin.sum() / 6)))  # at most ~6 labels: more overlap; hover shows the rest
         labels = [(f"{st:.1f} m: {vel:.2f} m/s" + (" (filled)" if f else "")) if i % every == 0 else ""
-                  for i, (st, vel, f) in enumerate(zip(s[fin], v[fin], b["filled"][fin]))]
+                  for i, (st, vel, f) in enumerate(zip(s[fin], v[fin], b["filled"][fin], strict=True))]
         self.rec.log("section/profile/subsections", rr.Points2D(np.c_[s[fin], k * v[fin]], labels=labels,
                                                                 colors=[0, 120, 255], radii=0.15))
         self.rec.log("section/profile/zero", rr.LineStrips2D([[[s.min() - 0.5, 0.0], [s.max() + 0.5, 0.0]]],

@@ -29,8 +29,9 @@ import gzip
 import io
 import threading
 import warnings
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 from urllib.parse import parse_qs
 
 import numpy as np
@@ -68,7 +69,7 @@ OnPick = Callable[[str, Any], None]
 class ViewerHandle:
     """A running viewer. Thread-safe; ``stop()`` shuts the web server down."""
 
-    def __init__(self, viewer: "_Viewer"):
+    def __init__(self, viewer: _Viewer):
         self._v = viewer
         self.host: str = viewer.host
         self.port: int = viewer.server.get_port()
@@ -147,7 +148,7 @@ class ViewerHandle:
     def stop(self) -> None:
         self._v.stop()
 
-    def __enter__(self) -> "ViewerHandle":
+    def __enter__(self) -> ViewerHandle:
         return self
 
     def __exit__(self, *exc) -> None:
@@ -217,7 +218,7 @@ class _Routes:
 
     def __init__(self, guard: AccessGuard):
         self.guard = guard
-        self.viewer: "_Viewer | None" = None
+        self.viewer: _Viewer | None = None
         self._page: bytes | None = None
         self._page_gz: bytes | None = None
 
@@ -633,7 +634,7 @@ class _Viewer:
         self._overlay.append(self.server.scene.add_line_segments(
             f"/overlay/{name}_rings", seg, color, thickness=3.0 if active else 2.0, thickness_units="screen"))
         at = pixel_to_scene(disp + np.array([0.8 * r, -0.8 * r]), self.plane, lift=lift)
-        for i, ((text, _), q) in enumerate(zip(labels, at)):
+        for i, ((text, _), q) in enumerate(zip(labels, at, strict=True)):
             self._overlay.append(self.server.scene.add_label(
                 f"/overlay/{name}_label{i}", text, position=tuple(q), anchor="bottom-left",
                 font_screen_scale=1.3 if active else 1.0))

@@ -19,7 +19,7 @@ and ``valid_fraction`` (1). The project and the run's key results are global att
 from __future__ import annotations
 
 import json
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 
 import netCDF4
@@ -155,7 +155,7 @@ def build_dataset(result, project) -> dict:
     if crs is not None:
         variables["crs"] = ((), np.int32(0), cf_grid_mapping(crs), {})
     d = result.discharge
-    now = datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
+    now = datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
     attrs = {
         "Conventions": "CF-1.8",
         "title": f"LSPIV mean surface velocity — {project.name}",

@@ -102,5 +102,6 @@ class CalibrationScreen(StepScreen):
         if msgs:
             self.show_errors(msgs)
             return
+        p = jobs.snapshot(self.project)  # the project as it is now: the job runs on this copy
         self.app.start_job("calibration", "Calibration",  # type: ignore[attr-defined]
-                           lambda job, p=jobs.snapshot(self.project): jobs.run_calibration(p, job))
+                           lambda job: jobs.run_calibration(p, job))

@@ -58,5 +58,6 @@ class VideoScreen(StepScreen):
         if self.errors():
             self.show_errors(self.errors())
             return
+        p = jobs.snapshot(self.project)  # the project as it is now: the job runs on this copy
         self.app.start_job("stabilize", "Stabilisation",  # type: ignore[attr-defined]
-                           lambda job, p=jobs.snapshot(self.project): jobs.run_stabilization(p, job))
+                           lambda job: jobs.run_stabilization(p, job))

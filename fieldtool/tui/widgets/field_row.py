@@ -32,7 +32,7 @@ class FieldRow(Vertical):
     class Edited(Message):
         """The project value of ``row.field`` changed."""
 
-        def __init__(self, row: "FieldRow") -> None:
+        def __init__(self, row: FieldRow) -> None:
             super().__init__()
             self.row = row
 
