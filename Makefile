@@ -5,7 +5,7 @@ BIN := $(VENV)/bin
 BASE := $(VENV)/.installed-base
 DEV := $(VENV)/.installed-dev
 
-.PHONY: demo test bench clean
+.PHONY: demo test lint bench clean
 
 $(BIN)/python:
 	$(PY) -m venv $(VENV)
@@ -23,7 +23,12 @@ $(DEV): $(BASE)
 demo: $(BASE)
 	$(BIN)/fieldtool demo --out demo_out
 
-test: $(DEV)
+lint: $(DEV)
+	$(BIN)/ruff check fieldtool tests
+	$(BIN)/ruff format --check fieldtool tests
+	$(BIN)/mypy fieldtool
+
+test: $(DEV) lint
 	$(BIN)/python -m pytest -q
 
 bench: $(DEV)

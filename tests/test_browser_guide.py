@@ -165,8 +165,8 @@ def test_click_near_a_demo_target_snaps_to_its_centre(short_scene, tmp_path, chr
 
 def _locate_markers_settled(page, handle, probe=(640.0, 360.0), timeout_s=40.0):
     """Wait until a click where ``_screen_of`` puts pixel ``probe`` lands there (within 1.5 px: the
-    mouse sits on whole CSS pixels): the page's camera is fitted and the server knows it. Clicks are probed in view-only mode,
-    where they are reported and not saved."""
+    mouse sits on whole CSS pixels): the page's camera is fitted and the server knows it. Clicks are probed in
+    view-only mode, where they are reported and not saved."""
     import re
 
     mode = handle.mode

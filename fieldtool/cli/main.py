@@ -79,7 +79,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("demo", help="render a synthetic river with a known discharge and measure it")
     p.add_argument("--out", default="demo_out", help="output folder (default demo_out)")
-    p.add_argument("--scene", default="oblique", help="scene preset: oblique, nadir, far_bank, or a hard one (glints_section, ripples, sparse_patchy, fast_1080p, grazing, compressed, skewed, dropped_frames)")
+    p.add_argument("--scene", default="oblique", help="scene preset: oblique, nadir, far_bank, or a hard one (glints_section, ripples, "
+                        "sparse_patchy, fast_1080p, grazing, compressed, skewed, dropped_frames)")
     p.set_defaults(func=cmd_demo)
 
     for name in EXTENSIONS:

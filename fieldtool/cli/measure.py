@@ -58,7 +58,8 @@ def run(args: argparse.Namespace) -> int:
     if s.get("discharge_p05_m3s") is not None:
         print(f"single pairs  {s['discharge_p05_m3s']:.4f} - {s['discharge_p95_m3s']:.4f} m3/s  (5-95 % of the "
               f"{s['n_pairs_with_vectors']} sampled pairs' own discharges; not an interval of Q)")
-    print(f"water level   {s['water_level_m']:.3f} m  ({s['water_level_method']}, +/- {s['water_level_uncertainty_m']:.3f} m)")
+    print(f"water level   {s['water_level_m']:.3f} m  ({s['water_level_method']}, "
+          f"+/- {s['water_level_uncertainty_m']:.3f} m)")
     print(f"wetted area   {s['wetted_area_m2']:.3f} m2   width {s['wetted_width_m']:.3f} m")
     print(f"mean velocity {s['mean_velocity_ms']:.4f} m/s  (alpha {s['alpha']:.2f})")
     for w in s["warnings"]:
@@ -104,7 +105,8 @@ def calibrate(args: argparse.Namespace) -> int:
     fx, fy = model.camera_matrix[0, 0], model.camera_matrix[1, 1]
     fov = model.fov_deg()
     print(f"reprojection error {model.rms_px:.3f} px")
-    print(f"fx, fy             {fx:.1f}, {fy:.1f} px; centre {model.camera_matrix[0, 2]:.1f}, {model.camera_matrix[1, 2]:.1f} px")
+    cx, cy = model.camera_matrix[0, 2], model.camera_matrix[1, 2]
+    print(f"fx, fy             {fx:.1f}, {fy:.1f} px; centre {cx:.1f}, {cy:.1f} px")
     print(f"distortion         {', '.join(f'{c:.4f}' for c in model.dist_coeffs.ravel())}")
     print(f"FOV x / y / diag   {fov[0]:.2f} / {fov[1]:.2f} / {fov[2]:.2f} deg")
     print(f"saved              {args.out}")

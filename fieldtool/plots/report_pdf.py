@@ -51,8 +51,10 @@ def _pdf_text_page(fig, summary, measurement, references) -> None:
                  fontsize=8, color="0.35")
         y -= 0.02
     y -= 0.01
-    res = [("Water level", f"{fmt_value(summary.get('water_level_m'), '.3f', 'm')} ± {fmt_value(summary.get('water_level_uncertainty_m'), '.3f', 'm')}"),
-           ("Wetted area / width", f"{fmt_value(summary.get('wetted_area_m2'), '.3f', 'm²')} / {fmt_value(summary.get('wetted_width_m'), '.3f', 'm')}"),
+    level, level_sd = summary.get("water_level_m"), summary.get("water_level_uncertainty_m")
+    area, width = summary.get("wetted_area_m2"), summary.get("wetted_width_m")
+    res = [("Water level", f"{fmt_value(level, '.3f', 'm')} ± {fmt_value(level_sd, '.3f', 'm')}"),
+           ("Wetted area / width", f"{fmt_value(area, '.3f', 'm²')} / {fmt_value(width, '.3f', 'm')}"),
            ("Mean velocity, α", f"{fmt_value(summary.get('mean_velocity_ms'), '.3f', 'm/s')}, α = {fmt_value(summary.get('alpha'), '.2f')}")]
     res += [(f"Reference ({r.method})", f"{fmt_value(r.discharge_m3s, '.3f')} m³/s") for r in references]
     for k, v in res:

@@ -335,7 +335,8 @@ def check_section(geom: SectionGeometry, cs: CrossSection, level: float, min_len
     if bad:
         txt = "; ".join(f"{n} at station {s:.2f} m, water edge at {e:.2f} m" for n, s, e in bad)
         raise GeometryError(
-            f"section: {txt} (tolerance {tol:.2f} m, section.edge_tolerance_m){' — the section crosses a bank' if over else ''}; "
+            f"section: {txt} (tolerance {tol:.2f} m, section.edge_tolerance_m)"
+            f"{' — the section crosses a bank' if over else ''}; "
             "check section.points_px and section.station_offset_m")
 
 

@@ -85,7 +85,8 @@ class FrameSource:
                 raise InputFileError(f"{self.path}: no images ({', '.join(sorted(IMAGE_EXTS))}) found")
             if frame_interval_s is None or not frame_interval_s > 0:
                 raise ParameterError(
-                    "video.frame_interval_s: an image sequence carries no timestamps; give the time between two images in seconds"
+                    "video.frame_interval_s: an image sequence carries no timestamps; give the time between two "
+                    "images in seconds"
                 )
             first = cv2.imread(str(self.files[0]), cv2.IMREAD_GRAYSCALE)
             if first is None:

@@ -470,8 +470,8 @@ class _Ensemble:
 
 def _make_engine(backend, shape, params, levels, box, mask, near=None, guess=None):
     """The engine of ``params.engine`` / ``backend``. ``near`` (per level, the nodes near the section; the others
-    are skipped) is only a saving of the CPU engine; the others correlate every node and ``analyze`` drops the far ones. ``guess``
-    (first-pass window offsets) only the CPU engine uses."""
+    are skipped) is only a saving of the CPU engine; the others correlate every node and ``analyze`` drops the far
+    ones. ``guess`` (first-pass window offsets) only the CPU engine uses."""
     if params.engine == "openpiv":
         # lazy: openpiv's import (0.3-0.6 s, with its windef) serves only this reference engine
         from fieldtool.processing.piv_openpiv import _OpenPivEngine

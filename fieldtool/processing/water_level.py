@@ -340,7 +340,8 @@ def dem_profile(dem: np.ndarray, x_m: list[float], y_m: list[float], precision_m
         if abs(dx * 1000 - precision_mm) > 0.1 * precision_mm:
             raise ParameterError(
                 f"water_level.dem_precision_mm = {precision_mm:g} mm/pixel does not match the DEM: its x domain "
-                f"{x_m[1] - x_m[0]:g} m over {cols} columns is {dx * 1000:.3g} mm/pixel. Check the domain or the precision.")
+                f"{x_m[1] - x_m[0]:g} m over {cols} columns is {dx * 1000:.3g} mm/pixel. "
+                "Check the domain or the precision.")
     xs = x_m[0] + (np.arange(cols) + 0.5) * dx
     if section_y_m is not None:
         dy = (y_m[1] - y_m[0]) / rows
@@ -736,8 +737,8 @@ def waterline_level(cs: CrossSection, mapping: OrthoMapping, detected: dict,
 
     Refuses (GeometryError naming ``water_level.method`` and the fix: type the level) when the centre line
     finds no edge, fewer than ``WATERLINE_MIN_LINES`` lines do, or the lines' levels scatter, or the level's
-    1-sigma is, more than ``WATERLINE_REFUSE_M``; a scatter above ``WATERLINE_DOUBT_M``, a weak activity contrast between water
-    and banks (``WATERLINE_WEAK_CONTRAST``), or a single line, is listed in
+    1-sigma is, more than ``WATERLINE_REFUSE_M``; a scatter above ``WATERLINE_DOUBT_M``, a weak activity contrast
+    between water and banks (``WATERLINE_WEAK_CONTRAST``), or a single line, is listed in
     ``details["doubtful"]`` (turned into a quality reason by the caller).
 
     ``station_of``: water-plane points (N, 2) m -> cross-section stations (m), known when the section's
@@ -805,7 +806,8 @@ def waterline_level(cs: CrossSection, mapping: OrthoMapping, detected: dict,
         edge_levels = {"stations_m": st.tolist(), "levels_m": ez.tolist(), "difference_m": gap, "tolerance_m": tol}
         if abs(gap) > tol:
             doubts.append({"code": "waterline_edges_disagree", "value": abs(gap), "threshold": tol,
-                           "message": f"the water line's left and right edges lie on the banks at levels {100 * abs(gap):.1f} cm "
+                           "message": "the water line's left and right edges lie on the banks at levels "
+                                      f"{100 * abs(gap):.1f} cm "
                                       f"apart (over {100 * tol:.1f} cm): an edge is off, or section.station_offset_m is"})
     sigma = float(np.hypot(s[k], spread))
     if sigma > WATERLINE_REFUSE_M:

@@ -99,7 +99,8 @@ def key_table_markdown() -> str:
         comments = field_comments(cls)
         for f in dataclasses.fields(cls):
             v = getattr(inst, f.name)
-            rows.append(f"| `{name}.{f.name}` | {'not set' if v is None else '`' + _value(v) + '`'} | {comments.get(f.name, '')} |")
+            shown = "not set" if v is None else f"`{_value(v)}`"
+            rows.append(f"| `{name}.{f.name}` | {shown} | {comments.get(f.name, '')} |")
     return "\n".join(rows)
 
 

@@ -78,15 +78,17 @@ def _e(v) -> str:
 _CSS = """
 body{font-family:"DejaVu Sans",system-ui,-apple-system,"Segoe UI",Roboto,sans-serif;margin:1.5em auto;max-width:1000px;
 color:#1f2328;padding:0 1.2em;line-height:1.4}
-h1{font-size:1.45em;margin:.2em 0} h2{font-size:1.1em;border-bottom:1px solid #d0d7de;padding-bottom:.2em;margin-top:1.5em}
+h1{font-size:1.45em;margin:.2em 0}
+h2{font-size:1.1em;border-bottom:1px solid #d0d7de;padding-bottom:.2em;margin-top:1.5em}
 .head{display:grid;grid-template-columns:max-content 1fr max-content 1fr;gap:.15em 1.2em;font-size:.95em}
 .head dt{color:#57606a} .head dd{margin:0;font-weight:600}
-.qbox{border:2px solid #d0d7de;border-radius:8px;padding:.8em 1.1em;margin:1em 0;display:flex;gap:2em;align-items:center;
-flex-wrap:wrap} .q{font-size:1.7em;font-weight:700} .ci{font-size:1.05em}
+.qbox{border:2px solid #d0d7de;border-radius:8px;padding:.8em 1.1em;margin:1em 0;display:flex;gap:2em;
+align-items:center;flex-wrap:wrap} .q{font-size:1.7em;font-weight:700} .ci{font-size:1.05em}
 .grade{display:inline-block;padding:.2em .7em;border-radius:1em;color:#fff;font-weight:700;text-transform:uppercase;
 letter-spacing:.04em} .reasons{margin:.4em 0 0 1.2em;padding:0} .reasons li{margin:.15em 0}
 .muted{color:#57606a;font-size:.88em}
-table{border-collapse:collapse;font-size:.9em;margin:.4em 0} td,th{border:1px solid #d0d7de;padding:.25em .6em;text-align:right}
+table{border-collapse:collapse;font-size:.9em;margin:.4em 0}
+td,th{border:1px solid #d0d7de;padding:.25em .6em;text-align:right}
 th{background:#f6f8fa} td.k,th.k{text-align:left} .warn{color:#9a6700}
 figure{margin:1em 0;page-break-inside:avoid} figure img{max-width:100%;border:1px solid #d0d7de}
 figcaption{font-size:.88em;color:#57606a}
@@ -142,7 +144,8 @@ def _sections_html(summary: dict) -> list[str]:
     if not secs:
         return []
     out = ["<h2>Sections</h2><table id='sections'><tr><th class='k'>section</th><th>Q (m³/s)</th>"
-           "<th>95 % interval (m³/s)</th><th class='k'>grade</th><th>wetted width (m)</th><th>mean velocity (m/s)</th></tr>"]
+           "<th>95 % interval (m³/s)</th><th class='k'>grade</th><th>wetted width (m)</th>"
+           "<th>mean velocity (m/s)</th></tr>"]
     for e in secs:
         if "error" in e:
             out.append(f"<tr><td class='k'>{_e(e.get('name'))}</td><td colspan='5' class='warn'>{_e(e['error'])}</td></tr>")
@@ -156,7 +159,8 @@ def _sections_html(summary: dict) -> list[str]:
     if sm:
         cv = sm.get("cv")
         out.append(f"<tr><th class='k'>mean of {sm.get('n')}</th><td>{_f(sm.get('mean_m3s'))}</td>"
-                   f"<td colspan='4'>std {_f(sm.get('std_m3s'))} m³/s, CV {_f(100 * cv if cv is not None else None, '.1f', '%')}"
+                   f"<td colspan='4'>std {_f(sm.get('std_m3s'))} m³/s, "
+                   f"CV {_f(100 * cv if cv is not None else None, '.1f', '%')}"
                    "</td></tr>")
     out.append("</table>")
     return out

@@ -9,9 +9,10 @@ no internet, and nothing should phone home, so:
   analytics on CI; there is no other per-process switch, and ``rerun analytics disable`` would
   change the user's global configuration);
 - rerun's web server runs on an *internal* port (web port + 1; rerun binds it on all interfaces);
-  this module's small HTTP server, on the web port the supervisor opens, forwards each GET to it, removes the external font links (and the
-  app.rerun.io-only script) from ``index.html``, and sends a Content-Security-Policy that lets the
-  page reach only its own server and the gRPC port: anything else is refused by the browser.
+  this module's small HTTP server, on the web port the supervisor opens, forwards each GET to it, removes the
+  external font links (and the app.rerun.io-only script) from ``index.html``, and sends a
+  Content-Security-Policy that lets the page reach only its own server and the gRPC port: anything else
+  is refused by the browser.
 """
 
 from __future__ import annotations
