@@ -461,3 +461,15 @@ def test_gpu_code_path_ensemble_sample_with_numpy_standing_in_for_cupy(numpy_as_
     assert list(g.pair_index) == list(c.pair_index) == [0, 3]
     assert np.array_equal(g.valid, c.valid)
     assert np.nanmax(np.abs(g.u - c.u)) * 0.5 < 0.01 and np.nanmax(np.abs(g.v - c.v)) * 0.5 < 0.01
+
+
+def test_openpiv_ensemble_over_many_pairs():
+    """The OpenPIV engine has no spectrum-only correlation: a clip long enough for the ensemble's sample of pairs
+    (more than 2 * ENSEMBLE_PAIRS) is correlated pair by pair (it raised a TypeError)."""
+    n = 2 * piv.ENSEMBLE_PAIRS + 5
+    frames = particle_clip(lambda x, y: (np.full_like(x, 3.0), np.full_like(y, -1.0)), h=96, w=128, n_frames=n,
+                           seed=4)
+    res = analyze(frames, PivParams(window_px=32, overlap_px=16, engine="openpiv", averaging="ensemble"))
+    assert res.n_pairs == n - 1
+    assert np.nanmedian(res.u) == pytest.approx(3.0 / 0.5, abs=0.1)  # 3 px per 0.5 s frame to the right
+    assert np.nanmedian(res.v) == pytest.approx(-1.0 / 0.5, abs=0.1)

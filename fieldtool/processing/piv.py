@@ -244,7 +244,7 @@ def analyze(
     # ensemble: per-pair vectors (inverse FFT + peaks of the final pass) only on every stride-th pair
     subsample = ens is not None and getattr(engine, "spectrum_only", False) and select is None
     stride = max(1, total // ENSEMBLE_PAIRS) if subsample else 1  # clip length unknown (total 0): grown below
-    per_pair = {k: [] for k in ("u", "v", "t", "dt", "snr", "p2m", "peak", "index")}
+    per_pair: dict[str, list] = {k: [] for k in ("u", "v", "t", "dt", "snr", "p2m", "peak", "index")}
     n_done = 0
     if carry is not None:  # continue an earlier call (select=): its ensemble sums and per-pair fields
         ens, per_pair, n_done = carry.ensemble, carry.per_pair, carry.n_pairs
@@ -361,9 +361,15 @@ def analyze(
         t_pairs=np.asarray(per_pair["t"]), snr=snr_med, params=params, peak2mean=p2m_med, peak=peak_med,
         replaced=replaced, ensemble_snr=ens_snr, dt_s=dts, pair_index=np.asarray(per_pair["index"], dtype=np.int64),
         n_pairs=i, zero_peak_removed=None if ens is None else ens.zero_removed,
-        first_guess=None if first_guess is None else _guess_at(fin, *first_guess, whole=False).reshape(fin.ny, fin.nx, 2),
+        first_guess=None if first_guess is None else _first_guess_field(fin, first_guess),
         carry=_Carry(ens, per_pair, i) if wanted is not None else None,
     )
+
+
+def _first_guess_field(fin: _Level, first_guess) -> np.ndarray:
+    """The first guess (xc, yc, dx, dy) at the final pass' nodes, (ny, nx, 2) px per pair (not rounded)."""
+    xc, yc, dx, dy = first_guess
+    return _guess_at(fin, xc, yc, dx, dy, whole=False).reshape(fin.ny, fin.nx, 2)
 
 
 @dataclass
@@ -407,7 +413,7 @@ class _Ensemble:
         self.engine = engine
         self.lv = lv
         self.snr_min = snr_min
-        self.spec = None
+        self.spec: np.ndarray | None = None  # summed, weighted cross-spectra of the final pass
         self.wsum = np.zeros(lv.ny * lv.nx)
         self.px = np.zeros(lv.ny * lv.nx)
         self.py = np.zeros(lv.ny * lv.nx)
@@ -415,7 +421,7 @@ class _Ensemble:
         self.wpk = np.zeros(lv.ny * lv.nx)  # sum of the weights of the pairs with peaks
         self.npk = 0
         self.remove_zero = False
-        self.zero_removed = None
+        self.zero_removed: np.ndarray | None = None
 
     def add_fn(self, dt: float, node_mask: np.ndarray):
         def add(cross, pred_x, pred_y, pk, scale=None):
@@ -449,6 +455,7 @@ class _Ensemble:
     def result(self, keep: bool = False):
         """Time-averaged field; ``keep``: leave the sums usable for more pairs (the inverse FFT works in place)."""
         lv = self.lv
+        assert self.spec is not None, "no pair was added"
         spec = self.spec.copy() if keep else self.spec  # the inverse FFT works in place
         if self.remove_zero and type(self.engine) is _Engine and len(self.engine.levels) > 1:
             corr = self.engine.ensemble_planes(spec)

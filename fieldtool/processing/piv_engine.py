@@ -443,7 +443,7 @@ class _Frame:
 
     img: np.ndarray | None
     spec_a: list  # per level: spectra of the zero-mean A windows (padded to the level's search side)
-    spec_b0: np.ndarray  # first level: spectra of the B windows (search side)
+    spec_b0: np.ndarray | None  # first level: spectra of the B windows (search side); None: not a second frame
     scale_a: list | None = None  # per level: unit-energy factors of the A windows (None: spectra normalised)
     scale_b0: np.ndarray | None = None  # first level: unit-energy factors of the B windows
 
@@ -465,7 +465,7 @@ class _Engine:
         self.cw, self.ch = (x1 - x0) + 2 * m, (y1 - y0) + 2 * m
         self.box = box
         self.mask_crop = None if mask is None else self._crop(mask.astype(np.uint8), 0) > 0
-        if mask is not None and not self.mask_crop.any():
+        if self.mask_crop is not None and not self.mask_crop.any():
             self.mask_crop = None
         self._maps: dict = {}
         self._bufs: dict = {}
@@ -518,6 +518,8 @@ class _Engine:
         lv0 = self.levels[0]
         same = lv0.s == lv0.w
         spec_a, scale_a = [], []
+        spec_b0: np.ndarray | None
+        scale_b0: np.ndarray | None
         for k, lv in enumerate(self.levels if as_a else self.levels[: int(same and self.shift0 is None)]):
             oy, ox = self._offsets(lv)
             sp, sc = _window_spectra(img, oy, ox, lv, lv.w, self.act[k])
@@ -588,8 +590,10 @@ class _Engine:
         ``peaks=False`` (needs ``ensemble``) the final level's inverse FFT and peak search are skipped: the
         ensemble gets ``peaks=None`` and (None, None, None) is returned.
         """
-        pred_x = pred_y = None
-        du = dv = None  # the previous level's field (px), the predictor of the next
+        pred_x: np.ndarray | None = None
+        pred_y: np.ndarray | None = None
+        du: np.ndarray | None = None  # the previous level's field (px), the predictor of the next
+        dv: np.ndarray | None = None
         last = len(self.levels) - 1
         for k, lv in enumerate(self.levels):
             if k == 0:
@@ -600,11 +604,13 @@ class _Engine:
             else:
                 if cancel is not None and cancel():
                     raise Cancelled("PIV cancelled by the user")
+                assert b.img is not None and du is not None and dv is not None  # a later pass: set by the one before
                 bdef = self._deform(k, b.img, du, dv)
                 pred_x, pred_y = self._node_predictor(k, du, dv)
                 spec_b, scale_b = _window_spectra(bdef, 0, 0, lv, lv.w, self.act[k])
             cross = self._buffer(("cross", k), a.spec_a[k])
             np.conjugate(a.spec_a[k], out=cross)
+            assert a.scale_a is not None and spec_b is not None and scale_b is not None  # this engine's frames have them
             cross *= spec_b
             scale = a.scale_a[k] * scale_b
             if self.p.min_texture > 0:  # texture gate (processing/surface.py): too little texture -> featureless

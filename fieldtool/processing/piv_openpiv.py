@@ -29,7 +29,12 @@ class _OpenPivEngine(_Engine):
                 "use mean or median, or piv.engine = fieldtool"
             )
 
-    def prepare(self, frame: np.ndarray) -> _Frame:
+    #: no cross-spectrum without peaks here: ``analyze`` correlates every pair (its ensemble sample needs the
+    #: CPU engine's ``correlate(peaks=False)``)
+    spectrum_only = False
+
+    def prepare(self, frame: np.ndarray, as_a: bool = True, as_b: bool = True) -> _Frame:
+        """The masked crop alone (OpenPIV correlates images); ``as_a``/``as_b`` change nothing here."""
         return _Frame(img=self._masked_crop(frame), spec_a=[], spec_b0=None)
 
     def _sub(self, img: np.ndarray, lv: _Level, size: int) -> np.ndarray:
@@ -38,7 +43,9 @@ class _OpenPivEngine(_Engine):
         m = (size - lv.w) // 2
         return img[oy - m : oy - m + lv.step * (lv.ny - 1) + size, ox - m : ox - m + lv.step * (lv.nx - 1) + size]
 
-    def correlate(self, a: _Frame, b: _Frame, cancel=None, ensemble=None):
+    def correlate(self, a: _Frame, b: _Frame, cancel=None, ensemble=None, peaks: bool = True):
+        """As the CPU engine's, through OpenPIV; the peaks are always found (``peaks`` is accepted, not used)."""
+        assert a.img is not None and b.img is not None  # prepare keeps the crop
         lv = self.levels[-1]
         n = lv.ny * lv.nx
         if len(self.levels) == 1:
