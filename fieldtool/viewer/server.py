@@ -230,6 +230,7 @@ class _Routes:
             html = html.replace("</body>", f"<script>{ZOOM_SCRIPT}</script></body>", 1)
             self._page = html.encode("utf-8")
             self._page_gz = gzip.compress(self._page)
+        assert self._page_gz is not None
         return self._page, self._page_gz
 
     def __call__(self, rest: str, request):
@@ -426,7 +427,7 @@ class _Viewer:
                 handle.value = value
             finally:
                 self._syncing = False
-        self._aspect: dict[int, float] = {}
+        self._aspect = {}
 
     def show_image(self, kind: str) -> None:
         if kind not in KINDS:
