@@ -108,7 +108,7 @@ def _os_error_message(e: OSError) -> str:
            errno.ENOTDIR: "a part of this path is a file, not a folder; give another path",
            errno.EISDIR: "this is a folder; give a file name",
            errno.EEXIST: "a file of this name is in the way; give another path",
-           errno.ENAMETOOLONG: "give a shorter path"}.get(e.errno, "check the path")
+           errno.ENAMETOOLONG: "give a shorter path"}.get(e.errno or 0, "check the path")
     return f"{name}: {what}; {fix}" if name else f"{what}; {fix}"
 
 

@@ -273,7 +273,8 @@ class _MedianAccumulator:
     """Evenly spaced sample of at most ``k`` frames: the stride doubles when the buffer is full."""
 
     def __init__(self, k: int):
-        self.k, self.stride, self.seen, self.buf = k, 1, 0, []
+        self.k, self.stride, self.seen = k, 1, 0
+        self.buf: list = []
 
     def add(self, img):
         if self.seen % self.stride == 0:

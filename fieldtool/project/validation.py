@@ -259,7 +259,7 @@ def frame_size(path: Path, key: str = "video.path") -> tuple[int, int] | str:
     """(width, height) of a clip from its header (cached on path, size and mtime), or a message."""
     try:
         st = os.stat(path)
-        ck = (str(path), st.st_size, st.st_mtime_ns)
+        ck: tuple[str, int | None, int | None] = (str(path), st.st_size, st.st_mtime_ns)
     except OSError:
         ck = (str(path), None, None)
     if ck in _probe_cache:

@@ -110,7 +110,7 @@ class ViewerHandle:
         pages moved."""
         return self._v.zoom(ndc_x, ndc_y, scale)
 
-    def set_mode(self, mode: str) -> None:
+    def set_mode(self, mode: str | None) -> None:
         """Select a pick mode (a key of ``picks.MODES``, or ``None`` / "" for view only); the image
         the mode needs is shown."""
         self._v.set_mode(mode or None)

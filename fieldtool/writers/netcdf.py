@@ -86,7 +86,7 @@ def _linear_on_triangles(XY: np.ndarray, V: np.ndarray, pts: np.ndarray) -> np.n
 
 def _flat_attrs(inputs: dict) -> dict:
     """Scalar project keys as ``project_<table>_<key>`` attributes (lists and tables go in the JSON one)."""
-    attrs = {}
+    attrs: dict[str, int | float | str] = {}
     for k, v in inputs.items():
         items = v.items() if isinstance(v, dict) else [(None, v)]
         for k2, v2 in items:

@@ -98,9 +98,9 @@ class CalibrationScreen(StepScreen):
 
     def action_run(self) -> None:
         msgs = [r.current_error() for r in self.rows if r.display]
-        msgs = [m for m in msgs if m]
-        if msgs:
-            self.show_errors(msgs)
+        errors = [m for m in msgs if m]
+        if errors:
+            self.show_errors(errors)
             return
         p = jobs.snapshot(self.project)  # the project as it is now: the job runs on this copy
         self.app.start_job("calibration", "Calibration",  # type: ignore[attr-defined]

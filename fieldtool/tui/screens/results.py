@@ -36,7 +36,7 @@ def discharge_lines(s: dict) -> list[str]:
     if isinstance(quality, dict) and quality.get("grade"):
         grade = str(quality["grade"])
         style = GRADE_STYLE.get(grade, "")
-        reasons = [r.get("message", r.get("code", "")) if isinstance(r, dict) else str(r)
+        reasons = [str(r.get("message", r.get("code", ""))) if isinstance(r, dict) else str(r)
                    for r in quality.get("reasons") or []]
         text = f"quality        [{style}]{escape(grade)}[/{style}]" if style else f"quality        {escape(grade)}"
         lines.append(text + (": " + escape("; ".join(reasons)) if reasons else " (no reason for doubt found)"))
