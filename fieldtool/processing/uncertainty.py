@@ -180,7 +180,7 @@ class _Draw:
         # per-pair subsection velocities on the run's geometry (m/s): the bootstrap over pairs moves each
         # subsection by the resampled mean minus the mean of all pairs
         self.vp = None
-        if m.u_pairs is not None and len(m.u_pairs) >= 2:
+        if m.u_pairs is not None and m.v_pairs is not None and len(m.u_pairs) >= 2:
             map0 = OrthoMapping(H0, m.method)
             vp = []
             for up, vq in zip(m.u_pairs, m.v_pairs, strict=True):

@@ -515,7 +515,7 @@ def offcentre_solution(alpha_low: float, alpha_high: float, dh_m: float, shift: 
     return float(sol.x[0]), float(sol.x[1])
 
 
-def angle_height_width(edges1_px, edges2_px, shape1: tuple[int, int], shape2: tuple[int, int], dh_m: float,
+def angle_height_width(edges1_px, edges2_px, shape1: tuple[int, int], shape2: tuple[int, int], dh_m: float | None,
                        fov_deg, *, dh_sigma_m: float = 0.05, pixel_sigma_px: float = 2.0, fov_sigma_deg: float = 0.5) -> dict:
     """Wetted width (m) from two nadir images at heights H (image 1) and H + dh (image 2), thesis 5.2.1.
 
@@ -686,7 +686,8 @@ def compute_level(cfg: WaterLevelCfg, cs: CrossSection, *, root: Path, mapping: 
                                  "(calibration.path) or give water_level.fov_deg = [x, y, diagonal] in degrees")
         shape1 = _read_shape(_resolve(root, cfg.image1), "water_level.image1")
         shape2 = _read_shape(_resolve(root, cfg.image2), "water_level.image2")
-        e1, e2 = cfg.edges1_px, cfg.edges2_px
+        e1: list | np.ndarray = cfg.edges1_px  # picked points, undistorted into an array when the lens is known
+        e2: list | np.ndarray = cfg.edges2_px
         if image_undistort is not None and np.shape(e1) == (2, 2) and np.shape(e2) == (2, 2):
             e1, e2 = image_undistort(np.asarray(e1, float), shape1), image_undistort(np.asarray(e2, float), shape2)
         r = angle_height_width(e1, e2, shape1, shape2, cfg.dh_m, fov,

@@ -311,7 +311,7 @@ def _check(value: Any, tp: Any, where: str) -> Any:
             except ParameterError as e:
                 errors.append(e)
         raise errors[0]
-    if dataclasses.is_dataclass(tp):
+    if isinstance(tp, type) and dataclasses.is_dataclass(tp):
         if not isinstance(value, dict):
             raise ParameterError(f"{where}: expected a table, got {value!r}")
         return _from_dict(tp, value, where)

@@ -365,7 +365,7 @@ def run_batch(items: list[BatchItem], *, history: History | None = None, workers
     runnable: list[BatchItem] = []
 
     def emit(r: ItemResult) -> None:
-        if r.ok and history is not None and not r.skipped:
+        if r.ok and history is not None and not r.skipped and r.summary is not None:
             try:
                 r.history_id = history.record_summary(r.summary, site=r.item.site,
                                                       output_dir=Path(r.item.out_dir).resolve(),
@@ -378,7 +378,8 @@ def run_batch(items: list[BatchItem], *, history: History | None = None, workers
                 m = history.get(r.history_id) if history is not None and r.history_id else None
                 write_report(r.item.out_dir, measurement=m)
             except FieldToolError as e:
-                r.summary.setdefault("warnings", []).append(f"report not written: {e}")
+                if r.summary is not None:
+                    r.summary.setdefault("warnings", []).append(f"report not written: {e}")
         by_item[id(r.item)] = r
         if on_done is not None:
             on_done(r, len(by_item), total)

@@ -335,6 +335,7 @@ class History:
         marks = ", ".join("?" for _ in values)
         with self.write() as c:
             cur = c.execute(f"INSERT INTO measurements ({cols}) VALUES ({marks})", list(values.values()))
+            assert cur.lastrowid is not None  # an INSERT sets it
             return int(cur.lastrowid)
 
     def record_summary(self, summary: dict, *, site: str = "", output_dir: str | Path = "", video_path: str = "",
@@ -369,6 +370,7 @@ class History:
             cur = c.execute("INSERT INTO reference_discharges (measurement_id, discharge_m3s, method, uncertainty_m3s, "
                             "note, added_at) VALUES (?, ?, ?, ?, ?, ?)",
                             (measurement_id, float(discharge_m3s), method, uncertainty_m3s, note, utc_now()))
+            assert cur.lastrowid is not None  # an INSERT sets it
             return int(cur.lastrowid)
 
     def delete_measurement(self, measurement_id: int) -> None:

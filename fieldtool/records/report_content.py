@@ -77,6 +77,8 @@ def header_rows(summary: dict, measurement=None) -> list[tuple[str, str]]:
 def interval(summary: dict) -> tuple[float, float] | None:
     """The 95 % interval of Q (m³/s) from the quality helper's keys, or None when the run has none."""
     ci = summary.get("discharge_ci95_m3s") or (summary.get("uncertainty") or {}).get("ci95_m3s")
+    if ci is None:
+        return None
     try:
         lo, hi = (float(v) for v in ci)
     except (TypeError, ValueError):
@@ -88,7 +90,7 @@ def discharge_text(summary: dict) -> dict:
     """Q, its interval, the relative half-width, the grade and the reasons, as text."""
     q = summary.get("discharge_m3s")
     ci = interval(summary)
-    out = {"q": _num(q, ".3f", "m³/s"), "ci": None, "rel": None, "grade": None, "reasons": []}
+    out: dict = {"q": _num(q, ".3f", "m³/s"), "ci": None, "rel": None, "grade": None, "reasons": []}
     if ci is not None:
         out["ci"] = f"{ci[0]:.3f} – {ci[1]:.3f} m³/s"
         if q:
@@ -114,7 +116,7 @@ def budget_rows(summary: dict) -> list[tuple[str, str, str]]:
     rows = []
     for b in (summary.get("uncertainty") or {}).get("budget") or []:
         if isinstance(b, dict):
-            rows.append((names.get(b.get("source"), str(b.get("source"))), _num(100 * float(b.get("share") or 0), ".0f", "%"),
+            rows.append((names.get(str(b.get("source")), str(b.get("source"))), _num(100 * float(b.get("share") or 0), ".0f", "%"),
                          _num(b.get("u_m3s"), ".3f", "m³/s")))
     return rows
 

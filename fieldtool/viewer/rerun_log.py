@@ -301,7 +301,7 @@ class RerunObserver(Observer):
         U, V = np.asarray(res.world_u)[ok], np.asarray(res.world_v)[ok]
         flip = np.array([1.0, -1.0])  # screen y = -world Y: north up
         if self._first is not None:
-            self._map_background(res)
+            self._map_background(res, self._first)
         self.map_arrow_s = _map_arrow_s(XY, U, V)
         self.rec.log("map/mean_field", rr.Arrows2D(origins=XY * flip, vectors=np.c_[U, V] * flip * self.map_arrow_s,
                                                    colors=[0, 200, 255], radii=0.02))
@@ -332,10 +332,10 @@ class RerunObserver(Observer):
         for w in res.warnings:
             self.rec.log("log", rr.TextLog(w, level="WARN"))
 
-    def _map_background(self, res) -> None:
+    def _map_background(self, res, first: np.ndarray) -> None:
         """The rectified first frame under the map, pixel (c, r) centre at (Xmin + c r, -(Ymax - r r))."""
         rr = self.rr
-        img, A = res.mapping.rectified_image(_to_uint8(self._first), max_side_px=800)
+        img, A = res.mapping.rectified_image(_to_uint8(first), max_side_px=800)
         r = 1.0 / A[0, 0]
         x0, y1 = -A[0, 2] * r, A[1, 2] * r
         im = img if img.ndim == 2 else cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
@@ -395,6 +395,8 @@ def _interval(res) -> tuple[float, float] | None:
     try:
         s = res.summary()
         ci = s.get("discharge_ci95_m3s") or (s.get("uncertainty") or {}).get("ci95_m3s")
+        if ci is None:
+            return None
         lo, hi = (float(v) for v in ci)
     except (TypeError, ValueError, AttributeError):
         return None
