@@ -28,6 +28,7 @@ import selectors
 import shutil
 import tempfile
 import time
+from collections.abc import Callable
 from functools import partial
 from pathlib import Path
 from types import SimpleNamespace
@@ -195,6 +196,7 @@ def _serve(jobs_fd: int, answers_fd: int, folder: Path) -> None:
             path.unlink()
             out = folder / f"job{k}"
             out.mkdir()
+            draws: tuple[tuple[str, Callable[[], object]], ...]  # (file name, draw it) per figure of the job
             if kind == "inputs":
                 project, inputs, level, mapping = args
                 result = SimpleNamespace(mapping=mapping, level=level)

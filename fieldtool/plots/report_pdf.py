@@ -5,6 +5,7 @@ parameters), then the figures two per page and the subsection table. ``records.r
 from __future__ import annotations
 
 import io
+from collections.abc import Sequence
 
 import matplotlib.image as mpimg
 from matplotlib.backends.backend_pdf import PdfPages
@@ -74,7 +75,7 @@ def _pdf_text_page(fig, summary, measurement, references) -> None:
 
 
 def render_pdf(summary: dict, images: dict[str, bytes], subsections: list[dict], *,
-               measurement: Measurement | None = None, references: list[Reference] = ()) -> bytes:
+               measurement: Measurement | None = None, references: Sequence[Reference] = ()) -> bytes:
     """The report as PDF bytes (A4): a summary page, then the figures two per page (matplotlib)."""
     buf = io.BytesIO()
     with PdfPages(buf) as pdf:
@@ -86,7 +87,7 @@ def render_pdf(summary: dict, images: dict[str, bytes], subsections: list[dict],
         for first in range(0, len(order), 2):
             fig = Figure(figsize=(8.27, 11.69))
             for slot, key in enumerate(order[first:first + 2]):
-                ax = fig.add_axes([0.06, 0.53 - 0.47 * slot, 0.88, 0.42])
+                ax = fig.add_axes((0.06, 0.53 - 0.47 * slot, 0.88, 0.42))
                 ax.imshow(mpimg.imread(io.BytesIO(images[key]), format="png"))
                 ax.axis("off")
                 fig.text(0.5, 0.51 - 0.47 * slot, captions.get(key, key), ha="center", fontsize=9)
@@ -94,7 +95,7 @@ def render_pdf(summary: dict, images: dict[str, bytes], subsections: list[dict],
         if subsections:
             fig = Figure(figsize=(8.27, 11.69))
             cols = [c for c in COLUMN_NAMES if c in subsections[0]]
-            ax = fig.add_axes([0.06, 0.05, 0.88, 0.85])
+            ax = fig.add_axes((0.06, 0.05, 0.88, 0.85))
             ax.axis("off")
             ax.set_title("Subsections", loc="left")
             tab = ax.table(cellText=[[r[c] for c in cols] for r in subsections],

@@ -11,6 +11,7 @@ import base64
 import csv
 import html
 import json
+from collections.abc import Sequence
 from datetime import UTC, datetime
 from pathlib import Path
 
@@ -167,7 +168,7 @@ def _sections_html(summary: dict) -> list[str]:
 
 
 def render_html(summary: dict, images: dict[str, bytes], subsections: list[dict], *,
-                measurement: Measurement | None = None, references: list[Reference] = (),
+                measurement: Measurement | None = None, references: Sequence[Reference] = (),
                 title: str | None = None) -> str:
     """The report as one HTML string with every plot embedded (no external file or network)."""
     inputs = summary.get("inputs") or {}
@@ -229,8 +230,8 @@ def render_html(summary: dict, images: dict[str, bytes], subsections: list[dict]
         cols = list(subsections[0].keys())
         out.append("<h2>Subsections</h2><table id='subsections'><tr>"
                    + "".join(f"<th>{_e(_COLUMN_NAMES.get(c, c))}</th>" for c in cols) + "</tr>")
-        for r in subsections:
-            out.append("<tr>" + "".join(f"<td>{_e(r.get(c, ''))}</td>" for c in cols) + "</tr>")
+        for row in subsections:
+            out.append("<tr>" + "".join(f"<td>{_e(row.get(c, ''))}</td>" for c in cols) + "</tr>")
         out.append("</table>")
 
     out.append("<h2>Parameters</h2><table id='inputs'><tr><th class='k'>step</th><th class='k'>parameter</th>"
@@ -248,7 +249,7 @@ def render_html(summary: dict, images: dict[str, bytes], subsections: list[dict]
 
 
 def render_pdf(summary: dict, images: dict[str, bytes], subsections: list[dict], *,
-               measurement: Measurement | None = None, references: list[Reference] = ()) -> bytes:
+               measurement: Measurement | None = None, references: Sequence[Reference] = ()) -> bytes:
     """The report as PDF bytes (A4): a summary page, then the figures two per page (plots.report_pdf)."""
     from fieldtool.plots import report_pdf  # lazy: matplotlib (0.3-0.5 s) only for --pdf
 
@@ -256,7 +257,7 @@ def render_pdf(summary: dict, images: dict[str, bytes], subsections: list[dict],
 
 
 def write_report(result_dir: Path | str, out: Path | str | None = None, *, pdf: bool = False,
-                 measurement: Measurement | None = None, references: list[Reference] = ()) -> list[Path]:
+                 measurement: Measurement | None = None, references: Sequence[Reference] = ()) -> list[Path]:
     """Write ``report.html`` (and ``report.pdf``) for a run's output folder. Returns the paths."""
     result_dir = Path(result_dir)
     summary, images, rows = load_result(result_dir)

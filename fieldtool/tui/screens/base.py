@@ -34,7 +34,7 @@ class StepScreen(Screen):
     # -- helpers ---------------------------------------------------------------------------------
     @property
     def session(self):
-        return self.app.session  # type: ignore[attr-defined]
+        return self.app.session
 
     @property
     def project(self):
@@ -186,8 +186,7 @@ class StepScreen(Screen):
     # -- checks ----------------------------------------------------------------------------------
     def errors(self) -> list[str]:
         """Everything that blocks "next": the rows' messages, then the step's own check."""
-        msgs = [row.current_error() for row in self.rows if row.display]
-        msgs = [m for m in msgs if m]
+        msgs = [m for m in (row.current_error() for row in self.rows if row.display) if m]
         if msgs:
             return msgs
         msgs = self.session.step_problems(self.STEP, core=False)
