@@ -182,9 +182,7 @@ def _serve(jobs_fd: int, answers_fd: int, folder: Path) -> None:
     # lazy, and the reason for this process: matplotlib (0.3-0.5 s to import) and OpenCV load here, not in the run
     import cv2
 
-    from fieldtool.plots import discharge as plots
-    from fieldtool.plots import report_figures
-    from fieldtool.plots import water_level as level_plots
+    from fieldtool.plots import discharge, report_figures, water_level
 
     cv2.setNumThreads(0)  # the run's threads have the cores; a figure's resize needs none of its own
 
@@ -201,15 +199,15 @@ def _serve(jobs_fd: int, answers_fd: int, folder: Path) -> None:
                 project, inputs, level, mapping = args
                 result = SimpleNamespace(mapping=mapping, level=level)
                 draws = (("gcp.png", partial(report_figures.write_gcp, out, project, result, inputs)),
-                         ("water_level.png", partial(level_plots.plot_level, out / "water_level.png",
+                         ("water_level.png", partial(water_level.plot_level, out / "water_level.png",
                                                      inputs.cross_section, level)))
             else:
                 inputs, result, cross_section = args
-                draws = (("vectors.png", partial(plots.plot_vectors, out / "vectors.png", inputs.first_color, result,
+                draws = (("vectors.png", partial(discharge.plot_vectors, out / "vectors.png", inputs.first_color, result,
                                                  inputs)),
-                         ("rectified.png", partial(plots.plot_rectified, out / "rectified.png", inputs.first_color,
+                         ("rectified.png", partial(discharge.plot_rectified, out / "rectified.png", inputs.first_color,
                                                    result, inputs)),
-                         ("section.png", partial(plots.plot_section, out / "section.png", cross_section, result)),
+                         ("section.png", partial(discharge.plot_section, out / "section.png", cross_section, result)),
                          ("profile.png", partial(report_figures.write_profile, out, result)))
             status = _draw_in_two(draws, out)
             if "profile.png" in status:
