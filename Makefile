@@ -5,7 +5,8 @@ BIN := $(VENV)/bin
 BASE := $(VENV)/.installed-base
 DEV := $(VENV)/.installed-dev
 
-.PHONY: demo test docs bench clean
+
+.PHONY: demo test lint docs bench clean
 
 $(BIN)/python:
 	$(PY) -m venv $(VENV)
@@ -23,7 +24,12 @@ $(DEV): $(BASE)
 demo: $(BASE)
 	$(BIN)/fieldtool demo --out demo_out
 
-test: $(DEV)
+lint: $(DEV)
+	$(BIN)/ruff check fieldtool tests
+	$(BIN)/ruff format --check fieldtool tests
+	$(BIN)/mypy fieldtool
+
+test: $(DEV) lint
 	$(BIN)/python -m pytest -q
 
 # The user guide (mkdocs, material theme) into site/, offline; open site/index.html.

@@ -17,7 +17,7 @@ around the section, pairs added until converged):
 
 ``--masked-speed``: instead, the engine alone (``piv.analyze``, 2 passes, 32/16, 8 pairs of 1280 x 720 synthetic
 particle frames) with 0 / 30 / 50 % of the frame masked (a bank), the final pass skipping the masked nodes or not
-(``piv._SKIP_MASKED``), alternating runs, medians; the 0 % row runs the same code twice (the noise floor).
+(``piv_engine._SKIP_MASKED``), alternating runs, medians; the 0 % row runs the same code twice (the noise floor).
 
 Prints the load average; on a shared machine the seconds are noisy, the shares less so.
 """
@@ -35,7 +35,7 @@ import numpy as np
 
 from fieldtool.run import outputs
 from fieldtool.run.pipeline import run_project
-from fieldtool.processing import piv
+from fieldtool.processing import piv, piv_engine
 from fieldtool.project.model import load_project
 from fieldtool.synthetic import presets, render_scene
 
@@ -53,7 +53,7 @@ def main() -> None:
     outputs.write_outputs = lambda *a, **k: None  # the numbers only
 
     grads: list[np.ndarray] = []
-    deform = piv._Engine._deform
+    deform = piv_engine._Engine._deform
 
     def recording(self, k, img, du, dv):
         prev, lv = self.levels[k - 1], self.levels[k]
@@ -64,7 +64,7 @@ def main() -> None:
         grads.append(g.ravel() * lv.w)  # px of predictor change across one final window
         return deform(self, k, img, du, dv)
 
-    piv._Engine._deform = recording
+    piv_engine._Engine._deform = recording
     print(f"load average {os.getloadavg()[0]:.1f}; clips of {args.duration:g} s")
     print("| scene | pairs deformed | shift ok < 0.05 px | < 0.1 px | < 0.25 px | remap (s) | fft (s) | piv (s) | run (s) |")
     print("|---|---|---|---|---|---|---|---|---|")
@@ -112,7 +112,7 @@ def masked_speed(runs: int) -> None:
         t: dict[bool, list[float]] = {False: [], True: []}
         for _ in range(runs):
             for skip in (False, True):
-                piv._SKIP_MASKED = skip
+                piv_engine._SKIP_MASKED = skip
                 t0 = time.perf_counter()
                 piv.analyze(frames, params, mask=mask if frac else None)
                 t[skip].append(time.perf_counter() - t0)
@@ -120,7 +120,7 @@ def masked_speed(runs: int) -> None:
         ratio = np.median(np.array(t[False]) / np.array(t[True]))
         print(f"| {frac:.0%} | {pairs / off:.2f} | {pairs / on:.2f} | {off / on:.2f} | {ratio:.2f} | "
               f"{os.getloadavg()[0]:.1f} |", flush=True)
-    piv._SKIP_MASKED = True
+    piv_engine._SKIP_MASKED = True
 
 
 if __name__ == "__main__":

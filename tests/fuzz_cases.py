@@ -20,9 +20,10 @@ import subprocess
 import sys
 import tomllib
 import typing
-from dataclasses import dataclass, field
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import tomli_w
 
@@ -107,7 +108,7 @@ def _bad_values(tp: Any, key: str, full: bool) -> list[tuple[str, Any, bool]]:
     """(label, value, must_refuse) for a key of type ``tp``."""
     origin = typing.get_origin(tp)
     args = [a for a in typing.get_args(tp) if a is not type(None)]
-    if origin in (typing.Union, getattr(__import__("types"), "UnionType")) and args:
+    if origin in (typing.Union, __import__("types").UnionType) and args:
         tp = args[0]
         origin = typing.get_origin(tp)
     huge_list = [1.0] * 200_001
@@ -237,7 +238,8 @@ def file_cases(full: bool = True) -> list[Case]:
         proj.unlink()
         proj.mkdir()
 
-    latin = lambda b: b.decode().replace('name = "synthetic oblique"', 'name = "Mesure à l\'écluse"').encode("latin-1")
+    def latin(b):
+        return b.decode().replace('name = "synthetic oblique"', 'name = "Mesure à l\'écluse"').encode("latin-1")
     cases = [
         Case("project-missing", setup=proj_edit(proj_missing)),
         Case("project-empty", setup=proj_edit(proj_bytes(lambda b: b""))),

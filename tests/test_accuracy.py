@@ -5,8 +5,8 @@ import json
 
 import pytest
 
-from fieldtool.run.pipeline import run_project
 from fieldtool.project.model import load_project
+from fieldtool.run.pipeline import run_project
 from fieldtool.synthetic import presets, render_scene
 
 SCENES = ["oblique", "nadir", "far_bank"]

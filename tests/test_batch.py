@@ -37,8 +37,8 @@ def test_read_levels(tmp_path):
 @pytest.fixture(scope="module")
 def three_scenes(tmp_path_factory):
     """Three short demo scenes (one per preset) and their discharges from separate run_project calls."""
-    from fieldtool.run.pipeline import run_project
     from fieldtool.project.model import load_project
+    from fieldtool.run.pipeline import run_project
     from fieldtool.synthetic import presets, render_scene
 
     root = tmp_path_factory.mktemp("three")
@@ -63,7 +63,7 @@ def test_batch_on_local_dask_cluster_matches_single_runs(three_scenes, tmp_path)
             rows = hist.query(site="synthetic")
     assert res.executor.startswith("dask tcp://")
     assert not res.failed, [r.error for r in res.failed]
-    for (_, q), r in zip(three_scenes, res.results):
+    for (_, q), r in zip(three_scenes, res.results, strict=True):
         assert r.summary["discharge_m3s"] == pytest.approx(q, rel=1e-9)
         assert (Path(r.item.out_dir) / "result.json").is_file()
     assert sorted(m.discharge_m3s for m in rows) == pytest.approx(sorted(q for _, q in three_scenes), rel=1e-9)

@@ -10,8 +10,8 @@ import time
 import cv2
 import numpy as np
 import pytest
-
 from chromium_setup import LAUNCH_ARGS, ensure_chromium
+
 from fieldtool.project.model import load_project
 from fieldtool.viewer.server import start_viewer
 

@@ -9,12 +9,12 @@ import time
 
 import numpy as np
 import pytest
-
 from chromium_setup import LAUNCH_ARGS
+from test_browser import MARKERS, _locate_markers, _marker_project, chromium  # noqa: F401 - fixture
+
 from fieldtool.project.model import load_project
 from fieldtool.viewer.mapping import pixel_to_scene
 from fieldtool.viewer.server import start_viewer
-from test_browser import MARKERS, _locate_markers, _marker_project, chromium  # noqa: F401 - fixture
 
 pytestmark = pytest.mark.browser
 
@@ -59,9 +59,9 @@ def test_checklist_advances_and_wheel_zooms_about_the_cursor(tmp_path, chromium)
                 for i, (sx, sy) in enumerate(screen):
                     n = len(picked)
                     page.mouse.click(float(sx), float(sy))
-                    assert _wait(lambda: len(picked) > n)
+                    assert _wait(lambda n=n: len(picked) > n)
                     if i < 3:
-                        assert _wait(lambda: f"next P{i + 2}" in _body(page)), _body(page)[:800]
+                        assert _wait(lambda i=i: f"next P{i + 2}" in _body(page)), _body(page)[:800]
                 assert _wait(lambda: "✓ GCPs P1-P4" in _body(page) and "➜ Section end points" in _body(page))
                 page.get_by_role("button", name="Next pick").click()
                 assert _wait(lambda: handle.mode == "section")
@@ -86,7 +86,6 @@ def test_checklist_advances_and_wheel_zooms_about_the_cursor(tmp_path, chromium)
 def _settled(page, which, timeout_s=20.0):
     """Screen centres of the markers ``which`` once two screenshots in a row agree."""
     import cv2
-
     from test_browser import _find
 
     prev, t0 = None, time.time()
@@ -150,7 +149,7 @@ def test_click_near_a_demo_target_snaps_to_its_centre(short_scene, tmp_path, chr
                             _locate_markers_settled(page, handle)
                         sx, sy = _screen_of(page, handle, (x + 2.5, y - 2.0))  # a click 3 px beside the centre
                         page.mouse.click(float(sx), float(sy))
-                        if _wait(lambda: len(picked) > n, 6):
+                        if _wait(lambda n=n: len(picked) > n, 6):
                             break
                     assert len(picked) > n, handle.status
                     assert "snapped to the target centre" in handle.status
@@ -166,8 +165,8 @@ def test_click_near_a_demo_target_snaps_to_its_centre(short_scene, tmp_path, chr
 
 def _locate_markers_settled(page, handle, probe=(640.0, 360.0), timeout_s=40.0):
     """Wait until a click where ``_screen_of`` puts pixel ``probe`` lands there (within 1.5 px: the
-    mouse sits on whole CSS pixels): the page's camera is fitted and the server knows it. Clicks are probed in view-only mode,
-    where they are reported and not saved."""
+    mouse sits on whole CSS pixels): the page's camera is fitted and the server knows it. Clicks are probed in
+    view-only mode, where they are reported and not saved."""
     import re
 
     mode = handle.mode
@@ -178,7 +177,7 @@ def _locate_markers_settled(page, handle, probe=(640.0, 360.0), timeout_s=40.0):
             if handle._v.server.get_clients():
                 before = handle.status
                 page.mouse.click(*_screen_of(page, handle, probe))
-                if _wait(lambda: handle.status != before and "clicked" in handle.status, 3):
+                if _wait(lambda before=before: handle.status != before and "clicked" in handle.status, 3):
                     m = re.search(r"clicked \(([-\d.]+), ([-\d.]+)\)", handle.status)
                     if m and np.hypot(float(m[1]) - probe[0], float(m[2]) - probe[1]) < 1.5:
                         time.sleep(1.0)  # the next click is not taken for the second half of a double click

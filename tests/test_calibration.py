@@ -133,7 +133,7 @@ def test_too_few_boards_is_a_clear_error(tmp_path):
     rng = np.random.default_rng(4)
     rays = _rays(K_TRUE, D_TRUE)
     frames = [_blank(rng) for _ in range(18)]
-    for k, (R, t) in zip((2, 9), _poses(2, seed=5)):
+    for k, (R, t) in zip((2, 9), _poses(2, seed=5), strict=True):
         frames[k] = _render(rays, R, t)
     video = _write(tmp_path / "few.mkv", frames)
     with pytest.raises(InputFileError, match="found in only 2 of the 6 parts"):

@@ -90,8 +90,8 @@ def test_init_refuses_to_overwrite(tmp_path, capsys):
 
 
 def test_section_picked_right_to_left_is_swapped(short_scene):
-    from fieldtool.run.pipeline import run_project
     from fieldtool.project.model import load_project
+    from fieldtool.run.pipeline import run_project
 
     proj = load_project(short_scene.project_path)
     ref = run_project(proj, None)

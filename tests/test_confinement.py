@@ -11,8 +11,8 @@ import pytest
 
 from fieldtool.errors import ParameterError
 from fieldtool.project.model import Project
-from fieldtool.records.report import load_result
 from fieldtool.project.validation import out_path_problem, validate
+from fieldtool.records.report import load_result
 from fieldtool.viewer.rerun_log import observer_from_args
 
 

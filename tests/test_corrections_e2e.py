@@ -2,9 +2,9 @@
 
 import pytest
 
-from fieldtool.run.pipeline import run_project
 from fieldtool.processing.calibration import calibrate_video, save_calibration
 from fieldtool.project.model import load_project
+from fieldtool.run.pipeline import run_project
 from fieldtool.synthetic import presets, render_scene
 
 

@@ -31,7 +31,7 @@ def test_parabolic_area():
 def test_partial_area_sums_to_total():
     cs = from_shape("parabolic", top_width_m=12, depth_m=1.5, left_station_m=3)
     edges = np.linspace(3, 15, 7)
-    parts = sum(cs.wetted_area(-0.3, a, b) for a, b in zip(edges[:-1], edges[1:]))
+    parts = sum(cs.wetted_area(-0.3, a, b) for a, b in zip(edges[:-1], edges[1:], strict=True))
     assert parts == pytest.approx(cs.wetted_area(-0.3))
 
 

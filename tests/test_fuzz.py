@@ -6,9 +6,8 @@ the project file's bytes unchanged, the output folder still holding one complete
 
 import shutil
 
-import pytest
-
 import fuzz_cases as F
+import pytest
 
 
 @pytest.fixture(scope="module")

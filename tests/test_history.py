@@ -10,7 +10,7 @@ import struct
 import subprocess
 import sys
 import textwrap
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
@@ -178,7 +178,7 @@ def test_corrupt_file_refused_and_untouched(tmp_path, capsys):
 def test_damaged_database_refused_and_untouched(tmp_path):
     db = tmp_path / "h.sqlite"
     with History(db) as h:
-        for k in range(30):
+        for _ in range(30):
             fill(h)
         h.conn.execute("PRAGMA wal_checkpoint(TRUNCATE)")
     for extra in ("h.sqlite-wal", "h.sqlite-shm"):
@@ -266,7 +266,7 @@ def _box(kind: bytes, body: bytes) -> bytes:
 
 
 def _mp4(created: datetime | None, version: int = 0, mdat_first: bool = True) -> bytes:
-    secs = 0 if created is None else int((created - datetime(1904, 1, 1, tzinfo=timezone.utc)).total_seconds())
+    secs = 0 if created is None else int((created - datetime(1904, 1, 1, tzinfo=UTC)).total_seconds())
     if version == 0:
         mvhd = bytes([0, 0, 0, 0]) + struct.pack(">III", secs, secs, 1000) + b"\0" * 84
     else:
@@ -278,14 +278,14 @@ def _mp4(created: datetime | None, version: int = 0, mdat_first: bool = True) ->
 
 
 def test_video_time_from_container_or_mtime(tmp_path):
-    when = datetime(2023, 6, 1, 12, 30, 5, tzinfo=timezone.utc)
+    when = datetime(2023, 6, 1, 12, 30, 5, tzinfo=UTC)
     for version, first in ((0, True), (1, False)):
         p = tmp_path / f"v{version}.mp4"
         p.write_bytes(_mp4(when, version, first))
         assert video_datetime(p) == ("2023-06-01T12:30:05Z", "container")
     p = tmp_path / "zero.mov"
     p.write_bytes(_mp4(None))
-    stamp = datetime(2021, 3, 4, 5, 6, 7, tzinfo=timezone.utc).timestamp()
+    stamp = datetime(2021, 3, 4, 5, 6, 7, tzinfo=UTC).timestamp()
     os.utime(p, (stamp, stamp))
     assert video_datetime(p) == ("2021-03-04T05:06:07Z", "file mtime")
     seq = tmp_path / "frames"
@@ -356,7 +356,7 @@ def test_record_run_of_a_project(tmp_path):
     from fieldtool.project.model import project_from_dict
     from fieldtool.records.history import record_run
 
-    (tmp_path / "v.mp4").write_bytes(_mp4(datetime(2022, 1, 2, 3, 4, 5, tzinfo=timezone.utc)))
+    (tmp_path / "v.mp4").write_bytes(_mp4(datetime(2022, 1, 2, 3, 4, 5, tzinfo=UTC)))
     proj = project_from_dict({"name": "p", "video": {"path": "v.mp4"}}, tmp_path)
     db = tmp_path / "h.sqlite"
     mid = record_run(proj, fake_summary(1.5, 2.0), tmp_path / "out", site="S", db=db)

@@ -11,10 +11,10 @@ import tempfile
 from pathlib import Path
 
 import pytest
+from test_history import fill
 
 from fieldtool.errors import InputFileError
 from fieldtool.records.history import SCHEMA_VERSION, History
-from test_history import fill
 
 REPO = Path(__file__).resolve().parents[1]
 

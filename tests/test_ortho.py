@@ -109,10 +109,10 @@ def test_scale_without_gcps_spans_the_outer_water_edges():
     would make every velocity 8.3 % too low."""
     from types import SimpleNamespace
 
-    from fieldtool.run.geometry import build_mapping
-    from fieldtool.run.inputs import Inputs
     from fieldtool.processing.cross_section import CrossSection
     from fieldtool.project.model import Project
+    from fieldtool.run.geometry import build_mapping
+    from fieldtool.run.inputs import Inputs
 
     cs = CrossSection(np.array([0, 2, 7.5, 8, 8.5, 9, 9.5, 14, 16.0]), np.array([11, 10, 8, 10, 10.4, 10, 8, 10, 11.0]))
     assert cs.wetted_width(10.0) == pytest.approx(11.0)

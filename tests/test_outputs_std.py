@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from datetime import UTC
 
 import cv2
 import numpy as np
@@ -13,10 +14,10 @@ import xarray as xr
 
 from fieldtool.cli.main import main
 from fieldtool.errors import ParameterError
+from fieldtool.project.model import load_project, project_to_dict
 from fieldtool.run.geometry import build_mapping
 from fieldtool.run.inputs import load_inputs
 from fieldtool.run.pipeline import run_project
-from fieldtool.project.model import load_project, project_to_dict
 
 OFFSET = np.array([190000.0, 330000.0])  # GCPs surveyed in Amersfoort / RD New (EPSG:28992)
 
@@ -151,12 +152,12 @@ def _ebml(eid: int, payload: bytes, unknown_size: bool = False) -> bytes:
 
 def test_recording_time_from_a_matroska_header(tmp_path):
     """MKV/WebM: Segment/Info/DateUTC (ns since 2001-01-01 UTC), read from the headers only."""
-    from datetime import datetime, timezone
+    from datetime import datetime
 
     from fieldtool.records.video_meta import mkv_creation_time, recording_time
 
-    when = datetime(2024, 5, 1, 8, 30, 15, tzinfo=timezone.utc)
-    ns = int((when - datetime(2001, 1, 1, tzinfo=timezone.utc)).total_seconds()) * 10**9
+    when = datetime(2024, 5, 1, 8, 30, 15, tzinfo=UTC)
+    ns = int((when - datetime(2001, 1, 1, tzinfo=UTC)).total_seconds()) * 10**9
     header = _ebml(0x1A45DFA3, _ebml(0x4282, b"matroska"))
     info = _ebml(0x1549A966, _ebml(0x2AD7B1, (1000000).to_bytes(3, "big")) + _ebml(0x4461, ns.to_bytes(8, "big")))
     seek = _ebml(0x114D9B74, b"\x00" * 20)  # an element before Info, skipped

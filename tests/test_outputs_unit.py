@@ -39,8 +39,8 @@ def test_staging_abort_leaves_the_old_run(tmp_path):
 
 def test_killed_run_leaves_previous_run_intact(short_scene, tmp_path, monkeypatch):
     """A failure while the outputs are written (here: the plots) leaves the previous run as it was."""
-    from fieldtool.run import pipeline
     from fieldtool.project.model import load_project
+    from fieldtool.run import pipeline
 
     out = tmp_path / "out"
     proj = load_project(short_scene.project_path)

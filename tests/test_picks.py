@@ -129,7 +129,7 @@ def test_every_mode_fills_an_existing_project_field(tmp_path):
     p = Project()
     values = {}
     ax = PlotAxes(0, 100, 0, 100, 0.0, 10.0, 0.0, 1.0)
-    for key, spec in MODES.items():
+    for spec in MODES.values():
         st = spec.make(axes=ax)
         get_field(p, spec.field)  # exists
         for x, y in [(10, 20), (30, 40), (50, 25), (10.5, 20.5)]:

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from fieldtool.errors import Cancelled, FieldToolError, InputFileError, ParameterError
-from fieldtool.processing import piv
+from fieldtool.processing import piv, piv_engine
 from fieldtool.processing import piv_validate as pv
 from fieldtool.processing.piv import PivParams, analyze, grid
 
@@ -269,7 +269,7 @@ def test_progress_total_and_on_pair():
     analyze(frames, PivParams(), progress=lambda d, t: calls.append((d, t)),
             on_pair=lambda i, t, x, y, u, v, ok: pairs.append((i, t, u.shape, ok.dtype)))
     assert calls == [(1, 2), (2, 2)]
-    assert [p[0] for p in pairs] == [0, 1] and pairs[0][1] == pytest.approx(0.25) and pairs[0][3] == bool
+    assert [p[0] for p in pairs] == [0, 1] and pairs[0][1] == pytest.approx(0.25) and pairs[0][3] == np.dtype(bool)
 
 
 @pytest.mark.parametrize(
@@ -423,13 +423,13 @@ def test_second_peak_is_highest_other_local_maximum(s, margin, blur):
         planes = ndi.gaussian_filter(planes, (0, blur, 2.5 * blur), mode="wrap")
     planes = (planes - planes.mean(axis=(1, 2), keepdims=True)).astype(np.float32)
     before = planes.copy()
-    pk = piv._find_peaks(planes, margin)
+    pk = piv_engine._find_peaks(planes, margin)
     assert np.array_equal(planes, before)  # planes left as they were
     span = 2 * margin + 1 if margin else s
     for i in np.flatnonzero(pk.ok):
         ky, kx = np.unravel_index(np.argmax(planes[i, :span, :span]), (span, span))
         p2 = _second_peak_reference(planes[i], ky, kx, span)
-        assert pk.snr[i] == pytest.approx(min(planes[i, ky, kx] / p2, piv._SNR_CAP) if p2 > 0 else piv._SNR_CAP,
+        assert pk.snr[i] == pytest.approx(min(planes[i, ky, kx] / p2, piv_engine._SNR_CAP) if p2 > 0 else piv_engine._SNR_CAP,
                                           rel=1e-6)
 
 
@@ -461,3 +461,15 @@ def test_gpu_code_path_ensemble_sample_with_numpy_standing_in_for_cupy(numpy_as_
     assert list(g.pair_index) == list(c.pair_index) == [0, 3]
     assert np.array_equal(g.valid, c.valid)
     assert np.nanmax(np.abs(g.u - c.u)) * 0.5 < 0.01 and np.nanmax(np.abs(g.v - c.v)) * 0.5 < 0.01
+
+
+def test_openpiv_ensemble_over_many_pairs():
+    """The OpenPIV engine has no spectrum-only correlation: a clip long enough for the ensemble's sample of pairs
+    (more than 2 * ENSEMBLE_PAIRS) is correlated pair by pair (it raised a TypeError)."""
+    n = 2 * piv.ENSEMBLE_PAIRS + 5
+    frames = particle_clip(lambda x, y: (np.full_like(x, 3.0), np.full_like(y, -1.0)), h=96, w=128, n_frames=n,
+                           seed=4)
+    res = analyze(frames, PivParams(window_px=32, overlap_px=16, engine="openpiv", averaging="ensemble"))
+    assert res.n_pairs == n - 1
+    assert np.nanmedian(res.u) == pytest.approx(3.0 / 0.5, abs=0.1)  # 3 px per 0.5 s frame to the right
+    assert np.nanmedian(res.v) == pytest.approx(-1.0 / 0.5, abs=0.1)

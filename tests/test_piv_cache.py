@@ -4,9 +4,9 @@ import os
 
 import pytest
 
+from fieldtool.project.model import load_project
 from fieldtool.run.observer import Observer
 from fieldtool.run.pipeline import run_project
-from fieldtool.project.model import load_project
 
 
 def test_reused_when_only_the_section_changes(scene):

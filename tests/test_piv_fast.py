@@ -119,8 +119,8 @@ def test_prefetch_passes_items_errors_and_stops_on_close():
 
 
 def test_pipeline_band_and_convergence_keys_and_cache(scene):
-    from fieldtool.run.pipeline import run_project
     from fieldtool.project.model import load_project
+    from fieldtool.run.pipeline import run_project
 
     proj = load_project(scene / "project.toml")
     proj.roi.rect_px = []
@@ -172,7 +172,7 @@ def test_frame_source_decodes_past_unwanted_frames_with_the_same_times(short_sce
     full = list(src)
     part = list(src.iter_wanted(lambda k: k % 3 == 0))
     assert [f.t_s for f in part] == [f.t_s for f in full] and [f.index for f in part] == [f.index for f in full]
-    for k, (a, b) in enumerate(zip(full, part)):
+    for k, (a, b) in enumerate(zip(full, part, strict=True)):
         assert (b.image is not None) == (k % 3 == 0)
         if b.image is not None:
             assert np.array_equal(a.image, b.image)
@@ -186,7 +186,7 @@ def test_standardize_builds_only_wanted_frames_with_the_same_values():
     full = list(surface.standardize(frames, (5, 5, 40, 30), margin=4, half=5))
     part = list(surface.standardize(frames, (5, 5, 40, 30), margin=4, half=5, want=lambda k: k % 4 == 1))
     assert [t for t, _ in part] == [t for t, _ in full]
-    for k, ((_, a), (_, b)) in enumerate(zip(full, part)):
+    for k, ((_, a), (_, b)) in enumerate(zip(full, part, strict=True)):
         assert (b is None) == (k % 4 != 1)
         if b is not None:
             assert np.array_equal(a, b)
@@ -201,7 +201,7 @@ def test_float16_window_storage_agrees_with_float32(monkeypatch):
     f32 = list(surface.standardize(frames, (5, 5, 40, 30), margin=4, half=5))
     monkeypatch.setattr(surface, "WINDOW_BYTES_F32", 0)
     f16 = list(surface.standardize(frames, (5, 5, 40, 30), margin=4, half=5))
-    for (ta, a), (tb, b) in zip(f32, f16):
+    for (ta, a), (tb, b) in zip(f32, f16, strict=True):
         assert ta == tb and a.dtype == b.dtype == np.float32
         assert np.abs(a - b).max() < 0.01 * max(np.abs(a).max(), 1.0)
         assert not np.array_equal(a, b) or not a.any()
@@ -242,6 +242,6 @@ def test_the_streaming_standardisation_is_the_formula(dtype):
     got = list(surface.standardize(frames, roi, margin=3, half=5, shrink=surface.SHRINK))
     want = _standardized_by_the_formula(frames, (5, 3, 43, 33), 5, surface.SHRINK)
     assert len(got) == len(want)
-    for (t, a), (t0, _), b in zip(got, frames, want):
+    for (t, a), (t0, _), b in zip(got, frames, want, strict=True):
         assert t == t0 and a.dtype == np.float32
         assert np.abs(a - b).max() < 1e-4 * max(np.abs(b).max(), 1.0)

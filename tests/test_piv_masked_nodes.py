@@ -3,23 +3,22 @@
 import numpy as np
 import pytest
 
-from fieldtool.processing import piv
+from fieldtool.processing import piv, piv_engine
 from fieldtool.processing.piv import PivParams, analyze
-
 from tests.test_piv import particle_clip, rankine
 
 
 def _count_windows(monkeypatch, side: bool = False) -> list:
-    """A list that gets, for each call of ``piv._window_spectra``, the number of windows it transformed (or, with
+    """A list that gets, for each call of ``piv_engine._window_spectra``, the number of windows it transformed (or, with
     ``side``, their side in px)."""
     got = []
-    spectra = piv._window_spectra
+    spectra = piv_engine._window_spectra
 
     def counting(img, oy, ox, lv, size, idx=None):
         got.append(size if side else lv.ny * lv.nx if idx is None else len(idx))
         return spectra(img, oy, ox, lv, size, idx)
 
-    monkeypatch.setattr(piv, "_window_spectra", counting)
+    monkeypatch.setattr(piv_engine, "_window_spectra", counting)
     return got
 
 
@@ -41,7 +40,7 @@ def test_skipping_masked_nodes_gives_the_same_vectors(monkeypatch, averaging, sa
     skip = analyze(frames, params, mask=mask)
     n_skip = sum(calls)
     calls.clear()
-    monkeypatch.setattr(piv, "_SKIP_MASKED", False)
+    monkeypatch.setattr(piv_engine, "_SKIP_MASKED", False)
     full = analyze(frames, params, mask=mask)
     n_full = sum(calls)
     inside = mask[np.rint(full.y).astype(int), np.rint(full.x).astype(int)]
@@ -78,7 +77,7 @@ def test_nodes_far_from_the_section_are_skipped_and_the_near_ones_unchanged(monk
     assert n_near < 0.8 * n_full
     fin_dist = np.array([[np.hypot(*(p - seg[0] - np.clip((p - seg[0]) @ (seg[1] - seg[0]) / np.sum((seg[1] - seg[0]) ** 2),
                                                              0, 1) * (seg[1] - seg[0])))
-                          for p in np.stack([x, y], -1)] for x, y in zip(full.x, full.y)])
+                          for p in np.stack([x, y], -1)] for x, y in zip(full.x, full.y, strict=True)])
     inside = fin_dist <= reach[1]
     assert 0.2 < inside.mean() < 0.8
     assert np.isnan(near.valid_fraction[~inside]).all() and not near.valid[~inside].any()
@@ -100,8 +99,8 @@ def test_search_area_spectra_only_for_the_frames_that_need_them(monkeypatch):
     res = analyze(iter(frames), params, select=sel)
     # first level: 32 px windows (A, padded to 48), 48 px search areas (B); final level: 16 px windows
     assert sizes.count(48) == 3 and sizes.count(32) == 3 and sizes.count(16) == 3 + 3  # A frames, deformed Bs
-    full_prepare = piv._Engine.prepare
-    monkeypatch.setattr(piv._Engine, "prepare", lambda self, frame, as_a=True, as_b=True: full_prepare(self, frame))
+    full_prepare = piv_engine._Engine.prepare
+    monkeypatch.setattr(piv_engine._Engine, "prepare", lambda self, frame, as_a=True, as_b=True: full_prepare(self, frame))
     sizes.clear()
     every = analyze(iter(frames), params, select=sel)
     assert sizes.count(48) == 6 and sizes.count(32) == 6

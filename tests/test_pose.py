@@ -113,7 +113,7 @@ def test_geul_pose():
     # each GCP, mapped on the plane at its own height, lands within a few decimetres of its survey
     lens = LensModel(cfg["camera_matrix"], cfg["dist_coeffs"], (cfg["width"], cfg["height"]))
     und = lens.undistort_points(src)
-    for p, q in zip(und, dst):
+    for p, q in zip(und, dst, strict=True):
         xy = cv2.perspectiveTransform(p.reshape(1, 1, 2), plane_homography(pose, q[2])).ravel()
         assert np.linalg.norm(xy - q[:2]) < 0.3
 
@@ -122,8 +122,8 @@ def test_geul_pose():
 def test_lens_fitted_from_eight_gcps(tmp_path):
     """No checkerboard: focal length and distortion fitted from 8 GCPs (X, Y, Z) on a strong barrel lens
     whose uncorrected discharge is ~+4.7 % off (benchmarks/lens_from_gcps.py); fx within 2 %, Q within 3 %."""
-    from fieldtool.run.pipeline import run_project
     from fieldtool.project.model import load_project
+    from fieldtool.run.pipeline import run_project
     from fieldtool.synthetic import presets, render_scene
 
     truth = render_scene(presets.get("oblique", lens_gcps=True, duration_s=2.0, checkerboard_frames=2), tmp_path / "s")

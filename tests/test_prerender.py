@@ -6,10 +6,10 @@ import time
 
 import pytest
 
-from fieldtool.run.pipeline import run_project
 from fieldtool.plots import discharge as plots
 from fieldtool.plots import prerender, report_figures
 from fieldtool.project.model import load_project
+from fieldtool.run.pipeline import run_project
 
 PNG = b"\x89PNG\r\n\x1a\n"
 FIGURES = ("vectors.png", "rectified.png", "section.png", "profile.png", "gcp.png", "water_level.png")

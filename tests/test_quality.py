@@ -186,8 +186,8 @@ def test_a_new_check_is_one_function():
 
 
 def test_quality_keys_match_the_thresholds():
-    from fieldtool.run.assess import thresholds
     from fieldtool.project.model import Project
+    from fieldtool.run.assess import thresholds
 
     assert thresholds(Project()) == ql.Thresholds()
 

@@ -4,12 +4,12 @@ import json
 
 import numpy as np
 import pytest
-
 from conftest import SHARED_DATA
+
 from fieldtool.errors import GeometryError
-from fieldtool.run.pipeline import run_project
 from fieldtool.processing.frames import FrameSource
 from fieldtool.project.model import project_from_dict
+from fieldtool.run.pipeline import run_project
 
 REAL = SHARED_DATA / "real"
 pytestmark = pytest.mark.skipif(not (REAL / "geul_dk_control.mp4").is_file(),

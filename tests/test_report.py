@@ -93,8 +93,8 @@ def test_missing_result(tmp_path, capsys):
 
 @pytest.mark.slow
 def test_report_of_a_real_run(short_scene, tmp_path):
-    from fieldtool.run.pipeline import run_project
     from fieldtool.project.model import load_project
+    from fieldtool.run.pipeline import run_project
 
     r = run_project(load_project(short_scene.project_path), tmp_path / "out")
     (html_path,) = write_report(tmp_path / "out")

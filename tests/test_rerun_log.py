@@ -9,8 +9,8 @@ import pytest
 from rerun.chunk import RrdReader
 
 from fieldtool.errors import ParameterError
-from fieldtool.run.pipeline import run_project
 from fieldtool.project.model import load_project
+from fieldtool.run.pipeline import run_project
 from fieldtool.viewer.rerun_log import RerunObserver, _map_arrow_s, observer_from_args
 
 EXPECTED = {"/frames/input", "/frames/filtered", "/frames/input/pair_vectors", "/frames/input/mean_field",
@@ -139,7 +139,7 @@ def test_rerun_path_is_confined_to_the_output_folder(short_scene, tmp_path, caps
     import tomli_w
 
     from fieldtool.cli.main import main
-    from fieldtool.project.model import project_to_dict, save_project
+    from fieldtool.project.model import project_to_dict
 
     project = load_project(short_scene.project_path)
     project.rerun.mode, project.rerun.path = "save", bad

@@ -13,8 +13,8 @@ from urllib.parse import urlparse
 
 import numpy as np
 import pytest
-
 from chromium_setup import LAUNCH_ARGS, ensure_chromium
+
 from fieldtool.viewer.rerun_log import RerunObserver
 
 pytestmark = pytest.mark.browser

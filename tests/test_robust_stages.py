@@ -147,7 +147,7 @@ def test_first_look_plans_and_replays_every_frame():
     frames = _stream(30, 1.0, rng)
     plan, replay = planning.first_look(iter(frames), replace_params(passes=2))
     again = list(replay)
-    assert len(again) == 30 and all(a[0] == b[0] for a, b in zip(again, frames))
+    assert len(again) == 30 and all(a[0] == b[0] for a, b in zip(again, frames, strict=True))
     assert plan.fast_px_per_frame == pytest.approx(1.0, abs=0.15)
     assert plan.frame_gap == planning.MAX_GAP and plan.chosen == "auto"  # 1 px per frame: 2.5 px takes 3 frames
     assert json.dumps(plan.as_dict())
@@ -163,8 +163,8 @@ def test_reject_upstream():
 
 
 def test_run_reports_robust_facts(short_scene, tmp_path):
-    from fieldtool.run.pipeline import run_project
     from fieldtool.project.model import load_project
+    from fieldtool.run.pipeline import run_project
 
     proj = load_project(short_scene.project_path)
     res = run_project(proj, tmp_path / "out")

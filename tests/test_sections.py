@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from fieldtool.errors import ParameterError
-from fieldtool.run.pipeline import run_project
 from fieldtool.project.model import load_project
+from fieldtool.run.pipeline import run_project
 
 
 def _section_px(truth, x_m: float) -> list[list[float]]:

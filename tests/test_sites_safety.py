@@ -3,11 +3,11 @@
 from __future__ import annotations
 
 import pytest
+from test_sites import make_project
 
 from fieldtool.cli.main import main
 from fieldtool.errors import ParameterError
 from fieldtool.records.sites import BrokenSite, check_name, list_sites
-from test_sites import make_project
 
 
 @pytest.mark.parametrize("name", ["nl\n", "tab\there", "bell\x07", "a\rb", "del\x7f", "\nlead"])

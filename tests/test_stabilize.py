@@ -60,7 +60,7 @@ def test_recovers_the_camera_motion(model):
     frames, scenes, maps = _scene()
     st = Stabilizer(frames[0], regions_px=BANKS, model=model)
     corners = np.array([[[0.0, 0.0]], [[W - 1.0, 0.0]], [[0.0, H - 1.0]], [[W - 1.0, H - 1.0]]])
-    for f, s, M in zip(frames, scenes, maps):
+    for f, s, M in zip(frames, scenes, maps, strict=True):
         out = st.register(f)
         assert out.shape == f.shape and out.dtype == f.dtype
         # registration composed with the true motion is the identity, to a tenth of a pixel
@@ -89,7 +89,7 @@ def test_water_polygon_instead_of_regions():
     frames, _, maps = _scene(seed=3)
     st = Stabilizer(frames[0], water_polygon_px=WATER_POLYGON)
     corners = np.array([[[0.0, 0.0]], [[W - 1.0, H - 1.0]]])
-    for f, M in zip(frames, maps):
+    for f, M in zip(frames, maps, strict=True):
         st.register(f)
         assert np.abs(cv2.perspectiveTransform(corners, st.transform @ M) - corners).max() < 0.1
 
@@ -107,7 +107,7 @@ def test_drifting_camera_is_not_taken_for_water():
     frames, _, maps = _scene(n=40, flow=5, shake=2.0, drift=(1.5, 0.8))
     st = Stabilizer(frames[0], regions_px=BANKS)
     corners = np.array([[[0.0, 0.0]], [[W - 1.0, H - 1.0]]])
-    for f, M in zip(frames, maps):
+    for f, M in zip(frames, maps, strict=True):
         st.register(f)
         assert np.abs(cv2.perspectiveTransform(corners, st.transform @ M) - corners).max() < 0.5
     assert st.report()["max_shift_px"] > 2 * st.max_drift_px  # the check ran, and let it pass

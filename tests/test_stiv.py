@@ -20,7 +20,7 @@ def synthetic_sti(p: float, T: int = 120, S: int = 240, density: float = 0.2, di
     amp = rng.uniform(40, 120, len(x0))
     img = np.zeros((T, S))
     sig = diameter / 2.355
-    for xi, ai in zip(x0, amp):
+    for xi, ai in zip(x0, amp, strict=True):
         img += ai * np.exp(-0.5 * ((s - (xi + p * t)) / sig) ** 2)
     return img + rng.normal(0, noise, img.shape)
 
@@ -166,8 +166,8 @@ def nadir_scene(tmp_path_factory):
 
 
 def test_run_reports_stiv_beside_piv(nadir_scene, tmp_path):
-    from fieldtool.run.pipeline import run_project
     from fieldtool.project.model import load_project
+    from fieldtool.run.pipeline import run_project
 
     q_true = nadir_scene.discharge_m3s
     res = run_project(load_project(nadir_scene.project_path), tmp_path / "out")
@@ -183,8 +183,8 @@ def test_run_reports_stiv_beside_piv(nadir_scene, tmp_path):
 
 
 def test_velocity_source_and_switch_off(nadir_scene):
-    from fieldtool.run.pipeline import run_project
     from fieldtool.project.model import load_project
+    from fieldtool.run.pipeline import run_project
 
     proj = load_project(nadir_scene.project_path)
     proj.section.velocity_source = "stiv"
@@ -219,8 +219,8 @@ def test_disagreement_and_its_reason():
 def test_swapped_section_points_keep_stiv_downstream(nadir_scene):
     """P1/P2 picked right-to-left: the pipeline swaps them after the PIV; the STIV lines built on the
     unswapped section are re-read in the new order and sign."""
-    from fieldtool.run.pipeline import run_project
     from fieldtool.project.model import load_project
+    from fieldtool.run.pipeline import run_project
 
     proj = load_project(nadir_scene.project_path)
     ref = run_project(proj, None).stiv

@@ -18,8 +18,8 @@ from pathlib import Path
 
 import pytest
 
-from fieldtool.run.pipeline import run_project
 from fieldtool.project.model import load_project, save_project
+from fieldtool.run.pipeline import run_project
 from fieldtool.tui.app import FieldToolApp
 from fieldtool.tui.screens.piv import PivScreen
 from fieldtool.tui.screens.results import ResultsScreen

@@ -8,6 +8,7 @@ import asyncio
 import re
 
 import pytest
+from test_tui_snapshots import SIZE, fake_result, make_project
 from textual.widgets import DataTable, Input
 from textual.widgets._toast import Toast
 
@@ -20,8 +21,6 @@ from fieldtool.tui.steps import STEP_IDS
 from fieldtool.tui.widgets.chrome import HelpLine, StatusLine
 from fieldtool.tui.widgets.field_row import FieldRow
 from fieldtool.tui.widgets.plots import GrayImage
-
-from test_tui_snapshots import SIZE, fake_result, make_project
 
 
 def screen_lines(app) -> list[str]:

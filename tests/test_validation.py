@@ -6,8 +6,8 @@ import os
 
 import pytest
 
-from fieldtool.project import validation as V
 from fieldtool.errors import ParameterError
+from fieldtool.project import validation as V
 from fieldtool.project.model import load_project
 
 

@@ -6,12 +6,12 @@ import json
 import cv2
 import numpy as np
 import pytest
+from test_viewer_server import _tiny_project
 
 from fieldtool.project.model import load_project
 from fieldtool.viewer.picks import MODES, PointsPick, checklist, next_mode
 from fieldtool.viewer.server import start_viewer
 from fieldtool.viewer.snap import snap_to_target
-from test_viewer_server import _tiny_project
 
 PICKS = """
 [ortho]

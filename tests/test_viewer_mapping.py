@@ -52,7 +52,7 @@ def test_pixel_to_scene_and_back_from_random_viewpoints():
     plane = _plane((10, 20, 30), (1, 2, 3))
     px = rng.uniform([-0.5, -0.5], [639.5, 479.5], size=(50, 2))
     pts = pixel_to_scene(px, plane)
-    for p, expect in zip(pts, px):
+    for p, expect in zip(pts, px, strict=True):
         origin = _local_to_scene(plane, rng.uniform([-5, -5, -20], [5, 5, -2]))
         np.testing.assert_allclose(ray_to_pixel(origin, p - origin, plane), expect, atol=1e-8)
 

@@ -8,15 +8,14 @@ import urllib.request
 import numpy as np
 import pytest
 import viser
+from test_viewer_server import _tiny_project
 from websockets.exceptions import InvalidStatus
 from websockets.sync.client import connect
 
 from fieldtool.errors import ParameterError
 from fieldtool.project.model import load_project
-from fieldtool.viewer import ssh_hint
-from fieldtool.viewer.guard import AccessGuard
+from fieldtool.viewer.guard import AccessGuard, ssh_hint
 from fieldtool.viewer.server import start_viewer
-from test_viewer_server import _tiny_project
 
 PROTOCOL = [f"viser-v{viser.__version__}"]
 

@@ -5,13 +5,13 @@ import numpy as np
 import pytest
 
 from fieldtool.errors import GeometryError
-from fieldtool.run.geometry import level_and_mapping
-from fieldtool.run.inputs import load_inputs
 from fieldtool.processing.cross_section import CrossSection
 from fieldtool.processing.ortho import from_scale
 from fieldtool.processing.water_level import waterline_level
 from fieldtool.processing.waterline import extend_line, find_edges, settle_on_bank
 from fieldtool.project.model import load_project
+from fieldtool.run.geometry import level_and_mapping
+from fieldtool.run.inputs import load_inputs
 
 
 def _profile(rng, n=400, left=80.3, right=310.7, gaps=((150, 158), (240, 247))):

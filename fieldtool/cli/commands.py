@@ -4,10 +4,6 @@
 from __future__ import annotations
 
 import argparse
-import math
-from pathlib import Path
-
-from fieldtool.errors import InputFileError, ParameterError
 
 
 def _corners(text: str) -> tuple[int, int]:
@@ -18,83 +14,20 @@ def _corners(text: str) -> tuple[int, int]:
     return a, b
 
 
+def _measure():
+    """cli.measure, lazy: imported when calibrate or preview runs, so that the core (numpy, OpenCV, the pipeline;
+    about 0.5 s) stays out of the parser that every `fieldtool ...` builds."""
+    from fieldtool.cli import measure
+
+    return measure
+
+
 def cmd_calibrate(args: argparse.Namespace) -> int:
-    from fieldtool.processing.calibration import calibrate_video, save_calibration
-
-    from fieldtool.cli.console import end_progress_line, progress_line
-    from fieldtool.project.validation import path_problem
-
-    def progress(done: int, total: int) -> None:
-        progress_line(f"frames searched: {done}/{total}")
-
-    if not (math.isfinite(args.square_mm) and 0 < args.square_mm <= 10000):
-        raise ParameterError(f"--square-mm: {args.square_mm:g} is not a square size; give the side of one square "
-                             "in mm (e.g. 25)")
-    if not 1 <= args.frames <= 1000:
-        raise ParameterError(f"--frames: {args.frames} is out of range; give 1 to 1000 (e.g. 20)")
-    msg = path_problem(Path(args.video), "video", kind="video")
-    if msg:
-        raise InputFileError(msg)
-    _check_out_file(args.out, "--out")
-    model = calibrate_video(args.video, corners=args.corners, square_mm=args.square_mm, n_frames=args.frames,
-                            progress=progress)
-    end_progress_line()
-    save_calibration(model, args.out)
-    fx, fy = model.camera_matrix[0, 0], model.camera_matrix[1, 1]
-    fov = model.fov_deg()
-    print(f"reprojection error {model.rms_px:.3f} px")
-    print(f"fx, fy             {fx:.1f}, {fy:.1f} px; centre {model.camera_matrix[0, 2]:.1f}, {model.camera_matrix[1, 2]:.1f} px")
-    print(f"distortion         {', '.join(f'{c:.4f}' for c in model.dist_coeffs.ravel())}")
-    print(f"FOV x / y / diag   {fov[0]:.2f} / {fov[1]:.2f} / {fov[2]:.2f} deg")
-    print(f"saved              {args.out}")
-    if args.project:
-        from fieldtool.project.model import apply_changes
-
-        apply_changes(args.project, {"calibration.path": str(Path(args.out).resolve())})  # only this key
-        print(f"project            {args.project}: calibration.path set")
-    return 0
+    return _measure().calibrate(args)
 
 
 def cmd_preview(args: argparse.Namespace) -> int:
-    import cv2
-
-    from fieldtool.run.frames import working_frames
-    from fieldtool.run.inputs import load_inputs
-    from fieldtool.processing.filters import preview
-    from fieldtool.project.model import atomic_write_bytes, load_project
-
-    from fieldtool.project.validation import check
-
-    project = load_project(args.project)
-    _check_out_file(args.out, "--out")
-    check(project)
-    inputs = load_inputs(project)
-    if project.filters and any(f.get("name") == "background" for f in project.filters):
-        _, frame = next(iter(working_frames(project, inputs)))  # background needs the whole clip
-        out = cv2.normalize(frame, None, 0, 255, cv2.NORM_MINMAX).astype("uint8")
-    else:
-        first = next(iter(inputs.source)).image
-        if inputs.lens is not None:
-            first = inputs.lens.undistort(first)
-        from fieldtool.run.geometry import roi_and_mask
-
-        out = preview(project.filters, first, roi=roi_and_mask(project, inputs)[0])
-    ok, buf = cv2.imencode(".png", out)
-    if not ok:
-        raise ParameterError("filters: the preview could not be encoded as PNG")
-    atomic_write_bytes(Path(args.out), buf.tobytes())
-    print(f"wrote {args.out}")
-    return 0
-
-
-def _check_out_file(out: str | Path, what: str) -> None:
-    """Refuse an output file name that is a folder, or whose folder is a file or is missing."""
-    p = Path(out)
-    if p.is_dir():
-        raise InputFileError(f"{what} {p}: is a folder; give a file name (e.g. {p / 'out.png'})")
-    parent = p.parent if str(p.parent) else Path(".")
-    if parent.exists() and not parent.is_dir():
-        raise InputFileError(f"{what} {p}: {parent} is a file, not a folder")
+    return _measure().preview_frame(args)
 
 
 def register(sub) -> None:

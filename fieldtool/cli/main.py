@@ -7,17 +7,18 @@ Other modules add subcommands with ``register(subparsers)``; they are listed in 
 from __future__ import annotations
 
 import argparse
+import errno
 import importlib
-import json
 import os
 import sys
-import threading
-import time
+import warnings
 from pathlib import Path
 
 from fieldtool import __version__
-from fieldtool.cli.console import end_progress_line, progress_line
-from fieldtool.errors import Cancelled, FieldToolError, InputFileError
+from fieldtool.cli.console import end_progress_line
+from fieldtool.errors import Cancelled, FieldToolError, FieldToolWarning
+from fieldtool.plots import prerender
+from fieldtool.project.template import write_template
 
 EXTENSIONS = (
     "fieldtool.tui.commands",
@@ -28,106 +29,28 @@ EXTENSIONS = (
 
 
 BUG_REPORT = "please report it with the command line and the output of the same command with --debug"
-def _print_progress(stage: str, done: int, total: int) -> None:
-    if total:
-        progress_line(f"{stage}: {done}/{total}")
+def _measure():
+    """cli.measure, lazy: the one import of the core by the command line. The pipeline (numpy, OpenCV, SciPy,
+    about 0.5 s) loads only for a command that measures, and `fieldtool run` forks its figure process first."""
+    from fieldtool.cli import measure
+
+    return measure
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    from fieldtool.plots import prerender
-
     prerender.start()  # the figure process imports matplotlib on the idle core while this one imports the rest
-    from fieldtool.run.pipeline import run_project
-    from fieldtool.project.model import load_project
-
-    from fieldtool.project.validation import check
-
-    project = load_project(args.project)
-    out = Path(args.out) if args.out else Path(args.project).resolve().parent / "out"
-    if out.exists() and not out.is_dir():
-        raise InputFileError(f"--out {out}: is a file, not a folder; give a folder for the results")
-    check(project)  # every key, before any step (run_project checks again: other callers rely on it)
-    observer = None
-    if args.rerun or project.rerun.mode != "off":
-        from fieldtool.viewer.rerun_log import observer_from_args
-
-        observer = observer_from_args(project, args, out)
-    t0 = time.perf_counter()
-    try:
-        result = run_project(project, out, progress=None if args.quiet else _print_progress, observer=observer)
-    finally:
-        if observer is not None:
-            observer.close()
-    end_progress_line()
-    s = result.summary()
-    ci = s.get("discharge_ci95_m3s")
-    if ci and None not in ci:
-        print(f"discharge     {s['discharge_m3s']:.4f} m3/s  (95 % interval {ci[0]:.4f} - {ci[1]:.4f}, Monte Carlo)")
-    else:
-        print(f"discharge     {s['discharge_m3s']:.4f} m3/s")
-    if s.get("discharge_p05_m3s") is not None:
-        print(f"single pairs  {s['discharge_p05_m3s']:.4f} - {s['discharge_p95_m3s']:.4f} m3/s  (5-95 % of the "
-              f"{s['n_pairs_with_vectors']} sampled pairs' own discharges; not an interval of Q)")
-    print(f"water level   {s['water_level_m']:.3f} m  ({s['water_level_method']}, +/- {s['water_level_uncertainty_m']:.3f} m)")
-    print(f"wetted area   {s['wetted_area_m2']:.3f} m2   width {s['wetted_width_m']:.3f} m")
-    print(f"mean velocity {s['mean_velocity_ms']:.4f} m/s  (alpha {s['alpha']:.2f})")
-    for w in s["warnings"]:
-        print(f"warning: {w}")
-    if result.piv_reused:
-        print("PIV field     reused from the output folder (same clip, corrections and PIV parameters)")
-    print(f"results in    {out}  ({time.perf_counter() - t0:.1f} s)")
-    if args.record:
-        from fieldtool.records.history import record_run
-
-        mid = record_run(project, s, out, site=args.site or project.site, db=args.db)
-        print(f"recorded      history id {mid}")
-    grade = (s.get("quality") or {}).get("grade")
-    if grade:
-        print(f"quality       {grade}")
-        for r in s["quality"]["reasons"]:
-            print(f"  {r['severity']}: {r['message']}")
-    if observer is not None and observer.mode == "serve":
-        print("rerun: still serving the run (listening on all interfaces); press Ctrl-C to stop", file=sys.stderr)
-        threading.Event().wait()  # Ctrl-C ends it: main() catches KeyboardInterrupt
-    if grade == "unusable":
-        print("fieldtool: the measurement is unusable (reasons above); every result file was written", file=sys.stderr)
-        return 3
-    return 0
-
-
-def cmd_init(args: argparse.Namespace) -> int:
-    from fieldtool.project.template import write_template
-
-    path = write_template(Path(args.dir), force=args.force)
-    print(f"wrote {path}; edit it, then: fieldtool run {path}")
-    return 0
+    return _measure().run(args)
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    from fieldtool.run.pipeline import run_project
-    from fieldtool.project.model import load_project
-    from fieldtool.synthetic import presets, render_scene
+    from fieldtool.cli import demo  # lazy: the synthetic renderer (SciPy integrate/optimize, 1-1.5 s) only here
 
-    out = Path(args.out)
-    t0 = time.perf_counter()
-    spec = presets.get(args.scene)
-    scene_dir = out / "scene"
-    print(f"rendering the synthetic '{args.scene}' scene into {scene_dir} ...", flush=True)
-    truth = render_scene(spec, scene_dir)
-    t1 = time.perf_counter()
-    project = load_project(scene_dir / "project.toml")
-    print(f"running the pipeline on {scene_dir / 'project.toml'} ...", flush=True)
-    result = run_project(project, out / "results")
-    t2 = time.perf_counter()
-    q, q_true = result.discharge.discharge_m3s, truth.discharge_m3s
-    err = 100.0 * (q - q_true) / q_true
-    report = {"scene": args.scene, "discharge_m3s": q, "true_discharge_m3s": q_true, "error_percent": err,
-              "render_s": round(t1 - t0, 2), "pipeline_s": round(t2 - t1, 2)}
-    (out / "demo.json").write_text(json.dumps(report, indent=2))
-    print(f"computed discharge {q:.4f} m3/s")
-    print(f"true discharge     {q_true:.4f} m3/s  (integrated from the generator's velocity profile)")
-    print(f"error              {err:+.2f} %")
-    print(f"times              render {t1 - t0:.1f} s, pipeline {t2 - t1:.1f} s; results in {out / 'results'}")
+    return demo.demo(args)
+
+
+def cmd_init(args: argparse.Namespace) -> int:
+    path = write_template(Path(args.dir), force=args.force)
+    print(f"wrote {path}; edit it, then: fieldtool run {path}")
     return 0
 
 
@@ -156,7 +79,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("demo", help="render a synthetic river with a known discharge and measure it")
     p.add_argument("--out", default="demo_out", help="output folder (default demo_out)")
-    p.add_argument("--scene", default="oblique", help="scene preset: oblique, nadir, far_bank, or a hard one (glints_section, ripples, sparse_patchy, fast_1080p, grazing, compressed, skewed, dropped_frames)")
+    p.add_argument("--scene", default="oblique", help="scene preset: oblique, nadir, far_bank, or a hard one (glints_section, ripples, "
+                        "sparse_patchy, fast_1080p, grazing, compressed, skewed, dropped_frames)")
     p.set_defaults(func=cmd_demo)
 
     for name in EXTENSIONS:
@@ -172,8 +96,6 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _os_error_message(e: OSError) -> str:
     """One line for an OSError: the path, what happened, what to do."""
-    import errno
-
     name = e.filename if e.filename is not None else ""
     if e.filename2 is not None:
         name = f"{name} -> {e.filename2}"
@@ -186,13 +108,11 @@ def _os_error_message(e: OSError) -> str:
            errno.ENOTDIR: "a part of this path is a file, not a folder; give another path",
            errno.EISDIR: "this is a folder; give a file name",
            errno.EEXIST: "a file of this name is in the way; give another path",
-           errno.ENAMETOOLONG: "give a shorter path"}.get(e.errno, "check the path")
+           errno.ENAMETOOLONG: "give a shorter path"}.get(e.errno or 0, "check the path")
     return f"{name}: {what}; {fix}" if name else f"{what}; {fix}"
 
 
 def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
-    from fieldtool.errors import FieldToolWarning
-
     if issubclass(category, FieldToolWarning):
         end_progress_line()
         print(f"fieldtool: warning: {message}", file=sys.stderr)
@@ -204,12 +124,9 @@ def main(argv: list[str] | None = None) -> int:
     """Run one command. Exit codes: 0 done (a measurement graded good or doubtful), 2 bad input or a
     file/folder problem (one line naming it), 3 a measurement judged unusable, 1 an internal error
     (one line and a bug-report hint; the traceback only with --debug), 130 interrupted."""
-    import warnings
-
     argv = list(sys.argv[1:] if argv is None else argv)
     debug = "--debug" in argv or bool(os.environ.get("FIELDTOOL_DEBUG"))
     argv = [a for a in argv if a != "--debug"]
-    from fieldtool.errors import FieldToolWarning
 
     with warnings.catch_warnings():
         warnings.simplefilter("always", FieldToolWarning)

@@ -28,6 +28,8 @@ import selectors
 import shutil
 import tempfile
 import time
+from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -37,7 +39,7 @@ TIMEOUT_S = 30.0
 INPUT_FILES = ("gcp.png", "water_level.png")
 RESULT_FILES = ("vectors.png", "rectified.png", "section.png", "profile.png", "section_profile.csv")
 
-_waiting: "_Process | None" = None  # forked by start(), not yet taken by a Prerender
+_waiting: _Process | None = None  # forked by start(), not yet taken by a Prerender
 
 
 def can_fork() -> bool:
@@ -52,7 +54,7 @@ def start() -> None:
         _waiting = _Process.fork()
 
 
-def _take() -> "_Process | None":
+def _take() -> _Process | None:
     global _waiting
     start()
     proc, _waiting = _waiting, None
@@ -70,7 +72,7 @@ class _Process:
         self.n_jobs = 0
 
     @classmethod
-    def fork(cls) -> "_Process | None":
+    def fork(cls) -> _Process | None:
         if not can_fork():
             return None
         folder = tempfile.mkdtemp(prefix="fieldtool-fig-")
@@ -177,12 +179,12 @@ class _Process:
 
 def _serve(jobs_fd: int, answers_fd: int, folder: Path) -> None:
     """The figure process: import the plotting modules, then draw each job as it comes."""
+    # lazy, and the reason for this process: matplotlib (0.3-0.5 s to import) and OpenCV load here, not in the run
     import cv2
 
+    from fieldtool.plots import discharge, report_figures, water_level
+
     cv2.setNumThreads(0)  # the run's threads have the cores; a figure's resize needs none of its own
-    from fieldtool.plots import discharge as plots
-    from fieldtool.plots import report_figures
-    from fieldtool.plots.water_level import plot_level
 
     with os.fdopen(jobs_fd, "rb") as jobs:
         for line in jobs:
@@ -192,19 +194,21 @@ def _serve(jobs_fd: int, answers_fd: int, folder: Path) -> None:
             path.unlink()
             out = folder / f"job{k}"
             out.mkdir()
+            draws: tuple[tuple[str, Callable[[], object]], ...]  # (file name, draw it) per figure of the job
             if kind == "inputs":
                 project, inputs, level, mapping = args
                 result = SimpleNamespace(mapping=mapping, level=level)
-                draws = (("gcp.png", lambda: report_figures.write_gcp(out, project, result, inputs)),
-                         ("water_level.png", lambda: plot_level(out / "water_level.png", inputs.cross_section, level)))
+                draws = (("gcp.png", partial(report_figures.write_gcp, out, project, result, inputs)),
+                         ("water_level.png", partial(water_level.plot_level, out / "water_level.png",
+                                                     inputs.cross_section, level)))
             else:
                 inputs, result, cross_section = args
-                draws = (("vectors.png", lambda: plots.plot_vectors(out / "vectors.png", inputs.first_color, result,
-                                                                    inputs)),
-                         ("rectified.png", lambda: plots.plot_rectified(out / "rectified.png", inputs.first_color,
-                                                                        result, inputs)),
-                         ("section.png", lambda: plots.plot_section(out / "section.png", cross_section, result)),
-                         ("profile.png", lambda: report_figures.write_profile(out, result)))
+                draws = (("vectors.png", partial(discharge.plot_vectors, out / "vectors.png", inputs.first_color, result,
+                                                 inputs)),
+                         ("rectified.png", partial(discharge.plot_rectified, out / "rectified.png", inputs.first_color,
+                                                   result, inputs)),
+                         ("section.png", partial(discharge.plot_section, out / "section.png", cross_section, result)),
+                         ("profile.png", partial(report_figures.write_profile, out, result)))
             status = _draw_in_two(draws, out)
             if "profile.png" in status:
                 status["section_profile.csv"] = status["profile.png"]

@@ -12,33 +12,15 @@ from pathlib import Path
 
 import numpy as np
 
+from fieldtool.plots.discharge import _figure, _save, _show, _working_rgb
 from fieldtool.processing import discharge as dq
 from fieldtool.processing.ortho import NAMES, PAIRS
 from fieldtool.project.model import atomic_write_bytes
-from fieldtool.plots.discharge import _figure, _save, _show, _working_rgb
-
-
-def profile_band(result) -> dict[str, np.ndarray]:
-    """Per-subsection velocity (m/s) of the mean field and the 2.5 / 97.5 % of the per-pair fields."""
-    d, p, g = result.discharge, result.piv, result.section
-    per_pair = []
-    for k in range(len(p.u_pairs)):
-        U, V = result.mapping.rectify_velocity(p.x, p.y, p.u_pairs[k], p.v_pairs[k])
-        per_pair.append(dq.subsection_velocity(g, p.x, p.y, U, V))
-    vp = np.array(per_pair) if per_pair else np.full((0, len(d.area_m2)), np.nan)
-    with np.errstate(all="ignore"):
-        n = np.sum(np.isfinite(vp), axis=0)
-        lo = np.where(n >= 3, np.nanpercentile(np.where(np.isfinite(vp), vp, np.nan), 2.5, axis=0)
-                      if len(vp) else np.nan, np.nan)
-        hi = np.where(n >= 3, np.nanpercentile(np.where(np.isfinite(vp), vp, np.nan), 97.5, axis=0)
-                      if len(vp) else np.nan, np.nan)
-    return {"station_m": 0.5 * (d.station_from + d.station_to), "velocity_ms": np.asarray(d.surface_velocity_ms),
-            "filled": np.asarray(d.velocity_filled, bool), "p025_ms": lo, "p975_ms": hi, "n_pairs": n}
 
 
 def write_profile(out: Path, result) -> tuple[str, str]:
     """``section_profile.csv`` and ``profile.png``; returns their names."""
-    b = profile_band(result)
+    b = dq.profile_band(result.discharge, result.piv, result.section, result.mapping)
     rows = ["station_m,surface_velocity_ms,velocity_filled,pairs_p025_ms,pairs_p975_ms,n_pairs"]
     for i in range(len(b["station_m"])):
         f = [f"{b['station_m'][i]:.4f}", f"{b['velocity_ms'][i]:.5f}", str(int(b["filled"][i])),
@@ -76,7 +58,7 @@ def gcp_table(project, result, to_working=None) -> list[dict]:
     o = project.ortho
     rows = []
     if m.method == "distances" and m.gcp_world is not None and len(o.distances_m) == 6:
-        for (i, j), name, L in zip(PAIRS, NAMES, o.distances_m):
+        for (i, j), name, L in zip(PAIRS, NAMES, o.distances_m, strict=True):
             fit = float(np.hypot(*(m.gcp_world[j] - m.gcp_world[i])))
             rows.append({"name": name, "measured_m": float(L), "fitted_m": fit, "residual_m": fit - float(L)})
     elif m.method in ("world", "pose") and len(o.gcp_world_m):
@@ -86,7 +68,7 @@ def gcp_table(project, result, to_working=None) -> list[dict]:
             px = np.asarray(o.gcp_px, float)
             got = m.image_to_world(px if to_working is None else to_working(px))
             res = np.hypot(*(got - world).T)
-        for k, (w, r) in enumerate(zip(world, res)):
+        for k, (w, r) in enumerate(zip(world, res, strict=True)):
             rows.append({"name": f"P{k + 1} ({w[0]:.3f}, {w[1]:.3f})", "measured_m": None, "fitted_m": None,
                          "residual_m": float(r)})
     return rows
@@ -105,7 +87,7 @@ def write_gcp(out: Path, project, result, inputs) -> str | None:
     _show(ax, rgb, (-0.5, w - 0.5, h - 0.5, -0.5))
     rows = gcp_table(project, result, inputs.to_working)
     if o.method == "distances" and len(px) == 4:
-        for (i, j), row in zip(PAIRS, rows):
+        for (i, j), row in zip(PAIRS, rows, strict=False):  # no rows when the distances are not 6
             ax.plot(px[[i, j], 0], px[[i, j], 1], "-", color="yellow", lw=1.2, alpha=0.9)
             mid = px[[i, j]].mean(axis=0)
             ax.annotate(f"{row['name'].split('=')[0]} {row['measured_m']:.3f} m\nres {1000 * row['residual_m']:+.1f} mm",

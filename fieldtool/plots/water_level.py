@@ -7,9 +7,9 @@ from pathlib import Path
 
 import numpy as np
 
+from fieldtool.plots.discharge import _figure, _save
 from fieldtool.processing.cross_section import CrossSection
 from fieldtool.processing.water_level import LevelResult
-from fieldtool.plots.discharge import _figure, _save
 
 
 def _section_axes(ax, cs: CrossSection, result: LevelResult) -> None:

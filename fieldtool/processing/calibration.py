@@ -17,9 +17,9 @@ from __future__ import annotations
 import json
 import math
 import tomllib
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
 
 import cv2
 import numpy as np
@@ -307,8 +307,8 @@ def calibrate_video(
     # (more than 3x the median error and over 1 px) and fit again, as long as enough views remain
     bad = (per_view > 3.0 * np.median(per_view)) & (per_view > 1.0)
     if bad.any() and (~bad).sum() >= MIN_VIEWS:
-        img_pts = [p for p, b in zip(img_pts, bad) if not b]
-        used = [i for i, b in zip(used, bad) if not b]
+        img_pts = [p for p, b in zip(img_pts, bad, strict=True) if not b]
+        used = [i for i, b in zip(used, bad, strict=True) if not b]
         rms, K, dist, per_view = _calibrate(board, img_pts, size)
     return LensModel(K, dist.ravel()[:5], size, float(rms), used)
 

@@ -148,11 +148,12 @@ def from_shape(
     for name, v in (("top_width_m", top_width_m), ("depth_m", depth_m)):
         if v is None or not v > 0:
             raise ParameterError(f"cross_section.{name}: a positive number is needed for a {shape} section")
+    assert top_width_m is not None and depth_m is not None  # checked just above
     s0, zt, W, D = left_station_m, bank_elevation_m, float(top_width_m), float(depth_m)
     if shape == "rectangular":
         eps = 1e-6 * W
-        st = [s0, s0 + eps, s0 + W - eps, s0 + W]
-        el = [zt, zt - D, zt - D, zt]
+        st: list[float] | np.ndarray = [s0, s0 + eps, s0 + W - eps, s0 + W]
+        el: list[float] | np.ndarray = [zt, zt - D, zt - D, zt]
     elif shape == "trapezoidal":
         if bottom_width_m is None or not (0 < bottom_width_m < W):
             raise ParameterError("cross_section.bottom_width_m: give a bed width between 0 and top_width_m")
@@ -229,7 +230,7 @@ def _header_columns(cells: list[str], source: str, lineno: int) -> tuple[int, in
     for n in names:
         m = re.search(r"[\(\[]\s*([a-z]+)\s*[\)\]]|[_ ]([a-z]+)$", n)
         u = (m.group(1) or m.group(2)) if m else None
-        if u is not None and u not in _UNITS and m.group(1):
+        if u is not None and m is not None and u not in _UNITS and m.group(1):
             raise InputFileError(f"{source}, line {lineno}: unit {u!r} in the header is not one of m, cm, mm, ft")
         unit.append(_UNITS.get(u, 1.0) if u else 1.0)
     words = [re.split(r"[\s_\(\[]+", n)[0] for n in names]
@@ -245,7 +246,7 @@ def parse_rows(rows: list[tuple[int, list[str]]], source: str, comma_decimal: bo
     """Cross-section from rows of cells ``(line_number, [cell, ...])``: header lines optional (they may
     name the columns and their units, e.g. ``Station (m); Elevation (cm)``); one "station, elevation"
     pair per data row. Raises InputFileError naming the line of the first row it cannot read."""
-    pts = []
+    pts: list[tuple[float, float]] = []
     si, zi, fs, fz = 0, 1, 1.0, 1.0
     width = None
     for lineno, cells in rows:
@@ -257,7 +258,7 @@ def parse_rows(rows: list[tuple[int, list[str]]], source: str, comma_decimal: bo
             if not pts and not any(v is not None for v in vals):  # a header line
                 si, zi, fs, fz = _header_columns(cells, source, lineno)
                 continue
-            bad = next(c for c, v in zip(cells, vals) if v is None)
+            bad = next(c for c, v in zip(cells, vals, strict=True) if v is None)
             hint = " (use a decimal point, or ';' between fields when the decimals are commas)" if "," in bad else ""
             raise InputFileError(f"{source}, line {lineno}: {bad!r} is not a number; expected 'station, elevation' "
                                  f"in metres{hint}")
@@ -269,7 +270,9 @@ def parse_rows(rows: list[tuple[int, list[str]]], source: str, comma_decimal: bo
         elif len(vals) != width:
             raise InputFileError(f"{source}, line {lineno}: {len(vals)} fields where the rows above have {width}; "
                                  "check the separators (a decimal comma in a comma-separated file splits a number)")
-        pts.append((vals[si] * fs, vals[zi] * fz))
+        station, elevation = vals[si], vals[zi]
+        assert station is not None and elevation is not None  # a row with a cell that is not a number was refused
+        pts.append((station * fs, elevation * fz))
     if len(pts) < 2:
         raise InputFileError(f"{source}: {len(pts)} data row(s); a cross-section needs at least 2 rows of "
                              "'station, elevation' in metres")
@@ -292,7 +295,7 @@ def parse_xy_text(text: str, source: str = "cross-section") -> CrossSection:
 
 def _spreadsheet_rows(path: Path) -> list[tuple[int, list[str]]]:
     """Cells of the first sheet of an .xlsx/.ods workbook as text rows (row numbers from 1)."""
-    import pandas as pd
+    import pandas as pd  # lazy: pandas (0.2-0.4 s) only for an .xlsx/.ods cross-section
 
     engine = "odf" if path.suffix.lower() == ".ods" else "openpyxl"
     try:
@@ -336,5 +339,5 @@ def load_cross_section(path: Path | str) -> CrossSection:
 
 def to_csv_text(cs: CrossSection) -> str:
     """CSV text of a cross-section, with a header, that :func:`parse_xy_text` reads back."""
-    lines = ["station_m,elevation_m"] + [f"{s:.4f},{z:.4f}" for s, z in zip(cs.station, cs.elevation)]
+    lines = ["station_m,elevation_m"] + [f"{s:.4f},{z:.4f}" for s, z in zip(cs.station, cs.elevation, strict=True)]
     return "\n".join(lines) + "\n"

@@ -236,7 +236,7 @@ def subsection_areas(geom: SectionGeometry, cs: CrossSection, level: float) -> t
     """Wetted area (m²) and mean depth (m) of each subsection (trapezoidal rule on the cross-section)."""
     cs.check_level(level)
     edges = geom.station_edges
-    area = np.array([cs.wetted_area(level, a, b) for a, b in zip(edges[:-1], edges[1:])])
+    area = np.array([cs.wetted_area(level, a, b) for a, b in zip(edges[:-1], edges[1:], strict=True)])
     widths = np.diff(edges)
     return area, np.where(widths > 0, area / np.where(widths > 0, widths, 1), 0.0)
 
@@ -335,5 +335,27 @@ def check_section(geom: SectionGeometry, cs: CrossSection, level: float, min_len
     if bad:
         txt = "; ".join(f"{n} at station {s:.2f} m, water edge at {e:.2f} m" for n, s, e in bad)
         raise GeometryError(
-            f"section: {txt} (tolerance {tol:.2f} m, section.edge_tolerance_m){' — the section crosses a bank' if over else ''}; "
+            f"section: {txt} (tolerance {tol:.2f} m, section.edge_tolerance_m)"
+            f"{' — the section crosses a bank' if over else ''}; "
             "check section.points_px and section.station_offset_m")
+
+
+def profile_band(d, piv, section, mapping) -> dict[str, np.ndarray]:
+    """Per-subsection surface velocity (m/s) of the mean field, with the 2.5 / 97.5 % of the per-pair fields.
+
+    ``d``: the run's discharge result; ``piv``: its PIV result (per-pair fields ``u_pairs``, ``v_pairs``, px/s);
+    ``section``: its section geometry; ``mapping``: the ortho mapping. Returns station_m (subsection centres, m),
+    velocity_ms, filled (bool), p025_ms / p975_ms (NaN where fewer than 3 pairs measured), n_pairs."""
+    per_pair = []
+    for k in range(len(piv.u_pairs)):
+        U, V = mapping.rectify_velocity(piv.x, piv.y, piv.u_pairs[k], piv.v_pairs[k])
+        per_pair.append(subsection_velocity(section, piv.x, piv.y, U, V))
+    vp = np.array(per_pair) if per_pair else np.full((0, len(d.area_m2)), np.nan)
+    with np.errstate(all="ignore"):
+        n = np.sum(np.isfinite(vp), axis=0)
+        lo = np.where(n >= 3, np.nanpercentile(np.where(np.isfinite(vp), vp, np.nan), 2.5, axis=0)
+                      if len(vp) else np.nan, np.nan)
+        hi = np.where(n >= 3, np.nanpercentile(np.where(np.isfinite(vp), vp, np.nan), 97.5, axis=0)
+                      if len(vp) else np.nan, np.nan)
+    return {"station_m": 0.5 * (d.station_from + d.station_to), "velocity_ms": np.asarray(d.surface_velocity_ms),
+            "filled": np.asarray(d.velocity_filled, bool), "p025_ms": lo, "p975_ms": hi, "n_pairs": n}

@@ -14,8 +14,9 @@ returns float32 clipped to 0-255, as the thesis sets out-of-range pixels to the 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
-from typing import Any, Callable, Iterable
+from typing import Any
 
 import cv2
 import numpy as np
@@ -272,7 +273,8 @@ class _MedianAccumulator:
     """Evenly spaced sample of at most ``k`` frames: the stride doubles when the buffer is full."""
 
     def __init__(self, k: int):
-        self.k, self.stride, self.seen, self.buf = k, 1, 0, []
+        self.k, self.stride, self.seen = k, 1, 0
+        self.buf: list = []
 
     def add(self, img):
         if self.seen % self.stride == 0:
@@ -322,7 +324,7 @@ class FilterStack:
 
     @classmethod
     def from_config(cls, items: list[dict], key: str = "filters",
-                    roi: tuple[int, int, int, int] | None = None) -> "FilterStack":
+                    roi: tuple[int, int, int, int] | None = None) -> FilterStack:
         """Stack from the project's ``filters`` list; ParameterError names e.g. ``filters[2].gamma``."""
         if items is None:
             items = []

@@ -10,9 +10,10 @@ from __future__ import annotations
 import glob
 import os
 import re
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator, NamedTuple
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -84,7 +85,8 @@ class FrameSource:
                 raise InputFileError(f"{self.path}: no images ({', '.join(sorted(IMAGE_EXTS))}) found")
             if frame_interval_s is None or not frame_interval_s > 0:
                 raise ParameterError(
-                    "video.frame_interval_s: an image sequence carries no timestamps; give the time between two images in seconds"
+                    "video.frame_interval_s: an image sequence carries no timestamps; give the time between two "
+                    "images in seconds"
                 )
             first = cv2.imread(str(self.files[0]), cv2.IMREAD_GRAYSCALE)
             if first is None:

@@ -106,7 +106,8 @@ def check_roi(rect_px, shape: tuple[int, int], key: str = "roi.rect_px") -> tupl
     ix1, iy1 = min(ix1, w), min(iy1, h)
     if ix1 - ix0 < 2 or iy1 - iy0 < 2:
         raise ParameterError(
-            f"{key}: the ROI is {ix1 - ix0} x {iy1 - iy0} px, which is empty; pick its top-left and bottom-right corners"
+            f"{key}: the ROI is {ix1 - ix0} x {iy1 - iy0} px, which is empty; pick its top-left and "
+            "bottom-right corners"
         )
     return ix0, iy0, ix1, iy1
 

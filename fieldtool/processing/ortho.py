@@ -15,8 +15,8 @@ the Jacobian of the homography at that node.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable
 
 import cv2
 import numpy as np
@@ -206,7 +206,8 @@ def gcp_world_from_distances(gcp_px: np.ndarray, distances: np.ndarray) -> tuple
     x = levenberg_marquardt(resid, np.r_[quad[0, 1], quad[1], quad[2]])
     q = np.array([[0.0, x[0]], x[1:3], x[3:5], [0.0, 0.0]])
     if np.sign(_signed_area(q)) != np.sign(img_area):
-        raise GeometryError("ortho.distances_m: the distances are inconsistent with the picked GCP order (the fit flips the quadrilateral)")
+        raise GeometryError("ortho.distances_m: the distances are inconsistent with the picked GCP order (the fit "
+                            "flips the quadrilateral)")
     r = resid(x)
     return q, float(np.sqrt(np.mean(r**2))), float(np.max(np.abs(r)))
 
@@ -487,6 +488,7 @@ def check_gcp_residuals(mapping: OrthoMapping, gcp_px, max_residual_m: float | N
             mapping.details["residual_accepted"] = True
             return
         raise GeometryError(
-            f"ortho.gcp_world_m: GCP {i + 1} misses by {miss_m[i]:.3f} m on the water plane ({miss_px[i]:.1f} px in the "
+            f"ortho.gcp_world_m: GCP {i + 1} misses by {miss_m[i]:.3f} m on the water plane "
+            f"({miss_px[i]:.1f} px in the "
             f"image; limit ortho.max_residual_m = {max_residual_m:g} m); check its pick ortho.gcp_px[{i}] and its "
             "coordinates, or set ortho.accept_residual = true to go on")

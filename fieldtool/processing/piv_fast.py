@@ -20,8 +20,10 @@ Two pieces, both pure (numpy in, numpy/dataclasses out), used by the pipeline ar
 from __future__ import annotations
 
 import math
+import queue
+import threading
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
-from typing import Callable, Iterable, Iterator
 
 import numpy as np
 
@@ -86,7 +88,11 @@ def section_band(shape: tuple[int, int], segments: Iterable, margin_px: int,
     (x0, y0, x1, y1) : int box; the ROI (or whole frame) when no segment is given.
     """
     h, w = int(shape[0]), int(shape[1])
-    lim = (0, 0, w, h) if roi is None else tuple(int(c) for c in roi)
+    if roi is None:
+        lim = (0, 0, w, h)
+    else:
+        rx0, ry0, rx1, ry1 = (int(c) for c in roi)
+        lim = (rx0, ry0, rx1, ry1)
     pts = [np.asarray(s, float).reshape(-1, 2) for s in segments]
     pts = [p for p in pts if len(p)]
     if not pts:
@@ -153,7 +159,7 @@ class Convergence:
     min_pairs: int
 
 
-def converge(make_frames: Callable[[], Iterator], n_pairs_total: int, run: Callable, pair_q: Callable,
+def converge(make_frames: Callable[..., Iterator], n_pairs_total: int, run: Callable, pair_q: Callable,
              rel_ci: float = 0.005, min_pairs: int = 30, seed: int = 0, frame_gap: int = 1):
     """Add pairs in rounds until the discharge's sampling uncertainty is small enough (module docstring).
 
@@ -179,7 +185,8 @@ def converge(make_frames: Callable[[], Iterator], n_pairs_total: int, run: Calla
     order = pair_order(n_pairs_total)
     n_total = len(order)
     done, target, rounds = 0, min(max(int(min_pairs), 2), n_total), 0
-    res, q, rel = None, [], None
+    res, rel = None, None
+    q: list[float] = []
     while True:
         sel = np.sort(order[done:target])
         need = frozenset(sel.tolist()) | frozenset((sel + int(frame_gap)).tolist()) | {0}
@@ -221,18 +228,13 @@ class prefetch:
     _END = object()
 
     def __init__(self, source: Iterable, depth: int = 4):
-        import queue
-        import threading
-
-        self._q: "queue.Queue" = queue.Queue(maxsize=max(1, int(depth)))
+        self._q: queue.Queue = queue.Queue(maxsize=max(1, int(depth)))
         self._stop = threading.Event()
         self._done = False
         self._thread = threading.Thread(target=self._fill, args=(iter(source),), daemon=True)
         self._thread.start()
 
     def _fill(self, it: Iterator) -> None:
-        import queue
-
         try:
             for item in it:
                 while not self._stop.is_set():
@@ -253,8 +255,6 @@ class prefetch:
         self._put_final((self._END, None))
 
     def _put_final(self, item) -> None:
-        import queue
-
         while not self._stop.is_set():
             try:
                 self._q.put(item, timeout=0.1)

@@ -13,11 +13,13 @@ from __future__ import annotations
 
 import numpy as np
 
+from fieldtool.processing import piv_engine
+
 _CHECKED: bool | None = None
 
 
 def _cupy():
-    try:
+    try:  # lazy: CuPy is optional (a GPU); its import (CUDA start-up, seconds) only where the GPU engine is tried
         import cupy as cp
         import cupyx.scipy.fft as cfft
 
@@ -37,15 +39,13 @@ def available() -> bool:
 
 
 def _self_check() -> bool:
-    from fieldtool.processing import piv
-
     rng = np.random.default_rng(0)
     a = rng.random((160, 192)).astype(np.float32)
     b = np.roll(a, (2, -3), (0, 1))
-    p = piv.PivParams(window_px=32, overlap_px=16)
-    levels, box = piv._levels(a.shape, p, None)
+    p = piv_engine.PivParams(window_px=32, overlap_px=16)
+    levels, box = piv_engine._levels(a.shape, p, None)
     try:
-        cpu = piv._Engine(a.shape, p, levels, box, None)
+        cpu = piv_engine._Engine(a.shape, p, levels, box, None)
         gpu = GpuEngine(a.shape, p, levels, box, None)
         dc = cpu.correlate(cpu.prepare(a), cpu.prepare(b))
         dg = gpu.correlate(gpu.prepare(a), gpu.prepare(b))
@@ -58,19 +58,11 @@ def usable_for(params) -> bool:
     return params.passes == 1 and params.engine == "fieldtool"
 
 
-def _make_base():
-    from fieldtool.processing import piv
-
-    return piv
-
-
 class GpuEngine:
     """Single-pass correlation on the GPU with the CPU engine's geometry and peak code."""
 
     def __init__(self, shape, params, levels, box, mask):
-        piv = _make_base()
-        self._cpu = piv._Engine(shape, params, levels, box, mask)
-        self._piv = piv
+        self._cpu = piv_engine._Engine(shape, params, levels, box, mask)
         self.cp, self.fft = _cupy()
         self.levels = levels
 
@@ -107,7 +99,7 @@ class GpuEngine:
         oy, ox = self._cpu._offsets(lv0)
         spec_a = [self._spectra(g, oy, ox, lv0, lv0.w)]
         spec_b0 = spec_a[0] if lv0.s == lv0.w else self._spectra(g, oy - lv0.margin, ox - lv0.margin, lv0, lv0.s)
-        return self._piv._Frame(img=None, spec_a=spec_a, spec_b0=spec_b0)
+        return piv_engine._Frame(img=None, spec_a=spec_a, spec_b0=spec_b0)
 
     spectrum_only = True  # as the CPU engine: correlate(peaks=False) feeds the ensemble without peaks
 
@@ -119,7 +111,7 @@ class GpuEngine:
             ensemble(cross, None, None, None)
             return None, None, None
         corr = self.cp.asnumpy(self.fft.irfft2(cross, s=(lv.s, lv.s), axes=(1, 2)))
-        pk = self._piv._find_peaks(corr, lv.margin)
+        pk = piv_engine._find_peaks(corr, lv.margin)
         if ensemble is not None:
             ensemble(cross, None, None, pk)
         return pk.dx.reshape(lv.ny, lv.nx), pk.dy.reshape(lv.ny, lv.nx), pk
@@ -127,4 +119,4 @@ class GpuEngine:
     def ensemble_peaks(self, acc):
         lv = self.levels[0]
         corr = self.cp.asnumpy(self.fft.irfft2(acc, s=(lv.s, lv.s), axes=(1, 2)))
-        return self._piv._find_peaks(corr, lv.margin)
+        return piv_engine._find_peaks(corr, lv.margin)

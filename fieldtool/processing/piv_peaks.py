@@ -53,16 +53,16 @@ def blank_zero(corr: np.ndarray, margin: int, pred_x: np.ndarray, pred_y: np.nda
     if nodes.size == 0:
         return sel
     if fill == "median":
-        fill = np.median(corr[nodes].reshape(nodes.size, -1), axis=1).astype(corr.dtype)
+        values = np.median(corr[nodes].reshape(nodes.size, -1), axis=1).astype(corr.dtype)
     else:
-        fill = np.zeros(nodes.size, corr.dtype)
+        values = np.zeros(nodes.size, corr.dtype)
     lim = (2 * margin + 1) if margin > 0 else s
     for dy in range(-radius, radius + 1):
         for dx in range(-radius, radius + 1):
             yy, xx = iy[nodes] + dy, ix[nodes] + dx
             if margin > 0:
                 ok = (yy >= 0) & (yy < lim) & (xx >= 0) & (xx < lim)
-                corr[nodes[ok], yy[ok], xx[ok]] = fill[ok]
+                corr[nodes[ok], yy[ok], xx[ok]] = values[ok]
             else:
-                corr[nodes, yy % s, xx % s] = fill
+                corr[nodes, yy % s, xx % s] = values
     return sel

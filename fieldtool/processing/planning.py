@@ -19,12 +19,13 @@ from __future__ import annotations
 
 import itertools
 import math
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, replace
-from typing import Iterable, Iterator
 
 import numpy as np
 
 from fieldtool.processing import piv
+from fieldtool.processing.piv_validate import fill_all
 
 LOOK_PAIRS = 8  # pairs of the first look
 SLOW_TARGET_PX = 2.5  # the slow nodes (20th percentile) should move at least this far per pair
@@ -123,8 +124,6 @@ def first_look(frames: Iterable[tuple[float, np.ndarray]], params: piv.PivParams
     ok = res.valid & np.isfinite(res.u) & np.isfinite(res.v)
     if (plan.search_px is not None and plan.frame_gap == 1 and ok.mean() >= GUESS_MIN_VALID
             and plan.fast_px_per_frame <= GUESS_MAX_FRACTION * w0):
-        from fieldtool.processing.piv_validate import fill_all
-
         du, dv = fill_all(np.where(ok, res.u * dt, np.nan), np.where(ok, res.v * dt, np.nan))
         plan.guess = (res.x[0].copy(), res.y[:, 0].copy(), du, dv)  # search_px stays the fallback
     return plan, replay

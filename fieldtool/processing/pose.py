@@ -16,6 +16,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from scipy.optimize import least_squares
 
 from fieldtool.errors import GeometryError, ParameterError
 
@@ -203,8 +204,6 @@ def fit_lens(gcp_px: np.ndarray, gcp_world: np.ndarray, image_size: tuple[int, i
     ParameterError : fewer than 8 GCPs, shapes.
     GeometryError : no pose, or the GCPs cannot constrain the lens (e.g. all near the image centre).
     """
-    from scipy.optimize import least_squares
-
     px = _as_points(gcp_px, 2, "ortho.gcp_px")
     world = _as_points(gcp_world, 3, "ortho.gcp_world_m")
     if len(px) != len(world):

@@ -10,10 +10,12 @@ Units: m, s, m/s, m³/s; displacements in px per frame (of the working image); a
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
-from typing import Callable, Iterable
 
 import numpy as np
+
+from fieldtool.processing.discharge import sample_field
 
 GRADES = ("good", "doubtful", "unusable")
 
@@ -29,7 +31,9 @@ class Reason:
     threshold: float | None = None
 
     def to_dict(self) -> dict:
-        f = (lambda x: float(x) if x is not None and np.isfinite(x) else None)
+        def f(x):
+            return float(x) if x is not None and np.isfinite(x) else None
+
         return {"code": self.code, "severity": self.severity, "message": self.message, "value": f(self.value),
                 "threshold": f(self.threshold)}
 
@@ -372,8 +376,6 @@ def section_evidence(sample_px: np.ndarray, normal: np.ndarray, x: np.ndarray, y
     valid_fraction, peak : (ny, nx) per-node fraction of valid pairs and median correlation peak.
     first_guess : (ny, nx, 2) px per pair by which the first pass moved its windows (``PivResult.first_guess``).
     """
-    from fieldtool.processing.discharge import sample_field
-
     pts = np.asarray(sample_px, float).reshape(-1, 2)
     out: dict = {}
     su, sv = sample_field(x, y, np.asarray(u_px_s, float), np.asarray(v_px_s, float), pts)

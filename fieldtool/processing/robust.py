@@ -2,8 +2,8 @@
 
 Wind ripples, standing waves and glints give velocities near zero or upstream in a few subsections while the
 river moves downstream elsewhere. Such a velocity must never reach the discharge silently: it is rejected here
-(NaN, then filled from its neighbours by ``discharge.fill_velocity``, along the local Manning law) and counted, so that the
-quality verdict can say how much of the width was measured and how much was filled.
+(NaN, then filled from its neighbours by ``discharge.fill_velocity``, along the local Manning law) and counted, so
+that the quality verdict can say how much of the width was measured and how much was filled.
 """
 
 from __future__ import annotations

@@ -538,5 +538,5 @@ def disagreement_reason(dis: dict, q_threshold: float = DISAGREE_Q, share_thresh
             "message": f"PIV and STIV disagree by more than {100 * dis['threshold']:.0f} %{where}{qtxt}: sparse or "
                        "patchy seeding, stationary patterns or ripples mislead one of them; compare the velocities in "
                        "subsections.csv (stiv_velocity_ms) and consider section.velocity_source",
-            "value": float(abs(dq_rel)) if q_bad else float(share),
+            "value": float(abs(dq_rel)) if q_bad and dq_rel is not None else float(share),
             "threshold": q_threshold if q_bad else share_threshold}

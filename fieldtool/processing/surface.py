@@ -22,8 +22,8 @@ frames after they went in.
 from __future__ import annotations
 
 from collections import deque
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
-from typing import Callable, Iterable, Iterator
 
 import cv2
 import numpy as np

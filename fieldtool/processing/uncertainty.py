@@ -6,8 +6,8 @@ values given (m³/s for discharges).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 
@@ -180,10 +180,10 @@ class _Draw:
         # per-pair subsection velocities on the run's geometry (m/s): the bootstrap over pairs moves each
         # subsection by the resampled mean minus the mean of all pairs
         self.vp = None
-        if m.u_pairs is not None and len(m.u_pairs) >= 2:
+        if m.u_pairs is not None and m.v_pairs is not None and len(m.u_pairs) >= 2:
             map0 = OrthoMapping(H0, m.method)
             vp = []
-            for up, vq in zip(m.u_pairs, m.v_pairs):
+            for up, vq in zip(m.u_pairs, m.v_pairs, strict=True):
                 U, V = map0.rectify_velocity(self.x, self.y, np.asarray(up, float)[sl], np.asarray(vq, float)[sl])
                 vp.append(section_samples(g0, self.x, self.y, U, V))
             self.vp = _nanmean(np.stack(vp), axis=2)  # (n_pairs, n_sub)

@@ -36,20 +36,22 @@ Two deliberate departures from the thesis text, both stated where they are used:
 
 from __future__ import annotations
 
+import warnings
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
 
+import cv2
 import numpy as np
 
 from fieldtool.errors import GeometryError, InputFileError, ParameterError
-from fieldtool.project.model import WaterLevelCfg
 from fieldtool.processing.cross_section import CrossSection
 from fieldtool.processing.ortho import OrthoMapping
+from fieldtool.project.model import WaterLevelCfg
 
 
 def _argrelextrema(*args, **kwargs):
-    """scipy.signal.argrelextrema, imported on first use: scipy.signal costs 0.4 s to import and only the
+    """scipy.signal.argrelextrema, imported on first use: scipy.signal costs 0.4-1 s to import and only the
     DEM method needs it."""
     from scipy.signal import argrelextrema
 
@@ -104,7 +106,7 @@ def _pieces(cs: CrossSection) -> list[_Piece]:
     top = _top_level(cs)
     levels = np.unique(np.r_[z[(z > cs.bed_min) & (z < top)], cs.bed_min, top])
     out = []
-    for z_lo, z_hi in zip(levels[:-1], levels[1:]):
+    for z_lo, z_hi in zip(levels[:-1], levels[1:], strict=True):
         wet = z < 0.5 * (z_lo + z_hi)
         idx = np.nonzero(wet)[0]
         runs = np.split(idx, np.nonzero(np.diff(idx) > 1)[0] + 1)
@@ -280,15 +282,29 @@ def _from_width(cs: CrossSection, width_m: float, width_sigma_m: float, method: 
 MAX_DEM_CELLS = 200_000_000  # 1.6 GB as float64: a bank DEM larger than this is to be cropped first
 
 
+def _rasterio():
+    """rasterio, imported on first use: it costs 0.1-0.3 s to import (GDAL) and only the DEM method reads a raster."""
+    import rasterio
+
+    return rasterio
+
+
+def dem_size(path: Path) -> tuple[int, int]:
+    """(width, height) in cells of a DEM raster, from its header alone (GDAL's warnings silenced); raises what
+    rasterio raises for a file that is not a raster."""
+    rasterio = _rasterio()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        with rasterio.open(path) as ds:
+            return ds.width, ds.height
+
+
 def read_dem(path: Path) -> np.ndarray:
     """Elevations (m) of a DEM in any raster format GDAL reads (GeoTIFF, ASCII grid, IMG, VRT, ...), as
     float, its no-data value and non-finite cells as NaN; first band. The size is checked from the header
     before any cell is read."""
-    import warnings
-
-    import rasterio
-    from rasterio.errors import NotGeoreferencedWarning, RasterioIOError
-
+    rasterio = _rasterio()
+    NotGeoreferencedWarning, RasterioIOError = rasterio.errors.NotGeoreferencedWarning, rasterio.errors.RasterioIOError
     if not path.is_file():
         raise InputFileError(f"{path}: DEM file not found (water_level.dem_path); give a raster of elevations in metres")
     try:
@@ -324,7 +340,8 @@ def dem_profile(dem: np.ndarray, x_m: list[float], y_m: list[float], precision_m
         if abs(dx * 1000 - precision_mm) > 0.1 * precision_mm:
             raise ParameterError(
                 f"water_level.dem_precision_mm = {precision_mm:g} mm/pixel does not match the DEM: its x domain "
-                f"{x_m[1] - x_m[0]:g} m over {cols} columns is {dx * 1000:.3g} mm/pixel. Check the domain or the precision.")
+                f"{x_m[1] - x_m[0]:g} m over {cols} columns is {dx * 1000:.3g} mm/pixel. "
+                "Check the domain or the precision.")
     xs = x_m[0] + (np.arange(cols) + 0.5) * dx
     if section_y_m is not None:
         dy = (y_m[1] - y_m[0]) / rows
@@ -491,14 +508,14 @@ def offcentre_solution(alpha_low: float, alpha_high: float, dh_m: float, shift: 
         L, H = x
         return np.array([_subtended(H, L, shift) - alpha_low, _subtended(H + dh_m, L, shift) - alpha_high])
 
-    from scipy.optimize import least_squares  # here: importing scipy.optimize costs 0.3-0.5 s of a run
+    from scipy.optimize import least_squares  # lazy: scipy.optimize costs 0.2-0.5 s; only angle_height
     sol = least_squares(res, np.asarray(guess, float), bounds=([1e-6, 1e-6], [np.inf, np.inf]), xtol=1e-14, ftol=1e-14, gtol=1e-14)
     if not sol.success or np.max(np.abs(sol.fun)) > 1e-9:
         raise GeometryError(f"off-centre solution did not converge (residual {np.max(np.abs(sol.fun)):.2e} rad)")
     return float(sol.x[0]), float(sol.x[1])
 
 
-def angle_height_width(edges1_px, edges2_px, shape1: tuple[int, int], shape2: tuple[int, int], dh_m: float,
+def angle_height_width(edges1_px, edges2_px, shape1: tuple[int, int], shape2: tuple[int, int], dh_m: float | None,
                        fov_deg, *, dh_sigma_m: float = 0.05, pixel_sigma_px: float = 2.0, fov_sigma_deg: float = 0.5) -> dict:
     """Wetted width (m) from two nadir images at heights H (image 1) and H + dh (image 2), thesis 5.2.1.
 
@@ -568,8 +585,6 @@ def angle_height_width(edges1_px, edges2_px, shape1: tuple[int, int], shape2: tu
 
 
 def _read_shape(path: Path, key: str) -> tuple[int, int]:
-    import cv2
-
     if not path.is_file():
         raise InputFileError(f"{path}: image not found ({key})")
     img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
@@ -671,7 +686,8 @@ def compute_level(cfg: WaterLevelCfg, cs: CrossSection, *, root: Path, mapping: 
                                  "(calibration.path) or give water_level.fov_deg = [x, y, diagonal] in degrees")
         shape1 = _read_shape(_resolve(root, cfg.image1), "water_level.image1")
         shape2 = _read_shape(_resolve(root, cfg.image2), "water_level.image2")
-        e1, e2 = cfg.edges1_px, cfg.edges2_px
+        e1: list | np.ndarray = cfg.edges1_px  # picked points, undistorted into an array when the lens is known
+        e2: list | np.ndarray = cfg.edges2_px
         if image_undistort is not None and np.shape(e1) == (2, 2) and np.shape(e2) == (2, 2):
             e1, e2 = image_undistort(np.asarray(e1, float), shape1), image_undistort(np.asarray(e2, float), shape2)
         r = angle_height_width(e1, e2, shape1, shape2, cfg.dh_m, fov,
@@ -722,8 +738,8 @@ def waterline_level(cs: CrossSection, mapping: OrthoMapping, detected: dict,
 
     Refuses (GeometryError naming ``water_level.method`` and the fix: type the level) when the centre line
     finds no edge, fewer than ``WATERLINE_MIN_LINES`` lines do, or the lines' levels scatter, or the level's
-    1-sigma is, more than ``WATERLINE_REFUSE_M``; a scatter above ``WATERLINE_DOUBT_M``, a weak activity contrast between water
-    and banks (``WATERLINE_WEAK_CONTRAST``), or a single line, is listed in
+    1-sigma is, more than ``WATERLINE_REFUSE_M``; a scatter above ``WATERLINE_DOUBT_M``, a weak activity contrast
+    between water and banks (``WATERLINE_WEAK_CONTRAST``), or a single line, is listed in
     ``details["doubtful"]`` (turned into a quality reason by the caller).
 
     ``station_of``: water-plane points (N, 2) m -> cross-section stations (m), known when the section's
@@ -791,7 +807,8 @@ def waterline_level(cs: CrossSection, mapping: OrthoMapping, detected: dict,
         edge_levels = {"stations_m": st.tolist(), "levels_m": ez.tolist(), "difference_m": gap, "tolerance_m": tol}
         if abs(gap) > tol:
             doubts.append({"code": "waterline_edges_disagree", "value": abs(gap), "threshold": tol,
-                           "message": f"the water line's left and right edges lie on the banks at levels {100 * abs(gap):.1f} cm "
+                           "message": "the water line's left and right edges lie on the banks at levels "
+                                      f"{100 * abs(gap):.1f} cm "
                                       f"apart (over {100 * tol:.1f} cm): an edge is off, or section.station_offset_m is"})
     sigma = float(np.hypot(s[k], spread))
     if sigma > WATERLINE_REFUSE_M:

@@ -268,8 +268,8 @@ def detect_water_edges(frames, lines, *, half_width_px: float = 4.0, max_frames:
             break
         for a in accs:
             a.add(g)
-    out = []
-    for (off, _), acc in zip(lines, accs):
+    out: list = []
+    for (off, _), acc in zip(lines, accs, strict=True):
         prof = acc.activity()
         mean = acc.mean.mean(axis=1)
         item = {"offset_m": float(off), "line_px": acc.line_px}

@@ -48,7 +48,7 @@ class KeySpec:
 
 def key(default: Any = _MISSING, *, factory: Any = _MISSING, saved: bool = True, **rules: Any) -> Any:
     """A dataclass field carrying a ``KeySpec`` built from ``rules`` (see KeySpec)."""
-    meta = {"spec": KeySpec(**rules)}
+    meta: dict[str, object] = {"spec": KeySpec(**rules)}
     if not saved:
         meta["saved"] = False
     if factory is not _MISSING:

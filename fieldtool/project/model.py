@@ -22,9 +22,16 @@ from pathlib import Path
 from typing import Any
 
 import tomli_w
+import tomlkit
 
 from fieldtool.errors import InputFileError, ParameterError
 from fieldtool.project.keyspec import key
+from fieldtool.project.textfile import read_text
+
+try:  # POSIX only: the project folder's save lock (_DirLock); Windows has none
+    import fcntl
+except ImportError:  # pragma: no cover - Windows
+    fcntl = None  # type: ignore[assignment]
 
 Point = list[float]
 
@@ -269,7 +276,7 @@ class Project:
     section: SectionCfg = field(default_factory=SectionCfg)
     stiv: StivCfg = field(default_factory=StivCfg)
     # more sections of interest on the same field: [{name = "upstream", points_px = [[x, y], [x, y]],
-    # cross_section = "upstream.csv"}, ...]; see fieldtool/run/sections.py
+    # cross_section = "upstream.csv"}, ...]; see fieldtool/project/sections.py
     sections: list[dict[str, Any]] = key(factory=list, max_items=20)
     rerun: RerunCfg = field(default_factory=RerunCfg)
     quality: QualityCfg = field(default_factory=QualityCfg)
@@ -304,7 +311,7 @@ def _check(value: Any, tp: Any, where: str) -> Any:
             except ParameterError as e:
                 errors.append(e)
         raise errors[0]
-    if dataclasses.is_dataclass(tp):
+    if isinstance(tp, type) and dataclasses.is_dataclass(tp):
         if not isinstance(value, dict):
             raise ParameterError(f"{where}: expected a table, got {value!r}")
         return _from_dict(tp, value, where)
@@ -383,8 +390,6 @@ def project_to_dict(project: Project) -> dict:
 
 def _parse_toml(path: Path) -> dict:
     """The parsed TOML of a project file in any encoding fieldtool reads (see ``textfile``)."""
-    from fieldtool.project.textfile import read_text
-
     text = read_text(path, "project file")
     try:
         return tomllib.loads(text)
@@ -471,8 +476,6 @@ def _inline(v: Any) -> Any:
     """Lists of tables as inline arrays (``filters = [{name = "clahe"}]``), so that they stay where
     the key is, with its comment, instead of moving to an array of tables."""
     if isinstance(v, list) and any(isinstance(x, dict) for x in v):
-        import tomlkit
-
         arr = tomlkit.array()
         for x in v:
             if isinstance(x, dict):
@@ -491,11 +494,7 @@ def _plain(v: Any) -> Any:
 
 def _dump_roundtrip(path: Path, data: dict) -> bytes:
     """TOML bytes of ``data``, keeping the comments and layout of the file at ``path`` if it parses."""
-    import tomlkit
-
     try:
-        from fieldtool.project.textfile import read_text
-
         doc = tomlkit.parse(read_text(path, "project file")) if path.exists() else None
     except Exception:  # noqa: BLE001 - an unreadable old file is replaced by a plain new one
         doc = None
@@ -515,8 +514,8 @@ class _DirLock:
 
     def __enter__(self):
         try:
-            import fcntl
-
+            if fcntl is None:
+                raise ImportError("no fcntl here (Windows): saves are not locked")
             self.fd = os.open(self.dir, os.O_RDONLY)
             fcntl.flock(self.fd, fcntl.LOCK_EX)
         except (ImportError, OSError):

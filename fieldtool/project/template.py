@@ -14,8 +14,8 @@ from pathlib import Path
 
 import tomli_w
 
-from fieldtool.project import model as pj
 from fieldtool.errors import InputFileError
+from fieldtool.project import model as pj
 
 _FIELD = re.compile(r"^\s+(\w+):\s*[^=]+?(?:=.*?)?\s+#\s*(.*)$")
 
@@ -46,10 +46,10 @@ def top_keys() -> list[tuple[str, object]]:
 def sections() -> list[tuple[str, type, object]]:
     """(table name, dataclass, default instance) for every table of the project file."""
     proj = pj.Project()
-    out = []
+    out: list[tuple[str, type, object]] = []
     for f in dataclasses.fields(pj.Project):
         val = getattr(proj, f.name)
-        if dataclasses.is_dataclass(val):
+        if dataclasses.is_dataclass(val) and not isinstance(val, type):
             out.append((f.name, type(val), val))
     return out
 

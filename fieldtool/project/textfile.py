@@ -61,7 +61,8 @@ def decode_text(data: bytes, path: Path | str, what: str) -> tuple[str, str]:
         text, enc = data.decode("cp1252"), "cp1252"
     except UnicodeDecodeError:
         text, enc = data.decode("latin-1"), "latin-1"
-    warnings.warn(FieldToolWarning(f"{path}: the {what} is not UTF-8; read as {enc} ({'Windows Western' if enc == 'cp1252' else 'ISO 8859-1'}); "
+    name = "Windows Western" if enc == "cp1252" else "ISO 8859-1"
+    warnings.warn(FieldToolWarning(f"{path}: the {what} is not UTF-8; read as {enc} ({name}); "
                                    "save it as UTF-8 to be sure of accented letters"), stacklevel=3)
     return text, enc
 

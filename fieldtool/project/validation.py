@@ -27,12 +27,18 @@ import re
 import stat
 import types
 import typing
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any
 
 from fieldtool.errors import FieldToolError, ParameterError
+from fieldtool.processing.filters import FILTERS, FilterStack
+from fieldtool.processing.frames import FrameSource
+from fieldtool.processing.water_level import MAX_DEM_CELLS, dem_size
 from fieldtool.project.keyspec import KeySpec, spec_of
+from fieldtool.project.model import Project
+from fieldtool.project.sections import parse as parse_sections
 
 # bounds for what no declaration bounds
 NUMBER_LIMIT = 1e12  # |x| of any number
@@ -252,11 +258,9 @@ _probe_cache: dict[tuple, tuple[int, int] | str] = {}
 
 def frame_size(path: Path, key: str = "video.path") -> tuple[int, int] | str:
     """(width, height) of a clip from its header (cached on path, size and mtime), or a message."""
-    from fieldtool.processing.frames import FrameSource
-
     try:
         st = os.stat(path)
-        ck = (str(path), st.st_size, st.st_mtime_ns)
+        ck: tuple[str, int | None, int | None] = (str(path), st.st_size, st.st_mtime_ns)
     except OSError:
         ck = (str(path), None, None)
     if ck in _probe_cache:
@@ -281,8 +285,6 @@ _clip_cache: dict[tuple, str | None] = {}
 def clip_problem(path: Path, start_s: float, end_s: float | None, step: int, interval: float | None) -> str | None:
     """Why the clip cannot be read over this range ("key: message"), or None; cached on the file's
     size and mtime, so that the TUI may ask on every keystroke."""
-    from fieldtool.processing.frames import FrameSource
-
     try:
         st = os.stat(path)
         ck = (str(path), st.st_size, st.st_mtime_ns, start_s, end_s, step, interval)
@@ -347,7 +349,6 @@ class _Validator:
     # -- driver ---------------------------------------------------------------------------------
     def run(self) -> None:
         p = self.p
-        from fieldtool.project.model import Project
 
         hints = typing.get_type_hints(Project)
         for f in dataclasses.fields(Project):
@@ -562,10 +563,8 @@ class _Validator:
         """Several sections: each table's keys, its two points, and its cross-section file."""
         if not self.ok("sections") or not isinstance(self.p.sections, list):
             return
-        from fieldtool.run.sections import parse
-
         try:
-            specs = parse(self.p)
+            specs = parse_sections(self.p)
         except FieldToolError as e:
             self.from_error(e, "sections")
             return
@@ -581,7 +580,6 @@ class _Validator:
             if _depth(item, NESTING_LIMIT) > NESTING_LIMIT:
                 self.err(f"filters[{i}]", f"nested more than {NESTING_LIMIT} levels deep; give plain values")
                 return
-        from fieldtool.processing.filters import FilterStack
 
         try:
             FilterStack.from_config(fl)
@@ -593,8 +591,6 @@ class _Validator:
                 self.background_memory(i, item)
 
     def background_memory(self, i: int, item: dict) -> None:
-        from fieldtool.processing.filters import FILTERS
-
         samples = item.get("samples")
         if samples is None:
             samples = next((p.default for p in FILTERS["background"].params if p.name == "samples"), 25)
@@ -729,18 +725,9 @@ class _Validator:
 
     def dem_header(self) -> None:
         """The DEM's size from its header (GDAL), before anything reads its cells."""
-        from fieldtool.processing.water_level import MAX_DEM_CELLS
-
         path = self.p.resolve(self.p.water_level.dem_path)
         try:
-            import warnings
-
-            import rasterio
-
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")
-                with rasterio.open(path) as ds:
-                    w, h = ds.width, ds.height
+            w, h = dem_size(path)
         except Exception as e:  # noqa: BLE001 - any failure: not a readable raster
             self.err("water_level.dem_path", f"{path}: cannot read this DEM as a raster ({type(e).__name__}); export "
                                              "it as a GeoTIFF of elevations")
@@ -784,8 +771,6 @@ def _range_text(spec: KeySpec) -> str:
 
 
 def _key_order() -> list[str]:
-    from fieldtool.project.model import Project
-
     out = []
     proj = Project()
     for f in dataclasses.fields(Project):
@@ -798,8 +783,6 @@ def _key_order() -> list[str]:
 
 def describe(keys: Iterable[str] | None = None) -> dict[str, KeySpec | None]:
     """Declarations of the project's keys ("video.start_s" -> KeySpec or None if undeclared)."""
-    from fieldtool.project.model import Project
-
     out: dict[str, KeySpec | None] = {}
     proj = Project()
     for f in dataclasses.fields(Project):

@@ -29,15 +29,23 @@ import os
 import sys
 import time
 import traceback
+from collections.abc import Callable
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
+
+import cv2
 
 from fieldtool.errors import FieldToolError, InputFileError, ParameterError
+from fieldtool.processing.piv import set_fft_workers
+from fieldtool.project.model import load_project, project_to_dict
+from fieldtool.project.textfile import read_text
 from fieldtool.records.history import History, input_hash, video_datetime
+from fieldtool.records.report import write_report
 from fieldtool.records.sites import Site, new_measurement
+from fieldtool.run.outputs import json_default
+from fieldtool.run.pipeline import run_project
 
 VIDEO_EXTS = {".mp4", ".mov", ".avi", ".mkv", ".m4v", ".mts", ".m2ts", ".mpg", ".mpeg", ".wmv", ".webm", ".3gp"}
 
@@ -94,7 +102,6 @@ def read_levels(path: Path | str) -> dict[str, float]:
     ``name``) and a level column (``water_level_m``, ``level_m`` or ``level``); comma or semicolon.
     Keys are video file names (as written, and their stem)."""
     path = Path(path)
-    from fieldtool.project.textfile import read_text
 
     text = read_text(path, "levels file")
     head = text.splitlines()[0] if text.strip() else ""
@@ -184,7 +191,6 @@ def plan_projects(paths: list[Path | str], *, out_root: Path | str | None = None
 def read_list(path: Path | str) -> list[str]:
     """Project files listed one per line in a text file ('#' comments; relative to the list's folder)."""
     path = Path(path)
-    from fieldtool.project.textfile import read_text
 
     lines = read_text(path, "list of projects").splitlines()
     out = []
@@ -202,10 +208,6 @@ def read_list(path: Path | str) -> list[str]:
 
 def _single_threaded() -> None:
     """One OpenCV and one FFT thread in this process: the batch already uses every core."""
-    import cv2
-
-    from fieldtool.processing.piv import set_fft_workers
-
     cv2.setNumThreads(1)
     set_fft_workers(1)
 
@@ -219,9 +221,6 @@ def run_item(item: BatchItem, single_thread: bool = False) -> ItemResult:
     try:
         if single_thread:
             _single_threaded()
-        from fieldtool.run.outputs import json_default
-        from fieldtool.run.pipeline import run_project
-        from fieldtool.project.model import load_project, project_to_dict
 
         project = load_project(item.project_path)
         res.video_path = str(project.resolve(project.video.path)) if project.video.path else ""
@@ -304,7 +303,7 @@ def _run_local(items: list[BatchItem], workers: int, emit: Callable[[ItemResult]
 
 def _run_dask(items: list[BatchItem], scheduler: str, emit: Callable[[ItemResult], None]) -> None:
     try:
-        from distributed import Client, as_completed
+        from distributed import Client, as_completed  # lazy: Dask (optional, 0.2-0.4 s) only for --scheduler
     except ImportError as e:
         raise ParameterError("--scheduler needs Dask distributed on this machine: pip install 'dask[distributed]' "
                              "(the workers need it and fieldtool too)") from e
@@ -367,7 +366,7 @@ def run_batch(items: list[BatchItem], *, history: History | None = None, workers
     runnable: list[BatchItem] = []
 
     def emit(r: ItemResult) -> None:
-        if r.ok and history is not None and not r.skipped:
+        if r.ok and history is not None and not r.skipped and r.summary is not None:
             try:
                 r.history_id = history.record_summary(r.summary, site=r.item.site,
                                                       output_dir=Path(r.item.out_dir).resolve(),
@@ -377,12 +376,11 @@ def run_batch(items: list[BatchItem], *, history: History | None = None, workers
                 r.ok, r.error = False, f"ran, but could not be recorded in the history: {e}"
         if r.ok and reports and not r.skipped:
             try:
-                from fieldtool.records.report import write_report
-
                 m = history.get(r.history_id) if history is not None and r.history_id else None
                 write_report(r.item.out_dir, measurement=m)
             except FieldToolError as e:
-                r.summary.setdefault("warnings", []).append(f"report not written: {e}")
+                if r.summary is not None:
+                    r.summary.setdefault("warnings", []).append(f"report not written: {e}")
         by_item[id(r.item)] = r
         if on_done is not None:
             on_done(r, len(by_item), total)
@@ -393,8 +391,6 @@ def run_batch(items: list[BatchItem], *, history: History | None = None, workers
             continue
         if skip_existing and history is not None:
             try:
-                from fieldtool.project.model import load_project, project_to_dict
-
                 p = load_project(it.project_path)
                 h = input_hash(project_to_dict(p), p.root)
             except FieldToolError as e:

@@ -7,10 +7,24 @@ Handlers return an exit code; FieldToolError is printed by ``cli.main`` (exit 2)
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from pathlib import Path
 
 from fieldtool.errors import ParameterError
+from fieldtool.project.model import atomic_write_bytes
+from fieldtool.records.history import History, export_csv, input_hash, parse_time, resolve_db_path, video_datetime
+from fieldtool.records.report import load_result, write_report
+from fieldtool.records.sites import (
+    SITE_FILE,
+    create_site,
+    describe,
+    list_sites,
+    load_site,
+    load_site_project,
+    new_measurement,
+    sites_dir,
+)
 
 
 def _add_db(p: argparse.ArgumentParser, under_history: bool = False) -> None:
@@ -31,8 +45,6 @@ def _add_filters(p: argparse.ArgumentParser) -> None:
 
 
 def _filters(args) -> dict:
-    from fieldtool.records.history import parse_time
-
     until = args.until
     if until and len(until.strip()) == 10:  # a bare date: the whole day
         until = until.strip() + "T23:59:59"
@@ -41,21 +53,25 @@ def _filters(args) -> dict:
 
 
 def _open_history(args, create: bool):
-    from fieldtool.records.history import History, resolve_db_path
-
     return History(resolve_db_path(args.db), create=create)
 
 
 def _history_or_none(args):
     """The history for reading, or None when there is none yet (nothing recorded)."""
-    from fieldtool.records.history import resolve_db_path
-
     path = resolve_db_path(args.db)
     if not path.exists():
         print(f"no history yet ({path} does not exist); runs are recorded by `fieldtool batch`, "
               "`fieldtool site new-measurement --run` and `fieldtool history add`", file=sys.stderr)
         return None
     return _open_history(args, create=False)
+
+
+def _batch():
+    """records.batch, lazy: it runs measurements (the pipeline: numpy, OpenCV, SciPy, about 0.5 s to import),
+    which `fieldtool site new-measurement --run` and `fieldtool batch` need and the other commands do not."""
+    from fieldtool.records import batch
+
+    return batch
 
 
 def _fmt(v, spec=".4f") -> str:
@@ -67,8 +83,6 @@ def _fmt(v, spec=".4f") -> str:
 
 
 def cmd_site_create(args) -> int:
-    from fieldtool.records.sites import create_site, load_site_project, sites_dir
-
     project = load_site_project(args.from_project)
     site = create_site(args.name, project, sites_dir(args.sites), description=args.description or "",
                        force=args.force, source=str(Path(args.from_project).resolve()))
@@ -78,8 +92,6 @@ def cmd_site_create(args) -> int:
 
 
 def cmd_site_list(args) -> int:
-    from fieldtool.records.sites import list_sites, sites_dir
-
     root = sites_dir(args.sites)
     broken: list = []
     sites = list_sites(root, broken)
@@ -95,8 +107,6 @@ def cmd_site_list(args) -> int:
 
 
 def cmd_site_show(args) -> int:
-    from fieldtool.records.sites import SITE_FILE, describe, load_site, sites_dir
-
     site = load_site(args.name, sites_dir(args.sites))
     if args.toml:
         sys.stdout.write((site.folder / SITE_FILE).read_text(encoding="utf-8"))
@@ -106,8 +116,6 @@ def cmd_site_show(args) -> int:
 
 
 def cmd_site_new_measurement(args) -> int:
-    from fieldtool.records.sites import load_site, new_measurement, sites_dir
-
     site = load_site(args.name, sites_dir(args.sites))
     video = Path(args.video)
     out = Path(args.out) if args.out else Path.cwd() / f"{site.name}_{video.stem}"
@@ -117,11 +125,10 @@ def cmd_site_new_measurement(args) -> int:
     if not args.run:
         print(f"run it with: fieldtool run {proj}   (or add --run to compute and record it now)")
         return 0
-    from fieldtool.records.batch import BatchItem, run_batch
-
-    item = BatchItem(label=video.name, project_path=str(proj), out_dir=str(out / "results"), site=site.name)
+    batch = _batch()
+    item = batch.BatchItem(label=video.name, project_path=str(proj), out_dir=str(out / "results"), site=site.name)
     with _open_history(args, create=True) as hist:
-        res = run_batch([item], history=hist, workers=1, reports=True).results[0]
+        res = batch.run_batch([item], history=hist, workers=1, reports=True).results[0]
     if not res.ok:
         raise ParameterError(f"{video.name}: {res.error}")
     s = res.summary
@@ -176,9 +183,6 @@ def cmd_history_show(args) -> int:
 
 
 def cmd_history_export(args) -> int:
-    from fieldtool.project.model import atomic_write_bytes
-    from fieldtool.records.history import export_csv
-
     with _open_history(args, create=False) as hist:
         text = export_csv(hist, hist.query(**_filters(args)))
     if args.file == "-":
@@ -190,11 +194,6 @@ def cmd_history_export(args) -> int:
 
 
 def cmd_history_add(args) -> int:
-    import json
-
-    from fieldtool.records.history import input_hash, video_datetime
-    from fieldtool.records.report import load_result
-
     result_dir = Path(args.result_dir)
     summary, _, _ = load_result(result_dir)
     inputs = summary.get("inputs") or {}
@@ -250,7 +249,7 @@ def cmd_history_stats(args) -> int:
 
 
 def cmd_history_rating(args) -> int:
-    from fieldtool.records.rating import fit_rating, plot_rating
+    from fieldtool.records import rating  # lazy: scipy.optimize and matplotlib (0.5-1 s) only for the rating curve
 
     with _open_history(args, create=False) as hist:
         rows = [m for m in hist.query(site=args.site) if m.discharge_m3s is not None and m.water_level_m is not None]
@@ -262,9 +261,9 @@ def cmd_history_rating(args) -> int:
     rh = [m.water_level_m for m, _ in pairs if m.water_level_m is not None]
     rq = [r.discharge_m3s for m, r in pairs if m.water_level_m is not None]
     fh, fq = (rh, rq) if args.fit_to == "reference" else (h, q)
-    curve = fit_rating(fh, fq, h0=args.h0)
+    curve = rating.fit_rating(fh, fq, h0=args.h0)
     out = Path(args.out) if args.out else Path.cwd() / f"rating_{args.site}.png"
-    plot_rating(out, curve, h, q, ref_h=rh, ref_q=rq, site=args.site,
+    rating.plot_rating(out, curve, h, q, ref_h=rh, ref_q=rq, site=args.site,
                 q_low=[m.discharge_p05_m3s if m.discharge_p05_m3s is not None else float("nan") for m in rows],
                 q_high=[m.discharge_p95_m3s if m.discharge_p95_m3s is not None else float("nan") for m in rows])
     print(f"fitted to the {'reference' if args.fit_to == 'reference' else 'LSPIV'} discharges: {curve.describe()}")
@@ -277,9 +276,6 @@ def cmd_history_rating(args) -> int:
 
 
 def cmd_report(args) -> int:
-    from fieldtool.records.history import resolve_db_path
-    from fieldtool.records.report import write_report
-
     if (args.result_dir is None) == (args.id is None):
         raise ParameterError("give a run's output folder, or --id N of a measurement in the history")
     m, refs = None, []
@@ -304,8 +300,7 @@ def cmd_report(args) -> int:
 
 
 def cmd_batch(args) -> int:
-    from fieldtool.records.batch import plan_projects, plan_site_folder, read_levels, read_list, run_batch
-
+    batch = _batch()
     if args.videos:
         if not args.site:
             raise ParameterError("--videos needs --site NAME: the site whose cross-section, GCPs and parameters "
@@ -314,19 +309,18 @@ def cmd_batch(args) -> int:
             raise ParameterError("give either --videos (a folder of videos of one site) or project files, not both")
         if args.levels is None and args.level is None:
             raise ParameterError("--videos needs the water levels: --levels CSV (video,water_level_m) or --level M")
-        from fieldtool.records.sites import load_site, sites_dir
 
         site = load_site(args.site, sites_dir(args.sites))
         out = Path(args.out) if args.out else Path(args.videos) / "fieldtool_out"
-        items = plan_site_folder(site, args.videos, out, levels=read_levels(args.levels) if args.levels else None,
+        items = batch.plan_site_folder(site, args.videos, out, levels=batch.read_levels(args.levels) if args.levels else None,
                                  level_m=args.level, level_uncertainty_m=args.level_uncertainty)
     else:
         paths = list(args.projects or [])
         if args.list:
-            paths += read_list(args.list)
+            paths += batch.read_list(args.list)
         if not paths:
             raise ParameterError("nothing to run: give project files, --list FILE, or --site NAME --videos FOLDER")
-        items = plan_projects(paths, out_root=args.out, site=args.site or "")
+        items = batch.plan_projects(paths, out_root=args.out, site=args.site or "")
 
     def on_done(r, done, total):
         if r.ok:
@@ -338,7 +332,7 @@ def cmd_batch(args) -> int:
 
     hist = None if args.no_history else _open_history(args, create=True)
     try:
-        res = run_batch(items, history=hist, workers=args.workers, scheduler=args.scheduler,
+        res = batch.run_batch(items, history=hist, workers=args.workers, scheduler=args.scheduler,
                         skip_existing=args.skip_existing, reports=args.report, on_done=on_done)
     finally:
         if hist is not None:

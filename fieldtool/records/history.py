@@ -29,13 +29,15 @@ import re
 import sqlite3
 import struct
 import time
+from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, fields
-from datetime import datetime, timedelta, timezone
+from datetime import UTC, datetime, timedelta
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
 from fieldtool.errors import InputFileError, ParameterError
+from fieldtool.project.model import project_to_dict
 from fieldtool.records import user_data_dir
 
 SCHEMA_VERSION = 1
@@ -100,11 +102,11 @@ def resolve_db_path(arg: str | Path | None) -> Path:
 
 
 def utc_now() -> str:
-    return _iso(datetime.now(timezone.utc))
+    return _iso(datetime.now(UTC))
 
 
 def _iso(dt: datetime) -> str:
-    return dt.astimezone(timezone.utc).replace(microsecond=0).strftime("%Y-%m-%dT%H:%M:%SZ")
+    return dt.astimezone(UTC).replace(microsecond=0).strftime("%Y-%m-%dT%H:%M:%SZ")
 
 
 def parse_time(text: str, what: str = "time") -> str:
@@ -115,7 +117,7 @@ def parse_time(text: str, what: str = "time") -> str:
     except ValueError:
         raise ParameterError(f"{what}: {text!r} is not a date; write it as 2024-05-01 or 2024-05-01T10:22") from None
     if dt.tzinfo is None:
-        dt = dt.replace(tzinfo=timezone.utc)
+        dt = dt.replace(tzinfo=UTC)
     return _iso(dt)
 
 
@@ -262,7 +264,7 @@ class History:
             _OPEN[self._key] -= 1
         self.conn.close()
 
-    def __enter__(self) -> "History":
+    def __enter__(self) -> History:
         return self
 
     def __exit__(self, *exc) -> None:
@@ -333,6 +335,7 @@ class History:
         marks = ", ".join("?" for _ in values)
         with self.write() as c:
             cur = c.execute(f"INSERT INTO measurements ({cols}) VALUES ({marks})", list(values.values()))
+            assert cur.lastrowid is not None  # an INSERT sets it
             return int(cur.lastrowid)
 
     def record_summary(self, summary: dict, *, site: str = "", output_dir: str | Path = "", video_path: str = "",
@@ -367,6 +370,7 @@ class History:
             cur = c.execute("INSERT INTO reference_discharges (measurement_id, discharge_m3s, method, uncertainty_m3s, "
                             "note, added_at) VALUES (?, ?, ?, ?, ?, ?)",
                             (measurement_id, float(discharge_m3s), method, uncertainty_m3s, note, utc_now()))
+            assert cur.lastrowid is not None  # an INSERT sets it
             return int(cur.lastrowid)
 
     def delete_measurement(self, measurement_id: int) -> None:
@@ -454,14 +458,14 @@ class History:
                 continue  # a single method: its line would repeat 'all'
             q = [p[0] for p in pairs]
             ref = [p[1] for p in pairs]
-            err = [100.0 * (a - b) / b for a, b in zip(q, ref)]
+            err = [100.0 * (a - b) / b for a, b in zip(q, ref, strict=True)]
             n = len(err)
             out.append(ErrorStats(
                 site=s, method=method, n=n, bias_percent=sum(err) / n,
                 mean_abs_percent=sum(abs(e) for e in err) / n,
                 rmse_percent=math.sqrt(sum(e * e for e in err) / n),
                 max_abs_percent=max(abs(e) for e in err),
-                rmse_m3s=math.sqrt(sum((a - b) ** 2 for a, b in zip(q, ref)) / n)))
+                rmse_m3s=math.sqrt(sum((a - b) ** 2 for a, b in zip(q, ref, strict=True)) / n)))
         return out
 
     def integrity_ok(self) -> bool:
@@ -534,7 +538,7 @@ def _check_existing(path: Path) -> None:
 
     def tidy() -> None:
         if not existed[0] and sides[0].exists() and sides[0].stat().st_size == 0:
-            for p, had in zip(sides, existed):
+            for p, had in zip(sides, existed, strict=True):
                 if not had:
                     p.unlink(missing_ok=True)
 
@@ -641,7 +645,7 @@ def export_csv(hist: History, rows: list[Measurement]) -> str:
 # ---------------------------------------------------------------------------------------------
 # what identifies a run: when the video was taken, and a hash of the inputs
 
-_MP4_EPOCH = datetime(1904, 1, 1, tzinfo=timezone.utc)
+_MP4_EPOCH = datetime(1904, 1, 1, tzinfo=UTC)
 _CHUNK = 1 << 20
 
 
@@ -687,7 +691,7 @@ def _mp4_creation_time(path: Path) -> datetime | None:
                     if secs == 0:
                         return None
                     dt = _MP4_EPOCH + timedelta(seconds=secs)
-                    if dt.year < 1990 or dt > datetime.now(timezone.utc) + timedelta(days=1):
+                    if dt.year < 1990 or dt > datetime.now(UTC) + timedelta(days=1):
                         return None
                     return dt
                 return None
@@ -714,10 +718,10 @@ def video_datetime(video: Path | str) -> tuple[str | None, str | None]:
     dt = _mp4_creation_time(files[0]) if len(files) == 1 else None
     if dt is not None:
         return _iso(dt), "container"
-    return _iso(datetime.fromtimestamp(files[0].stat().st_mtime, timezone.utc)), "file mtime"
+    return _iso(datetime.fromtimestamp(files[0].stat().st_mtime, UTC)), "file mtime"
 
 
-def hash_file(path: Path, h: "hashlib._Hash | None" = None) -> str:
+def hash_file(path: Path, h: hashlib._Hash | None = None) -> str:
     """SHA-256 of a file, read in 1 MiB chunks."""
     h = h or hashlib.sha256()
     with path.open("rb") as fh:
@@ -764,8 +768,6 @@ def record_run(project, summary: dict, out_dir: Path | str, *, site: str = "", d
     ``summary`` is ``RunResult.summary()`` and whose results are in ``out_dir``: hashes the inputs,
     reads the video's date, and writes one row to the history at ``db`` (None = the default).
     Returns the new measurement id. For `fieldtool run --record`."""
-    from fieldtool.project.model import project_to_dict
-
     video = project.resolve(project.video.path) if project.video.path else None
     vt = video_datetime(video) if video is not None else (None, None)
     h = input_hash(project_to_dict(project), project.root)

@@ -6,14 +6,17 @@ h0 is the level of zero flow and must lie below the lowest measured level.
 
 from __future__ import annotations
 
+import io
 import math
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from matplotlib.figure import Figure
 from scipy.optimize import curve_fit
 
 from fieldtool.errors import ParameterError
+from fieldtool.project.model import atomic_write_bytes
 
 B_RANGE = (0.3, 6.0)  # exponents outside this are not a river's control
 
@@ -164,8 +167,6 @@ def plot_rating(path: Path | str, curve: RatingCurve | None, h, q, *, ref_h=None
                 q_low=None, q_high=None) -> Path:
     """Stage-discharge plot: the measurements (with their 5-95 % spread when ``q_low``/``q_high``
     are given), the references, and the fitted curve. Written as PNG (or PDF/SVG by suffix)."""
-    from matplotlib.figure import Figure
-
     path = Path(path)
     h = np.asarray(h, float)
     q = np.asarray(q, float)
@@ -193,9 +194,6 @@ def plot_rating(path: Path | str, curve: RatingCurve | None, h, q, *, ref_h=None
     ax.legend(loc="lower right")
     ax.set_title(f"rating curve{' — ' + site if site else ''}")
     fig.tight_layout()
-    import io
-
-    from fieldtool.project.model import atomic_write_bytes
 
     buf = io.BytesIO()
     fig.savefig(buf, format=path.suffix.lstrip(".").lower() or "png")

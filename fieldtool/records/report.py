@@ -10,28 +10,25 @@ from __future__ import annotations
 import base64
 import csv
 import html
-import io
 import json
-from datetime import datetime, timezone
+from collections.abc import Sequence
+from datetime import UTC, datetime
 from pathlib import Path
 
 from fieldtool import __version__
 from fieldtool.errors import InputFileError
 from fieldtool.project.model import atomic_write_bytes
 from fieldtool.records.history import Measurement, Reference
-from fieldtool.records.report_content import budget_rows, discharge_text, header_rows, parameter_rows
-
-# plots of result.json "files", in report order, with captions
-PLOTS = (
-    ("profile_png", "Surface velocity along the section, with the spread of the frame-pair fields"),
-    ("vectors_png", "Surface velocity vectors on the first frame"),
-    ("rectified_png", "Rectified image with the velocity field (world metres)"),
-    ("section_png", "Cross-section, water level and subsection velocities / discharges"),
-    ("gcp_png", "Ground control points with the taped distances and their residuals"),
-    ("water_level_png", "Water level determination"),
-    ("stabilization_png", "Stabilisation"),
+from fieldtool.records.report_content import COLUMN_NAMES as _COLUMN_NAMES
+from fieldtool.records.report_content import (
+    GRADE_COLOURS,
+    PLOTS,
+    budget_rows,
+    discharge_text,
+    header_rows,
+    parameter_rows,
 )
-GRADE_COLOURS = {"good": "#1a7f37", "doubtful": "#9a6700", "unusable": "#cf222e"}
+from fieldtool.records.report_content import fmt_value as _f
 
 
 def load_result(result_dir: Path | str) -> tuple[dict, dict[str, bytes], list[dict]]:
@@ -75,15 +72,6 @@ def inside(folder: Path, name: str) -> Path | None:
     return target if root in target.parents else None
 
 
-def _f(v, fmt: str = ".4f", unit: str = "") -> str:
-    if v is None:
-        return "–"
-    try:
-        return f"{float(v):{fmt}}{(' ' + unit) if unit else ''}"
-    except (TypeError, ValueError):
-        return html.escape(str(v))
-
-
 def _e(v) -> str:
     return html.escape(str(v))
 
@@ -91,15 +79,17 @@ def _e(v) -> str:
 _CSS = """
 body{font-family:"DejaVu Sans",system-ui,-apple-system,"Segoe UI",Roboto,sans-serif;margin:1.5em auto;max-width:1000px;
 color:#1f2328;padding:0 1.2em;line-height:1.4}
-h1{font-size:1.45em;margin:.2em 0} h2{font-size:1.1em;border-bottom:1px solid #d0d7de;padding-bottom:.2em;margin-top:1.5em}
+h1{font-size:1.45em;margin:.2em 0}
+h2{font-size:1.1em;border-bottom:1px solid #d0d7de;padding-bottom:.2em;margin-top:1.5em}
 .head{display:grid;grid-template-columns:max-content 1fr max-content 1fr;gap:.15em 1.2em;font-size:.95em}
 .head dt{color:#57606a} .head dd{margin:0;font-weight:600}
-.qbox{border:2px solid #d0d7de;border-radius:8px;padding:.8em 1.1em;margin:1em 0;display:flex;gap:2em;align-items:center;
-flex-wrap:wrap} .q{font-size:1.7em;font-weight:700} .ci{font-size:1.05em}
+.qbox{border:2px solid #d0d7de;border-radius:8px;padding:.8em 1.1em;margin:1em 0;display:flex;gap:2em;
+align-items:center;flex-wrap:wrap} .q{font-size:1.7em;font-weight:700} .ci{font-size:1.05em}
 .grade{display:inline-block;padding:.2em .7em;border-radius:1em;color:#fff;font-weight:700;text-transform:uppercase;
 letter-spacing:.04em} .reasons{margin:.4em 0 0 1.2em;padding:0} .reasons li{margin:.15em 0}
 .muted{color:#57606a;font-size:.88em}
-table{border-collapse:collapse;font-size:.9em;margin:.4em 0} td,th{border:1px solid #d0d7de;padding:.25em .6em;text-align:right}
+table{border-collapse:collapse;font-size:.9em;margin:.4em 0}
+td,th{border:1px solid #d0d7de;padding:.25em .6em;text-align:right}
 th{background:#f6f8fa} td.k,th.k{text-align:left} .warn{color:#9a6700}
 figure{margin:1em 0;page-break-inside:avoid} figure img{max-width:100%;border:1px solid #d0d7de}
 figcaption{font-size:.88em;color:#57606a}
@@ -155,7 +145,8 @@ def _sections_html(summary: dict) -> list[str]:
     if not secs:
         return []
     out = ["<h2>Sections</h2><table id='sections'><tr><th class='k'>section</th><th>Q (m³/s)</th>"
-           "<th>95 % interval (m³/s)</th><th class='k'>grade</th><th>wetted width (m)</th><th>mean velocity (m/s)</th></tr>"]
+           "<th>95 % interval (m³/s)</th><th class='k'>grade</th><th>wetted width (m)</th>"
+           "<th>mean velocity (m/s)</th></tr>"]
     for e in secs:
         if "error" in e:
             out.append(f"<tr><td class='k'>{_e(e.get('name'))}</td><td colspan='5' class='warn'>{_e(e['error'])}</td></tr>")
@@ -169,14 +160,15 @@ def _sections_html(summary: dict) -> list[str]:
     if sm:
         cv = sm.get("cv")
         out.append(f"<tr><th class='k'>mean of {sm.get('n')}</th><td>{_f(sm.get('mean_m3s'))}</td>"
-                   f"<td colspan='4'>std {_f(sm.get('std_m3s'))} m³/s, CV {_f(100 * cv if cv is not None else None, '.1f', '%')}"
+                   f"<td colspan='4'>std {_f(sm.get('std_m3s'))} m³/s, "
+                   f"CV {_f(100 * cv if cv is not None else None, '.1f', '%')}"
                    "</td></tr>")
     out.append("</table>")
     return out
 
 
 def render_html(summary: dict, images: dict[str, bytes], subsections: list[dict], *,
-                measurement: Measurement | None = None, references: list[Reference] = (),
+                measurement: Measurement | None = None, references: Sequence[Reference] = (),
                 title: str | None = None) -> str:
     """The report as one HTML string with every plot embedded (no external file or network)."""
     inputs = summary.get("inputs") or {}
@@ -238,8 +230,8 @@ def render_html(summary: dict, images: dict[str, bytes], subsections: list[dict]
         cols = list(subsections[0].keys())
         out.append("<h2>Subsections</h2><table id='subsections'><tr>"
                    + "".join(f"<th>{_e(_COLUMN_NAMES.get(c, c))}</th>" for c in cols) + "</tr>")
-        for r in subsections:
-            out.append("<tr>" + "".join(f"<td>{_e(r.get(c, ''))}</td>" for c in cols) + "</tr>")
+        for row in subsections:
+            out.append("<tr>" + "".join(f"<td>{_e(row.get(c, ''))}</td>" for c in cols) + "</tr>")
         out.append("</table>")
 
     out.append("<h2>Parameters</h2><table id='inputs'><tr><th class='k'>step</th><th class='k'>parameter</th>"
@@ -250,104 +242,22 @@ def render_html(summary: dict, images: dict[str, bytes], subsections: list[dict]
     if measurement is not None and measurement.input_hash:
         out.append(f"<p class='muted'>history id {measurement.id}; input hash (SHA-256 of parameters and input "
                    f"files): <code>{_e(measurement.input_hash)}</code></p>")
-    now = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+    now = datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC")
     out.append(f"<p class='muted'>report written {now} by fieldtool {_e(__version__)}; the run used fieldtool "
                f"{_e(summary.get('fieldtool_version', '?'))}. Every value of the run: result.json.</p></body></html>")
     return "\n".join(out)
 
 
-_COLUMN_NAMES = {"subsection": "#", "station_from_m": "from (m)", "station_to_m": "to (m)", "area_m2": "area (m²)",
-                 "mean_depth_m": "mean depth (m)", "surface_velocity_ms": "surface velocity (m/s)",
-                 "velocity_filled": "filled", "discharge_m3s": "Q (m³/s)"}
-
-
-def _pdf_text_page(fig, summary, measurement, references) -> None:
-    """Page 1 of the PDF: header, Q with interval and grade, result and parameters."""
-    inputs = summary.get("inputs") or {}
-    t = discharge_text(summary)
-    y = 0.955
-    fig.text(0.06, y, f"Discharge measurement — {inputs.get('name', 'measurement')}", fontsize=15, weight="bold")
-    y -= 0.035
-    for k, v in header_rows(summary, measurement):
-        fig.text(0.06, y, k, fontsize=9, color="0.35")
-        fig.text(0.24, y, v, fontsize=9, weight="bold")
-        y -= 0.018
-    y -= 0.015
-    fig.text(0.06, y, f"Q = {t['q']}", fontsize=18, weight="bold")
-    if t["grade"]:
-        fig.text(0.62, y + 0.004, f" {t['grade'].upper()} ", fontsize=12, weight="bold", color="white",
-                 bbox={"boxstyle": "round,pad=0.3", "fc": GRADE_COLOURS.get(t["grade"], "0.4"), "lw": 0})
-    y -= 0.025
-    fig.text(0.06, y, f"95 % interval {t['ci']} ({t['rel']})" if t["ci"] else "no 95 % interval in this result",
-             fontsize=10)
-    y -= 0.02
-    for sev, msg in t["reasons"][:8]:
-        fig.text(0.08, y, f"• {sev}: {msg}"[:130], fontsize=8.5)
-        y -= 0.016
-    if summary.get("discharge_p05_m3s") is not None:
-        fig.text(0.06, y, f"spread of single frame pairs (5–95 %): {_f(summary.get('discharge_p05_m3s'), '.3f')} – "
-                          f"{_f(summary.get('discharge_p95_m3s'), '.3f')} m³/s over {summary.get('n_pairs', '?')} pairs",
-                 fontsize=8, color="0.35")
-        y -= 0.02
-    y -= 0.01
-    res = [("Water level", f"{_f(summary.get('water_level_m'), '.3f', 'm')} ± {_f(summary.get('water_level_uncertainty_m'), '.3f', 'm')}"),
-           ("Wetted area / width", f"{_f(summary.get('wetted_area_m2'), '.3f', 'm²')} / {_f(summary.get('wetted_width_m'), '.3f', 'm')}"),
-           ("Mean velocity, α", f"{_f(summary.get('mean_velocity_ms'), '.3f', 'm/s')}, α = {_f(summary.get('alpha'), '.2f')}")]
-    res += [(f"Reference ({r.method})", f"{_f(r.discharge_m3s, '.3f')} m³/s") for r in references]
-    for k, v in res:
-        fig.text(0.06, y, k, fontsize=9, color="0.35")
-        fig.text(0.30, y, v, fontsize=9)
-        y -= 0.017
-    y -= 0.012
-    fig.text(0.06, y, "Parameters", fontsize=11, weight="bold")
-    y -= 0.02
-    for a, b, c in parameter_rows(inputs):
-        if y < 0.04:
-            break
-        fig.text(0.06, y, a, fontsize=8, color="0.35")
-        fig.text(0.26, y, b, fontsize=8)
-        fig.text(0.50, y, c[:70], fontsize=8)
-        y -= 0.0155
-
-
 def render_pdf(summary: dict, images: dict[str, bytes], subsections: list[dict], *,
-               measurement: Measurement | None = None, references: list[Reference] = ()) -> bytes:
-    """The report as PDF bytes (A4): a summary page, then the figures two per page (matplotlib)."""
-    import matplotlib.image as mpimg
-    from matplotlib.backends.backend_pdf import PdfPages
-    from matplotlib.figure import Figure
+               measurement: Measurement | None = None, references: Sequence[Reference] = ()) -> bytes:
+    """The report as PDF bytes (A4): a summary page, then the figures two per page (plots.report_pdf)."""
+    from fieldtool.plots import report_pdf  # lazy: matplotlib (0.3-0.5 s) only for --pdf
 
-    buf = io.BytesIO()
-    with PdfPages(buf) as pdf:
-        fig = Figure(figsize=(8.27, 11.69))
-        _pdf_text_page(fig, summary, measurement, references)
-        pdf.savefig(fig)
-        captions = dict(PLOTS)
-        order = [k for k, _ in PLOTS if k in images] + sorted(k for k in images if k not in captions)
-        for first in range(0, len(order), 2):
-            fig = Figure(figsize=(8.27, 11.69))
-            for slot, key in enumerate(order[first:first + 2]):
-                ax = fig.add_axes([0.06, 0.53 - 0.47 * slot, 0.88, 0.42])
-                ax.imshow(mpimg.imread(io.BytesIO(images[key]), format="png"))
-                ax.axis("off")
-                fig.text(0.5, 0.51 - 0.47 * slot, captions.get(key, key), ha="center", fontsize=9)
-            pdf.savefig(fig)
-        if subsections:
-            fig = Figure(figsize=(8.27, 11.69))
-            cols = [c for c in _COLUMN_NAMES if c in subsections[0]]
-            ax = fig.add_axes([0.06, 0.05, 0.88, 0.85])
-            ax.axis("off")
-            ax.set_title("Subsections", loc="left")
-            tab = ax.table(cellText=[[r[c] for c in cols] for r in subsections],
-                           colLabels=[_COLUMN_NAMES[c] for c in cols], loc="upper center")
-            tab.auto_set_font_size(False)
-            tab.set_fontsize(7.5)
-            pdf.savefig(fig)
-    return buf.getvalue()
+    return report_pdf.render_pdf(summary, images, subsections, measurement=measurement, references=references)
 
 
 def write_report(result_dir: Path | str, out: Path | str | None = None, *, pdf: bool = False,
-                 measurement: Measurement | None = None, references: list[Reference] = ()) -> list[Path]:
+                 measurement: Measurement | None = None, references: Sequence[Reference] = ()) -> list[Path]:
     """Write ``report.html`` (and ``report.pdf``) for a run's output folder. Returns the paths."""
     result_dir = Path(result_dir)
     summary, images, rows = load_result(result_dir)

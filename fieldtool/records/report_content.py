@@ -10,7 +10,34 @@
 
 from __future__ import annotations
 
+import html
 from pathlib import Path
+
+# plots of result.json "files", in report order, with captions
+PLOTS = (
+    ("profile_png", "Surface velocity along the section, with the spread of the frame-pair fields"),
+    ("vectors_png", "Surface velocity vectors on the first frame"),
+    ("rectified_png", "Rectified image with the velocity field (world metres)"),
+    ("section_png", "Cross-section, water level and subsection velocities / discharges"),
+    ("gcp_png", "Ground control points with the taped distances and their residuals"),
+    ("water_level_png", "Water level determination"),
+    ("stabilization_png", "Stabilisation"),
+)
+GRADE_COLOURS = {"good": "#1a7f37", "doubtful": "#9a6700", "unusable": "#cf222e"}
+# columns of the subsection table, with their headings
+COLUMN_NAMES = {"subsection": "#", "station_from_m": "from (m)", "station_to_m": "to (m)", "area_m2": "area (m²)",
+                 "mean_depth_m": "mean depth (m)", "surface_velocity_ms": "surface velocity (m/s)",
+                 "velocity_filled": "filled", "discharge_m3s": "Q (m³/s)"}
+
+
+def fmt_value(v, fmt: str = ".4f", unit: str = "") -> str:
+    """``v`` formatted with ``fmt`` and its unit; "–" for None, the escaped text of what is not a number."""
+    if v is None:
+        return "–"
+    try:
+        return f"{float(v):{fmt}}{(' ' + unit) if unit else ''}"
+    except (TypeError, ValueError):
+        return html.escape(str(v))
 
 
 def _num(v, fmt: str = ".3f", unit: str = "") -> str:
@@ -50,6 +77,8 @@ def header_rows(summary: dict, measurement=None) -> list[tuple[str, str]]:
 def interval(summary: dict) -> tuple[float, float] | None:
     """The 95 % interval of Q (m³/s) from the quality helper's keys, or None when the run has none."""
     ci = summary.get("discharge_ci95_m3s") or (summary.get("uncertainty") or {}).get("ci95_m3s")
+    if ci is None:
+        return None
     try:
         lo, hi = (float(v) for v in ci)
     except (TypeError, ValueError):
@@ -61,7 +90,7 @@ def discharge_text(summary: dict) -> dict:
     """Q, its interval, the relative half-width, the grade and the reasons, as text."""
     q = summary.get("discharge_m3s")
     ci = interval(summary)
-    out = {"q": _num(q, ".3f", "m³/s"), "ci": None, "rel": None, "grade": None, "reasons": []}
+    out: dict = {"q": _num(q, ".3f", "m³/s"), "ci": None, "rel": None, "grade": None, "reasons": []}
     if ci is not None:
         out["ci"] = f"{ci[0]:.3f} – {ci[1]:.3f} m³/s"
         if q:
@@ -87,7 +116,7 @@ def budget_rows(summary: dict) -> list[tuple[str, str, str]]:
     rows = []
     for b in (summary.get("uncertainty") or {}).get("budget") or []:
         if isinstance(b, dict):
-            rows.append((names.get(b.get("source"), str(b.get("source"))), _num(100 * float(b.get("share") or 0), ".0f", "%"),
+            rows.append((names.get(str(b.get("source")), str(b.get("source"))), _num(100 * float(b.get("share") or 0), ".0f", "%"),
                          _num(b.get("u_m3s"), ".3f", "m³/s")))
     return rows
 

@@ -17,6 +17,7 @@ The sites folder is ``--sites DIR``, else ``FIELDTOOL_SITES``, else ``<user data
 from __future__ import annotations
 
 import copy
+import json
 import os
 import re
 import tomllib
@@ -26,6 +27,7 @@ from pathlib import Path
 import tomli_w
 
 from fieldtool.errors import InputFileError, ParameterError
+from fieldtool.processing.cross_section import load_cross_section
 from fieldtool.project.model import (
     Project,
     atomic_write_bytes,
@@ -280,8 +282,6 @@ def load_site_project(path: Path | str) -> Project:
     """The project a site is created from (a project.toml or a run's result.json ``inputs``)."""
     path = Path(path)
     if path.suffix.lower() == ".json":
-        import json
-
         try:
             inputs = json.loads(path.read_text(encoding="utf-8"))["inputs"]
         except (OSError, ValueError, KeyError, TypeError) as e:
@@ -304,8 +304,6 @@ def describe(site: Site) -> list[str]:
         lines.append(f"cross-section {cs.shape}, top width {cs.top_width_m} m, depth {cs.depth_m} m")
     else:
         try:
-            from fieldtool.processing.cross_section import load_cross_section
-
             x = load_cross_section(p.resolve(cs.path))
             lines.append(f"cross-section {cs.path}: {len(x.station)} points, stations {x.station.min():.2f}-"
                          f"{x.station.max():.2f} m, lowest bed {x.bed_min:.3f} m")

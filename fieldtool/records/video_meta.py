@@ -14,12 +14,12 @@ frame reader (OpenCV's view of the container), as the run used them.
 from __future__ import annotations
 
 import struct
-from datetime import datetime, timedelta, timezone
+from datetime import UTC, datetime, timedelta
 from pathlib import Path
 
 from fieldtool.records.history import _iso, video_datetime
 
-_MKV_EPOCH = datetime(2001, 1, 1, tzinfo=timezone.utc)
+_MKV_EPOCH = datetime(2001, 1, 1, tzinfo=UTC)
 _EBML_MAGIC = b"\x1a\x45\xdf\xa3"
 _SEGMENT, _INFO, _DATE_UTC = 0x18538067, 0x1549A966, 0x4461
 _CLUSTER = 0x1F43B675
@@ -58,11 +58,11 @@ def mkv_creation_time(path: Path | str, max_elements: int = 4096) -> datetime | 
                 pos = fh.tell()
                 if pos >= stack_end:
                     return None
-                eid = _vint(fh, keep_marker=True)
-                size = _vint(fh, keep_marker=False)
-                if eid is None or size is None:
+                eid_read = _vint(fh, keep_marker=True)
+                size_read = _vint(fh, keep_marker=False)
+                if eid_read is None or size_read is None:
                     return None
-                eid, size = eid[0], size[0]
+                eid, size = eid_read[0], size_read[0]
                 if eid in (_SEGMENT, _INFO):  # descend into the master elements on the way to DateUTC
                     stack_end = end if size < 0 else min(end, fh.tell() + size)
                     continue

@@ -15,7 +15,7 @@ from fieldtool.processing.calibration import LensModel
 from fieldtool.processing.masks import rasterize
 from fieldtool.project.model import Project
 from fieldtool.run.inputs import Inputs
-from fieldtool.run.sections import SectionSpec
+from fieldtool.project.sections import SectionSpec
 
 
 def detect_waterline(project: Project, inputs: Inputs, mapping: ortho.OrthoMapping | None = None) -> dict:

@@ -28,7 +28,8 @@ from typing import Callable
 from fieldtool.plots.prerender import Prerender
 from fieldtool.project.model import Project, project_to_dict
 from fieldtool.project.validation import check
-from fieldtool.run import discharge, geometry, outputs, quality, sections, velocimetry
+from fieldtool.project import sections
+from fieldtool.run import discharge, geometry, outputs, quality, velocimetry
 from fieldtool.run.inputs import load_inputs
 from fieldtool.run.observer import Guarded, Observer, Progress
 from fieldtool.run.result import RunResult

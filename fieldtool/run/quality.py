@@ -1,6 +1,6 @@
 """Stage 7, quality and uncertainty: the Monte Carlo interval of the discharge and the quality verdict
 (run/assess.py), STIV's disagreement with PIV as a reason, and the extra sections of interest
-(run/sections.py), each measured on the run's field with its own interval and grade."""
+(project/sections.py), each measured on the run's field with its own interval and grade."""
 
 from __future__ import annotations
 
@@ -16,13 +16,13 @@ from fieldtool.processing import discharge as dq
 from fieldtool.processing import ortho
 from fieldtool.processing.quality import Reason
 from fieldtool.project.model import Project
-from fieldtool.run import sections as secs
+from fieldtool.project import sections as secs
 from fieldtool.run import stiv_stage
 from fieldtool.run.assess import assess_run
 from fieldtool.run.discharge import Discharge, PairDischarge
 from fieldtool.run.geometry import build_section
 from fieldtool.run.inputs import Inputs
-from fieldtool.run.sections import SectionSpec
+from fieldtool.project.sections import SectionSpec
 from fieldtool.run.velocimetry import Velocimetry
 
 

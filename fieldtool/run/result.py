@@ -10,7 +10,7 @@ import numpy as np
 from fieldtool import __version__
 from fieldtool.processing import discharge as dq
 from fieldtool.processing import ortho
-from fieldtool.run.sections import summarize
+from fieldtool.project.sections import summarize
 
 
 @dataclass
@@ -35,7 +35,7 @@ class RunResult:
     stiv: dict | None = None  # STIV beside PIV per subsection (stiv_stage.finish); None when [stiv] enabled = false
     uncertainty: object | None = None  # processing.uncertainty.McResult
     quality: object | None = None  # processing.quality.Quality
-    sections: list = field(default_factory=list)  # several sections: the main one first (fieldtool.run.sections)
+    sections: list = field(default_factory=list)  # several sections: the main one first (fieldtool.project.sections)
     robust: dict | None = None  # facts of the robust stages (processing/surface.py, robust.py, planning.py)
     piv_fast: dict | None = None  # region box and pair sampling of the fast path (see piv_region / run_piv_fast)
     video: dict = field(default_factory=dict)  # the clip's metadata (records.video_meta.video_info)

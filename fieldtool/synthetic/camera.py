@@ -152,6 +152,8 @@ def render_canvas(cam: Camera) -> tuple[np.ndarray | None, np.ndarray | None, tu
     (enlarged) ideal canvas, or None without distortion; the canvas offset and size (px); and ``T``,
     the 3x3 shift from ideal image pixels to canvas pixels.
     """
+    map_x: np.ndarray | None
+    map_y: np.ndarray | None
     if cam.has_distortion:
         map_x, map_y, offset, canvas = distortion_maps(cam)
     else:

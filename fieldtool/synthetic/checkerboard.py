@@ -72,10 +72,12 @@ def render_checkerboard(
     inner = board_corners(corners, square_m)
     background = 0.5 + 0.12 * cv2.resize(rng.standard_normal((canvas[1] // 16, canvas[0] // 16)).astype(np.float32), canvas, interpolation=cv2.INTER_CUBIC)
     scale = square_m / 0.05
-    wr = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*fourcc), fps, (w, h), True)
+    wr = cv2.VideoWriter(str(path), cv2.VideoWriter.fourcc(*fourcc), fps, (w, h), True)
     if not wr.isOpened():
         raise RuntimeError(f"cannot write {fourcc!r} video {path}")
-    rvecs, tvecs, img_pts = [], [], []
+    rvecs: list[np.ndarray] = []
+    tvecs: list[np.ndarray] = []
+    img_pts: list[np.ndarray] = []
     try:
         while len(rvecs) < n_frames:
             R = _rot(*np.radians(rng.uniform([-35, -35, -25], [35, 35, 25])))
@@ -91,8 +93,8 @@ def render_checkerboard(
             H = T @ cam.K @ np.column_stack([R[:, 0], R[:, 1], t]) @ A
             board = cv2.warpPerspective(tex, H, canvas, flags=cv2.INTER_LINEAR)
             alpha = cv2.warpPerspective(ones, H, canvas, flags=cv2.INTER_LINEAR)
-            img = background * (1 - alpha) + board
-            if map_x is not None:
+            img: np.ndarray = background * (1 - alpha) + board
+            if map_x is not None and map_y is not None:
                 img = cv2.remap(img, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
             img = img * 255.0 + noise_sigma * rng.standard_normal((h, w), dtype=np.float32)
             frame = np.clip(img + 0.5, 0, 255).astype(np.uint8)

@@ -83,6 +83,7 @@ class MkvWriter:
 
     def _flush(self) -> None:
         if self._blocks:
+            assert self._cluster_tc is not None  # set with the cluster's first block
             self._clusters.append(_el(b"\x1f\x43\xb6\x75", _uint(b"\xe7", self._cluster_tc) + b"".join(self._blocks)))
         self._blocks = []
 

@@ -20,9 +20,9 @@ from __future__ import annotations
 
 import json
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Callable
 
 import cv2
 import numpy as np
@@ -46,7 +46,7 @@ from fieldtool.project.model import (
 )
 from fieldtool.synthetic.camera import Camera, render_canvas
 from fieldtool.synthetic.checkerboard import render_checkerboard
-from fieldtool.synthetic.mkv import MkvWriter
+from fieldtool.synthetic.mkv import TIMECODE_SCALE_NS, MkvWriter, ticks_of
 
 
 @dataclass(frozen=True)
@@ -250,7 +250,7 @@ class SceneSpec:
     def n_frames(self) -> int:
         return int(round(self.duration_s * self.fps))
 
-    def with_(self, **changes) -> "SceneSpec":
+    def with_(self, **changes) -> SceneSpec:
         """A copy with fields replaced; ``river__x`` / ``camera__x`` change a field of those parts."""
         river = {k[7:]: v for k, v in changes.items() if k.startswith("river__")}
         cam = {k[8:]: v for k, v in changes.items() if k.startswith("camera__")}
@@ -508,7 +508,6 @@ def frame_times(spec: SceneSpec) -> list[float]:
     n = spec.n_frames
     if spec.drop_fraction <= 0:
         return [i / spec.fps for i in range(n)]
-    from fieldtool.synthetic.mkv import TIMECODE_SCALE_NS, ticks_of
 
     rng = _aux_rng(spec, 1)
     f = min(max(spec.drop_fraction, 0.0), 0.8)

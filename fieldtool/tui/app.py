@@ -8,8 +8,9 @@ cancels) and relays picks from the viewer. Everything else lives in screens/ and
 from __future__ import annotations
 
 import time
+from collections.abc import Callable, Iterable
 from pathlib import Path
-from typing import Any, Callable, Iterable
+from typing import Any
 
 from textual.app import App, SystemCommand
 from textual.screen import Screen
@@ -31,6 +32,7 @@ from fieldtool.tui.screens.water_level import WaterLevelScreen
 from fieldtool.tui.session import Session, open_session
 from fieldtool.tui.steps import STEP_IDS, STEPS
 from fieldtool.tui.viewer_link import ssh_line
+from fieldtool.viewer.picks import MODES
 
 SCREENS_BY_STEP: dict[str, type[StepScreen]] = {
     s.STEP: s for s in (CrossSectionScreen, VideoScreen, CalibrationScreen, OrthoScreen, WaterLevelScreen, RoiScreen,
@@ -188,7 +190,7 @@ class FieldToolApp(App):
         if self.viewer is not None:
             self.notify(f"viewer at {self.viewer_url} · over SSH: {ssh_line(self.viewer)}", timeout=10)
             return
-        try:
+        try:  # lazy: viser (0.15-0.3 s to import) only when the operator opens the viewer
             from fieldtool.viewer.server import start_viewer
         except ImportError as e:
             self.notify(f"the viewer is not available ({e}); type pixel points as 'x, y'", severity="warning")
@@ -238,7 +240,6 @@ class FieldToolApp(App):
         """Switch the viewer to the pick mode that fills ``key`` (a pixel field got the focus)."""
         if self.viewer is None:
             return
-        from fieldtool.viewer.picks import MODES
 
         base = key.split("[")[0]
         for name, spec in MODES.items():

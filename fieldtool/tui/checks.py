@@ -14,7 +14,14 @@ from __future__ import annotations
 import json
 
 from fieldtool.errors import FieldToolError, ParameterError
+from fieldtool.processing import cross_section as xs
+from fieldtool.processing import piv as piv_mod
+from fieldtool.processing.calibration import load_calibration
+from fieldtool.processing.filters import FilterStack
+from fieldtool.processing.frames import FrameSource, read_color_frame
 from fieldtool.project.model import project_to_dict
+from fieldtool.run.geometry import build_mapping, build_section, level_and_mapping, roi_and_mask
+from fieldtool.run.velocimetry import piv_params
 
 # project tables each step's core check reads (its cache key)
 _INPUTS = ("video", "cross_section", "calibration")
@@ -31,19 +38,21 @@ CORE_TABLES = {
 }
 
 
+def build_cross_section(project) -> xs.CrossSection:
+    """The project's cross-section (shape or file); FieldToolError with the user's message."""
+    c = project.cross_section
+    if c.shape:
+        return xs.from_shape(c.shape, top_width_m=c.top_width_m, bottom_width_m=c.bottom_width_m, depth_m=c.depth_m,
+                             left_station_m=c.left_station_m, bank_elevation_m=c.bank_elevation_m, points=c.points)
+    return xs.load_cross_section(project.resolve(c.path))
+
+
 def core_check(session, step: str) -> None:
     """The core's check of ``step`` on the session's project; raises FieldToolError with the message."""
-    from fieldtool.run.geometry import build_mapping, level_and_mapping, roi_and_mask
-    from fieldtool.run.velocimetry import piv_params
-
     p = session.project
     if step == "cross_section":
-        from fieldtool.tui.screens.cross_section import build_cross_section
-
         build_cross_section(p)
     elif step == "video":  # the clip alone (not the lens, whose step comes after)
-        from fieldtool.processing.frames import FrameSource, read_color_frame
-
         v = p.video
         if not v.path:
             raise ParameterError("video.path: no video given; set the clip to analyse")
@@ -54,8 +63,6 @@ def core_check(session, step: str) -> None:
                                  "or lower video.step")
     elif step == "calibration":
         if session.ui.get("calibration_mode") != "skip" and p.calibration.path:
-            from fieldtool.processing.calibration import load_calibration
-
             load_calibration(p.resolve(p.calibration.path))
     elif step == "ortho":
         if p.ortho.method in ("distances", "world", "two_points"):
@@ -67,12 +74,8 @@ def core_check(session, step: str) -> None:
     elif step == "roi":
         roi_and_mask(p, session.inputs())
     elif step == "filters":
-        from fieldtool.processing.filters import FilterStack
-
         FilterStack.from_config(p.filters)
     elif step == "piv":
-        from fieldtool.processing import piv as piv_mod
-
         inputs = session.inputs()
         roi, _ = roi_and_mask(p, inputs)
         piv_mod.check_params(inputs.shape, piv_params(p), roi)
@@ -83,8 +86,6 @@ def core_check(session, step: str) -> None:
 def section_geometry(session):
     """(section geometry, level result, cross-section) of the session's project, with the same
     checks as `fieldtool run` (``run.geometry.build_section``)."""
-    from fieldtool.run.geometry import build_section, level_and_mapping
-
     p = session.project
     inputs = session.inputs()
     level, mapping = level_and_mapping(p, inputs)

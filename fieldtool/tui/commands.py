@@ -6,7 +6,7 @@ import argparse
 
 
 def cmd_tui(args: argparse.Namespace) -> int:
-    from fieldtool.tui.app import FieldToolApp
+    from fieldtool.tui.app import FieldToolApp  # lazy: textual and the TUI, not for every `fieldtool` command
 
     app = FieldToolApp(args.project)
     app.run()

@@ -14,8 +14,9 @@ from __future__ import annotations
 import math
 import re
 import typing
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
 
 from fieldtool.project.model import Project
 
@@ -275,7 +276,8 @@ class Field:
         if self.kind == "path" and value:
             p = project.resolve(value)
             if not p.exists():
-                return f"{self.key}: {value} not found (looked in {p.parent}); give a path relative to the project folder or absolute"
+                return (f"{self.key}: {value} not found (looked in {p.parent}); give a path relative to the project "
+                        "folder or absolute")
         if self.check is not None:
             msg = self.check(value, project)
             if msg:

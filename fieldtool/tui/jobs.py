@@ -14,9 +14,17 @@ from pathlib import Path
 
 import numpy as np
 
-from fieldtool.run import piv_cache
-from fieldtool.errors import GeometryError, ParameterError
+from fieldtool.errors import Cancelled, FieldToolError, GeometryError, ParameterError
+from fieldtool.processing import piv as piv_mod
+from fieldtool.processing.calibration import calibrate_video, save_calibration
 from fieldtool.project.model import Project, project_to_dict
+from fieldtool.run import frames as run_frames
+from fieldtool.run import piv_cache
+from fieldtool.run.geometry import level_and_mapping, roi_and_mask
+from fieldtool.run.frames import Sized
+from fieldtool.run.inputs import load_inputs
+from fieldtool.run.pipeline import run_project
+from fieldtool.run.velocimetry import piv_params
 
 
 class Job:
@@ -60,8 +68,6 @@ def has_section(project: Project) -> bool:
 
 def run_full(project: Project, out_dir: Path, job: Job) -> dict:
     """Every step (pipeline.run_project), results written to ``out_dir``; returns the summary."""
-    from fieldtool.run.pipeline import run_project
-
     res = run_project(project, out_dir, progress=job.progress, cancel=job.cancelled)
     return res.summary()
 
@@ -78,11 +84,6 @@ def _piv_setup(project: Project, inputs):
 
     The key is the PIV cache's (``piv_cache.piv_key``) on every PIV input; it is None when a speed
     limit is set but the mapping cannot be built yet."""
-    from fieldtool.errors import FieldToolError
-    from fieldtool.run.geometry import level_and_mapping, roi_and_mask
-    from fieldtool.run.velocimetry import piv_params
-    from fieldtool.processing import piv as piv_mod
-
     try:
         _, mapping = level_and_mapping(project, inputs)
     except FieldToolError:
@@ -124,15 +125,11 @@ def run_piv_only(project: Project, job: Job, out_dir: Path | None = None) -> dic
     The level and mapping are used when they can be computed (speed limit, m/s statistics). The
     field is saved at once under ``out_dir/tui_piv`` (the PIV cache's format and key): quitting before
     a section exists loses nothing, the PIV step shows it again when the project is reopened."""
-    from fieldtool.run.frames import Sized, working_frames
-    from fieldtool.run.inputs import load_inputs
-    from fieldtool.processing import piv as piv_mod
-
     job.progress("inputs", 0, 0)
     inputs = load_inputs(project)
     mapping, roi, mask, params, max_speed, key = _piv_setup(project, inputs)
     stab: dict = {}
-    frames = working_frames(project, inputs, job.cancelled, None, stab if project.stabilize.enabled else None,
+    frames = run_frames.working_frames(project, inputs, job.cancelled, None, stab if project.stabilize.enabled else None,
                             job.progress)
     n_expected = inputs.source.estimated_count()
     if n_expected:
@@ -148,8 +145,6 @@ def run_piv_only(project: Project, job: Job, out_dir: Path | None = None) -> dic
 def cached_piv(project: Project, inputs, out_dir: Path) -> dict | None:
     """The PIV step's summary of the field a PIV-only run saved in ``out_dir`` for the project's
     current PIV inputs, or None (none, other inputs, unreadable)."""
-    from fieldtool.errors import FieldToolError
-
     try:
         mapping, _, _, _, _, key = _piv_setup(project, inputs)
     except FieldToolError:
@@ -164,8 +159,6 @@ def cached_piv(project: Project, inputs, out_dir: Path) -> dict | None:
 
 def run_calibration(project: Project, job: Job) -> dict:
     """Calibrate from the checkerboard video and write the lens file named by calibration.path."""
-    from fieldtool.processing.calibration import calibrate_video, save_calibration
-
     c = project.calibration
     if not c.path:
         raise ParameterError("calibration.path: give the file name the calibration is saved as")
@@ -179,14 +172,11 @@ def run_calibration(project: Project, job: Job) -> dict:
 
 def run_stabilization(project: Project, job: Job) -> dict:
     """Register the clip on its first frame (filters off) and report the residual motion."""
-    from fieldtool.run.frames import working_frames
-    from fieldtool.run.inputs import load_inputs
-
     p = snapshot(project)
     p.filters = []
     inputs = load_inputs(p)
     report: dict = {}
-    for _ in working_frames(p, inputs, job.cancelled, None, report, job.progress, stage="stabilising"):
+    for _ in run_frames.working_frames(p, inputs, job.cancelled, None, report, job.progress, stage="stabilising"):
         pass
     if not report:
         raise GeometryError("stabilize: the clip gave no frame to register")
@@ -195,8 +185,6 @@ def run_stabilization(project: Project, job: Job) -> dict:
 
 def describe_error(title: str, error: BaseException | None, took: float) -> tuple[str, bool]:
     """Text for a run that did not finish, and whether it is an error (a cancel is not)."""
-    from fieldtool.errors import Cancelled, FieldToolError
-
     if isinstance(error, Cancelled) or error is None:
         return f"{title} cancelled after {took:.1f} s; nothing was changed", False
     if isinstance(error, FieldToolError):

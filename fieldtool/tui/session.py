@@ -16,9 +16,12 @@ from pathlib import Path
 from typing import Any
 
 from fieldtool.errors import FieldToolError, InputFileError
+from fieldtool.processing.filters import FilterStack
 from fieldtool.project.model import Project, apply_changes, flat_changes, load_project, project_to_dict, save_project
+from fieldtool.run.inputs import load_inputs
 from fieldtool.tui.checks import CoreChecks, is_missing
 from fieldtool.tui.fields import field_errors
+from fieldtool.tui.jobs import PREVIEW_DIR, cached_piv
 from fieldtool.tui.steps import PIV_TABLES, STEP_IDS, STEPS, calibration_mode, fields_for, step_problems
 
 IGNORED_KEYS = ("name", "step", "rerun")
@@ -93,8 +96,6 @@ class Session:
     # -- inputs (cross-section, clip, lens), cached on their tables ------------------------------
     def inputs(self):
         """run.inputs.Inputs for the current project; loaded again only when their tables change."""
-        from fieldtool.run.inputs import load_inputs
-
         d = project_to_dict(self.project)
         key = json.dumps([d.get(t) for t in ("video", "cross_section", "calibration")], sort_keys=True)
         if key != self._inputs_key:
@@ -157,7 +158,6 @@ class Session:
         no run of this session has one (a PIV run of an earlier session, quit before a section existed)."""
         if self.piv_preview is not None and not (self.changed_tables(self.piv_preview["inputs"]) & set(PIV_TABLES)):
             return
-        from fieldtool.tui.jobs import PREVIEW_DIR
 
         if not (self.out_dir / PREVIEW_DIR / "piv_cache.npz").is_file():
             return
@@ -166,7 +166,6 @@ class Session:
         if key == self._cache_looked:
             return
         self._cache_looked = key
-        from fieldtool.tui.jobs import cached_piv
 
         try:
             found = cached_piv(self.project, self.inputs(), self.out_dir)
@@ -188,8 +187,6 @@ class Session:
         """Messages of the step's fields on the current project values (no file reading beyond
         checking that named files exist)."""
         if step == "filters":
-            from fieldtool.processing.filters import FilterStack
-
             try:
                 FilterStack.from_config(self.project.filters)
             except FieldToolError as e:

@@ -7,10 +7,11 @@ key (the calibration mode), kept in the session's ``ui`` dict.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 from fieldtool.project.model import Project
+from fieldtool.project.validation import validate
 from fieldtool.tui.fields import Field
 
 # ---------------------------------------------------------------------------------------------
@@ -433,7 +434,5 @@ def fields_for(step: str, ui: dict) -> list[Field]:
 
 def step_problems(step: str, project: Project, *, files: bool = True):
     """Problems of the validation layer (``fieldtool.project.validation``) on the tables a step edits."""
-    from fieldtool.project.validation import validate
-
     tables = STEP_BY_ID[step].tables if step in STEP_BY_ID else ()
     return [p for p in validate(project, files=files) if p.key.split(".")[0].split("[")[0] in tables]

@@ -8,21 +8,19 @@ import threading
 
 
 def cmd_view(args: argparse.Namespace) -> int:
-    from fieldtool.viewer.images import KINDS
-    from fieldtool.viewer.picks import MODES
-    from fieldtool.viewer.server import start_viewer
+    from fieldtool.viewer import images, picks, server  # lazy: viser and the viewer, not for every `fieldtool` command
 
-    if args.mode and args.mode not in MODES:
-        print(f"fieldtool: error: --mode {args.mode!r}: one of {', '.join(MODES)}", file=sys.stderr)
+    if args.mode and args.mode not in picks.MODES:
+        print(f"fieldtool: error: --mode {args.mode!r}: one of {', '.join(picks.MODES)}", file=sys.stderr)
         return 2
-    if args.image and args.image not in KINDS:
-        print(f"fieldtool: error: --image {args.image!r}: one of {', '.join(KINDS)}", file=sys.stderr)
+    if args.image and args.image not in images.KINDS:
+        print(f"fieldtool: error: --image {args.image!r}: one of {', '.join(images.KINDS)}", file=sys.stderr)
         return 2
 
     def on_pick(field: str, value) -> None:
         print(f"saved {field} = {value}", flush=True)
 
-    handle = start_viewer(args.project, host=args.host, port=args.port, on_pick=on_pick)
+    handle = server.start_viewer(args.project, host=args.host, port=args.port, on_pick=on_pick)
     if handle.warning:
         print(handle.warning, file=sys.stderr, flush=True)
     for note in handle.notes:

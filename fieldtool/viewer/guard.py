@@ -21,16 +21,22 @@ starts (viser serves its page and its WebSocket on one port through that hook).
 from __future__ import annotations
 
 import contextlib
+import getpass
 import hmac
 import ipaddress
 import secrets
 import socket
 import threading
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from http import HTTPStatus
 from pathlib import Path
-from typing import Callable, Iterator
 from urllib.parse import urlsplit
+
+import viser
+import websockets.asyncio.server as wss
+from websockets.datastructures import Headers
+from websockets.http11 import Request, Response
 
 LOOPBACK_NAMES = ("127.0.0.1", "localhost", "::1")
 WILDCARDS = ("0.0.0.0", "::", "")
@@ -157,9 +163,6 @@ def make_process_request(guard: AccessGuard, inner: Callable | None,
     the key from the path and hands the request to viser's own file server (``inner``).
 
     ``extra_routes(rest_of_path, request)`` may answer paths itself (a Response) or return None."""
-    from websockets.datastructures import Headers
-    from websockets.http11 import Request, Response
-
     def refuse(status: HTTPStatus, why: str) -> Response:
         body = f"{status.value} {status.phrase}: {why}\n".encode()
         return Response(status.value, status.phrase,
@@ -201,8 +204,6 @@ def install(guard: AccessGuard, extra_routes: Callable | None = None) -> Iterato
     """While inside, a ``websockets.asyncio.server.serve`` call made by viser gets its
     ``process_request`` wrapped by ``guard``. Create the ``viser.ViserServer`` inside: it binds
     its socket before its constructor returns, so the patch is in place exactly for that call."""
-    import websockets.asyncio.server as wss
-
     original = wss.serve
 
     class guarded_serve(original):  # type: ignore[misc, valid-type]
@@ -225,8 +226,6 @@ def ssh_hint(port: int, user: str | None = None, host: str | None = None) -> str
     """The exact command that forwards the viewer's ``port`` from this machine to the operator's
     computer: ``ssh -L PORT:127.0.0.1:PORT user@host`` (then open ``http://127.0.0.1:PORT/KEY/``
     there). ``user`` and ``host`` default to this account and this machine's name."""
-    import getpass
-
     if user is None:
         try:
             user = getpass.getuser()
@@ -238,6 +237,4 @@ def ssh_hint(port: int, user: str | None = None, host: str | None = None) -> str
 
 def page_path() -> Path:
     """viser's bundled, self-contained page."""
-    import viser
-
     return Path(viser.__file__).resolve().parent / "client" / "build" / "index.html"

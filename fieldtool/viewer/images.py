@@ -13,16 +13,23 @@ the water plane), ``image1`` / ``image2`` (the two nadir images of the angle-and
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
 import cv2
 import numpy as np
 
 from fieldtool.errors import FieldToolError, InputFileError, ParameterError
+from fieldtool.processing import water_level as wl
+from fieldtool.processing.calibration import load_calibration
+from fieldtool.processing.frames import read_color_frame
 from fieldtool.project.model import Project
+from fieldtool.run.geometry import build_mapping, compute_level
+from fieldtool.run.inputs import load_cross_section
+from fieldtool.run.inputs import load_inputs
 from fieldtool.viewer.mapping import PlotAxes
+from fieldtool.viewer.plot_image import Curve, render_plot
 
 KINDS = {
     "frame": "First frame",
@@ -64,8 +71,6 @@ def _rgb(bgr: np.ndarray) -> np.ndarray:
 
 
 def _first_frame(project: Project) -> np.ndarray:
-    from fieldtool.processing.frames import read_color_frame
-
     v = project.video
     if not v.path:
         raise ParameterError("video.path: no video given; set the clip to analyse")
@@ -76,7 +81,6 @@ def lens_of(project: Project):
     """The lens model of the project, or None without calibration.path."""
     if not project.calibration.path:
         return None
-    from fieldtool.processing.calibration import load_calibration
 
     return load_calibration(project.resolve(project.calibration.path))
 
@@ -118,9 +122,6 @@ def load_display(project: Project, kind: str) -> Display:
 
 
 def _ortho(project: Project) -> Display:
-    from fieldtool.run.geometry import build_mapping, compute_level
-    from fieldtool.run.inputs import load_inputs
-
     inputs = load_inputs(project)
     level = None
     if project.ortho.method in ("none", "pose"):
@@ -148,13 +149,9 @@ def _ortho(project: Project) -> Display:
 
 
 def _dem_plot(project: Project) -> Display:
-    from fieldtool.processing import water_level as wl
-    from fieldtool.viewer.plot_image import Curve, render_plot
-
     cfg = project.water_level
     if not cfg.dem_path:
         raise ParameterError("water_level.dem_path: no DEM given; the DEM plot needs the bank's DEM (TIFF)")
-    from fieldtool.run.inputs import load_cross_section
 
     cs = load_cross_section(project)
     dem = wl.read_dem(project.resolve(cfg.dem_path))

@@ -182,7 +182,7 @@ def zoom_about_cursor(position, look_at, up, fov_y_rad: float, aspect: float, nd
     if px is None:
         return None
     x = pixel_to_scene([px], plane)[0]
-    dist = np.linalg.norm(p - x)
+    dist = float(np.linalg.norm(p - x))
     s = float(scale)
     if min_dist is not None and dist * s < min_dist:
         s = min_dist / dist

@@ -20,11 +20,13 @@ divergence  water_level.divergence_station_m    dem_plot            station (m) 
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
+from fieldtool.project.model import apply_changes
 from fieldtool.viewer.mapping import PlotAxes
 
 
@@ -440,8 +442,6 @@ def save_field(project_path, path: str, value: Any) -> Any:
     """Set one dotted field in the project file, merged with what other programs saved meanwhile
     (``project.apply_changes``: this one key, comments kept, atomic). Returns the project as
     saved. The one place the viewer writes the project file."""
-    from fieldtool.project.model import apply_changes
-
     return apply_changes(project_path, {path: value})
 
 

@@ -3,6 +3,7 @@ so a click on the picture maps to data coordinates (the DEM-vs-bed plot of the H
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -30,7 +31,7 @@ def _nice_ticks(lo: float, hi: float, n: int = 6) -> np.ndarray:
 
 
 def render_plot(curves: list[Curve], *, size: tuple[int, int] = (1000, 600), title: str = "",
-                xlabel: str = "", ylabel: str = "", vlines: list[tuple[float, tuple[int, int, int], str]] = ()
+                xlabel: str = "", ylabel: str = "", vlines: Sequence[tuple[float, tuple[int, int, int], str]] = ()
                 ) -> tuple[np.ndarray, PlotAxes]:
     """Draw ``curves`` (and labelled vertical lines at x values) into a ``size`` = (width, height)
     RGB image. Returns the image and its :class:`PlotAxes`."""
@@ -48,9 +49,9 @@ def render_plot(curves: list[Curve], *, size: tuple[int, int] = (1000, 600), tit
     img = np.full((h, w, 3), 255, np.uint8)
     font = cv2.FONT_HERSHEY_SIMPLEX
     for t in _nice_ticks(axes.x_min, axes.x_max):
-        c = int(round(axes.data_to_px([[t, axes.y_min]])[0, 0]))
-        cv2.line(img, (c, top), (c, bottom), (225, 225, 225), 1)
-        cv2.putText(img, f"{t:g}", (c - 15, bottom + 22), font, 0.5, (0, 0, 0), 1, cv2.LINE_AA)
+        col = int(round(axes.data_to_px([[t, axes.y_min]])[0, 0]))
+        cv2.line(img, (col, top), (col, bottom), (225, 225, 225), 1)
+        cv2.putText(img, f"{t:g}", (col - 15, bottom + 22), font, 0.5, (0, 0, 0), 1, cv2.LINE_AA)
     for t in _nice_ticks(axes.y_min, axes.y_max):
         r = int(round(axes.data_to_px([[axes.x_min, t]])[0, 1]))
         cv2.line(img, (left, r), (right, r), (225, 225, 225), 1)

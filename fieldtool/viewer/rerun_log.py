@@ -50,12 +50,18 @@ from __future__ import annotations
 import sys
 import uuid
 from pathlib import Path
+from urllib.parse import urlparse
 
 import cv2
 import numpy as np
+import rerun as rr
+import rerun.blueprint as rrb
+from scipy.spatial import cKDTree
 
 from fieldtool.errors import InputFileError, ParameterError
+from fieldtool.processing import discharge as dq
 from fieldtool.run.observer import Observer
+from fieldtool.viewer.rerun_web import OfflineWebViewer, disable_rerun_analytics
 
 MODES = ("off", "save", "connect", "serve")
 PROFILE_SCALE = 10.0  # section profile: 1 m/s is drawn as 10 "metres" of station, so both axes read well
@@ -68,8 +74,6 @@ SERIES = {"pair_m3s": ("per-pair Q (one frame pair's field)", [150, 150, 150]),
 
 def blueprint():
     """The supervisor's layout: frame + live vectors (large) | map, section profile, discharge over time."""
-    import rerun.blueprint as rrb
-
     return rrb.Blueprint(
         rrb.Horizontal(
             rrb.Spatial2DView(origin="/frames/input", name="Current frame and live vectors (px)"),
@@ -124,8 +128,6 @@ class RerunObserver(Observer):
     def __init__(self, mode: str = "save", *, path: str | Path | None = None, url: str | None = None,
                  grpc_port: int = GRPC_PORT, web_port: int = WEB_PORT, max_side_px: int = 640,
                  jpeg_quality: int = 75, recording=None):
-        import rerun as rr
-
         self.rr = rr
         self.mode = mode
         self.max_side_px = max_side_px
@@ -157,8 +159,6 @@ class RerunObserver(Observer):
             self.urls["viewer"] = url or DEFAULT_URL
             self.rec.connect_grpc(self.urls["viewer"], default_blueprint=blueprint())
         elif mode == "serve":
-            from fieldtool.viewer.rerun_web import OfflineWebViewer, disable_rerun_analytics
-
             disable_rerun_analytics()
             self.urls["grpc"] = self.rec.serve_grpc(grpc_port=grpc_port, default_blueprint=blueprint())
             self.web = OfflineWebViewer(self.urls["grpc"], grpc_port, web_port)
@@ -277,7 +277,7 @@ class RerunObserver(Observer):
         # geometry; again here when it was not, or when the section was swapped after the run
         if self._pair_q is None or res.section.swapped:
             self._q_pairs = []
-            for k, (t, q) in enumerate(zip(t_pairs, res.q_pairs)):
+            for k, (t, q) in enumerate(zip(t_pairs, res.q_pairs, strict=False)):
                 self._time(t, pair=k)
                 self._log_q(q)
         if self._first is None:
@@ -301,7 +301,7 @@ class RerunObserver(Observer):
         U, V = np.asarray(res.world_u)[ok], np.asarray(res.world_v)[ok]
         flip = np.array([1.0, -1.0])  # screen y = -world Y: north up
         if self._first is not None:
-            self._map_background(res)
+            self._map_background(res, self._first)
         self.map_arrow_s = _map_arrow_s(XY, U, V)
         self.rec.log("map/mean_field", rr.Arrows2D(origins=XY * flip, vectors=np.c_[U, V] * flip * self.map_arrow_s,
                                                    colors=[0, 200, 255], radii=0.02))
@@ -332,10 +332,10 @@ class RerunObserver(Observer):
         for w in res.warnings:
             self.rec.log("log", rr.TextLog(w, level="WARN"))
 
-    def _map_background(self, res) -> None:
+    def _map_background(self, res, first: np.ndarray) -> None:
         """The rectified first frame under the map, pixel (c, r) centre at (Xmin + c r, -(Ymax - r r))."""
         rr = self.rr
-        img, A = res.mapping.rectified_image(_to_uint8(self._first), max_side_px=800)
+        img, A = res.mapping.rectified_image(_to_uint8(first), max_side_px=800)
         r = 1.0 / A[0, 0]
         x0, y1 = -A[0, 2] * r, A[1, 2] * r
         im = img if img.ndim == 2 else cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
@@ -346,10 +346,8 @@ class RerunObserver(Observer):
 
     def _profile(self, res) -> None:
         """Surface velocity along the section with the 2.5-97.5 % band of the pair fields."""
-        from fieldtool.plots.report_figures import profile_band
-
         rr = self.rr
-        b = profile_band(res)
+        b = dq.profile_band(res.discharge, res.piv, res.section, res.mapping)
         k = -PROFILE_SCALE  # screen y down: velocity up
         s, v = b["station_m"], b["velocity_ms"]
         band = np.isfinite(b["p025_ms"]) & np.isfinite(b["p975_ms"])
@@ -362,7 +360,7 @@ class RerunObserver(Observer):
                                                                  radii=0.08))
         every = max(1, int(np.ceil(fin.sum() / 6)))  # at most ~6 labels: more overlap; hover shows the rest
         labels = [(f"{st:.1f} m: {vel:.2f} m/s" + (" (filled)" if f else "")) if i % every == 0 else ""
-                  for i, (st, vel, f) in enumerate(zip(s[fin], v[fin], b["filled"][fin]))]
+                  for i, (st, vel, f) in enumerate(zip(s[fin], v[fin], b["filled"][fin], strict=True))]
         self.rec.log("section/profile/subsections", rr.Points2D(np.c_[s[fin], k * v[fin]], labels=labels,
                                                                 colors=[0, 120, 255], radii=0.15))
         self.rec.log("section/profile/zero", rr.LineStrips2D([[[s.min() - 0.5, 0.0], [s.max() + 0.5, 0.0]]],
@@ -385,8 +383,6 @@ class RerunObserver(Observer):
 
 def _map_arrow_s(XY: np.ndarray, U: np.ndarray, V: np.ndarray) -> float:
     """Seconds of displacement per map arrow so that a fast (90th percentile) arrow spans 0.9 node spacing."""
-    from scipy.spatial import cKDTree
-
     if len(XY) < 2:
         return 1.0
     spacing = float(np.median(cKDTree(XY).query(XY, k=2)[0][:, 1]))
@@ -399,6 +395,8 @@ def _interval(res) -> tuple[float, float] | None:
     try:
         s = res.summary()
         ci = s.get("discharge_ci95_m3s") or (s.get("uncertainty") or {}).get("ci95_m3s")
+        if ci is None:
+            return None
         lo, hi = (float(v) for v in ci)
     except (TypeError, ValueError, AttributeError):
         return None
@@ -446,8 +444,6 @@ def confined_rrd_path(rel: str, out_dir: str | Path, key: str = "rerun.path") ->
 
 def check_url(url: str, key: str = "rerun.url") -> str:
     """The viewer URL, checked: ``rerun+http(s)://HOST:PORT/proxy`` or ``rerun://HOST:PORT/proxy``."""
-    from urllib.parse import urlparse
-
     u = urlparse(url)
     if u.scheme not in ("rerun", "rerun+http", "rerun+https") or not u.hostname or u.path != "/proxy":
         raise ParameterError(f"{key}: {url!r} is not a rerun viewer address; write it as "

@@ -9,9 +9,10 @@ no internet, and nothing should phone home, so:
   analytics on CI; there is no other per-process switch, and ``rerun analytics disable`` would
   change the user's global configuration);
 - rerun's web server runs on an *internal* port (web port + 1; rerun binds it on all interfaces);
-  this module's small HTTP server, on the web port the supervisor opens, forwards each GET to it, removes the external font links (and the
-  app.rerun.io-only script) from ``index.html``, and sends a Content-Security-Policy that lets the
-  page reach only its own server and the gRPC port: anything else is refused by the browser.
+  this module's small HTTP server, on the web port the supervisor opens, forwards each GET to it, removes the
+  external font links (and the app.rerun.io-only script) from ``index.html``, and sends a
+  Content-Security-Policy that lets the page reach only its own server and the gRPC port: anything else
+  is refused by the browser.
 """
 
 from __future__ import annotations
@@ -21,6 +22,8 @@ import re
 import threading
 import urllib.request
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+
+import rerun as rr
 
 _EXTERNAL_LINKS = re.compile(r"<link[^>]*(fonts\.googleapis\.com|fonts\.gstatic\.com)[^>]*/?>\s*", re.S)
 _RERUN_SITE_SCRIPT = re.compile(r'if \(window\.location\.hostname == "app\.rerun\.io"\) \{.*?\n      \}', re.S)
@@ -59,8 +62,6 @@ class OfflineWebViewer:
         self.server: ThreadingHTTPServer | None = None
 
     def start(self) -> str:
-        import rerun as rr
-
         disable_rerun_analytics()
         rr.serve_web_viewer(web_port=self.internal_port, open_browser=False, connect_to=self.grpc_url)
         upstream = f"http://127.0.0.1:{self.internal_port}"

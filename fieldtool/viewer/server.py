@@ -25,13 +25,19 @@ power to edit the project, reachable from the network: it is an explicit option 
 from __future__ import annotations
 
 import contextlib
+import gzip
 import io
 import threading
 import warnings
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
+from urllib.parse import parse_qs
 
 import numpy as np
+import viser
+from websockets.datastructures import Headers
+from websockets.http11 import Response
 
 from fieldtool.errors import FieldToolError, ParameterError
 from fieldtool.project.model import load_project
@@ -63,7 +69,7 @@ OnPick = Callable[[str, Any], None]
 class ViewerHandle:
     """A running viewer. Thread-safe; ``stop()`` shuts the web server down."""
 
-    def __init__(self, viewer: "_Viewer"):
+    def __init__(self, viewer: _Viewer):
         self._v = viewer
         self.host: str = viewer.host
         self.port: int = viewer.server.get_port()
@@ -104,7 +110,7 @@ class ViewerHandle:
         pages moved."""
         return self._v.zoom(ndc_x, ndc_y, scale)
 
-    def set_mode(self, mode: str) -> None:
+    def set_mode(self, mode: str | None) -> None:
         """Select a pick mode (a key of ``picks.MODES``, or ``None`` / "" for view only); the image
         the mode needs is shown."""
         self._v.set_mode(mode or None)
@@ -142,7 +148,7 @@ class ViewerHandle:
     def stop(self) -> None:
         self._v.stop()
 
-    def __enter__(self) -> "ViewerHandle":
+    def __enter__(self) -> ViewerHandle:
         return self
 
     def __exit__(self, *exc) -> None:
@@ -163,8 +169,6 @@ def start_viewer(project_path: str | Path, host: str = "127.0.0.1", port: int | 
     on_pick : called as ``on_pick(field, value)`` after each saved pick, from a server thread;
         ``field`` is the dotted project key (``"ortho.gcp_px"``).
     """
-    import viser
-
     path = Path(project_path).resolve()
     project = load_project(path)
     remembered = int(getattr(getattr(project, "viewer", None), "port", 0) or 0)
@@ -214,28 +218,22 @@ class _Routes:
 
     def __init__(self, guard: AccessGuard):
         self.guard = guard
-        self.viewer: "_Viewer | None" = None
+        self.viewer: _Viewer | None = None
         self._page: bytes | None = None
         self._page_gz: bytes | None = None
 
     def page(self) -> tuple[bytes, bytes]:
         if self._page is None:
-            import gzip
-
             html = page_path().read_text(encoding="utf-8")
             if "</body>" not in html:
                 raise FieldToolError("viser's page has no </body>: cannot add the zoom script; please report this")
             html = html.replace("</body>", f"<script>{ZOOM_SCRIPT}</script></body>", 1)
             self._page = html.encode("utf-8")
             self._page_gz = gzip.compress(self._page)
+        assert self._page_gz is not None
         return self._page, self._page_gz
 
     def __call__(self, rest: str, request):
-        from urllib.parse import parse_qs
-
-        from websockets.datastructures import Headers
-        from websockets.http11 import Response
-
         path, _, query = rest.partition("?")
         if path in ("/", "/index.html"):
             raw, gz = self.page()
@@ -429,7 +427,7 @@ class _Viewer:
                 handle.value = value
             finally:
                 self._syncing = False
-        self._aspect: dict[int, float] = {}
+        self._aspect = {}
 
     def show_image(self, kind: str) -> None:
         if kind not in KINDS:
@@ -637,7 +635,7 @@ class _Viewer:
         self._overlay.append(self.server.scene.add_line_segments(
             f"/overlay/{name}_rings", seg, color, thickness=3.0 if active else 2.0, thickness_units="screen"))
         at = pixel_to_scene(disp + np.array([0.8 * r, -0.8 * r]), self.plane, lift=lift)
-        for i, ((text, _), q) in enumerate(zip(labels, at)):
+        for i, ((text, _), q) in enumerate(zip(labels, at, strict=True)):
             self._overlay.append(self.server.scene.add_label(
                 f"/overlay/{name}_label{i}", text, position=tuple(q), anchor="bottom-left",
                 font_screen_scale=1.3 if active else 1.0))

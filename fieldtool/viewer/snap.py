@@ -72,7 +72,7 @@ def _ring_score(g: np.ndarray, x: float, y: float) -> float:
     centre; a textured bank's saddles twist from one radius to the next)."""
     rings = [_ring(g, x, y, r) for r in RING_RADII_PX]
     best = 0.0
-    for (d1, c1, p1), (d2, c2, p2) in zip(rings[:-1], rings[1:]):
+    for (d1, c1, p1), (d2, c2, p2) in zip(rings[:-1], rings[1:], strict=True):
         twist = abs(np.angle(np.exp(1j * (p1 - p2))))
         if min(d1, d2) >= MIN_DOMINANCE and min(c1, c2) >= MIN_CONTRAST and twist < MAX_TWIST_RAD:
             best = max(best, min(d1, d2) * (1 - twist / np.pi))

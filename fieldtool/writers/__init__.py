@@ -15,7 +15,18 @@ from __future__ import annotations
 from pathlib import Path
 
 from fieldtool.errors import FieldToolError
+from fieldtool.project.model import atomic_write_bytes
+from fieldtool.records.video_meta import video_info
+from fieldtool.writers import geotiff, netcdf
 from fieldtool.writers.geotiff import check_crs
+
+
+def _figures():
+    """plots.report_figures, imported only when the figure process did not draw a figure: matplotlib costs
+    0.3-0.5 s to import, and a run's own process leaves it to the figure process (plots.prerender)."""
+    from fieldtool.plots import report_figures
+
+    return report_figures
 
 
 def check(project) -> None:
@@ -29,14 +40,10 @@ def write_standard(result, project, inputs, out: Path) -> None:
     A writer that fails (a library missing, a disk error) leaves a warning; the run's own files
     are unaffected.
     """
-    from fieldtool.records.video_meta import video_info
-    from fieldtool.writers import geotiff, netcdf
-
     try:
         result.video = video_info(project, inputs.source)
     except (OSError, ValueError) as e:
         result.warnings.append(f"video metadata not read: {e}")
-    from fieldtool.project.model import atomic_write_bytes
 
     pre = getattr(result, "prerendered", None)  # the figure process' files (plots.prerender), or None
     try:  # the report's figures: velocity profile with its band, GCPs with distances and residuals
@@ -46,17 +53,13 @@ def write_standard(result, project, inputs, out: Path) -> None:
             atomic_write_bytes(out / "profile.png", png)
             result.files["section_profile"], result.files["profile_png"] = "section_profile.csv", "profile.png"
         else:  # drawn here (matplotlib imported only then)
-            from fieldtool.plots import report_figures as figs
-
-            result.files["section_profile"], result.files["profile_png"] = figs.write_profile(out, result)
+            result.files["section_profile"], result.files["profile_png"] = _figures().write_profile(out, result)
         png = pre.file("gcp.png") if pre is not None else None
         if png:
             atomic_write_bytes(out / "gcp.png", png)
             gcp = "gcp.png"
         else:
-            from fieldtool.plots import report_figures as figs
-
-            gcp = figs.write_gcp(out, project, result, inputs)
+            gcp = _figures().write_gcp(out, project, result, inputs)
         if gcp is not None:
             result.files["gcp_png"] = gcp
     except (OSError, ValueError) as e:

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from fieldtool.errors import ParameterError
@@ -29,13 +30,19 @@ _CF_NAMES = {"tmerc": "transverse_mercator", "utm": "transverse_mercator", "ster
              "laea": "lambert_azimuthal_equal_area", "aea": "albers_conical_equal_area", "omerc": "oblique_mercator"}
 
 
+def _rasterio():
+    """rasterio, imported on first use: it costs 0.1-0.3 s to import (GDAL) and only a project with a CRS needs it."""
+    import rasterio
+
+    return rasterio
+
+
 def check_crs(epsg: int | None, method: str):
     """The rasterio CRS of ``ortho.crs_epsg`` (None when not set); ParameterError when unusable."""
     if epsg is None:
         return None
-    from rasterio.crs import CRS
-    from rasterio.errors import CRSError
-
+    rasterio = _rasterio()
+    CRS, CRSError = rasterio.crs.CRS, rasterio.errors.CRSError
     if isinstance(epsg, bool) or not isinstance(epsg, int) or epsg <= 0:
         raise ParameterError(f"ortho.crs_epsg: {epsg!r} is not an EPSG code; give a whole number such as 28992 or "
                              "32631, or leave the key out")
@@ -91,8 +98,6 @@ def cf_grid_mapping(crs) -> dict:
 def rectified_map(result, inputs, resolution_m: float | None = None) -> tuple[np.ndarray, float, float, float]:
     """(RGB map image, cell size r (m), Xmin, Ymax) of the first working frame; pixel centres as in the
     module docstring."""
-    import cv2
-
     img = inputs.first_color
     if inputs.lens is not None:
         img = inputs.lens.undistort(img)
@@ -113,9 +118,8 @@ def write_rectified(result, project, inputs, out: Path) -> str | None:
         result.warnings.append(f"ortho.crs_epsg = {o.crs_epsg} is not used: ortho.method = {o.method} builds a local "
                                "frame; use method = world with the GCP coordinates in that CRS for a GeoTIFF")
         return None
-    import rasterio
-    from rasterio.transform import Affine
-
+    rasterio = _rasterio()
+    Affine = rasterio.transform.Affine
     img, r, x0, y1 = rectified_map(result, inputs, o.resolution_m)
     alpha = np.where(img.any(axis=2), 255, 0).astype(np.uint8)
     transform = Affine(r, 0.0, x0 - r / 2, 0.0, -r, y1 + r / 2)

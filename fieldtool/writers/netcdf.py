@@ -19,14 +19,16 @@ and ``valid_fraction`` (1). The project and the run's key results are global att
 from __future__ import annotations
 
 import json
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 
+import netCDF4
 import numpy as np
+from scipy.spatial import Delaunay, cKDTree
 
 from fieldtool import __version__
 from fieldtool.project.model import atomic_path
-from fieldtool.writers.geotiff import crs_of
+from fieldtool.writers.geotiff import cf_grid_mapping, crs_of
 
 MAX_CELLS = 300  # per side: the PIV grid has far fewer nodes; a finer grid only costs time
 
@@ -43,8 +45,6 @@ def regular_grid(XY: np.ndarray, values: list[np.ndarray], max_cells: int = MAX_
     -------
     x (nx,), y (ny,) cell centres (m, ascending), cell size (m), list of (ny, nx) arrays (NaN = no data)
     """
-    from scipy.spatial import cKDTree
-
     tree = cKDTree(XY)
     d, _ = tree.query(XY, k=2)
     dx = float(np.median(d[:, 1])) if len(XY) > 1 else 1.0
@@ -73,8 +73,6 @@ def _linear_on_triangles(XY: np.ndarray, V: np.ndarray, pts: np.ndarray) -> np.n
     """Piecewise-linear interpolation on the Delaunay triangles of ``XY`` (N, 2) of values ``V`` (N, k) at ``pts``
     (M, 2); NaN outside the hull. What ``scipy.interpolate.LinearNDInterpolator`` computes (tests/test_outputs_std.py
     compares them), without importing scipy.interpolate, which imports scipy.optimize (0.3-0.5 s of a run)."""
-    from scipy.spatial import Delaunay
-
     tri = Delaunay(XY)
     s = tri.find_simplex(pts)
     inside = np.maximum(s, 0)  # any triangle for the points outside: their values are set to NaN below
@@ -88,7 +86,7 @@ def _linear_on_triangles(XY: np.ndarray, V: np.ndarray, pts: np.ndarray) -> np.n
 
 def _flat_attrs(inputs: dict) -> dict:
     """Scalar project keys as ``project_<table>_<key>`` attributes (lists and tables go in the JSON one)."""
-    attrs = {}
+    attrs: dict[str, int | float | str] = {}
     for k, v in inputs.items():
         items = v.items() if isinstance(v, dict) else [(None, v)]
         for k2, v2 in items:
@@ -155,11 +153,9 @@ def build_dataset(result, project) -> dict:
         "time_bnds": (("time", "nv"), np.array([[t0, t1]]), {}, plain),
     }
     if crs is not None:
-        from fieldtool.writers.geotiff import cf_grid_mapping
-
         variables["crs"] = ((), np.int32(0), cf_grid_mapping(crs), {})
     d = result.discharge
-    now = datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
+    now = datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
     attrs = {
         "Conventions": "CF-1.8",
         "title": f"LSPIV mean surface velocity — {project.name}",
@@ -183,8 +179,6 @@ def build_dataset(result, project) -> dict:
 
 def write_mean_field(result, project, inputs, out: Path) -> str:
     """Write ``mean_field.nc`` into ``out`` (through a temporary file and a rename); returns its name."""
-    import netCDF4
-
     ds = build_dataset(result, project)
     path = Path(out) / "mean_field.nc"
     with atomic_path(path) as tmp:

@@ -8,9 +8,9 @@ from textual.containers import Horizontal, VerticalScroll
 from textual.screen import Screen
 from textual.widgets import Footer, OptionList, Static
 
-from fieldtool.tui import keys
 from fieldtool.errors import FieldToolError
-from fieldtool.tui.checks import is_missing
+from fieldtool.tui import keys
+from fieldtool.tui.checks import core_check, is_missing
 from fieldtool.tui.fields import Field
 from fieldtool.tui.steps import STEP_BY_ID, STEP_IDS, fields_for
 from fieldtool.tui.widgets.chrome import HelpLine, StatusLine, StepList, TitleBar
@@ -34,7 +34,7 @@ class StepScreen(Screen):
     # -- helpers ---------------------------------------------------------------------------------
     @property
     def session(self):
-        return self.app.session  # type: ignore[attr-defined]
+        return self.app.session
 
     @property
     def project(self):
@@ -186,8 +186,7 @@ class StepScreen(Screen):
     # -- checks ----------------------------------------------------------------------------------
     def errors(self) -> list[str]:
         """Everything that blocks "next": the rows' messages, then the step's own check."""
-        msgs = [row.current_error() for row in self.rows if row.display]
-        msgs = [m for m in msgs if m]
+        msgs = [m for m in (row.current_error() for row in self.rows if row.display) if m]
         if msgs:
             return msgs
         msgs = self.session.step_problems(self.STEP, core=False)
@@ -201,8 +200,6 @@ class StepScreen(Screen):
 
     def step_check(self) -> None:
         """Check the step with the core functions; raise FieldToolError with the user's message."""
-        from fieldtool.tui.checks import core_check
-
         core_check(self.session, self.STEP)
 
     def show_errors(self, msgs: list[str]) -> None:

@@ -3,14 +3,15 @@
 from __future__ import annotations
 
 from textual.app import ComposeResult
-from textual.markup import escape
 from textual.containers import Horizontal
+from textual.markup import escape
 from textual.widgets import Label, Select, Static
 
 from fieldtool.errors import FieldToolError, ParameterError
-from fieldtool.tui import keys
-from fieldtool.tui.steps import CALIBRATION_MODES
+from fieldtool.processing.calibration import load_calibration
+from fieldtool.tui import jobs, keys
 from fieldtool.tui.screens.base import StepScreen
+from fieldtool.tui.steps import CALIBRATION_MODES
 
 
 class CalibrationScreen(StepScreen):
@@ -78,8 +79,6 @@ class CalibrationScreen(StepScreen):
                     f"(diagonal {fd:.1f})")
 
     def _load(self):
-        from fieldtool.processing.calibration import load_calibration
-
         if not self.project.calibration.path:
             raise ParameterError("calibration.path: no calibration file given")
         return load_calibration(self.project.resolve(self.project.calibration.path))
@@ -98,12 +97,11 @@ class CalibrationScreen(StepScreen):
         return True
 
     def action_run(self) -> None:
-        from fieldtool.tui import jobs
-
         msgs = [r.current_error() for r in self.rows if r.display]
-        msgs = [m for m in msgs if m]
-        if msgs:
-            self.show_errors(msgs)
+        errors = [m for m in msgs if m]
+        if errors:
+            self.show_errors(errors)
             return
+        p = jobs.snapshot(self.project)  # the project as it is now: the job runs on this copy
         self.app.start_job("calibration", "Calibration",  # type: ignore[attr-defined]
-                           lambda job, p=jobs.snapshot(self.project): jobs.run_calibration(p, job))
+                           lambda job: jobs.run_calibration(p, job))

@@ -6,18 +6,11 @@ from textual.app import ComposeResult
 
 from fieldtool.errors import FieldToolError
 from fieldtool.processing import cross_section as xs
+from fieldtool.project.model import atomic_write_bytes
 from fieldtool.tui import keys
-from fieldtool.tui.widgets.plots import SectionPlot
+from fieldtool.tui.checks import build_cross_section
 from fieldtool.tui.screens.base import StepScreen
-
-
-def build_cross_section(project) -> xs.CrossSection:
-    """The project's cross-section (shape or file); FieldToolError with the user's message."""
-    c = project.cross_section
-    if c.shape:
-        return xs.from_shape(c.shape, top_width_m=c.top_width_m, bottom_width_m=c.bottom_width_m, depth_m=c.depth_m,
-                             left_station_m=c.left_station_m, bank_elevation_m=c.bank_elevation_m, points=c.points)
-    return xs.load_cross_section(project.resolve(c.path))
+from fieldtool.tui.widgets.plots import SectionPlot
 
 
 def typed_level(project) -> float | None:
@@ -50,8 +43,6 @@ class CrossSectionScreen(StepScreen):
 
     def action_write_csv(self) -> None:
         """Write the created shape's points to a CSV beside the project (reusable with 'load a file')."""
-        from fieldtool.project.model import atomic_write_bytes
-
         try:
             cs = build_cross_section(self.project)
         except FieldToolError as e:

@@ -4,19 +4,22 @@ from __future__ import annotations
 
 import re
 
+import cv2
 import numpy as np
-
 from rich.text import Text
 from textual.app import ComposeResult
 from textual.containers import Horizontal
 from textual.widgets import Input, Label, OptionList, Select, Static
 
 from fieldtool.errors import FieldToolError, ParameterError
-from fieldtool.processing.filters import FILTERS, FilterStack
+from fieldtool.processing.filters import FILTERS, FilterStack, preview
+from fieldtool.project.model import atomic_write_bytes
+from fieldtool.run.geometry import roi_and_mask
 from fieldtool.tui import keys
 from fieldtool.tui.fields import DECIMAL_HINT, fmt_num
-from fieldtool.tui.widgets.plots import GrayImage
 from fieldtool.tui.screens.base import StepScreen
+from fieldtool.tui.screens.preview import PNG, PreviewScreen
+from fieldtool.tui.widgets.plots import GrayImage
 
 
 def parse_params(text: str, name: str) -> dict:
@@ -132,10 +135,6 @@ class FiltersScreen(StepScreen):
     def action_run(self) -> None:
         """Filter the first frame: small before/after here, large in a preview screen, and the
         filtered frame written to out/filter_preview.png for the viewer."""
-        from fieldtool.processing.filters import preview
-        from fieldtool.project.model import atomic_write_bytes
-        from fieldtool.tui.screens.preview import PNG, PreviewScreen
-
         try:
             inputs = self.session.inputs()
             gray = self.first_gray(inputs)
@@ -155,8 +154,6 @@ class FiltersScreen(StepScreen):
         self.query_one("#after", GrayImage).set_image(after, captions[1])
         png = f"{self.session.out_dir.name}/{PNG}"
         try:
-            import cv2
-
             self.session.out_dir.mkdir(parents=True, exist_ok=True)
             ok, buf = cv2.imencode(".png", np.clip(filtered, 0, 255).astype(np.uint8))
             if ok:
@@ -175,8 +172,6 @@ class FiltersScreen(StepScreen):
         raise ParameterError("video: the range holds no frame")
 
     def roi(self, inputs):
-        from fieldtool.run.geometry import roi_and_mask
-
         return roi_and_mask(self.project, inputs)[0]
 
     @staticmethod

@@ -8,6 +8,7 @@ from textual.markup import escape
 from textual.widgets import Static
 
 from fieldtool.errors import FieldToolError
+from fieldtool.run.geometry import build_mapping
 from fieldtool.tui import keys
 from fieldtool.tui.screens.base import StepScreen
 
@@ -40,8 +41,6 @@ class OrthoScreen(StepScreen):
             info.update("ctrl+r solves the GCP geometry and reports its residual")
 
     def mapping(self):
-        from fieldtool.run.geometry import build_mapping
-
         return build_mapping(self.project, self.session.inputs(), None)
 
     def action_run(self) -> None:

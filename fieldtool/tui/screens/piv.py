@@ -6,9 +6,9 @@ import numpy as np
 from textual.app import ComposeResult
 from textual.widgets import Static
 
-from fieldtool.tui import keys
-from fieldtool.tui.widgets.plots import VectorGrid
+from fieldtool.tui import jobs, keys
 from fieldtool.tui.screens.base import StepScreen
+from fieldtool.tui.widgets.plots import VectorGrid
 
 
 class PivScreen(StepScreen):
@@ -54,8 +54,6 @@ class PivScreen(StepScreen):
         grid.set_field(u, v)
 
     def action_run(self) -> None:
-        from fieldtool.tui import jobs
-
         msgs = self.errors()
         if msgs:
             self.show_errors(msgs)

@@ -8,7 +8,7 @@ from textual.app import ComposeResult
 from textual.markup import escape
 from textual.widgets import DataTable, Static
 
-from fieldtool.tui import keys
+from fieldtool.tui import jobs, keys
 from fieldtool.tui.screens.base import StepScreen
 
 # (header, csv column, decimals)
@@ -36,7 +36,7 @@ def discharge_lines(s: dict) -> list[str]:
     if isinstance(quality, dict) and quality.get("grade"):
         grade = str(quality["grade"])
         style = GRADE_STYLE.get(grade, "")
-        reasons = [r.get("message", r.get("code", "")) if isinstance(r, dict) else str(r)
+        reasons = [str(r.get("message", r.get("code", ""))) if isinstance(r, dict) else str(r)
                    for r in quality.get("reasons") or []]
         text = f"quality        [{style}]{escape(grade)}[/{style}]" if style else f"quality        {escape(grade)}"
         lines.append(text + (": " + escape("; ".join(reasons)) if reasons else " (no reason for doubt found)"))
@@ -159,8 +159,6 @@ class ResultsScreen(StepScreen):
         self.focus_first()
 
     def action_run(self) -> None:
-        from fieldtool.tui import jobs
-
         bad = [st for st in ("cross_section", "video", "calibration", "ortho", "water_level", "roi", "filters", "piv",
                              "section") if self.session.step_errors(st)]
         if bad:

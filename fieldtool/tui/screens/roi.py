@@ -7,6 +7,7 @@ from textual.markup import escape
 from textual.widgets import Static
 
 from fieldtool.errors import FieldToolError
+from fieldtool.run.geometry import roi_and_mask
 from fieldtool.tui.screens.base import StepScreen
 
 
@@ -31,7 +32,5 @@ class RoiScreen(StepScreen):
                     "pick the ROI as two corners (top-left, bottom-right) and each mask as 3+ corners in the viewer")
 
     def check(self):
-        from fieldtool.run.geometry import roi_and_mask
-
         return roi_and_mask(self.project, self.session.inputs())
 

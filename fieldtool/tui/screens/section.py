@@ -8,7 +8,9 @@ from textual.markup import escape
 from textual.widgets import Static
 
 from fieldtool.errors import FieldToolError
+from fieldtool.processing.discharge import default_alpha
 from fieldtool.tui import keys
+from fieldtool.tui.checks import section_geometry
 from fieldtool.tui.screens.base import StepScreen
 
 
@@ -21,8 +23,6 @@ class SectionScreen(StepScreen):
         yield Static("", id="section-info")
 
     def geometry(self):
-        from fieldtool.tui.checks import section_geometry
-
         return section_geometry(self.session)
 
     def refresh_view(self, checked: bool = False) -> None:
@@ -35,14 +35,13 @@ class SectionScreen(StepScreen):
         except FieldToolError as e:
             info.update(f"[red]{escape(str(e))}[/red]")
             return
-        from fieldtool.processing.discharge import default_alpha
 
-        e = geom.station_edges
-        depth = cs.wetted_area(level.level_m, e[0], e[-1]) / max(e[-1] - e[0], 1e-9)
+        edges = geom.station_edges
+        depth = cs.wetted_area(level.level_m, edges[0], edges[-1]) / max(edges[-1] - edges[0], 1e-9)
         alpha = self.project.section.alpha
         a = f"{alpha:g} (typed)" if alpha is not None else f"{default_alpha(depth):g} (default for mean depth {depth:.2f} m)"
-        info.update(f"section {geom.length_m:.2f} m long, stations {e[0]:.2f} .. {e[-1]:.2f} m, "
-                    f"{len(e) - 1} subsections of {np.diff(e).mean():.2f} m · velocity index {a}")
+        info.update(f"section {geom.length_m:.2f} m long, stations {edges[0]:.2f} .. {edges[-1]:.2f} m, "
+                    f"{len(edges) - 1} subsections of {np.diff(edges).mean():.2f} m · velocity index {a}")
 
     def action_run(self) -> None:
         self.refresh_view(checked=True)

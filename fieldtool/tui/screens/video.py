@@ -7,7 +7,7 @@ from textual.markup import escape
 from textual.widgets import Static
 
 from fieldtool.errors import FieldToolError
-from fieldtool.tui import keys
+from fieldtool.tui import jobs, keys
 from fieldtool.tui.screens.base import StepScreen
 
 
@@ -55,10 +55,9 @@ class VideoScreen(StepScreen):
             self.refresh_bindings()
 
     def action_run(self) -> None:
-        from fieldtool.tui import jobs
-
         if self.errors():
             self.show_errors(self.errors())
             return
+        p = jobs.snapshot(self.project)  # the project as it is now: the job runs on this copy
         self.app.start_job("stabilize", "Stabilisation",  # type: ignore[attr-defined]
-                           lambda job, p=jobs.snapshot(self.project): jobs.run_stabilization(p, job))
+                           lambda job: jobs.run_stabilization(p, job))

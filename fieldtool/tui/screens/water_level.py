@@ -7,10 +7,11 @@ from textual.markup import escape
 from textual.widgets import Static
 
 from fieldtool.errors import FieldToolError
+from fieldtool.run.geometry import level_and_mapping
 from fieldtool.tui import keys
-from fieldtool.tui.widgets.plots import SectionPlot
+from fieldtool.tui.checks import build_cross_section
 from fieldtool.tui.screens.base import StepScreen
-from fieldtool.tui.screens.cross_section import build_cross_section
+from fieldtool.tui.widgets.plots import SectionPlot
 
 
 class WaterLevelScreen(StepScreen):
@@ -23,8 +24,6 @@ class WaterLevelScreen(StepScreen):
         yield SectionPlot(id="plot")
 
     def compute(self):
-        from fieldtool.run.geometry import level_and_mapping
-
         inputs = self.session.inputs()
         level, _ = level_and_mapping(self.project, inputs)
         return level, inputs.cross_section

@@ -32,7 +32,7 @@ class FieldRow(Vertical):
     class Edited(Message):
         """The project value of ``row.field`` changed."""
 
-        def __init__(self, row: "FieldRow") -> None:
+        def __init__(self, row: FieldRow) -> None:
             super().__init__()
             self.row = row
 
@@ -44,7 +44,7 @@ class FieldRow(Vertical):
 
     @property
     def project(self):
-        return self.app.session.project  # type: ignore[attr-defined]
+        return self.app.session.project
 
     def compose(self) -> ComposeResult:
         f = self.field
@@ -130,7 +130,7 @@ class FieldRow(Vertical):
         line shows the full message when the field has the focus. A missing entry takes no line:
         the label turns red and the empty input says "required"."""
         self.error = msg
-        missing = bool(msg) and is_missing(msg)
+        missing = msg is not None and bool(msg) and is_missing(msg)
         box = self.query_one(".field-error", Static)
         box.update(Text(short_message(msg, self.field.key), no_wrap=True, overflow="ellipsis")
                    if msg and not missing else "")

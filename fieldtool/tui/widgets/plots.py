@@ -6,6 +6,7 @@ two pixels one above the other (foreground and background colour).
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 from rich.style import Style
 from rich.text import Text
@@ -127,7 +128,6 @@ class GrayImage(Widget):
         w, h = self.size.width, self.size.height
         if self.image is None or w < 2 or h < 2:
             return Text(self.caption or "no image", style="dim")
-        import cv2
 
         cols, rows = fit_cells(*self.image.shape[:2], w, h - 1)
         small = cv2.resize(self.image.astype(np.float32), (cols, 2 * rows), interpolation=cv2.INTER_AREA)
