@@ -17,7 +17,8 @@ from pathlib import Path
 
 from fieldtool import __version__
 from fieldtool.cli.console import end_progress_line, progress_line
-from fieldtool.errors import Cancelled, FieldToolError, InputFileError
+from fieldtool.cli.signals import EXIT_TERMINATED, Terminated, terminate_as_interrupt
+from fieldtool.errors import Cancelled, FieldToolError
 
 EXTENSIONS = (
     "fieldtool.tui.commands",
@@ -41,11 +42,11 @@ def cmd_run(args: argparse.Namespace) -> int:
     from fieldtool.project.model import load_project
 
     from fieldtool.project.validation import check
+    from fieldtool.run.outdir import check_out
 
     project = load_project(args.project)
     out = Path(args.out) if args.out else Path(args.project).resolve().parent / "out"
-    if out.exists() and not out.is_dir():
-        raise InputFileError(f"--out {out}: is a file, not a folder; give a folder for the results")
+    check_out(out, project)  # not a file, not read-only, not the project's folder nor one holding an input
     check(project)  # every key, before any step (run_project checks again: other callers rely on it)
     observer = None
     if args.rerun or project.rerun.mode != "off":
@@ -203,7 +204,8 @@ def _show_warning(message, category, filename, lineno, file=None, line=None) -> 
 def main(argv: list[str] | None = None) -> int:
     """Run one command. Exit codes: 0 done (a measurement graded good or doubtful), 2 bad input or a
     file/folder problem (one line naming it), 3 a measurement judged unusable, 1 an internal error
-    (one line and a bug-report hint; the traceback only with --debug), 130 interrupted."""
+    (one line and a bug-report hint; the traceback only with --debug), 130 interrupted (Ctrl-C), 143
+    terminated (SIGTERM)."""
     import warnings
 
     argv = list(sys.argv[1:] if argv is None else argv)
@@ -215,7 +217,8 @@ def main(argv: list[str] | None = None) -> int:
         warnings.simplefilter("always", FieldToolWarning)
         warnings.showwarning = _show_warning
         try:
-            return _main(argv, debug)
+            with terminate_as_interrupt():  # SIGTERM: as Ctrl-C, exit 143 (cli.signals)
+                return _main(argv, debug)
         finally:
             end_progress_line()
 
@@ -238,6 +241,10 @@ def _main(argv: list[str], debug: bool) -> int:
         end_progress_line()
         print(f"fieldtool: error: {_one_line(str(e))}", file=sys.stderr)
         return 2
+    except Terminated:
+        end_progress_line()
+        print("fieldtool: terminated", file=sys.stderr)
+        return EXIT_TERMINATED
     except KeyboardInterrupt:
         end_progress_line()
         print("fieldtool: interrupted", file=sys.stderr)

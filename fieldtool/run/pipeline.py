@@ -21,7 +21,7 @@ from typing import Callable, Iterator
 import numpy as np
 
 from fieldtool import __version__
-from fieldtool.run import piv_cache, stiv_stage
+from fieldtool.run import outdir, piv_cache, stiv_stage
 from fieldtool.errors import Cancelled, FieldToolError, GeometryError, InputFileError, ParameterError
 from fieldtool.processing import cross_section as xs
 from fieldtool.processing import discharge as dq
@@ -567,6 +567,9 @@ def _run_project(project: Project, out_dir: Path | str | None, progress: Progres
         timings[name] = round(now - t0, 3)
         t0 = now
 
+    # the output folder's lock, checks and staging folder (run.outdir): everything, the PIV cache too, is written
+    # there and swapped in as a unit at the end
+    stage = ends.enter_context(outdir.claim(out_dir, project)) if out_dir is not None else None
     if out_dir is not None:
         from fieldtool.plots import prerender
 
@@ -772,7 +775,7 @@ def _run_project(project: Project, out_dir: Path | str | None, progress: Progres
             if standardize:
                 reader1.close()
         if cache_dir is not None:
-            piv_cache.save(cache_dir, key, res, stab or None, {**fast, "frame_stats": frame_stats})
+            piv_cache.save(stage.path, key, res, stab or None, {**fast, "frame_stats": frame_stats})
     else:
         from fieldtool.processing.piv_fast import prefetch
 
@@ -788,7 +791,7 @@ def _run_project(project: Project, out_dir: Path | str | None, progress: Progres
             reader.close()
         fast.update(pairs_used=int(res.n_pairs or 0), converged=None)
         if cache_dir is not None:
-            piv_cache.save(cache_dir, key, res, stab or None, {**fast, "frame_stats": frame_stats})
+            piv_cache.save(stage.path, key, res, stab or None, {**fast, "frame_stats": frame_stats})
         v, fps = project.video, getattr(getattr(inputs.source, "info", None), "fps", 0) or 0
         if v.end_s is not None and decoded and fps > 0 and decoded[0] < v.end_s - (v.step + 1) / fps:
             warnings.append(f"video.end_s: the clip decoded only up to {decoded[0]:.2f} s of the {v.end_s:g} s asked "
@@ -890,12 +893,8 @@ def _run_project(project: Project, out_dir: Path | str | None, progress: Progres
 
 def write_outputs(result: RunResult, project: Project, inputs: Inputs, out: Path) -> None:
     """result.json, subsections.csv, mean_field.npz/.npy and the PNG plots, each written atomically."""
-    from fieldtool.run.outdir import Staging
-
     t0 = time.perf_counter()
-    project_file_inside = out.exists() and out.resolve() in (project.root.resolve(), *project.root.resolve().parents)
-    stage = Staging(out, in_place=project_file_inside)
-    try:
+    with outdir.claim(out, project) as stage:  # the run's own claim (run_project), or one for this call alone
         _write_outputs(result, inputs, stage.path)
         from fieldtool.writers import write_standard
 
@@ -904,9 +903,6 @@ def write_outputs(result: RunResult, project: Project, inputs: Inputs, out: Path
         result.timings_s["outputs"] = round(time.perf_counter() - t0, 3)  # all but result.json itself
         _write_result_json(result, stage.path)
         stage.commit()
-    except BaseException:
-        stage.abort()
-        raise
     result.out_dir = out
 
 
