@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import json
+import math
 import os
 import sys
 import threading
@@ -62,7 +63,11 @@ def cmd_run(args: argparse.Namespace) -> int:
     end_progress_line()
     s = result.summary()
     ci = s.get("discharge_ci95_m3s")
-    if ci and None not in ci:
+    q = s.get("discharge_m3s")
+    q_ok = isinstance(q, (int, float)) and math.isfinite(q)  # a null discharge is never exit 0 (exit 3 below)
+    if not q_ok:
+        print("discharge     none (not a finite number)")
+    elif ci and None not in ci:
         print(f"discharge     {s['discharge_m3s']:.4f} m3/s  (95 % interval {ci[0]:.4f} - {ci[1]:.4f}, Monte Carlo)")
     else:
         print(f"discharge     {s['discharge_m3s']:.4f} m3/s")
@@ -90,8 +95,9 @@ def cmd_run(args: argparse.Namespace) -> int:
     if observer is not None and observer.mode == "serve":
         print("rerun: still serving the run (listening on all interfaces); press Ctrl-C to stop", file=sys.stderr)
         threading.Event().wait()  # Ctrl-C ends it: main() catches KeyboardInterrupt
-    if grade == "unusable":
-        print("fieldtool: the measurement is unusable (reasons above); every result file was written", file=sys.stderr)
+    if grade == "unusable" or not q_ok:
+        why = "reasons above" if grade == "unusable" else "no finite discharge"
+        print(f"fieldtool: the measurement is unusable ({why}); every result file was written", file=sys.stderr)
         return 3
     return 0
 

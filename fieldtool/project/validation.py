@@ -20,7 +20,6 @@ everything that touches the disk (existence, the clip's header, the DEM header).
 from __future__ import annotations
 
 import dataclasses
-import glob as _glob
 import math
 import os
 import re
@@ -32,6 +31,8 @@ from pathlib import Path
 from typing import Any, Iterable
 
 from fieldtool.errors import FieldToolError, ParameterError
+from fieldtool.processing.cross_section import MAX_ABS_M, file_size_problem
+from fieldtool.processing.paths import is_pattern, literal_glob
 from fieldtool.project.keyspec import KeySpec, spec_of
 
 # bounds for what no declaration bounds
@@ -99,11 +100,11 @@ def path_problem(path: Path | str, key: str, *, kind: str = "file") -> str | Non
     if msg:
         return msg
     p = Path(text)
-    if kind == "video" and any(ch in text for ch in "*?[") and not p.exists():
+    if kind == "video" and is_pattern(text):
         parent = Path(text).parent
         if not parent.is_dir():
             return f"{parent}: the folder of this pattern does not exist; give the image folder or the video file"
-        if not _glob.glob(text):
+        if not literal_glob(text):
             return f"{text}: no file matches this pattern"
         return None
     try:
@@ -540,7 +541,10 @@ class _Validator:
         if not self.ok("cross_section.shape"):
             return
         if c.shape == "":
-            self.file("cross_section.path", c.path)
+            if self.file("cross_section.path", c.path) and self.files:
+                msg = file_size_problem(self.p.resolve(c.path))  # a 50 MB file is refused at once
+                if msg:
+                    self.err("cross_section.path", msg)
             return
         if c.shape in ("rectangular", "trapezoidal", "parabolic"):
             for name in ("top_width_m", "depth_m"):
@@ -552,6 +556,11 @@ class _Validator:
                                                          f"({c.top_width_m:g} m)")
         if c.shape == "free" and self.ok("cross_section.points") and len(c.points) < 3:
             self.err("cross_section.points", "a free shape needs at least 3 [station_m, elevation_m] points")
+        if c.shape == "free" and self.ok("cross_section.points"):
+            for i, pt in enumerate(c.points):  # the limit a cross-section file's rows have (processing.cross_section)
+                if any(isinstance(v, (int, float)) and not abs(v) <= MAX_ABS_M for v in pt):
+                    self.err(f"cross_section.points[{i}]", f"{_fmt(list(pt))}: beyond ±10 km; give metres")
+                    break
 
     def calibration(self) -> None:
         c = self.p.calibration
