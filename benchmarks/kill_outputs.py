@@ -5,7 +5,7 @@ After each kill the output folder must be the old run or the new one, byte for b
 with its mean_field.npz), and after the next complete run no temporary folder or lock may be left beside it.
 Prints one line per kill and a summary; exits 1 when any kill left a mixed or missing folder.
 
-    .venv/bin/python benchmarks/kill_outputs.py              # 30 moments, seed 25
+    .venv/bin/python benchmarks/kill_outputs.py              # 30 kills, seed 25
     .venv/bin/python benchmarks/kill_outputs.py --n 100 --seed 7
 """
 
@@ -17,7 +17,6 @@ import shutil
 import subprocess
 import sys
 import tempfile
-import time
 import tomllib
 from pathlib import Path
 
@@ -26,7 +25,7 @@ import tomli_w
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
 
-from outputs_harness import snapshot, temp_leftovers, verdict  # noqa: E402
+from outputs_harness import kill_once, snapshot, temp_leftovers, time_phases, verdict  # noqa: E402
 
 HARNESS = ROOT / "tests" / "outputs_harness.py"
 
@@ -65,12 +64,11 @@ def main() -> int:
         run(["run", new_proj, "--out", work / "ref", "--quiet"])
         new = snapshot(work / "ref")
         shutil.rmtree(work / "ref")
-        t0 = time.monotonic()
-        p = child(["run", new_proj, "--out", work / "timed", "--quiet"])
-        p.wait()
-        span = time.monotonic() - t0
+        shutil.copytree(out, work / "timed")
+        span, write_span = time_phases(lambda: child(["run", new_proj, "--out", work / "timed", "--quiet"]), work)
         shutil.rmtree(work / "timed", ignore_errors=True)
-        print(f"a slowed run takes {span:.1f} s; killing at {args.n} moments in 0.2-{span:.1f} s (seed {args.seed})")
+        print(f"a slowed run takes {span:.1f} s, its writing {write_span:.1f} s; {args.n} kills (seed {args.seed}), "
+              "half over the whole run, half over the writing")
         rng = random.Random(args.seed)
         counts = {"old": 0, "new": 0, "bad": 0}
         for i in range(args.n):
@@ -78,14 +76,10 @@ def main() -> int:
                 shutil.rmtree(out)
                 run(["run", old_proj, "--out", out, "--quiet"])
                 old = snapshot(out)
-            at = rng.uniform(0.2, span)
-            p = child(["run", new_proj, "--out", out, "--quiet"])
-            time.sleep(at)
-            p.kill()
-            p.wait()
+            when = kill_once(lambda: child(["run", new_proj, "--out", out, "--quiet"]), work, rng, span, write_span)
             v = verdict(snapshot(out), old, new)
             counts[v if v in ("old", "new") else "bad"] += 1
-            print(f"{i + 1:3d}  kill at {at:5.2f} s  ->  {v}  (left beside it: {len(temp_leftovers(work))})")
+            print(f"{i + 1:3d}  kill {when}  ->  {v}  (left beside it: {len(temp_leftovers(work))})", flush=True)
         run(["run", new_proj, "--out", out, "--quiet"])
         left = temp_leftovers(work)
         print(f"old {counts['old']}, new {counts['new']}, mixed or missing {counts['bad']}; "

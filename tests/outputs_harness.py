@@ -54,6 +54,55 @@ def temp_leftovers(parent: Path) -> list[str]:
     return sorted(p.name for p in Path(parent).iterdir() if re.match(r"^\..*\.(tmp-|old-|lock$)", p.name))
 
 
+def _staged_files(parent: Path, pid: int) -> bool:
+    """The staging folder of the run ``pid`` beside its output folder already holds a file (the PIV cache or the
+    outputs)."""
+    for p in Path(parent).iterdir():
+        if f".tmp-{pid}-" in p.name and p.is_dir():
+            try:
+                if any(p.iterdir()):
+                    return True
+            except OSError:
+                pass
+    return False
+
+
+def time_phases(start, parent: Path) -> tuple[float, float]:
+    """(whole run, writing phase) in seconds of one run ``start()`` (a Popen) with nothing killed: the writing
+    phase runs from the first file in the staging folder to the end."""
+    t0 = time.monotonic()
+    proc = start()
+    first = None
+    while proc.poll() is None:
+        if first is None and _staged_files(parent, proc.pid):
+            first = time.monotonic()
+        time.sleep(0.01)
+    end = time.monotonic()
+    if proc.returncode != 0:
+        raise RuntimeError(f"the timed run failed ({proc.returncode}): {proc.stderr.read().decode()[-500:]}")
+    return end - t0, end - (first or t0)
+
+
+def kill_once(start, parent: Path, rng, span: float, write_span: float) -> str:
+    """Start a run and ``kill -9`` it: half the time at a moment drawn over the whole run, half the time at a
+    moment drawn over its writing phase (the outputs, the carry of old files and the swap). Returns when."""
+    proc = start()
+    if rng.random() < 0.5:
+        at = rng.uniform(0.2, span)
+        time.sleep(at)
+        what = f"{at:5.2f} s into the run"
+    else:
+        t0 = time.monotonic()
+        while not _staged_files(parent, proc.pid) and proc.poll() is None and time.monotonic() - t0 < 5 * span:
+            time.sleep(0.005)
+        at = rng.uniform(0.0, write_span)
+        time.sleep(at)
+        what = f"{at:5.2f} s into the writing"
+    proc.kill()
+    proc.wait()
+    return what
+
+
 if __name__ == "__main__":
     import fieldtool.run.outdir as outdir
     import fieldtool.run.pipeline as pipeline

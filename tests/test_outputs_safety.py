@@ -19,7 +19,7 @@ import pytest
 import tomli_w
 
 from fieldtool.cli.main import main
-from outputs_harness import snapshot, temp_leftovers, verdict
+from outputs_harness import kill_once, snapshot, temp_leftovers, time_phases, verdict
 
 HARNESS = Path(__file__).with_name("outputs_harness.py")
 
@@ -262,11 +262,14 @@ def test_kill_9_at_random_moments_leaves_the_old_run_or_the_new_one(scene, capsy
     assert _run(capsys, "run", proj_new, "--out", ref, "--quiet")[0] == 0  # the new run over the old one
     new = snapshot(ref)
     shutil.rmtree(ref)
-    t0 = time.monotonic()
-    full = _child("run", proj_new, "--out", scene / "timed", "--quiet", frame_delay=0.01, write_delay=0.05)
-    assert full.wait(timeout=180) == 0, full.stderr.read().decode()
-    span = time.monotonic() - t0
-    shutil.rmtree(scene / "timed")
+    def start():
+        return _child("run", proj_new, "--out", out, "--quiet", frame_delay=0.01, write_delay=0.05)
+
+    timed = scene / "timed"
+    shutil.copytree(out, timed)
+    span, write_span = time_phases(lambda: _child("run", proj_new, "--out", timed, "--quiet", frame_delay=0.01,
+                                                  write_delay=0.05), scene)
+    shutil.rmtree(timed)
     rng = random.Random(25)
     seen = []
     for _ in range(5):
@@ -274,12 +277,9 @@ def test_kill_9_at_random_moments_leaves_the_old_run_or_the_new_one(scene, capsy
             shutil.rmtree(out)
             assert _run(capsys, "run", proj_old, "--out", out, "--quiet")[0] == 0
             old = snapshot(out)
-        proc = _child("run", proj_new, "--out", out, "--quiet", frame_delay=0.01, write_delay=0.05)
-        time.sleep(rng.uniform(0.2, span))
-        proc.kill()
-        proc.wait()
+        when = kill_once(start, scene, rng, span, write_span)
         v = verdict(snapshot(out), old, new)
-        assert v in ("old", "new"), v
+        assert v in ("old", "new"), (when, v)
         seen.append(v)
     assert _run(capsys, "run", proj_new, "--out", out, "--quiet")[0] == 0  # the next run sweeps what the kills left
     assert temp_leftovers(scene) == [], seen
