@@ -92,6 +92,28 @@ def check(project, *, files: bool = True, prefix: str = "") -> list[Problem]:
     return probs
 
 
+def value_problems(project, keys: Iterable[str]) -> list[Problem]:
+    """The problems of each value of ``keys`` by itself: type, unit range, finiteness, list shape (what a key's
+    declaration says; no check across keys, nothing on disk). For a writer of single keys (the viewer's picks,
+    ``calibrate --project``): a half-picked list of GCPs passes, a NaN in it does not."""
+    from fieldtool.project.model import Project
+
+    v = _Validator(project, False)
+    wanted = set(keys)
+    hints = typing.get_type_hints(Project)
+    for f in dataclasses.fields(Project):
+        val = getattr(project, f.name, None)
+        if dataclasses.is_dataclass(val):
+            sub_hints = typing.get_type_hints(type(val))
+            for sf in dataclasses.fields(val):
+                k = f"{f.name}.{sf.name}"
+                if k in wanted:
+                    v.guarded(k, v.value, k, getattr(val, sf.name, None), sub_hints[sf.name], spec_of(sf))
+        elif f.name in wanted:
+            v.guarded(f.name, v.value, f.name, val, hints[f.name], spec_of(f))
+    return v.problems
+
+
 def path_problem(path: Path | str, key: str, *, kind: str = "file") -> str | None:
     """Why ``path`` cannot be read as ``kind`` ("file" or "video"), or None. Never opens the file
     (a FIFO named as a video must not block)."""
