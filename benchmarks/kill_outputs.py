@@ -25,7 +25,7 @@ import tomli_w
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
 
-from outputs_harness import kill_once, snapshot, temp_leftovers, time_phases, verdict  # noqa: E402
+from outputs_harness import kill_once, snapshot, temp_leftovers, time_phases, verdict
 
 HARNESS = ROOT / "tests" / "outputs_harness.py"
 

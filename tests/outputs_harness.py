@@ -104,9 +104,8 @@ def kill_once(start, parent: Path, rng, span: float, write_span: float) -> str:
 
 
 if __name__ == "__main__":
-    import fieldtool.run.outdir as outdir
-    import fieldtool.run.pipeline as pipeline
     from fieldtool.cli.main import main
+    from fieldtool.run import outdir, pipeline
 
     frame_delay, write_delay = float(sys.argv[1]), float(sys.argv[2])
     if frame_delay > 0:

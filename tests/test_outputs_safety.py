@@ -15,11 +15,10 @@ import time
 import tomllib
 from pathlib import Path
 
-import pytest
 import tomli_w
+from outputs_harness import kill_once, snapshot, temp_leftovers, time_phases, verdict
 
 from fieldtool.cli.main import main
-from outputs_harness import kill_once, snapshot, temp_leftovers, time_phases, verdict
 
 HARNESS = Path(__file__).with_name("outputs_harness.py")
 
@@ -224,13 +223,13 @@ def test_sigterm_is_a_clean_exit(scene, capsys):
     assert _run(capsys, "run", proj, "--out", out, "--quiet")[0] == 0
     before = snapshot(out)
     proj = _project(scene, _new_settings)
-    proc = _child("run", proj, "--out", out, "--quiet", frame_delay=0.05)
+    proc = _child("run", proj, "--out", out, "--quiet", frame_delay=0.2)  # 0.2 s a frame: still in the PIV
     _wait_for(lambda: _staging(scene), proc)  # the run has claimed the folder
     time.sleep(0.3)
     proc.send_signal(signal.SIGTERM)
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == 143, err.decode()
-    assert err.decode().strip().splitlines() == ["fieldtool: terminated"]
+    assert err.decode().strip().splitlines() == ["fieldtool: terminated"], err.decode()
     assert snapshot(out) == before  # piv_cache.npz included
     assert temp_leftovers(scene) == []
 

@@ -17,9 +17,8 @@ import time
 import msgspec
 import pytest
 import viser
-from websockets.sync.client import connect
-
 from test_viewer_server import _tiny_project
+from websockets.sync.client import connect
 
 PROTOCOL = [f"viser-v{viser.__version__}"]
 
@@ -58,7 +57,7 @@ def _raw(port: int, request: bytes) -> bytes:
                 data += chunk
                 if b"\r\n\r\n" in data:
                     break
-        except (ConnectionResetError, socket.timeout):
+        except (TimeoutError, ConnectionResetError):
             pass
     return data
 

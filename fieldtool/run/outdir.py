@@ -32,8 +32,8 @@ import signal
 import stat
 import threading
 import time
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Iterator
 
 import numpy as np
 
@@ -301,7 +301,7 @@ class _Claim:
     """The lock of one output folder, held by one run (one thread) at a time."""
 
     live_names: set[str] = set()  # temporary folders of the runs alive in this process
-    _held: dict[tuple[Path, int], "_Claim"] = {}
+    _held: dict[tuple[Path, int], _Claim] = {}
     _guard = threading.Lock()
 
     def __init__(self, real: Path, given: Path):

@@ -216,7 +216,7 @@ class OneLineLogger(logging.LoggerAdapter):
     def __init__(self) -> None:
         super().__init__(logging.getLogger("fieldtool.viewer.websockets"), {})
 
-    def isEnabledFor(self, level: int) -> bool:  # noqa: N802 - logging's name
+    def isEnabledFor(self, level: int) -> bool:
         return level >= logging.WARNING
 
     def log(self, level: int, msg, *args, exc_info=None, **kwargs) -> None:
