@@ -13,3 +13,7 @@ if not _os.environ.get("FIELDTOOL_DEBUG"):
 # solves), and the run's own threads keep the cores busy. One thread (unless the user sets it): about 0.2 s less
 # CPU on a 1080p run, the spinning gone. Read by OpenBLAS when numpy/scipy load it, so only before they import.
 _os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+# matplotlib's own two lines when HOME is unwritable: a folder of this user's own instead (fieldtool.mplconfig)
+from fieldtool.mplconfig import ensure_config_dir as _ensure_mpl_config_dir  # noqa: E402
+
+_ensure_mpl_config_dir()

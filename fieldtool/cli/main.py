@@ -16,6 +16,7 @@ from pathlib import Path
 
 from fieldtool import __version__
 from fieldtool.cli.console import end_progress_line
+from fieldtool.cli.signals import EXIT_TERMINATED, Terminated, terminate_as_interrupt
 from fieldtool.errors import Cancelled, FieldToolError, FieldToolWarning
 from fieldtool.plots import prerender
 from fieldtool.project.template import write_template
@@ -123,7 +124,8 @@ def _show_warning(message, category, filename, lineno, file=None, line=None) -> 
 def main(argv: list[str] | None = None) -> int:
     """Run one command. Exit codes: 0 done (a measurement graded good or doubtful), 2 bad input or a
     file/folder problem (one line naming it), 3 a measurement judged unusable, 1 an internal error
-    (one line and a bug-report hint; the traceback only with --debug), 130 interrupted."""
+    (one line and a bug-report hint; the traceback only with --debug), 130 interrupted (Ctrl-C), 143
+    terminated (SIGTERM)."""
     argv = list(sys.argv[1:] if argv is None else argv)
     debug = "--debug" in argv or bool(os.environ.get("FIELDTOOL_DEBUG"))
     argv = [a for a in argv if a != "--debug"]
@@ -132,7 +134,8 @@ def main(argv: list[str] | None = None) -> int:
         warnings.simplefilter("always", FieldToolWarning)
         warnings.showwarning = _show_warning
         try:
-            return _main(argv, debug)
+            with terminate_as_interrupt():  # SIGTERM: as Ctrl-C, exit 143 (cli.signals)
+                return _main(argv, debug)
         finally:
             end_progress_line()
 
@@ -155,6 +158,10 @@ def _main(argv: list[str], debug: bool) -> int:
         end_progress_line()
         print(f"fieldtool: error: {_one_line(str(e))}", file=sys.stderr)
         return 2
+    except Terminated:
+        end_progress_line()
+        print("fieldtool: terminated", file=sys.stderr)
+        return EXIT_TERMINATED
     except KeyboardInterrupt:
         end_progress_line()
         print("fieldtool: interrupted", file=sys.stderr)

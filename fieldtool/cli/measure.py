@@ -25,6 +25,7 @@ from fieldtool.records.history import record_run
 from fieldtool.run.frames import working_frames
 from fieldtool.run.geometry import roi_and_mask
 from fieldtool.run.inputs import load_inputs
+from fieldtool.run.outdir import check_out
 from fieldtool.run.pipeline import run_project
 
 
@@ -37,8 +38,7 @@ def run(args: argparse.Namespace) -> int:
     """`fieldtool run PROJECT`: every step headless; the figure process was forked by ``cli.main``."""
     project = load_project(args.project)
     out = Path(args.out) if args.out else Path(args.project).resolve().parent / "out"
-    if out.exists() and not out.is_dir():
-        raise InputFileError(f"--out {out}: is a file, not a folder; give a folder for the results")
+    check_out(out, project)  # not a file, not read-only, not the project's folder nor one holding an input
     check(project)  # every key, before any step (run_project checks again: other callers rely on it)
     observer = None
     if args.rerun or project.rerun.mode != "off":
@@ -54,7 +54,11 @@ def run(args: argparse.Namespace) -> int:
     end_progress_line()
     s = result.summary()
     ci = s.get("discharge_ci95_m3s")
-    if ci and None not in ci:
+    q = s.get("discharge_m3s")
+    q_ok = isinstance(q, (int, float)) and math.isfinite(q)  # a null discharge is never exit 0 (exit 3 below)
+    if not q_ok:
+        print("discharge     none (not a finite number)")
+    elif ci and None not in ci:
         print(f"discharge     {s['discharge_m3s']:.4f} m3/s  (95 % interval {ci[0]:.4f} - {ci[1]:.4f}, Monte Carlo)")
     else:
         print(f"discharge     {s['discharge_m3s']:.4f} m3/s")
@@ -81,8 +85,9 @@ def run(args: argparse.Namespace) -> int:
     if observer is not None and observer.mode == "serve":
         print("rerun: still serving the run (listening on all interfaces); press Ctrl-C to stop", file=sys.stderr)
         threading.Event().wait()  # Ctrl-C ends it: main() catches KeyboardInterrupt
-    if grade == "unusable":
-        print("fieldtool: the measurement is unusable (reasons above); every result file was written", file=sys.stderr)
+    if grade == "unusable" or not q_ok:
+        why = "reasons above" if grade == "unusable" else "no finite discharge"
+        print(f"fieldtool: the measurement is unusable ({why}); every result file was written", file=sys.stderr)
         return 3
     return 0
 

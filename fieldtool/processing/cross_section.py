@@ -16,6 +16,9 @@ import numpy as np
 from fieldtool.errors import GeometryError, InputFileError, ParameterError
 
 SHAPES = ("rectangular", "trapezoidal", "parabolic", "free")
+MAX_ABS_M = 10_000.0  # |station| and |elevation| beyond 10 km are not a river survey (m)
+MAX_RELIEF_PER_WIDTH = 1000.0  # bed relief (highest - lowest point) over the section's width: beyond, a typo
+MAX_FILE_BYTES = 10_000_000  # a cross-section file (text or workbook) is at most 10 MB (~400 000 rows)
 
 
 @dataclass(frozen=True)
@@ -246,7 +249,8 @@ def parse_rows(rows: list[tuple[int, list[str]]], source: str, comma_decimal: bo
     """Cross-section from rows of cells ``(line_number, [cell, ...])``: header lines optional (they may
     name the columns and their units, e.g. ``Station (m); Elevation (cm)``); one "station, elevation"
     pair per data row. Raises InputFileError naming the line of the first row it cannot read."""
-    pts: list[tuple[float, float]] = []
+    pts = []
+    lines: list[int] = []  # the line of each point
     si, zi, fs, fz = 0, 1, 1.0, 1.0
     width = None
     for lineno, cells in rows:
@@ -270,17 +274,51 @@ def parse_rows(rows: list[tuple[int, list[str]]], source: str, comma_decimal: bo
         elif len(vals) != width:
             raise InputFileError(f"{source}, line {lineno}: {len(vals)} fields where the rows above have {width}; "
                                  "check the separators (a decimal comma in a comma-separated file splits a number)")
-        station, elevation = vals[si], vals[zi]
-        assert station is not None and elevation is not None  # a row with a cell that is not a number was refused
-        pts.append((station * fs, elevation * fz))
+        st_m, z_m = vals[si] * fs, vals[zi] * fz
+        for what, v in (("station", st_m), ("elevation", z_m)):
+            if not abs(v) <= MAX_ABS_M:
+                raise InputFileError(f"{source}, line {lineno}: {what} {v:g} m is beyond ±10 km ({MAX_ABS_M:g} m); "
+                                     "give the survey in metres (a local datum if the numbers are large)")
+        pts.append((st_m, z_m))
+        lines.append(lineno)
     if len(pts) < 2:
         raise InputFileError(f"{source}: {len(pts)} data row(s); a cross-section needs at least 2 rows of "
                              "'station, elevation' in metres")
     arr = np.asarray(pts)
+    _check_relief(arr, lines, source)
     try:
         return CrossSection(arr[:, 0], arr[:, 1])
     except GeometryError as e:
         raise InputFileError(f"{source}: {e}") from e
+
+
+def _check_relief(arr: np.ndarray, lines: list[int], source: str) -> None:
+    """Refuse a bed whose relief exceeds :data:`MAX_RELIEF_PER_WIDTH` times the section's width (a bank 5 km
+    high over a 2 m wide section is a typo), naming the line farthest from the median elevation."""
+    width = float(arr[:, 0].max() - arr[:, 0].min())
+    z = arr[:, 1]
+    relief = float(z.max() - z.min())
+    if width > 0 and relief <= MAX_RELIEF_PER_WIDTH * width:
+        return
+    if width <= 0 and relief == 0:
+        return  # one station: refused below with its own message
+    k = int(np.argmax(np.abs(z - np.median(z))))
+    ratio = f"{relief / width:.0f} times" if width > 0 else "infinitely"
+    raise InputFileError(f"{source}, line {lines[k]}: elevation {z[k]:g} m makes the bed {relief:g} m high over a "
+                         f"{width:g} m wide section ({ratio} its width; at most {MAX_RELIEF_PER_WIDTH:g}); "
+                         "check this row's number and unit")
+
+
+def file_size_problem(path: Path | str) -> str | None:
+    """Why a cross-section file is too large to read (over :data:`MAX_FILE_BYTES`), or None."""
+    try:
+        size = Path(path).stat().st_size
+    except OSError:
+        return None
+    if size <= MAX_FILE_BYTES:
+        return None
+    return (f"{path}: {size / 1e6:.1f} MB; a cross-section file is at most {MAX_FILE_BYTES / 1e6:g} MB "
+            "(about 400 000 rows); give the surveyed points of the section only")
 
 
 def parse_xy_text(text: str, source: str = "cross-section") -> CrossSection:
@@ -318,6 +356,9 @@ def load_cross_section(path: Path | str) -> CrossSection:
     path = Path(path)
     if not path.is_file():
         raise InputFileError(f"{path}: cross-section file not found; give a CSV of 'station, elevation' rows in metres")
+    too_big = file_size_problem(path)
+    if too_big:
+        raise InputFileError(too_big)
     if path.suffix.lower() in (".xlsx", ".xlsm", ".ods"):
         return parse_rows(_spreadsheet_rows(path), str(path))
     try:

@@ -7,7 +7,6 @@ the user gives. Nothing here keeps more than one frame in memory.
 
 from __future__ import annotations
 
-import glob
 import os
 import re
 from collections.abc import Iterator
@@ -19,6 +18,7 @@ import cv2
 import numpy as np
 
 from fieldtool.errors import InputFileError, ParameterError
+from fieldtool.processing.paths import is_pattern, literal_glob
 
 IMAGE_EXTS = {".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp"}
 
@@ -54,11 +54,35 @@ def sequence_files(path: Path) -> list[Path] | None:
     """Image files of a sequence given as a folder or a glob; None when ``path`` is a video."""
     if path.is_dir():
         files = [p for p in path.iterdir() if p.suffix.lower() in IMAGE_EXTS]
-    elif any(ch in str(path) for ch in "*?["):
-        files = [Path(p) for p in glob.glob(str(path)) if Path(p).suffix.lower() in IMAGE_EXTS]
+    elif is_pattern(path):
+        files = [Path(p) for p in literal_glob(path) if Path(p).suffix.lower() in IMAGE_EXTS]
     else:
         return None
     return sorted(files, key=_natural_key)
+
+
+_END_MARKERS = {".jpg": (b"\xff\xd9", "JPEG end marker"), ".jpeg": (b"\xff\xd9", "JPEG end marker"),
+                ".png": (b"IEND", "PNG end chunk")}
+_TAIL_BYTES = 1024  # an end marker is searched in the last KiB (cameras may pad after it)
+
+
+def cut_short(path: Path) -> str | None:
+    """Why an image file of a sequence is cut short (a JPEG without its end marker, a PNG without its end
+    chunk: a copy or upload that stopped midway), or None. Reads the file's last KiB only."""
+    marker = _END_MARKERS.get(path.suffix.lower())
+    if marker is None:
+        return None
+    try:
+        with open(path, "rb") as fh:
+            size = fh.seek(0, os.SEEK_END)
+            fh.seek(max(0, size - _TAIL_BYTES))
+            tail = fh.read()
+    except OSError as e:
+        return f"{path}: cannot be read ({e.strerror})"
+    if marker[0] in tail:
+        return None
+    return (f"{path}: the image is cut short (no {marker[1]}; a copy that stopped midway); copy it again or "
+            "remove it from the sequence")
 
 
 class FrameSource:
@@ -83,6 +107,10 @@ class FrameSource:
         else:
             if not self.files:
                 raise InputFileError(f"{self.path}: no images ({', '.join(sorted(IMAGE_EXTS))}) found")
+            for f in self.files:  # before any decoding: libjpeg would print its own lines for a cut image
+                msg = cut_short(f)
+                if msg:
+                    raise InputFileError(msg)
             if frame_interval_s is None or not frame_interval_s > 0:
                 raise ParameterError(
                     "video.frame_interval_s: an image sequence carries no timestamps; give the time between two "

@@ -328,11 +328,33 @@ def check_interval(ev: Evidence, th: Thresholds) -> list[Reason]:
                    ev.relative_u95, th.relative_u95_doubtful)]
 
 
+#: fewer frame pairs than this cannot show the flow is steady nor average out the noise of one pair: doubtful
+MIN_PAIRS_GOOD = 5
+
+
+def check_discharge(ev: Evidence, th: Thresholds) -> list[Reason]:
+    """No finite discharge (NaN, infinite, none): unusable, whatever else the checks say."""
+    q = ev.discharge_m3s
+    if q is not None and np.isfinite(q):
+        return []
+    return [Reason("no_discharge", "unusable", f"the discharge is not a number ({q}); nothing can be reported",
+                   None, None)]
+
+
+def check_pairs(ev: Evidence, th: Thresholds) -> list[Reason]:
+    """A clip of fewer than :data:`MIN_PAIRS_GOOD` frame pairs (a 2-frame clip has one): doubtful."""
+    n = ev.n_frame_pairs
+    if n is None or n >= MIN_PAIRS_GOOD:
+        return []
+    return [Reason("few_pairs", "doubtful", f"only {n} frame pair(s) (at least {MIN_PAIRS_GOOD} for a good grade): one "
+                   "pair's noise is not averaged out; use a longer clip", float(n), float(MIN_PAIRS_GOOD))]
+
+
 #: reasons that doubt the measured velocities themselves (the interval then allows an under-read)
 VELOCITY_DOUBTS = frozenset({"stalled_subsections", "velocity_deficit", "valid_fraction", "pair_spread",
                              "low_correlation", "displacement_limit", "no_motion", "identical_frames"})
 
-CHECKS: list[Check] = [check_motion, check_speed, check_measured_width, check_valid_fraction, check_stalled, check_deficit,
+CHECKS: list[Check] = [check_discharge, check_pairs, check_motion, check_speed, check_measured_width, check_valid_fraction, check_stalled, check_deficit,
                        check_displacement, check_peak, check_pair_spread, check_angle, check_interval]
 
 

@@ -40,6 +40,7 @@ import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
@@ -47,7 +48,9 @@ import numpy as np
 from fieldtool.errors import GeometryError, InputFileError, ParameterError
 from fieldtool.processing.cross_section import CrossSection
 from fieldtool.processing.ortho import OrthoMapping
-from fieldtool.project.model import WaterLevelCfg
+
+if TYPE_CHECKING:  # the configuration's type only: processing/ imports nothing of the project file
+    from fieldtool.project.model import WaterLevelCfg
 
 
 def _argrelextrema(*args, **kwargs):

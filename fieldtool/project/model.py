@@ -579,5 +579,17 @@ def apply_changes(path: Path | str, changes: dict[str, Any]) -> Project:
             else:
                 node[last] = _to_dict(value)
         project = project_from_dict(data, path.resolve().parent)
+        _refuse_bad_changes(project, changes)  # the one validation layer, for the keys written here
         atomic_write_bytes(path, _dump_roundtrip(path, project_to_dict(project)))
     return project
+
+
+def _refuse_bad_changes(project: Project, changes: dict[str, Any]) -> None:
+    """ParameterError with the first error of a value of ``changes`` by itself (validation.value_problems: type,
+    range, finiteness; a half-picked point list passes)."""
+    # imported here: project.validation reads this module's declarations (a cycle if imported at the top)
+    from fieldtool.project.validation import value_problems
+
+    for p in value_problems(project, changes):
+        if p.severity == "error":
+            raise ParameterError(str(p))

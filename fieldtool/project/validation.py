@@ -20,7 +20,6 @@ everything that touches the disk (existence, the clip's header, the DEM header).
 from __future__ import annotations
 
 import dataclasses
-import glob as _glob
 import math
 import os
 import re
@@ -36,6 +35,8 @@ from fieldtool.errors import FieldToolError, ParameterError
 from fieldtool.processing.filters import FILTERS, FilterStack
 from fieldtool.processing.frames import FrameSource
 from fieldtool.processing.water_level import MAX_DEM_CELLS, dem_size
+from fieldtool.processing.cross_section import MAX_ABS_M, file_size_problem
+from fieldtool.processing.paths import is_pattern, literal_glob
 from fieldtool.project.keyspec import KeySpec, spec_of
 from fieldtool.project.model import Project
 from fieldtool.project.sections import parse as parse_sections
@@ -97,6 +98,28 @@ def check(project, *, files: bool = True, prefix: str = "") -> list[Problem]:
     return probs
 
 
+def value_problems(project, keys: Iterable[str]) -> list[Problem]:
+    """The problems of each value of ``keys`` by itself: type, unit range, finiteness, list shape (what a key's
+    declaration says; no check across keys, nothing on disk). For a writer of single keys (the viewer's picks,
+    ``calibrate --project``): a half-picked list of GCPs passes, a NaN in it does not."""
+    from fieldtool.project.model import Project
+
+    v = _Validator(project, False)
+    wanted = set(keys)
+    hints = typing.get_type_hints(Project)
+    for f in dataclasses.fields(Project):
+        val = getattr(project, f.name, None)
+        if dataclasses.is_dataclass(val):
+            sub_hints = typing.get_type_hints(type(val))
+            for sf in dataclasses.fields(val):
+                k = f"{f.name}.{sf.name}"
+                if k in wanted:
+                    v.guarded(k, v.value, k, getattr(val, sf.name, None), sub_hints[sf.name], spec_of(sf))
+        elif f.name in wanted:
+            v.guarded(f.name, v.value, f.name, val, hints[f.name], spec_of(f))
+    return v.problems
+
+
 def path_problem(path: Path | str, key: str, *, kind: str = "file") -> str | None:
     """Why ``path`` cannot be read as ``kind`` ("file" or "video"), or None. Never opens the file
     (a FIFO named as a video must not block)."""
@@ -105,11 +128,11 @@ def path_problem(path: Path | str, key: str, *, kind: str = "file") -> str | Non
     if msg:
         return msg
     p = Path(text)
-    if kind == "video" and any(ch in text for ch in "*?[") and not p.exists():
+    if kind == "video" and is_pattern(text):
         parent = Path(text).parent
         if not parent.is_dir():
             return f"{parent}: the folder of this pattern does not exist; give the image folder or the video file"
-        if not _glob.glob(text):
+        if not literal_glob(text):
             return f"{text}: no file matches this pattern"
         return None
     try:
@@ -541,7 +564,10 @@ class _Validator:
         if not self.ok("cross_section.shape"):
             return
         if c.shape == "":
-            self.file("cross_section.path", c.path)
+            if self.file("cross_section.path", c.path) and self.files:
+                msg = file_size_problem(self.p.resolve(c.path))  # a 50 MB file is refused at once
+                if msg:
+                    self.err("cross_section.path", msg)
             return
         if c.shape in ("rectangular", "trapezoidal", "parabolic"):
             for name in ("top_width_m", "depth_m"):
@@ -553,6 +579,11 @@ class _Validator:
                                                          f"({c.top_width_m:g} m)")
         if c.shape == "free" and self.ok("cross_section.points") and len(c.points) < 3:
             self.err("cross_section.points", "a free shape needs at least 3 [station_m, elevation_m] points")
+        if c.shape == "free" and self.ok("cross_section.points"):
+            for i, pt in enumerate(c.points):  # the limit a cross-section file's rows have (processing.cross_section)
+                if any(isinstance(v, (int, float)) and not abs(v) <= MAX_ABS_M for v in pt):
+                    self.err(f"cross_section.points[{i}]", f"{_fmt(list(pt))}: beyond ±10 km; give metres")
+                    break
 
     def calibration(self) -> None:
         c = self.p.calibration

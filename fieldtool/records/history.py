@@ -19,7 +19,6 @@ as text. Discharges in m³/s, levels in metres, velocities in m/s.
 from __future__ import annotations
 
 import csv
-import glob
 import hashlib
 import io
 import json
@@ -38,6 +37,7 @@ from typing import Any
 
 from fieldtool.errors import InputFileError, ParameterError
 from fieldtool.project.model import project_to_dict
+from fieldtool.processing.paths import is_pattern, literal_glob
 from fieldtool.records import user_data_dir
 
 SCHEMA_VERSION = 1
@@ -704,8 +704,8 @@ def _video_files(video: Path) -> list[Path]:
     """The file(s) of a clip: one video, or the images of a folder / glob, in name order."""
     if video.is_dir():
         return sorted(p for p in video.iterdir() if p.is_file())
-    if any(ch in str(video) for ch in "*?["):
-        return sorted(Path(p) for p in glob.glob(str(video)) if Path(p).is_file())
+    if is_pattern(video):  # * or ? only: brackets are literal
+        return sorted(Path(p) for p in literal_glob(video) if Path(p).is_file())
     return [video] if video.is_file() else []
 
 

@@ -28,6 +28,8 @@ import tomli_w
 
 from fieldtool.errors import InputFileError, ParameterError
 from fieldtool.processing.cross_section import load_cross_section
+from fieldtool.processing.paths import is_pattern
+from fieldtool.project.validation import check
 from fieldtool.project.model import (
     Project,
     atomic_write_bytes,
@@ -261,7 +263,7 @@ def new_measurement(site: Site, video: Path | str, level_m: float | None, out_di
     ParameterError : no level given for a site that takes a typed level.
     """
     video = Path(video).expanduser()
-    if not video.exists() and not any(ch in str(video) for ch in "*?["):
+    if not video.exists() and not is_pattern(video):
         raise InputFileError(f"{video}: video not found")
     out_dir = Path(out_dir)
     proj_path = out_dir / "project.toml"
@@ -270,6 +272,7 @@ def new_measurement(site: Site, video: Path | str, level_m: float | None, out_di
     d = measurement_dict(site, video, level_m, out_dir, level_uncertainty_m=level_uncertainty_m, name=name)
     project = project_from_dict(d, out_dir.absolute())
     project.site = site.name
+    check(project, files=False, prefix="water_level.")  # --level nan/inf, a negative uncertainty: the one layer's word
     for table, key, _stem in SITE_FILES:
         rel = d.get(table, {}).get(key)
         if rel:

@@ -22,7 +22,8 @@ from fieldtool.plots import prerender
 from fieldtool.project.model import Project, atomic_write_bytes
 from fieldtool.run import stiv_stage
 from fieldtool.run.inputs import Inputs
-from fieldtool.run.outdir import Staging, strict_json
+from fieldtool.run import outdir
+from fieldtool.run.outdir import strict_json
 from fieldtool.run.result import RunResult
 from fieldtool.writers import write_standard
 
@@ -39,18 +40,13 @@ def start_figures() -> None:
 def write_outputs(result: RunResult, project: Project, inputs: Inputs, out: Path) -> None:
     """result.json, subsections.csv, mean_field.npz/.npy and the PNG plots, each written atomically."""
     t0 = time.perf_counter()
-    project_file_inside = out.exists() and out.resolve() in (project.root.resolve(), *project.root.resolve().parents)
-    stage = Staging(out, in_place=project_file_inside)
-    try:
+    with outdir.claim(out, project) as stage:  # the run's own claim (run_project), or one for this call alone
         _write_outputs(result, inputs, stage.path)
         write_standard(result, project, inputs, stage.path)  # mean_field.nc, rectified.tif (with a CRS), video metadata
         _write_figures(result, inputs, stage.path)  # last: the figure process draws them meanwhile
         result.timings_s["outputs"] = round(time.perf_counter() - t0, 3)  # all but result.json itself
         _write_result_json(result, stage.path)
         stage.commit()
-    except BaseException:
-        stage.abort()
-        raise
     result.out_dir = out
 
 

@@ -29,7 +29,7 @@ from fieldtool.plots.prerender import Prerender
 from fieldtool.project.model import Project, project_to_dict
 from fieldtool.project.validation import check
 from fieldtool.project import sections
-from fieldtool.run import discharge, geometry, outputs, quality, velocimetry
+from fieldtool.run import discharge, geometry, outdir, outputs, quality, velocimetry
 from fieldtool.run.inputs import load_inputs
 from fieldtool.run.observer import Guarded, Observer, Progress
 from fieldtool.run.result import RunResult
@@ -63,6 +63,9 @@ def _run_project(project: Project, out_dir: Path | str | None, progress: Progres
     warnings: list[str] = []
     obs = Guarded(observer, warnings)
     lap = _Laps()
+    # the output folder's lock, checks and staging folder (run/outdir.py): everything, the PIV cache too, is
+    # written there and swapped in as a unit at the end
+    stage = ends.enter_context(outdir.claim(out_dir, project)) if out_dir is not None else None
     if out_dir is not None:
         outputs.start_figures()  # the figure process, forked before this run starts any thread
     warnings += [str(w) for w in check(project)]  # every key, before any step
@@ -88,8 +91,8 @@ def _run_project(project: Project, out_dir: Path | str | None, progress: Progres
     # the pixel-space field is reused when only the mapping, level, section or alpha changed (not while
     # streaming to an observer, who wants to see the frames and pairs)
     cache_dir = Path(out_dir) if out_dir is not None and observer is None else None
-    vel = velocimetry.measure_velocity(project, inputs, setup, pairs.on(placed.geom), cache_dir, cancel, obs,
-                                       progress, warnings)
+    vel = velocimetry.measure_velocity(project, inputs, setup, pairs.on(placed.geom), cache_dir,
+                                       stage.path if stage is not None else None, cancel, obs, progress, warnings)
     lap("frames_and_piv")
 
     obs("stage", "discharge")

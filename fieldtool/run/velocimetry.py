@@ -183,11 +183,12 @@ class _Streams:
 
 
 def measure_velocity(project: Project, inputs: Inputs, s: PivSetup, pair_q: Callable[..., float],
-                     cache_dir: Path | None, cancel, obs: Guarded, progress: Progress | None,
-                     warnings: list[str]) -> Velocimetry:
+                     cache_dir: Path | None, save_dir: Path | None, cancel, obs: Guarded,
+                     progress: Progress | None, warnings: list[str]) -> Velocimetry:
     """The PIV field of the clip (and STIV's sampling on the way). ``pair_q(x, y, u, v)`` is the discharge of
     one pair's field on the main section (m³/s), which the rounds converge on; ``cache_dir``: the folder whose
-    PIV cache is read and written (None: neither)."""
+    PIV cache is read (None: none); ``save_dir``: where a new one is written, the run's staging folder, so that
+    it replaces the old one only with the rest of the run (run/outdir.py)."""
     st = _Streams(project, inputs, s, cancel, obs, progress, warnings)
     key = piv_cache.piv_key(project, s.max_speed, s.roi, s.near) if cache_dir is not None else ""
     cached = piv_cache.load(cache_dir, key, with_extra=True) if cache_dir is not None else None
@@ -212,8 +213,8 @@ def measure_velocity(project: Project, inputs: Inputs, s: PivSetup, pair_q: Call
         res = _rounds(project, st, n_exp, pair_q, on_pair, fast)
     else:
         res = _all_pairs(project, inputs, st, n_exp, on_pair, fast, warnings)
-    if cached is None and cache_dir is not None:
-        piv_cache.save(cache_dir, key, res, st.stab or None, {**fast, "frame_stats": st.frame_stats})
+    if cached is None and cache_dir is not None and save_dir is not None:
+        piv_cache.save(save_dir, key, res, st.stab or None, {**fast, "frame_stats": st.frame_stats})
     if cached is None:  # what the PIV's streams decoded (a reused field decodes nothing for it)
         fast.update(frames_decoded=st.count.frames, frames_in_range=st.count.in_range)
     stiv_stage.ensure_sampled(s.stiv_run, lambda: frames_mod.working_frames(project, inputs, cancel))

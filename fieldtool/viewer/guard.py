@@ -20,14 +20,18 @@ starts (viser serves its page and its WebSocket on one port through that hook).
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import getpass
 import hmac
 import ipaddress
+import logging
 import secrets
 import socket
+import sys
 import threading
 from collections.abc import Callable, Iterator
+import warnings
 from dataclasses import dataclass, field
 from http import HTTPStatus
 from pathlib import Path
@@ -124,9 +128,16 @@ class AccessGuard:
         return ok, "/" + rest if sep else ""
 
     def check(self, path: str, headers, websocket: bool) -> tuple[HTTPStatus, str] | None:
-        """None when the request may pass; else the status and the reason to answer with."""
-        host = headers.get("Host")
-        origin = headers.get("Origin")
+        """None when the request may pass; else the status and the reason to answer with. Two ``Host`` or
+        two ``Origin`` headers are a malformed request (400), said in one log line."""
+        for name in ("Host", "Origin"):
+            values = _all(headers, name)
+            if len(values) > 1:
+                why = f"{len(values)} {name} headers in one request"
+                log_once("duplicate-header", f"fieldtool view: refused a request with {why} (400)")
+                return self._refuse(HTTPStatus.BAD_REQUEST, why)
+        host = (_all(headers, "Host") or [None])[0]
+        origin = (_all(headers, "Origin") or [None])[0]
         if not self.host_allowed(host):
             return self._refuse(HTTPStatus.FORBIDDEN, f"host {host!r} is not this viewer's address")
         if (websocket or origin is not None) and not self.origin_allowed(origin, host):
@@ -142,6 +153,92 @@ class AccessGuard:
             self.refused.append(why)
             del self.refused[:-20]
         return status, why
+
+
+def _all(headers, name: str) -> list[str]:
+    """Every value of header ``name`` (websockets' Headers, or a plain mapping)."""
+    get_all = getattr(headers, "get_all", None)
+    if get_all is not None:
+        return list(get_all(name))
+    v = headers.get(name)
+    return [] if v is None else [v]
+
+
+# ---------------------------------------------------------------------------------------------
+# one log line per kind of refusal
+
+MAX_MESSAGE_BYTES = 4 * 1024 * 1024  # a WebSocket message from the page: clicks and GUI values, a few kB
+_said: dict[str, int] = {}
+_said_lock = threading.Lock()
+
+
+def log_once(kind: str, line: str) -> None:
+    """Print ``line`` on stderr the first time a refusal of ``kind`` happens; later ones are only counted
+    (``refusal_counts``), so that a flood of bad requests cannot flood the terminal."""
+    with _said_lock:
+        n = _said.get(kind, 0)
+        _said[kind] = n + 1
+    if n == 0:
+        print(line + " (further ones are refused silently)", file=sys.stderr, flush=True)
+
+
+def refusal_counts() -> dict[str, int]:
+    with _said_lock:
+        return dict(_said)
+
+
+def _one_line(e: BaseException) -> str:
+    text = " ".join(str(e).split())
+    return f"{type(e).__name__}: {text[:200]}" if text else type(e).__name__
+
+
+def guard_handler(inner: Callable) -> Callable:
+    """viser's WebSocket handler, with a malformed message (not MessagePack, an unknown message type, wrong
+    fields) ending its connection with one log line instead of websockets' "connection handler failed"
+    traceback; errors of the tasks that handle a message are said the same way (the loop's exception
+    handler)."""
+
+    async def handler(connection) -> None:
+        loop = asyncio.get_running_loop()
+        if not getattr(loop, "_fieldtool_quiet", False):
+            loop.set_exception_handler(_loop_exception)
+            loop._fieldtool_quiet = True  # type: ignore[attr-defined]
+        try:
+            await inner(connection)
+        except Exception as e:  # noqa: BLE001 - a client's bad message must not reach the log as a traceback
+            log_once("malformed-message", f"fieldtool view: closed a connection that sent a malformed message "
+                                          f"({_one_line(e)})")
+            with contextlib.suppress(Exception):
+                await connection.close(1007, "malformed message")
+
+    return handler
+
+
+class OneLineLogger(logging.LoggerAdapter):
+    """The websockets server's logger: its errors ("opening handshake failed" for a malformed request, "connection
+    handler failed") as one line each kind (:func:`log_once`) with the exception's own message, no traceback;
+    its debug and info lines dropped."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.getLogger("fieldtool.viewer.websockets"), {})
+
+    def isEnabledFor(self, level: int) -> bool:
+        return level >= logging.WARNING
+
+    def log(self, level: int, msg, *args, exc_info=None, **kwargs) -> None:
+        if level < logging.WARNING:
+            return
+        e = sys.exc_info()[1] if exc_info is True else exc_info if isinstance(exc_info, BaseException) else None
+        text = str(msg) % args if args else str(msg)
+        log_once(f"websockets:{text}", f"fieldtool view: {text}" + (f" ({_one_line(e)})" if e is not None else ""))
+
+
+def _loop_exception(loop, context: dict) -> None:
+    e = context.get("exception")
+    if isinstance(e, Exception):
+        log_once("message-handler", f"fieldtool view: ignored a message the viewer could not handle ({_one_line(e)})")
+        return
+    loop.default_exception_handler(context)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -211,9 +308,16 @@ def install(guard: AccessGuard, extra_routes: Callable | None = None) -> Iterato
             inner = kwargs.get("process_request")
             if inner is not None and getattr(inner, "__name__", "") == "viser_http_server":
                 kwargs["process_request"] = make_process_request(guard, inner, extra_routes)
+                kwargs["max_size"] = MAX_MESSAGE_BYTES  # viser allows 50 MB; the page sends a few kB
+                kwargs["logger"] = OneLineLogger()  # a malformed request: one line, no traceback
+                if args:
+                    args = (guard_handler(args[0]), *args[1:])
                 guard.hooked = True
             super().__init__(*args, **kwargs)
 
+    # a client's message with wrong field types: viser warns in two lines per message; the handler that then
+    # fails says it in one line (_loop_exception)
+    warnings.filterwarnings("ignore", message=r"\[viser\] .* does not match annotation", category=UserWarning)
     with _INSTALL_LOCK:
         wss.serve = guarded_serve
         try:
