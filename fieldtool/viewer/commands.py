@@ -10,6 +10,7 @@ import threading
 def cmd_view(args: argparse.Namespace) -> int:
     from fieldtool.viewer.images import KINDS
     from fieldtool.viewer.picks import MODES
+    from fieldtool.viewer.registry import running_viewer
     from fieldtool.viewer.server import start_viewer
 
     if args.mode and args.mode not in MODES:
@@ -22,6 +23,13 @@ def cmd_view(args: argparse.Namespace) -> int:
     def on_pick(field: str, value) -> None:
         print(f"saved {field} = {value}", flush=True)
 
+    running = running_viewer(args.project)  # one viewer per project: attach to the running one
+    if running is not None:
+        print(f"a picking viewer already runs for this project (pid {running.pid}); use it:", flush=True)
+        print(f"picking viewer at {running.url}", flush=True)
+        print(f"  over SSH, on your computer run:  {running.ssh_hint}", flush=True)
+        print(f"  then open {running.local_url}", flush=True)
+        return 0
     handle = start_viewer(args.project, host=args.host, port=args.port, on_pick=on_pick)
     if handle.warning:
         print(handle.warning, file=sys.stderr, flush=True)
