@@ -48,9 +48,10 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     print(f"FOV x / y / diag   {fov[0]:.2f} / {fov[1]:.2f} / {fov[2]:.2f} deg")
     print(f"saved              {args.out}")
     if args.project:
-        from fieldtool.project.model import apply_changes
+        from fieldtool.project.sync import ProjectSync
 
-        apply_changes(args.project, {"calibration.path": str(Path(args.out).resolve())})  # only this key
+        # only this key, merged with the TUI's or the viewer's edits; an invalid or read-only file is refused
+        ProjectSync(args.project).set_keys({"calibration.path": str(Path(args.out).resolve())})
         print(f"project            {args.project}: calibration.path set")
     return 0
 

@@ -96,7 +96,8 @@ class FieldToolApp(App):
             if self.status[1] and self.status[0].startswith("NOT SAVED"):
                 self.status = (f"saved {self.session.path.name}", False)
             ok = True
-            self._after_merge(res)
+            if res is not None:
+                self._after_merge(res)
         if isinstance(self.screen, StepScreen):
             self.show_status(self.screen)
             self.screen.update_title()
@@ -136,12 +137,9 @@ class FieldToolApp(App):
         """Show what another program changed in the open step; ask about conflicts."""
         screen = self.screen
         if isinstance(screen, StepScreen):
-            shown = set()
-            for k in res.theirs_changed + [c.key for c in res.conflicts]:
-                base = k.split("[")[0]
-                if base not in shown:
-                    shown.add(base)
-                    screen.show_value(base)
+            keys = res.theirs_changed + [c.key for c in res.conflicts]
+            if keys:
+                screen.show_keys(keys)
             if res.theirs_changed:
                 screen.update_title()
         if res.conflicts:
@@ -161,8 +159,7 @@ class FieldToolApp(App):
             adopt(self.session.project, project_from_dict(data, self.session.project.root))
             self.save_project()
             if isinstance(self.screen, StepScreen):
-                for c in conflicts:
-                    self.screen.show_value(c.key.split("[")[0])
+                self.screen.show_keys([c.key for c in conflicts])
 
         if not isinstance(self.screen, ConflictScreen):
             self.push_screen(ConflictScreen(conflicts), chosen)
@@ -318,8 +315,6 @@ class FieldToolApp(App):
         """The viewer saved a pick (merged into the file by ``project.sync``): take the file's change in
         now, without waiting for the next look at the file, and without writing anything back."""
         self.watch_file()
-        if isinstance(self.screen, StepScreen):
-            self.screen.show_value(key)
 
     def viewer_focus(self, key: str) -> None:
         """Switch the viewer to the pick mode that fills ``key`` (a pixel field got the focus)."""

@@ -246,7 +246,28 @@ class StepScreen(Screen):
         self.refresh_view()
         self.refresh_marks()
 
-    # -- viewer picks -------------------------------------------------------------------------------
+    # -- viewer picks and other programs' edits ---------------------------------------------------
+    def show_keys(self, keys: list[str]) -> bool:
+        """Show the project's values of the changed ``keys`` (``project.sync`` keys: dotted, ``[i]`` per
+        point) in the rows that display them, and only in those: a row being typed in whose own key did not
+        change keeps its text (a refresh must never put an old value back into it)."""
+        def hit(row_key: str) -> bool:
+            return any(row_key == k or k.startswith(row_key + "[") or row_key.startswith(k + "[") for k in keys)
+
+        shown = False
+        for row in self.rows:
+            if hit(row.field.key):
+                text = row.field.format(row.field.get(self.project))
+                if row.text() != text:
+                    row.set_text(text)
+                row.refresh_error()
+                shown = True
+        if shown:
+            self.update_visibility()
+            self.refresh_view()
+            self.refresh_marks()
+        return shown
+
     def show_value(self, key: str) -> bool:
         """Show the project's value of ``key`` (set elsewhere, e.g. by a viewer pick) in its rows."""
         shown = False
