@@ -161,3 +161,79 @@ def test_a_dead_viewers_info_file_is_ignored(tmp_path):
     info_path(path).write_text(json.dumps({"pid": 2**22 + 12345, "host": "127.0.0.1", "port": 1,
                                            "token": "x", "url": "http://127.0.0.1:1/x/"}))
     assert running_viewer(path) is None
+
+
+def _title(app):
+    from fieldtool.tui.widgets.chrome import TitleBar
+
+    return str(app.screen.query_one(TitleBar).render())
+
+
+@pytest.mark.parametrize("bad", ["not_a_key = 3\n", "[ortho\n"])
+def test_tui_refuses_to_write_over_a_file_saved_invalid_elsewhere(tmp_path, bad):
+    path = _project(tmp_path)
+
+    async def run():
+        app = FieldToolApp(path)
+        async with app.run_test(size=(80, 24)) as pilot:
+            await pilot.pause()
+            text = bad + path.read_text()
+            path.write_text(text)  # another program's save, with one bad key / a TOML error
+            await pilot.pause(0.8)
+            assert "another program" in app.status[0] and "nothing was saved" in app.status[0] and ("not_a_key" in app.status[0] or "TOML" in app.status[0])
+            _row(app, 0).control.value = "1, 2"  # the next edit here
+            await pilot.pause()
+            assert path.read_text() == text
+            assert app.status[1] and app.status[0].startswith("NOT SAVED")
+            assert "saved" not in _title(app).replace("NOT SAVED", "")
+            assert app.session.project.ortho.gcp_px[0] == [1.0, 2.0]  # the entry is kept here
+
+    asyncio.run(run())
+
+
+def test_tui_refuses_a_read_only_file_and_keeps_its_mode(tmp_path):
+    path = _project(tmp_path)
+    os.chmod(path, 0o444)
+    before = path.read_bytes()
+    try:
+        async def run():
+            app = FieldToolApp(path)
+            async with app.run_test(size=(80, 24)) as pilot:
+                await pilot.pause()
+                _row(app, 0).control.value = "1, 2"
+                await pilot.pause()
+                assert "read-only" in app.status[0] and "NOT SAVED" in _title(app)
+
+        asyncio.run(run())
+        assert path.read_bytes() == before and (os.stat(path).st_mode & 0o777) == 0o444
+    finally:
+        os.chmod(path, 0o644)
+
+
+def test_a_true_conflict_keeps_the_files_value_and_asks(tmp_path):
+    from fieldtool.project.sync import ProjectSync
+    from fieldtool.tui.screens.conflict import ConflictScreen
+
+    path = _project(tmp_path)
+
+    async def run():
+        app = FieldToolApp(path)
+        async with app.run_test(size=(80, 24)) as pilot:
+            await pilot.pause()
+            # another program saves P1, and P1 is typed here before the TUI looked at the file again
+            other = ProjectSync(path)
+            p = other.load()
+            p.ortho.gcp_px[0] = [50.0, 60.0]
+            other.save(p)
+            _row(app, 0).control.value = "7, 8"
+            await pilot.pause()
+            assert isinstance(app.screen, ConflictScreen)
+            shown = str(app.screen.query_one("#conflict-text").render())
+            assert "50, 60" in shown and "7, 8" in shown
+            assert load_project(path).ortho.gcp_px[0] == [50.0, 60.0]  # the file's value kept
+            await pilot.press("m")  # use mine
+            await pilot.pause()
+            assert load_project(path).ortho.gcp_px[0] == [7.0, 8.0]
+            assert _pt(_row(app, 0).text()) == [7.0, 8.0]
+
+    asyncio.run(run())

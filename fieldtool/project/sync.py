@@ -267,15 +267,15 @@ def _read(path: Path) -> tuple[str | None, dict | None, Stamp | None]:
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
-        raise ProjectRefused(f"{path}: another program saved it with a TOML error ({e}); nothing was saved "
-                             "here. Fix the line named (your entries are kept in this window)") from None
+        raise ProjectRefused(f"{path}: not valid TOML now ({e}; saved so by another program or by hand); "
+                             "nothing was saved here. Fix the line named (your entries are kept in this window)") from None
     except RecursionError:
         raise ProjectRefused(f"{path}: values nested too deeply; nothing was saved") from None
     try:
         project_from_dict(data, path.parent)
     except ParameterError as e:
-        raise ProjectRefused(f"{path}: {e}; nothing was saved here. Fix that key (your entries are kept "
-                             "in this window)") from None
+        raise ProjectRefused(f"{path}: {e} (saved so by another program or by hand); nothing was saved "
+                             "here. Fix that key (your entries are kept in this window)") from None
     return text, data, (st.st_mtime_ns, st.st_size, st.st_ino)
 
 
