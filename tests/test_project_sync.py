@@ -7,7 +7,13 @@ import stat
 import pytest
 
 from fieldtool.project.model import load_project, save_project
-from fieldtool.project.sync import MISSING, ProjectRefused, ProjectSync, merge3, set_path
+from fieldtool.project.sync import (
+    MISSING,
+    ProjectRefused,
+    ProjectSync,
+    merge3,
+    set_path,
+)
 from fieldtool.project.template import write_template
 from fieldtool.tui.session import Session
 from fieldtool.viewer.picks import save_field

@@ -24,6 +24,7 @@ process changed the file, and merges that change into its own values.
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import os
 import re
 import stat as statmod
@@ -37,7 +38,14 @@ import tomli_w
 import tomlkit
 
 from fieldtool.errors import FieldToolError, InputFileError, ParameterError
-from fieldtool.project.model import Project, _DirLock, _merge_into, _to_dict, project_from_dict, project_to_dict
+from fieldtool.project.model import (
+    Project,
+    _DirLock,
+    _merge_into,
+    _to_dict,
+    project_from_dict,
+    project_to_dict,
+)
 from fieldtool.project.textfile import decode_text, read_bytes
 
 MISSING: Any = type("Missing", (), {"__repr__": lambda self: "<missing>"})()
@@ -176,7 +184,7 @@ def set_path(data: dict, key: str, value: Any) -> dict:
         steps.append(name)
         steps += [int(i) for i in re.findall(r"\d+", idx)]
     node: Any = out
-    for here, nxt in zip(steps[:-1], steps[1:]):
+    for here, nxt in itertools.pairwise(steps):
         if isinstance(here, int):
             node = node[here]
         else:
@@ -367,7 +375,7 @@ class ProjectSync:
         self.error: str | None = None  # why the file on disk was refused at the last poll/save
 
     def load(self) -> Project:
-        text, data, stamp = _read(self.path)
+        _text, data, stamp = _read(self.path)
         if data is None:
             raise InputFileError(f"{self.path}: project file not found. Create one with `fieldtool init DIR`.")
         project = project_from_dict(data, self.path.parent)
@@ -385,7 +393,7 @@ class ProjectSync:
         if stamp == self.stamp or stamp is None:
             return None
         try:
-            text, theirs, stamp = _read(self.path)
+            _text, theirs, stamp = _read(self.path)
         except FieldToolError as e:
             self.stamp, self.error = stamp, str(e)
             return None
@@ -405,6 +413,7 @@ class ProjectSync:
         """Merge ``mine`` into the file as it is now and write what changed (ProjectRefused when the
         file is invalid or read-only; ParameterError when ``mine`` does not make a valid project)."""
         mine_d = project_to_dict(mine) if isinstance(mine, Project) else _deep_copy(mine)
+        self.path.parent.mkdir(parents=True, exist_ok=True)  # a new project in a new folder
         with _DirLock(self.path):
             return self._save_locked(mine_d)
 
@@ -435,7 +444,7 @@ class ProjectSync:
         """Set dotted keys (``{"calibration.path": "cal.toml"}``; None removes) on top of the file as it
         is now: the one-shot writers' save (``calibrate --project``, ``site``)."""
         with _DirLock(self.path):
-            text, theirs, stamp = _read(self.path)
+            _text, theirs, stamp = _read(self.path)
             if theirs is not None:
                 self.base = project_to_dict(project_from_dict(theirs, self.path.parent))
                 self.stamp = stamp

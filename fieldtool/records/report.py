@@ -10,7 +10,6 @@ from __future__ import annotations
 import base64
 import csv
 import html
-import io
 import json
 from datetime import datetime, timezone
 from pathlib import Path
@@ -19,7 +18,15 @@ from fieldtool import __version__
 from fieldtool.errors import InputFileError
 from fieldtool.project.model import atomic_write_bytes
 from fieldtool.records.history import Measurement, Reference
-from fieldtool.records.report_content import budget_rows, discharge_text, header_rows, parameter_rows
+from fieldtool.records.report_content import (
+    COLUMN_NAMES,
+    budget_rows,
+    discharge_text,
+    header_rows,
+    parameter_rows,
+    result_rows,
+    subsection_cell,
+)
 
 # plots of result.json "files", in report order, with captions
 PLOTS = (
@@ -189,21 +196,7 @@ def render_html(summary: dict, images: dict[str, bytes], subsections: list[dict]
     out += _header_html(summary, measurement)
     out += _discharge_html(summary)
 
-    rows = [
-        ("Water level", f"{_f(summary.get('water_level_m'), '.3f', 'm')} ± "
-                        f"{_f(summary.get('water_level_uncertainty_m'), '.3f', 'm')}"),
-        ("Wetted area", _f(summary.get("wetted_area_m2"), ".3f", "m²")),
-        ("Wetted width", _f(summary.get("wetted_width_m"), ".3f", "m")),
-        ("Mean velocity", _f(summary.get("mean_velocity_ms"), ".3f", "m/s")),
-        ("Velocity index α", _f(summary.get("alpha"), ".2f") + (" (default for the mean depth)"
-                                                                 if summary.get("alpha_default") else " (given)")),
-        ("Section length", _f(summary.get("section_length_m"), ".3f", "m")),
-        ("Frame pairs", _e(summary.get("n_pairs", "–"))),
-        ("Mean valid vector fraction", _f(summary.get("valid_fraction_mean"), ".2f")),
-        ("Subsections with filled velocity", _e(summary.get("subsections_filled", "–"))),
-        ("GCP fit residual (RMS)", _f(1000 * summary["ortho_residual_m"], ".1f", "mm")
-         if isinstance(summary.get("ortho_residual_m"), (int, float)) else "–"),
-    ]
+    rows = [(k, _e(v)) for k, v in result_rows(summary)]
     out.append("<h2>Result</h2><table id='result'>")
     out += [f"<tr><th class='k'>{k}</th><td>{v}</td></tr>" for k, v in rows]
     out.append("</table>")
@@ -239,7 +232,7 @@ def render_html(summary: dict, images: dict[str, bytes], subsections: list[dict]
         out.append("<h2>Subsections</h2><table id='subsections'><tr>"
                    + "".join(f"<th>{_e(_COLUMN_NAMES.get(c, c))}</th>" for c in cols) + "</tr>")
         for r in subsections:
-            out.append("<tr>" + "".join(f"<td>{_e(r.get(c, ''))}</td>" for c in cols) + "</tr>")
+            out.append("<tr>" + "".join(f"<td>{_e(subsection_cell(c, r.get(c, '')))}</td>" for c in cols) + "</tr>")
         out.append("</table>")
 
     out.append("<h2>Parameters</h2><table id='inputs'><tr><th class='k'>step</th><th class='k'>parameter</th>"
@@ -256,94 +249,15 @@ def render_html(summary: dict, images: dict[str, bytes], subsections: list[dict]
     return "\n".join(out)
 
 
-_COLUMN_NAMES = {"subsection": "#", "station_from_m": "from (m)", "station_to_m": "to (m)", "area_m2": "area (m²)",
-                 "mean_depth_m": "mean depth (m)", "surface_velocity_ms": "surface velocity (m/s)",
-                 "velocity_filled": "filled", "discharge_m3s": "Q (m³/s)"}
-
-
-def _pdf_text_page(fig, summary, measurement, references) -> None:
-    """Page 1 of the PDF: header, Q with interval and grade, result and parameters."""
-    inputs = summary.get("inputs") or {}
-    t = discharge_text(summary)
-    y = 0.955
-    fig.text(0.06, y, f"Discharge measurement — {inputs.get('name', 'measurement')}", fontsize=15, weight="bold")
-    y -= 0.035
-    for k, v in header_rows(summary, measurement):
-        fig.text(0.06, y, k, fontsize=9, color="0.35")
-        fig.text(0.24, y, v, fontsize=9, weight="bold")
-        y -= 0.018
-    y -= 0.015
-    fig.text(0.06, y, f"Q = {t['q']}", fontsize=18, weight="bold")
-    if t["grade"]:
-        fig.text(0.62, y + 0.004, f" {t['grade'].upper()} ", fontsize=12, weight="bold", color="white",
-                 bbox={"boxstyle": "round,pad=0.3", "fc": GRADE_COLOURS.get(t["grade"], "0.4"), "lw": 0})
-    y -= 0.025
-    fig.text(0.06, y, f"95 % interval {t['ci']} ({t['rel']})" if t["ci"] else "no 95 % interval in this result",
-             fontsize=10)
-    y -= 0.02
-    for sev, msg in t["reasons"][:8]:
-        fig.text(0.08, y, f"• {sev}: {msg}"[:130], fontsize=8.5)
-        y -= 0.016
-    if summary.get("discharge_p05_m3s") is not None:
-        fig.text(0.06, y, f"spread of single frame pairs (5–95 %): {_f(summary.get('discharge_p05_m3s'), '.3f')} – "
-                          f"{_f(summary.get('discharge_p95_m3s'), '.3f')} m³/s over {summary.get('n_pairs', '?')} pairs",
-                 fontsize=8, color="0.35")
-        y -= 0.02
-    y -= 0.01
-    res = [("Water level", f"{_f(summary.get('water_level_m'), '.3f', 'm')} ± {_f(summary.get('water_level_uncertainty_m'), '.3f', 'm')}"),
-           ("Wetted area / width", f"{_f(summary.get('wetted_area_m2'), '.3f', 'm²')} / {_f(summary.get('wetted_width_m'), '.3f', 'm')}"),
-           ("Mean velocity, α", f"{_f(summary.get('mean_velocity_ms'), '.3f', 'm/s')}, α = {_f(summary.get('alpha'), '.2f')}")]
-    res += [(f"Reference ({r.method})", f"{_f(r.discharge_m3s, '.3f')} m³/s") for r in references]
-    for k, v in res:
-        fig.text(0.06, y, k, fontsize=9, color="0.35")
-        fig.text(0.30, y, v, fontsize=9)
-        y -= 0.017
-    y -= 0.012
-    fig.text(0.06, y, "Parameters", fontsize=11, weight="bold")
-    y -= 0.02
-    for a, b, c in parameter_rows(inputs):
-        if y < 0.04:
-            break
-        fig.text(0.06, y, a, fontsize=8, color="0.35")
-        fig.text(0.26, y, b, fontsize=8)
-        fig.text(0.50, y, c[:70], fontsize=8)
-        y -= 0.0155
+_COLUMN_NAMES = COLUMN_NAMES
 
 
 def render_pdf(summary: dict, images: dict[str, bytes], subsections: list[dict], *,
                measurement: Measurement | None = None, references: list[Reference] = ()) -> bytes:
-    """The report as PDF bytes (A4): a summary page, then the figures two per page (matplotlib)."""
-    import matplotlib.image as mpimg
-    from matplotlib.backends.backend_pdf import PdfPages
-    from matplotlib.figure import Figure
+    """The report as PDF bytes (A4), with everything the HTML has (``records.report_pdf``)."""
+    from fieldtool.records.report_pdf import render_pdf as _render  # matplotlib only when a PDF is asked for
 
-    buf = io.BytesIO()
-    with PdfPages(buf) as pdf:
-        fig = Figure(figsize=(8.27, 11.69))
-        _pdf_text_page(fig, summary, measurement, references)
-        pdf.savefig(fig)
-        captions = dict(PLOTS)
-        order = [k for k, _ in PLOTS if k in images] + sorted(k for k in images if k not in captions)
-        for first in range(0, len(order), 2):
-            fig = Figure(figsize=(8.27, 11.69))
-            for slot, key in enumerate(order[first:first + 2]):
-                ax = fig.add_axes([0.06, 0.53 - 0.47 * slot, 0.88, 0.42])
-                ax.imshow(mpimg.imread(io.BytesIO(images[key]), format="png"))
-                ax.axis("off")
-                fig.text(0.5, 0.51 - 0.47 * slot, captions.get(key, key), ha="center", fontsize=9)
-            pdf.savefig(fig)
-        if subsections:
-            fig = Figure(figsize=(8.27, 11.69))
-            cols = [c for c in _COLUMN_NAMES if c in subsections[0]]
-            ax = fig.add_axes([0.06, 0.05, 0.88, 0.85])
-            ax.axis("off")
-            ax.set_title("Subsections", loc="left")
-            tab = ax.table(cellText=[[r[c] for c in cols] for r in subsections],
-                           colLabels=[_COLUMN_NAMES[c] for c in cols], loc="upper center")
-            tab.auto_set_font_size(False)
-            tab.set_fontsize(7.5)
-            pdf.savefig(fig)
-    return buf.getvalue()
+    return _render(summary, images, subsections, measurement=measurement, references=references, plots=PLOTS)
 
 
 def write_report(result_dir: Path | str, out: Path | str | None = None, *, pdf: bool = False,

@@ -4,6 +4,8 @@ operator keeps it (escape, ``k``) or puts this window's value back (``m``)."""
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 from rich.text import Text
 from textual.app import ComposeResult
 from textual.binding import Binding
@@ -23,7 +25,7 @@ class ConflictScreen(ModalScreen[bool]):
                                 background: $surface; }
     ConflictScreen Button { margin: 1 1 0 0; }
     """
-    BINDINGS = [Binding("escape,k", "keep", "keep the file's"), Binding("m", "mine", "use mine")]
+    BINDINGS: ClassVar = [Binding("escape,k", "keep", "keep the file's"), Binding("m", "mine", "use mine")]
 
     def __init__(self, conflicts: list[Conflict]) -> None:
         super().__init__()
