@@ -105,10 +105,8 @@ class StepScreen(Screen):
         status = getattr(self.app, "status", ("", False))
         if not note and status[1] and status[0].startswith("NOT SAVED"):
             note = "NOT SAVED"
-        viewer = getattr(self.app, "viewer_url", None)
-        if viewer and not note:
-            note = f"viewer {viewer}"
-        self.query_one(TitleBar).show(self.project.name, self.session.path.name, note or "saved")
+        viewer = getattr(self.app, "viewer_url", None)  # shown whole, beside the save state, while the viewer runs
+        self.query_one(TitleBar).show(self.project.name, self.session.path.name, note or "saved", url=viewer)
 
     def update_visibility(self) -> None:
         for row in self.rows:

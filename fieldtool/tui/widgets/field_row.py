@@ -93,7 +93,10 @@ class FieldRow(Vertical):
 
     def _store(self, value) -> None:
         f = self.field
-        if f.get(self.project) != value:
+        current = f.get(self.project)
+        if current is not None and value is not None and f.format(current) == f.format(value):
+            value = current  # the text shows the value rounded (pixels: 2 decimals): not an edit, keep every digit
+        if current != value:
             try:
                 f.set(self.project, value)
             except IndexError:

@@ -1,0 +1,214 @@
+"""The operator's day at 80 x 24 (issue 25, item 5): what was missing or wrong on the screen, one test each."""
+
+import asyncio
+import io
+import json
+import re
+
+from fieldtool.project.model import load_project
+from fieldtool.tui.app import FieldToolApp
+from fieldtool.tui.fields import Field
+from fieldtool.tui.widgets.field_row import FieldRow
+
+from test_tui_layout import screen_lines
+from test_tui_snapshots import SIZE, fake_result, make_project
+
+
+def run(coro):
+    return asyncio.run(coro)
+
+
+def _row(app, key):
+    return next(r for r in app.screen.query(FieldRow) if r.field.key == key)
+
+
+def _text(app) -> str:
+    return "\n".join(screen_lines(app))
+
+
+def test_discharge_step_has_the_measurement_fields_and_a_report_action(tmp_path):
+    """Defect: no fields for name, site, station, operator and no report action: a TUI-only report read
+    "measurement" with "–" for site, station and operator."""
+    p = make_project(tmp_path / "m", "results")
+    fake_result(tmp_path / "m", p)
+
+    async def go():
+        app = FieldToolApp(tmp_path / "m" / "project.toml")
+        async with app.run_test(size=SIZE) as pilot:
+            await pilot.pause(0.3)
+            for key, value in (("name", "Meuse at Lixhe 2026-12-01"), ("site", "lixhe"), ("station", "L-7396"),
+                               ("operator", "A. Hydro")):
+                _row(app, key).control.value = value
+                await pilot.pause()
+            assert app.session.result_state()[0] == "current"  # typing them does not make the result stale
+            await pilot.press("ctrl+g")
+            await pilot.pause(0.5)
+            assert "report.pdf" in app.status[0] and not app.status[1], app.status
+
+    run(go())
+    saved = load_project(tmp_path / "m" / "project.toml")
+    assert (saved.site, saved.station, saved.operator) == ("lixhe", "L-7396", "A. Hydro")
+    html = (tmp_path / "m" / "out" / "report.html").read_text()
+    head = html[html.index("id='header'"):html.index("id='discharge'")]
+    assert "Meuse at Lixhe 2026-12-01" in html and "lixhe" in head and "L-7396" in head and "A. Hydro" in head
+    assert (tmp_path / "m" / "out" / "report.pdf").read_bytes().startswith(b"%PDF")
+
+
+def test_run_warnings_are_next_to_q_on_the_first_screen(tmp_path):
+    """Defect: the run's warnings on the discharge step were below the fold, with nothing saying so."""
+    p = make_project(tmp_path / "m", "results")
+    fake_result(tmp_path / "m", p, n=15, quality=True)
+    rj = tmp_path / "m" / "out" / "result.json"
+    s = json.loads(rj.read_text())
+    s["warnings"] = ["level is 3 cm above the survey's highest point", "second warning"]
+    rj.write_text(json.dumps(s))
+
+    async def go():
+        app = FieldToolApp(tmp_path / "m" / "project.toml")
+        async with app.run_test(size=SIZE) as pilot:
+            await pilot.pause(0.3)
+            text = " ".join(ln[24:].strip() for ln in screen_lines(app))
+            assert "2 warnings: level is 3 cm above" in text, text
+            assert "+1 more below the table" in text
+
+    run(go())
+
+
+def test_step_one_does_not_start_with_file_not_found(tmp_path):
+    """Defect: step 1 of a fresh project said "cross-section file not found" before anything was typed."""
+    from fieldtool.project.template import write_template
+
+    path = write_template(tmp_path)
+
+    async def go():
+        app = FieldToolApp(path)
+        async with app.run_test(size=SIZE) as pilot:
+            await pilot.pause(0.3)
+            text = _text(app)
+            assert "not found" not in text, text
+            assert "no cross-section yet" in text
+
+    run(go())
+
+
+def test_filter_example_agrees_with_the_default(tmp_path):
+    """Defect: the parameters field said "e.g. clip_limit=2.0" beside "clip_limit (default 40)"."""
+    from textual.widgets import Input
+
+    make_project(tmp_path / "m", "filters")
+
+    async def go():
+        app = FieldToolApp(tmp_path / "m" / "project.toml")
+        async with app.run_test(size=SIZE) as pilot:
+            await pilot.pause(0.3)
+            ph = app.screen.query_one("#filter-params", Input).placeholder
+            assert "clip_limit=40" in ph and "2.0" not in ph, ph
+            assert "default 40" in _text(app)
+
+    run(go())
+
+
+def test_picked_pixels_show_two_decimals_and_keep_their_digits(tmp_path):
+    """Defect: a snapped pick showed 16 decimals and was cut at 80 columns. The field shows 2 decimals; the
+    file keeps the snapped centre exactly (showing it is not an edit)."""
+    exact = [[20.123456789012, 100.98765432101], [140.0, 100.0], [130.0, 20.0], [30.0, 20.0]]
+    make_project(tmp_path / "m", "ortho", ortho__gcp_px=exact)
+    path = tmp_path / "m" / "project.toml"
+
+    async def go():
+        app = FieldToolApp(path)
+        async with app.run_test(size=SIZE) as pilot:
+            await pilot.pause(0.3)
+            assert _row(app, "ortho.gcp_px[0]").text() == "20.12, 100.99"
+            assert "20.123456" not in _text(app)
+            _row(app, "ortho.gcp_px[1]").control.value = "141, 100"
+            await pilot.pause()
+
+    run(go())
+    got = load_project(path).ortho.gcp_px
+    assert got[0] == exact[0] and got[1] == [141.0, 100.0]
+    assert Field("section.station_offset_m", "x", "m", "point", "").format([1.23456, 2.0]) == "1.23456, 2"
+
+
+def test_viewer_url_with_its_key_stays_on_screen_and_one_ssh_hint(tmp_path, monkeypatch):
+    """Defect: the URL with its key was only in a toast; the ssh -L hint said USER@THIS-MACHINE in the TUI and
+    root@localhost in the CLI. The title bar keeps the whole URL at 80 columns; the TUI's hint is the CLI's."""
+    import fieldtool.viewer.server as server
+    from fieldtool.viewer.guard import ssh_hint
+
+    token = "AbCdEfGhIjKlMnOpQrStUvWx"
+
+    class FakeViewer:
+        port, url = 48765, f"http://127.0.0.1:48765/{token}/"
+        in_process = True
+
+        @property
+        def ssh_hint(self):
+            return ssh_hint(self.port)
+
+        def stop(self):
+            pass
+
+    monkeypatch.setattr(server, "start_viewer", lambda *a, **k: FakeViewer())
+    make_project(tmp_path / "m", "video")
+
+    async def go():
+        app = FieldToolApp(tmp_path / "m" / "project.toml")
+        async with app.run_test(size=SIZE) as pilot:
+            await pilot.pause()
+            await pilot.press("ctrl+o")
+            await pilot.pause(0.2)
+            app.clear_notifications()
+            await pilot.press("ctrl+n")  # another step, a later moment: the URL is still there
+            await pilot.pause(0.5)
+            lines = screen_lines(app)
+            assert FakeViewer.url in lines[0], lines[0]
+            assert "USER@THIS-MACHINE" not in app.status[0] and ssh_hint(48765) in app.status[0]
+            assert "@localhost" not in ssh_hint(48765)
+
+    run(go())
+
+
+def test_progress_to_a_log_file_is_a_few_lines(monkeypatch):
+    """Defect: a progress line written to a log file was one line of thousands of '\\r' updates."""
+    import fieldtool.cli.console as console
+
+    buf = io.StringIO()
+    monkeypatch.setattr("sys.stderr", buf)
+    for i in range(3000):
+        console.progress_line(f"frames: {i}/3000")
+    console.progress_line("PIV: pair 1/10")
+    console.end_progress_line()
+    out = buf.getvalue()
+    assert "\r" not in out
+    lines = out.splitlines()
+    assert 2 <= len(lines) <= 6, lines
+    assert lines[0].strip() == "frames: 0/3000" and any("PIV" in ln for ln in lines)
+
+
+def test_a_value_typed_for_a_commented_out_key_replaces_that_line(tmp_path):
+    """Defect: a value typed for a commented-out key was appended at the end of its table, the commented line
+    kept."""
+    from fieldtool.project.template import write_template
+
+    path = write_template(tmp_path)
+    p = load_project(path)
+    p.step = "water_level"
+    from fieldtool.project.sync import ProjectSync
+
+    ProjectSync(path).save(p)
+
+    async def go():
+        app = FieldToolApp(path)
+        async with app.run_test(size=SIZE) as pilot:
+            await pilot.pause(0.3)
+            _row(app, "water_level.value_m").control.value = "12.5"
+            await pilot.pause()
+
+    run(go())
+    text = path.read_text()
+    assert not re.search(r"^#\s*value_m\s*=", text, re.M)
+    table = text.split("[water_level]")[1].split("\n[")[0]
+    assert table.count("value_m = 12.5") == 1
+    lines = [ln for ln in table.splitlines() if ln.strip() and not ln.startswith("#")]
+    assert lines[1].startswith("value_m = 12.5"), lines  # in its place, after method, not at the end
