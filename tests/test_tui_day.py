@@ -68,8 +68,8 @@ def test_run_warnings_are_next_to_q_on_the_first_screen(tmp_path):
         async with app.run_test(size=SIZE) as pilot:
             await pilot.pause(0.3)
             text = " ".join(ln[24:].strip() for ln in screen_lines(app))
-            assert "2 warnings: level is 3 cm above" in text, text
-            assert "+1 more below the table" in text
+            assert "2 warnings (in full below the table): level is" in text, text
+            assert "discharge      1.2345 m³/s" in text
 
     run(go())
 

@@ -125,11 +125,11 @@ class ResultsScreen(StepScreen):
         alpha_t = " default" if s.get("alpha_default") else ""
         warnings = [str(w) for w in s.get("warnings") or []]
         warn_head = []
-        if warnings:  # next to Q, on the first screen: the first in full, how many more and where
-            more = (f" [dim](+{len(warnings) - 1} more below the table: page down)[/dim]" if len(warnings) > 1
-                    else "")
-            warn_head = [f"[yellow]⚠ {len(warnings)} warning{'s' if len(warnings) > 1 else ''}: "
-                         f"{escape(warnings[0])}[/yellow]{more}"]
+        if warnings:  # next to Q, on the first screen: one line, the first warning cut to fit, how many and where
+            lead = f"⚠ {len(warnings)} warning{'s' if len(warnings) > 1 else ''} (in full below the table): "
+            room = max(self.query_one("#summary", Static).size.width or 54, 30) - len(lead) - 4  # ⚠ may take 2 cells
+            first = warnings[0] if len(warnings[0]) <= room else warnings[0][:room - 1] + "…"
+            warn_head = [f"[yellow]{escape(lead)}{escape(first)}[/yellow]"]
         summary.update(head + "\n".join([
             *discharge_lines(s),
             *warn_head,

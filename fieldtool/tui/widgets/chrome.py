@@ -21,14 +21,14 @@ class TitleBar(Static):
 
     def show(self, name: str, file: str, note: str = "", url: str | None = None) -> None:
         width = self.size.width or (self.app.size.width if self.is_attached else 80) or 80
-        tail = (f"· {note} " if note else "") + (f"· viewer {url}" if url else "")
+        tail = (f"· {note}" + (" " if url else "") if note else "") + (f"· viewer {url}" if url else "")
         room = width - len(" fieldtool ") - len(tail) - 1
         head = f" {name} · {file} "
         if len(head) > room:
             head = f" {name} "
         if len(head) > room:
             head = f" {name[:max(room - 3, 1)]}… " if room > 4 else " "
-        t = Text(no_wrap=True, overflow="crop")
+        t = Text()
         t.append(" fieldtool ", style="bold reverse")
         if " · " in head:
             n, f = head.split(" · ", 1)
@@ -37,7 +37,7 @@ class TitleBar(Static):
         else:
             t.append(head, style="bold")
         if note:
-            t.append(f"· {note} ", style="italic")
+            t.append(f"· {note}" + (" " if url else ""), style="italic")
         if url:
             t.append(f"· viewer {url}", style="bold")
         self.update(t)
