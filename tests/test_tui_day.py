@@ -212,3 +212,69 @@ def test_a_value_typed_for_a_commented_out_key_replaces_that_line(tmp_path):
     assert table.count("value_m = 12.5") == 1
     lines = [ln for ln in table.splitlines() if ln.strip() and not ln.startswith("#")]
     assert lines[1].startswith("value_m = 12.5"), lines  # in its place, after method, not at the end
+
+
+def _field_with_banks(ny=12, nx=30):
+    """A field whose outer 8 columns each side are banks (valid, 0.002 px/s: texture that does not move) and
+    the middle the water (4 px/s downstream)."""
+    import numpy as np
+
+    x, y = np.meshgrid(np.arange(nx) * 8.0, np.arange(ny) * 8.0)
+    u = np.full((ny, nx), 0.002)
+    v = np.zeros((ny, nx))
+    u[:, 8:nx - 8] = 4.0
+    v[:, 8:nx - 8] = 0.5
+    return x, y, u, v
+
+
+def test_piv_summary_is_measured_on_the_water_and_banks_draw_no_arrow(tmp_path):
+    """Defect: the PIV step said "median speed 0.021 m/s" (every node, banks included), drew arrows on the
+    banks, and the water rows could not be reached with page down."""
+    import numpy as np
+
+    from fieldtool.project.model import project_to_dict
+    from fieldtool.tui.jobs import _preview
+    from fieldtool.tui.piv_summary import water_nodes
+    from fieldtool.tui.widgets.plots import VectorGrid
+
+    x, y, u, v = _field_with_banks()
+    water = water_nodes(u, v, np.ones_like(u))
+    assert water[:, 8:22].all() and not water[:, :8].any() and not water[:, 22:].any()
+
+    class Res:
+        pass
+
+    res = Res()
+    res.x, res.y, res.u, res.v = x, y, u, v
+    res.valid_fraction, res.n_pairs, res.u_pairs = np.ones_like(u), 9, []
+    p = make_project(tmp_path / "m", "piv")
+    preview = _preview(p, res, None)
+    assert abs(preview["stats"]["median_speed_px_s"] - np.hypot(4.0, 0.5)) < 1e-9  # not 0.002 (the banks)
+
+    async def go():
+        app = FieldToolApp(tmp_path / "m" / "project.toml")
+        async with app.run_test(size=SIZE) as pilot:
+            await pilot.pause(0.3)
+            preview["inputs"] = project_to_dict(app.session.project)
+            app.session.piv_preview = preview
+            app.screen.refresh_view()
+            await pilot.pause()
+            for _ in range(4):
+                await pilot.press("pagedown")
+            await pilot.pause(0.3)
+            text = _text(app)
+            flat = " ".join(text.split())
+            assert "168 of 360 nodes on the water" in flat and "median speed on the water 4.0 px/s" in flat, text
+            grid = app.screen.query_one(VectorGrid)
+            region = grid.region
+            assert region.height > 0 and app.screen.region.contains_region(region)
+            rows = screen_lines(app)[region.y:region.y + region.height]
+            assert any("↘" in r or "→" in r for r in rows), rows  # the water's arrows are on screen
+
+    run(go())
+    # a bank node inside the water's rows and columns stays blank
+    u2, v2 = u.copy(), v.copy()
+    u2[5, 12] = 0.001
+    g = VectorGrid()
+    g.set_field(u2, v2, water_nodes(u2, v2))
+    assert g.field[0].shape == (12, 14) and not g.water[5, 4]

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from fieldtool.tui.piv_summary import water_median, water_nodes
 from fieldtool.run import piv_cache
 from fieldtool.errors import GeometryError, ParameterError
 from fieldtool.project.model import Project, project_to_dict
@@ -101,19 +102,22 @@ def _piv_setup(project: Project, inputs):
 
 
 def _preview(project: Project, res, mapping) -> dict:
-    """The PIV step's summary of a field: {"inputs": project tables, "stats": {...}}."""
+    """The PIV step's summary of a field: {"inputs": project tables, "stats": {...}}; the median speed is
+    that of the water nodes only (``piv_summary.water_nodes``: what moves), not of the banks."""
     speed = np.hypot(res.u, res.v)
+    water = water_nodes(res.u, res.v, getattr(res, "valid_fraction", None))
     stats = {
         "nodes": int(res.u.size),
+        "water_nodes": int(water.sum()),
         "pairs": int(res.n_pairs or len(res.u_pairs)),
         "valid_fraction": float(np.nanmean(res.valid_fraction)),
-        "median_speed_px_s": float(np.nanmedian(speed)) if np.isfinite(speed).any() else None,
+        "median_speed_px_s": water_median(speed, water),
     }
     if mapping is not None:
         U, V = mapping.rectify_velocity(res.x, res.y, res.u, res.v)
-        sp = np.hypot(U, V)
-        stats["median_speed_ms"] = float(np.nanmedian(sp)) if np.isfinite(sp).any() else None
+        stats["median_speed_ms"] = water_median(np.hypot(U, V), water)
     stats["field"] = (res.x, res.y, res.u, res.v)
+    stats["water"] = water
     return {"inputs": project_to_dict(project), "stats": stats}
 
 
