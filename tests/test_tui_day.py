@@ -278,3 +278,32 @@ def test_piv_summary_is_measured_on_the_water_and_banks_draw_no_arrow(tmp_path):
     g = VectorGrid()
     g.set_field(u2, v2, water_nodes(u2, v2))
     assert g.field[0].shape == (12, 14) and not g.water[5, 4]
+
+
+def test_a_gcp_click_that_is_not_snapped_says_so(tmp_path):
+    """Defect: a click 1.5-2.9 px from a GCP target (a small, far one: the far_bank demo's P2) was not snapped
+    and the status did not say so. Snapped or not, the status says which."""
+    import cv2
+    import numpy as np
+
+    from fieldtool.viewer.server import start_viewer
+
+    (tmp_path / "frames").mkdir()
+    img = np.full((120, 160, 3), 128, np.uint8)
+    img[40:50, 60:70] = 0  # one checker target, 2 x 2 squares of 5 px, centre (69.5, 49.5)
+    img[50:60, 70:80] = 0
+    img[40:50, 70:80] = 255
+    img[50:60, 60:70] = 255
+    for i in range(2):
+        cv2.imwrite(str(tmp_path / "frames" / f"f{i}.png"), img)
+    path = tmp_path / "project.toml"
+    path.write_text('[video]\npath = "frames/*.png"\nframe_interval_s = 0.1\n')
+    h = start_viewer(path, port=0)
+    try:
+        h.set_mode("gcp")
+        msg = h.click(20.0, 100.0)  # flat grey: no target near
+        assert "P1 at" in msg and "NOT snapped" in msg and "NOT snapped" in h.status
+        msg = h.click(71.5, 51.0)  # 2.5 px from the target's centre
+        assert "snapped to the target centre" in msg, msg
+    finally:
+        h.stop()

@@ -556,6 +556,9 @@ class _Viewer:
             if snapped is not None and state.value() != before:
                 msg += (f" - snapped to the target centre ({raw[0]:.2f}, {raw[1]:.2f}) px, "
                         f"{snapped.moved_px:.1f} px from the click (Undo if wrong)")
+            elif spec.snap and state.value() != before:  # say so: a click meant for a target stays where it fell
+                msg += (" - NOT snapped: no checker target found near the click (a small or far target); placed "
+                        "where clicked: zoom in (mouse wheel) to place it on the centre, or Undo")
         return self._commit(spec, state, msg)
 
     def _act(self, action: str) -> str:
