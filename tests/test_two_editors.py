@@ -22,7 +22,7 @@ from fieldtool.viewer.registry import info_path, running_viewer
 
 pytest.importorskip("viser")
 
-N_EDITS = 50
+N_EDITS = int(os.environ.get("FIELDTOOL_TWO_EDITORS_EDITS", "50"))  # benchmarks/two_editors.py runs 1000
 P = [[20.0, 30.0], [200.0, 30.0], [200.0, 150.0], [20.0, 150.0]]
 
 CHILD = textwrap.dedent("""
