@@ -107,6 +107,9 @@ class FieldToolApp(App):
         """Take in a change another program (the viewer, a text editor, ``calibrate --project``) made to the
         project file: the open step shows it at once."""
         err_before = self.session.sync.error
+        screen = self.screen
+        before = ({r.field.key: r.field.format(r.field.get(self.session.project)) for r in screen.rows}
+                  if isinstance(screen, StepScreen) else None)  # to tell typing not yet taken in from old text
         try:
             res = self.session.poll()
         except FieldToolError as e:  # this window's own values no longer fit the merged file
@@ -124,7 +127,7 @@ class FieldToolApp(App):
             return
         if not err and self.status[1] and self.status[0].startswith("NOT SAVED") and "another program" in self.status[0]:
             self.status = (f"{self.session.path.name} is valid again", False)
-        self._after_merge(res)
+        self._after_merge(res, before)
         if res.theirs_changed:
             self.status = (f"changed in {self.session.path.name} by another program: "
                            f"{', '.join(res.theirs_changed[:4])}{' …' if len(res.theirs_changed) > 4 else ''}", False)
@@ -133,17 +136,19 @@ class FieldToolApp(App):
         if isinstance(self.screen, StepScreen):
             self.show_status(self.screen)
 
-    def _after_merge(self, res: SaveResult) -> None:
-        """Show what another program changed in the open step; ask about conflicts."""
+    def _after_merge(self, res: SaveResult, before: dict[str, str] | None = None) -> None:
+        """Show what another program changed in the open step; ask about conflicts (a field being typed in
+        whose key changed elsewhere is one)."""
         screen = self.screen
+        conflicts = list(res.conflicts)
         if isinstance(screen, StepScreen):
             keys = res.theirs_changed + [c.key for c in res.conflicts]
             if keys:
-                screen.show_keys(keys)
+                conflicts += screen.show_keys(keys, before)
             if res.theirs_changed:
                 screen.update_title()
-        if res.conflicts:
-            self.ask_conflicts(res.conflicts)
+        if conflicts:
+            self.ask_conflicts(conflicts)
 
     def ask_conflicts(self, conflicts: list[Conflict]) -> None:
         """The file's values are kept; both are shown and the operator may put this window's back."""
@@ -151,12 +156,23 @@ class FieldToolApp(App):
         self.notify("; ".join(c.text() for c in conflicts[:3]), severity="warning", timeout=15)
 
         def chosen(use_mine: bool | None) -> None:
+            if isinstance(self.screen, StepScreen):
+                for row in self.screen.rows:
+                    row.held = False
             if not use_mine:
+                if isinstance(self.screen, StepScreen):  # rows still holding this window's text show the file's
+                    self.screen.show_keys([c.key for c in conflicts])
                 return
             data = project_to_dict(self.session.project)
             for c in conflicts:
                 data = set_path(data, c.key, c.mine)
-            adopt(self.session.project, project_from_dict(data, self.session.project.root))
+            try:
+                adopt(self.session.project, project_from_dict(data, self.session.project.root))
+            except FieldToolError as e:  # this window's text did not make a value: the file's stays
+                self.notify(f"yours cannot be used ({e}); the file's value stays", severity="error")
+                if isinstance(self.screen, StepScreen):
+                    self.screen.show_keys([c.key for c in conflicts])
+                return
             self.save_project()
             if isinstance(self.screen, StepScreen):
                 self.screen.show_keys([c.key for c in conflicts])
