@@ -237,3 +237,32 @@ def test_a_true_conflict_keeps_the_files_value_and_asks(tmp_path):
             assert _pt(_row(app, 0).text()) == [7.0, 8.0]
 
     asyncio.run(run())
+
+
+def test_a_field_being_typed_in_is_not_overwritten_by_another_programs_change(tmp_path):
+    from fieldtool.project.sync import ProjectSync
+    from fieldtool.tui.screens.conflict import ConflictScreen
+
+    path = _project(tmp_path)
+
+    async def run():
+        app = FieldToolApp(path)
+        async with app.run_test(size=(80, 24)) as pilot:
+            await pilot.pause()
+            row = _row(app, 0)
+            row.control.focus()
+            row.control.value = "7,"  # half typed: not a point yet, nothing stored
+            await pilot.pause()
+            other = ProjectSync(path)
+            p = other.load()
+            p.ortho.gcp_px[0] = [50.0, 60.0]
+            other.save(p)
+            await pilot.pause(0.8)  # the TUI looks at the file
+            assert isinstance(app.screen, ConflictScreen)
+            assert row.text() == "7,"  # the typing is still there
+            assert load_project(path).ortho.gcp_px[0] == [50.0, 60.0]
+            await pilot.press("k")  # keep the file's
+            await pilot.pause()
+            assert _pt(row.text()) == [50.0, 60.0] and load_project(path).ortho.gcp_px[0] == [50.0, 60.0]
+
+    asyncio.run(run())
