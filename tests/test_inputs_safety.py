@@ -246,13 +246,13 @@ def test_unwritable_home_adds_no_matplotlib_lines(scene, tmp_path_factory):
 @pytest.mark.parametrize("key,value", [("water_level.value_m", float("nan")), ("water_level.uncertainty_m", -0.1),
                                        ("ortho.gcp_px", [[1.0, 2.0], [float("inf"), 3.0]])])
 def test_a_single_key_written_from_outside_goes_through_validation(short_scene, tmp_path, key, value):
-    """calibrate --project and the viewer write one key (project.model.apply_changes): refused like the rest."""
+    """calibrate --project and the viewer write one key (project.sync.ProjectSync.set_keys): refused like the rest."""
     from fieldtool.errors import ParameterError
-    from fieldtool.project.model import apply_changes
+    from fieldtool.project.sync import ProjectSync
 
     proj = tmp_path / "project.toml"
     shutil.copy(short_scene.project_path, proj)
     before = proj.read_bytes()
     with pytest.raises(ParameterError, match=key.replace(".", r"\.")):
-        apply_changes(proj, {key: value})
+        ProjectSync(proj).set_keys({key: value})
     assert proj.read_bytes() == before

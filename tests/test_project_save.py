@@ -1,9 +1,10 @@
-"""Round-trip saving (comments kept) and concurrent writers (apply_changes never loses a key)."""
+"""Round-trip saving (comments kept) and concurrent writers (ProjectSync.set_keys never loses a key)."""
 
 import multiprocessing as mp
 from pathlib import Path
 
-from fieldtool.project.model import apply_changes, load_project, save_project
+from fieldtool.project.model import load_project, save_project
+from fieldtool.project.sync import ProjectSync
 from fieldtool.project.template import write_template
 
 
@@ -15,7 +16,7 @@ def test_template_comments_survive_edits(tmp_path):
     p.video.end_s = 4.0
     p.filters = [{"name": "clahe"}]
     save_project(p, path)
-    apply_changes(path, {"section.n_sub": 20, "name": "Mesure à l'écluse"})
+    ProjectSync(path).set_keys({"section.n_sub": 20, "name": "Mesure à l'écluse"})
     text = path.read_text(encoding="utf-8")
     # every comment line of the template is still there, and the edited keys kept their comments
     assert all(ln in text for ln in before if ln.lstrip().startswith("#") and "end_s" not in ln)
@@ -27,7 +28,7 @@ def test_template_comments_survive_edits(tmp_path):
 
 def _writer(path, key, n):
     for i in range(n):
-        apply_changes(path, {key: float(i + 1)})
+        ProjectSync(path).set_keys({key: float(i + 1)})
 
 
 def test_two_writers_keep_each_others_keys(tmp_path):
@@ -47,7 +48,7 @@ def test_tui_session_keeps_a_key_another_process_set(tmp_path):
 
     path = write_template(tmp_path)
     s = Session(path)
-    apply_changes(path, {"calibration.path": "/somewhere/cal.toml"})  # e.g. `fieldtool calibrate --project`
+    ProjectSync(path).set_keys({"calibration.path": "/somewhere/cal.toml"})  # e.g. `fieldtool calibrate --project`
     s.project.video.start_s = 2.5  # a keystroke in the TUI
     s.save()
     p = load_project(path)

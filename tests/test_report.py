@@ -169,3 +169,52 @@ def test_header_interval_grade_reasons_and_readable_parameters(tmp_path):
     s.pop("uncertainty"), s.pop("quality")
     html = render_html(s, {}, [])
     assert "no 95 % interval in this result" in html and "no quality grade" in html
+
+
+def _pdf_text(pdf_bytes: bytes, tmp_path) -> str:
+    """The PDF's text (pdftotext from poppler-utils, else pypdf)."""
+    import shutil
+    import subprocess
+
+    f = tmp_path / "r.pdf"
+    f.write_bytes(pdf_bytes)
+    if shutil.which("pdftotext"):
+        return subprocess.run(["pdftotext", "-layout", str(f), "-"], capture_output=True, text=True, check=True).stdout
+    pypdf = pytest.importorskip("pypdf", reason="no pdftotext (apt poppler-utils) and no pypdf to read the PDF")
+    return "\n".join(p.extract_text() for p in pypdf.PdfReader(str(f)).pages)
+
+
+def test_pdf_carries_what_the_html_has(tmp_path):
+    """Issue 25: budget, result table (valid fraction, pairs, GCP RMS, filled), warnings, STIV column,
+    readable subsection headers and "filled" as yes / no, in the PDF's own text."""
+    from fieldtool.records.report import render_pdf
+
+    s = fake_result(tmp_path / "res")
+    s.update({"valid_fraction_mean": 0.73, "subsections_filled": 1, "ortho_residual_m": 0.0123,
+              "section_length_m": 11.5, "discharge_ci95_m3s": [11.8, 12.9],
+              "quality": {"grade": "doubtful", "reasons": [{"severity": "doubtful", "code": "x",
+                                                            "message": "see the uncertainty budget"}]},
+              "uncertainty": {"ci95_m3s": [11.8, 12.9],
+                              "budget": [{"source": "water_level", "share": 0.61, "u_m3s": 0.3},
+                                         {"source": "velocity_index", "share": 0.39, "u_m3s": 0.2}]},
+              "warnings": ["subsection 1: velocity filled from the neighbours", "second warning here"]})
+    rows = [{"subsection": str(k + 1), "station_from_m": f"{k:.4f}", "station_to_m": f"{k + 1:.4f}",
+             "area_m2": "0.50000", "mean_depth_m": "0.5000", "surface_velocity_ms": "1.00000",
+             "velocity_filled": "1" if k == 0 else "0", "discharge_m3s": "3.08640",
+             "stiv_velocity_ms": "" if k == 0 else "0.98765"} for k in range(4)]
+    text = _pdf_text(render_pdf(s, {}, rows), tmp_path)
+    flat = " ".join(text.split())
+    for want in ("Uncertainty budget", "water level", "velocity index α", "61 %", "0.300 m³/s",
+                 "Mean valid vector fraction 0.73", "Frame pairs 29", "GCP fit residual (RMS) 12.3 mm",
+                 "Subsections with filled velocity 1", "Section length 11.500 m",
+                 "Warnings", "subsection 1: velocity filled from the neighbours", "second warning here",
+                 "STIV", "0.98765", "95 % interval 11.800 – 12.900 m³/s", "DOUBTFUL"):
+        assert want in flat, want
+    # the subsections table: headers on their own lines, one row per subsection, filled as yes / no
+    lines = text.splitlines()
+    data = [ln.split() for ln in lines if re.match(r"^\s*[1-4]\s+\d\.\d{4}\s", ln)]
+    assert len(data) == 4, lines
+    assert [r[6] for r in data] == ["yes", "no", "no", "no"]
+    assert data[0][-1] == "–" and data[1][-1] == "0.98765"
+    head = next(i for i, ln in enumerate(lines) if "from" in ln and "to" in ln and "area" in ln)
+    assert all(len(w) < 14 for w in lines[head].split()), lines[head]  # no two headers run together

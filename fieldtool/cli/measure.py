@@ -19,7 +19,8 @@ from fieldtool.cli.console import end_progress_line, progress_line
 from fieldtool.errors import InputFileError, ParameterError
 from fieldtool.processing.calibration import calibrate_video, save_calibration
 from fieldtool.processing.filters import preview
-from fieldtool.project.model import apply_changes, atomic_write_bytes, load_project
+from fieldtool.project.model import atomic_write_bytes, load_project
+from fieldtool.project.sync import ProjectSync
 from fieldtool.project.validation import check, path_problem
 from fieldtool.records.history import record_run
 from fieldtool.run.frames import working_frames
@@ -119,7 +120,8 @@ def calibrate(args: argparse.Namespace) -> int:
     print(f"FOV x / y / diag   {fov[0]:.2f} / {fov[1]:.2f} / {fov[2]:.2f} deg")
     print(f"saved              {args.out}")
     if args.project:
-        apply_changes(args.project, {"calibration.path": str(Path(args.out).resolve())})  # only this key
+        # only this key, merged with the TUI's or the viewer's edits; an invalid or read-only file is refused
+        ProjectSync(args.project).set_keys({"calibration.path": str(Path(args.out).resolve())})
         print(f"project            {args.project}: calibration.path set")
     return 0
 

@@ -533,63 +533,11 @@ class _DirLock:
 def save_project(project: Project, path: Path | str) -> None:
     """Write the whole project file atomically (temp file + rename), keeping the comments and
     layout of the file already there. To change some keys while other processes may edit the same
-    file, use ``apply_changes``."""
+    file, use ``project.sync.ProjectSync``."""
     path = Path(path)
     with _DirLock(path):
         atomic_write_bytes(path, _dump_roundtrip(path, project_to_dict(project)))
 
 
-def flat_changes(old: dict, new: dict) -> dict[str, Any]:
-    """Dotted keys ("video.path", "filters") whose values differ between two project dicts
-    (``project_to_dict``); a key left out of ``new`` maps to None (remove it)."""
-    out: dict[str, Any] = {}
-    for k in set(old) | set(new):
-        a, b = old.get(k), new.get(k)
-        if isinstance(a, dict) or isinstance(b, dict):
-            a, b = a if isinstance(a, dict) else {}, b if isinstance(b, dict) else {}
-            for kk in set(a) | set(b):
-                if a.get(kk) != b.get(kk):
-                    out[f"{k}.{kk}"] = b.get(kk)
-        elif a != b:
-            out[k] = b
-    return out
 
 
-def apply_changes(path: Path | str, changes: dict[str, Any]) -> Project:
-    """Set the dotted keys ``changes`` ({"calibration.path": "cal.toml"}; None removes a key) in the
-    project file at ``path`` as it is on disk now, leaving every other key as another process may
-    have saved it; write atomically (comments kept) and return the merged Project.
-
-    Re-read, merge and write happen under a lock on the folder, so concurrent writers each keep
-    their own keys. Raises ParameterError (naming the key) when a change does not fit the project.
-    """
-    path = Path(path)
-    with _DirLock(path):
-        data = _parse_toml(path) if path.exists() else {}
-        for dotted, value in changes.items():
-            *head, last = dotted.split(".")
-            node = data
-            for part in head:
-                nxt = node.get(part)
-                if not isinstance(nxt, dict):
-                    nxt = node[part] = {}
-                node = nxt
-            if value is None:
-                node.pop(last, None)
-            else:
-                node[last] = _to_dict(value)
-        project = project_from_dict(data, path.resolve().parent)
-        _refuse_bad_changes(project, changes)  # the one validation layer, for the keys written here
-        atomic_write_bytes(path, _dump_roundtrip(path, project_to_dict(project)))
-    return project
-
-
-def _refuse_bad_changes(project: Project, changes: dict[str, Any]) -> None:
-    """ParameterError with the first error of a value of ``changes`` by itself (validation.value_problems: type,
-    range, finiteness; a half-picked point list passes)."""
-    # imported here: project.validation reads this module's declarations (a cycle if imported at the top)
-    from fieldtool.project.validation import value_problems
-
-    for p in value_problems(project, changes):
-        if p.severity == "error":
-            raise ParameterError(str(p))

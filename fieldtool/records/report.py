@@ -19,14 +19,16 @@ from fieldtool import __version__
 from fieldtool.errors import InputFileError
 from fieldtool.project.model import atomic_write_bytes
 from fieldtool.records.history import Measurement, Reference
-from fieldtool.records.report_content import COLUMN_NAMES as _COLUMN_NAMES
 from fieldtool.records.report_content import (
+    COLUMN_NAMES,
     GRADE_COLOURS,
     PLOTS,
     budget_rows,
     discharge_text,
     header_rows,
     parameter_rows,
+    result_rows,
+    subsection_cell,
 )
 from fieldtool.records.report_content import fmt_value as _f
 
@@ -181,21 +183,7 @@ def render_html(summary: dict, images: dict[str, bytes], subsections: list[dict]
     out += _header_html(summary, measurement)
     out += _discharge_html(summary)
 
-    rows = [
-        ("Water level", f"{_f(summary.get('water_level_m'), '.3f', 'm')} ± "
-                        f"{_f(summary.get('water_level_uncertainty_m'), '.3f', 'm')}"),
-        ("Wetted area", _f(summary.get("wetted_area_m2"), ".3f", "m²")),
-        ("Wetted width", _f(summary.get("wetted_width_m"), ".3f", "m")),
-        ("Mean velocity", _f(summary.get("mean_velocity_ms"), ".3f", "m/s")),
-        ("Velocity index α", _f(summary.get("alpha"), ".2f") + (" (default for the mean depth)"
-                                                                 if summary.get("alpha_default") else " (given)")),
-        ("Section length", _f(summary.get("section_length_m"), ".3f", "m")),
-        ("Frame pairs", _e(summary.get("n_pairs", "–"))),
-        ("Mean valid vector fraction", _f(summary.get("valid_fraction_mean"), ".2f")),
-        ("Subsections with filled velocity", _e(summary.get("subsections_filled", "–"))),
-        ("GCP fit residual (RMS)", _f(1000 * summary["ortho_residual_m"], ".1f", "mm")
-         if isinstance(summary.get("ortho_residual_m"), (int, float)) else "–"),
-    ]
+    rows = [(k, _e(v)) for k, v in result_rows(summary)]
     out.append("<h2>Result</h2><table id='result'>")
     out += [f"<tr><th class='k'>{k}</th><td>{v}</td></tr>" for k, v in rows]
     out.append("</table>")
@@ -230,8 +218,8 @@ def render_html(summary: dict, images: dict[str, bytes], subsections: list[dict]
         cols = list(subsections[0].keys())
         out.append("<h2>Subsections</h2><table id='subsections'><tr>"
                    + "".join(f"<th>{_e(_COLUMN_NAMES.get(c, c))}</th>" for c in cols) + "</tr>")
-        for row in subsections:
-            out.append("<tr>" + "".join(f"<td>{_e(row.get(c, ''))}</td>" for c in cols) + "</tr>")
+        for r in subsections:
+            out.append("<tr>" + "".join(f"<td>{_e(subsection_cell(c, r.get(c, '')))}</td>" for c in cols) + "</tr>")
         out.append("</table>")
 
     out.append("<h2>Parameters</h2><table id='inputs'><tr><th class='k'>step</th><th class='k'>parameter</th>"
@@ -248,12 +236,15 @@ def render_html(summary: dict, images: dict[str, bytes], subsections: list[dict]
     return "\n".join(out)
 
 
-def render_pdf(summary: dict, images: dict[str, bytes], subsections: list[dict], *,
-               measurement: Measurement | None = None, references: Sequence[Reference] = ()) -> bytes:
-    """The report as PDF bytes (A4): a summary page, then the figures two per page (plots.report_pdf)."""
-    from fieldtool.plots import report_pdf  # lazy: matplotlib (0.3-0.5 s) only for --pdf
+_COLUMN_NAMES = COLUMN_NAMES
 
-    return report_pdf.render_pdf(summary, images, subsections, measurement=measurement, references=references)
+
+def render_pdf(summary: dict, images: dict[str, bytes], subsections: list[dict], *,
+               measurement: Measurement | None = None, references: list[Reference] = ()) -> bytes:
+    """The report as PDF bytes (A4), with everything the HTML has (``records.report_pdf``)."""
+    from fieldtool.records.report_pdf import render_pdf as _render  # matplotlib only when a PDF is asked for
+
+    return _render(summary, images, subsections, measurement=measurement, references=references, plots=PLOTS)
 
 
 def write_report(result_dir: Path | str, out: Path | str | None = None, *, pdf: bool = False,

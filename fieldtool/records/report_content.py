@@ -184,3 +184,58 @@ def parameter_rows(inputs: dict) -> list[tuple[str, str, str]]:
     if s.get("station_offset_m") is not None:
         rows.append(("Discharge", "Station of the left point", _num(s["station_offset_m"], ".2f", "m")))
     return rows
+
+
+def result_rows(summary: dict) -> list[tuple[str, str]]:
+    """(label, value) rows of the report's result table (HTML and PDF): level, area, width, velocity, α,
+    section length, frame pairs, valid fraction, filled subsections, GCP residual."""
+    res = summary.get("ortho_residual_m")
+    alpha = _num(summary.get("alpha"), ".2f")
+    return [
+        ("Water level", f"{_num(summary.get('water_level_m'), '.3f', 'm')} ± "
+                        f"{_num(summary.get('water_level_uncertainty_m'), '.3f', 'm')}"),
+        ("Wetted area", _num(summary.get("wetted_area_m2"), ".3f", "m²")),
+        ("Wetted width", _num(summary.get("wetted_width_m"), ".3f", "m")),
+        ("Mean velocity", _num(summary.get("mean_velocity_ms"), ".3f", "m/s")),
+        ("Velocity index α", alpha + (" (default for the mean depth)" if summary.get("alpha_default") else " (given)")),
+        ("Section length", _num(summary.get("section_length_m"), ".3f", "m")),
+        ("Frame pairs", str(summary.get("n_pairs", "–"))),
+        ("Mean valid vector fraction", _num(summary.get("valid_fraction_mean"), ".2f")),
+        ("Subsections with filled velocity", str(summary.get("subsections_filled", "–"))),
+        ("GCP fit residual (RMS)", _num(1000 * res, ".1f", "mm") if isinstance(res, (int, float)) else "–"),
+    ]
+
+
+# subsections.csv columns as the report names them (a column not listed keeps its name)
+COLUMN_NAMES = {"subsection": "#", "station_from_m": "from (m)", "station_to_m": "to (m)", "area_m2": "area (m²)",
+                "mean_depth_m": "mean depth (m)", "surface_velocity_ms": "surface velocity (m/s)",
+                "velocity_filled": "filled", "discharge_m3s": "Q (m³/s)", "stiv_velocity_ms": "STIV velocity (m/s)"}
+
+
+def subsection_cell(column: str, value) -> str:
+    """A subsections.csv cell as the report shows it: "filled" as yes / no, an empty STIV cell as "–"."""
+    text = "" if value is None else str(value).strip()
+    if column == "velocity_filled":
+        return {"1": "yes", "0": "no", "true": "yes", "false": "no"}.get(text.lower(), text or "–")
+    return text or "–"
+
+
+def sections_rows(summary: dict) -> list[tuple[str, ...]]:
+    """(name, Q, 95 % interval, grade, wetted width, mean velocity) per section of a several-sections run,
+    then the mean / std / CV row; [] when the run has one section."""
+    rows: list[tuple[str, ...]] = []
+    for e in summary.get("sections") or []:
+        if "error" in e:
+            rows.append((str(e.get("name")), str(e["error"]), "", "", "", ""))
+            continue
+        ci = e.get("discharge_ci95_m3s")
+        rows.append((str(e.get("name")), _num(e.get("discharge_m3s"), ".4f"),
+                     f"{_num(ci[0], '.4f')} – {_num(ci[1], '.4f')}" if ci else "–", str(e.get("grade") or "–"),
+                     _num(e.get("wetted_width_m"), ".3f"), _num(e.get("mean_velocity_ms"), ".3f")))
+    sm = summary.get("sections_summary") or {}
+    if rows and sm:
+        cv = sm.get("cv")
+        rows.append((f"mean of {sm.get('n')}", _num(sm.get("mean_m3s"), ".4f"),
+                     f"std {_num(sm.get('std_m3s'), '.4f')} m³/s, CV {_num(100 * cv if cv is not None else None, '.1f', '%')}",
+                     "", "", ""))
+    return rows

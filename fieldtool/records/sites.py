@@ -36,8 +36,8 @@ from fieldtool.project.model import (
     load_project,
     project_from_dict,
     project_to_dict,
-    save_project,
 )
+from fieldtool.project.sync import ProjectSync
 from fieldtool.records import user_data_dir
 from fieldtool.records.history import utc_now
 
@@ -277,7 +277,7 @@ def new_measurement(site: Site, video: Path | str, level_m: float | None, out_di
         rel = d.get(table, {}).get(key)
         if rel:
             atomic_write_bytes(out_dir / rel, (site.folder / rel).read_bytes())
-    save_project(project, proj_path)
+    ProjectSync(proj_path).save(project)  # an existing (--force) read-only or invalid file is refused
     return proj_path
 
 

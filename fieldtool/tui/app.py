@@ -16,10 +16,14 @@ from textual.app import App, SystemCommand
 from textual.screen import Screen
 from textual.worker import Worker, WorkerState
 
+from fieldtool.errors import FieldToolError
+from fieldtool.project.model import project_from_dict, project_to_dict
+from fieldtool.project.sync import Conflict, SaveResult, adopt, set_path
 from fieldtool.tui import keys
 from fieldtool.tui.jobs import Job, describe_error
 from fieldtool.tui.screens.base import StepScreen
 from fieldtool.tui.screens.calibration import CalibrationScreen
+from fieldtool.tui.screens.conflict import ConflictScreen
 from fieldtool.tui.screens.cross_section import CrossSectionScreen
 from fieldtool.tui.screens.filters import FiltersScreen
 from fieldtool.tui.screens.ortho import OrthoScreen
@@ -33,12 +37,16 @@ from fieldtool.tui.session import Session, open_session
 from fieldtool.tui.steps import STEP_IDS, STEPS
 from fieldtool.tui.viewer_link import ssh_line
 from fieldtool.viewer.picks import MODES
+from fieldtool.viewer.registry import running_viewer
 
 SCREENS_BY_STEP: dict[str, type[StepScreen]] = {
     s.STEP: s for s in (CrossSectionScreen, VideoScreen, CalibrationScreen, OrthoScreen, WaterLevelScreen, RoiScreen,
                         FiltersScreen, PivScreen, SectionScreen, ResultsScreen)
 }
 assert tuple(SCREENS_BY_STEP) == STEP_IDS
+
+
+WATCH_S = 0.5  # how often the project file is looked at for another program's change (one stat)
 
 
 class FieldToolApp(App):
@@ -61,6 +69,7 @@ class FieldToolApp(App):
     def on_mount(self) -> None:
         self.push_screen(SCREENS_BY_STEP[self.session.project.step]())
         self.set_interval(0.25, self._tick)
+        self.set_interval(WATCH_S, self.watch_file)
 
     def goto(self, step: str) -> None:
         """Show the screen of ``step`` (any step, any time: revisiting is always allowed)."""
@@ -73,24 +82,105 @@ class FieldToolApp(App):
         yield from super().get_system_commands(screen)
 
     def save_project(self) -> bool:
-        """Save the session's project; when the file cannot be written (disk full, read-only, removed folder) say
-        so on the status line and in a notification, keep every entry in memory (the next edit saves them all
-        again) and return False."""
+        """Save the session's project, merged with what other programs saved meanwhile (``project.sync``).
+        When the file cannot be written (disk full, read-only, invalid since another program saved it) say
+        so on the status line, in the title and in a notification, keep every entry in memory (the next
+        edit saves them all again) and return False. A conflict (the same key or point changed here and
+        elsewhere) keeps the file's value and asks."""
         try:
-            self.session.save()
-        except OSError as e:
-            why = e.strerror or str(e)
-            self.status = (f"NOT SAVED: {self.session.path}: {why}; your entries are kept here and written at the "
-                           "next edit", True)
+            res = self.session.save()
+        except (OSError, FieldToolError) as e:
+            why = (e.strerror or str(e)) if isinstance(e, OSError) else str(e)
+            self.status = (f"NOT SAVED: {why}; your entries are kept here and written at the next edit", True)
             self.notify(self.status[0], severity="error", timeout=10)
             ok = False
         else:
             if self.status[1] and self.status[0].startswith("NOT SAVED"):
                 self.status = (f"saved {self.session.path.name}", False)
             ok = True
+            if res is not None:
+                self._after_merge(res)
         if isinstance(self.screen, StepScreen):
             self.show_status(self.screen)
+            self.screen.update_title()
         return ok
+
+    def watch_file(self) -> None:
+        """Take in a change another program (the viewer, a text editor, ``calibrate --project``) made to the
+        project file: the open step shows it at once."""
+        err_before = self.session.sync.error
+        screen = self.screen
+        before = ({r.field.key: r.field.format(r.field.get(self.session.project)) for r in screen.rows}
+                  if isinstance(screen, StepScreen) else None)  # to tell typing not yet taken in from old text
+        try:
+            res = self.session.poll()
+        except FieldToolError as e:  # this window's own values no longer fit the merged file
+            self.notify(f"the project file changed elsewhere and cannot be merged: {e}", severity="error")
+            return
+        err = self.session.sync.error
+        if err and err != err_before:
+            self.status = (f"NOT SAVED: {err}", True)
+            self.notify(f"the project file was changed by another program and is not valid now: {err}",
+                        severity="error", timeout=12)
+            if isinstance(self.screen, StepScreen):
+                self.show_status(self.screen)
+                self.screen.update_title()
+        if res is None:
+            return
+        if not err and self.status[1] and self.status[0].startswith("NOT SAVED") and "another program" in self.status[0]:
+            self.status = (f"{self.session.path.name} is valid again", False)
+        self._after_merge(res, before)
+        if res.theirs_changed:
+            self.status = (f"changed in {self.session.path.name} by another program: "
+                           f"{', '.join(res.theirs_changed[:4])}{' …' if len(res.theirs_changed) > 4 else ''}", False)
+            if self.viewer is not None and getattr(self.viewer, "in_process", False):
+                self.viewer_reload()
+        if isinstance(self.screen, StepScreen):
+            self.show_status(self.screen)
+
+    def _after_merge(self, res: SaveResult, before: dict[str, str] | None = None) -> None:
+        """Show what another program changed in the open step; ask about conflicts (a field being typed in
+        whose key changed elsewhere is one)."""
+        screen = self.screen
+        conflicts = list(res.conflicts)
+        if isinstance(screen, StepScreen):
+            keys = res.theirs_changed + [c.key for c in res.conflicts]
+            if keys:
+                conflicts += screen.show_keys(keys, before)
+            if res.theirs_changed:
+                screen.update_title()
+        if conflicts:
+            self.ask_conflicts(conflicts)
+
+    def ask_conflicts(self, conflicts: list[Conflict]) -> None:
+        """The file's values are kept; both are shown and the operator may put this window's back."""
+        self.last_conflicts = conflicts
+        self.notify("; ".join(c.text() for c in conflicts[:3]), severity="warning", timeout=15)
+
+        def chosen(use_mine: bool | None) -> None:
+            if isinstance(self.screen, StepScreen):
+                for row in self.screen.rows:
+                    row.held = False
+            if not use_mine:
+                if isinstance(self.screen, StepScreen):  # rows still holding this window's text show the file's
+                    self.screen.show_keys([c.key for c in conflicts])
+                return
+            data = project_to_dict(self.session.project)
+            for c in conflicts:
+                data = set_path(data, c.key, c.mine)
+            try:
+                adopt(self.session.project, project_from_dict(data, self.session.project.root))
+            except FieldToolError as e:  # this window's text did not make a value: the file's stays
+                self.notify(f"yours cannot be used ({e}); the file's value stays", severity="error")
+                if isinstance(self.screen, StepScreen):
+                    self.screen.show_keys([c.key for c in conflicts])
+                return
+            self.save_project()
+            if isinstance(self.screen, StepScreen):
+                self.screen.show_keys([c.key for c in conflicts])
+
+        if not isinstance(self.screen, ConflictScreen):
+            self.push_screen(ConflictScreen(conflicts), chosen)
 
     # -- long work -------------------------------------------------------------------------------
     def job_running(self) -> bool:
@@ -195,12 +285,25 @@ class FieldToolApp(App):
         except ImportError as e:
             self.notify(f"the viewer is not available ({e}); type pixel points as 'x, y'", severity="warning")
             return
-        try:
-            self.viewer = start_viewer(self.session.path, host="127.0.0.1", on_pick=self._pick_from_viewer)  # the project's port
-        except Exception as e:  # noqa: BLE001 - no viewer must not stop the measurement
-            self.notify(f"the viewer did not start: {e}; type pixel points as 'x, y'", severity="error")
-            return
+        running = running_viewer(self.session.path)  # one viewer per project: attach to the running one
+        if running is not None:
+            self.viewer = running
+        else:
+            try:
+                self.viewer = start_viewer(self.session.path, host="127.0.0.1", on_pick=self._pick_from_viewer)  # the project's port
+            except Exception as e:  # noqa: BLE001 - no viewer must not stop the measurement
+                self.notify(f"the viewer did not start: {e}; type pixel points as 'x, y'", severity="error")
+                return
         self.viewer_url = self.viewer.url
+        if running is not None:
+            self.status = (f"attached to the viewer that runs already (pid {running.pid}); over SSH: "
+                           f"{ssh_line(self.viewer)}", False)
+            if isinstance(self.screen, StepScreen):
+                self.screen.update_title()
+                self.show_status(self.screen)
+            self.notify(f"viewer at {self.viewer_url} (already running, pid {running.pid}): its picks appear "
+                        "here within a second", timeout=12)
+            return
         if isinstance(self.screen, StepScreen):
             self.screen.update_title()
         self.status = (f"viewer over SSH: {ssh_line(self.viewer)}", False)  # the URL is in the title bar
@@ -227,14 +330,9 @@ class FieldToolApp(App):
         self.call_from_thread(self.viewer_picked, key, value)
 
     def viewer_picked(self, key: str, value: Any) -> None:
-        obj: Any = self.session.project
-        *head, last = key.split(".")
-        for part in head:
-            obj = getattr(obj, part)
-        setattr(obj, last, value)
-        self.save_project()
-        if isinstance(self.screen, StepScreen):
-            self.screen.show_value(key)
+        """The viewer saved a pick (merged into the file by ``project.sync``): take the file's change in
+        now, without waiting for the next look at the file, and without writing anything back."""
+        self.watch_file()
 
     def viewer_focus(self, key: str) -> None:
         """Switch the viewer to the pick mode that fills ``key`` (a pixel field got the focus)."""

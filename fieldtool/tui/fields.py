@@ -45,16 +45,25 @@ def fmt_num(v: float | int | None) -> str:
     return repr(float(v))
 
 
-def fmt_point(p) -> str:
-    return ", ".join(fmt_num(float(c)) for c in p)
+def fmt_px(v: float) -> str:
+    """A pixel coordinate with at most 2 decimals (a click is no finer; a snapped centre keeps its digits in the
+    file, the field shows it rounded)."""
+    v = float(v)
+    if not math.isfinite(v):
+        return fmt_num(v)
+    return fmt_num(round(v, 2))
 
 
-def fmt_points(pts) -> str:
-    return "; ".join(fmt_point(p) for p in pts)
+def fmt_point(p, px: bool = False) -> str:
+    return ", ".join(fmt_px(c) if px else fmt_num(float(c)) for c in p)
 
 
-def fmt_polygons(polys) -> str:
-    return " | ".join(fmt_points(p) for p in polys)
+def fmt_points(pts, px: bool = False) -> str:
+    return "; ".join(fmt_point(p, px) for p in pts)
+
+
+def fmt_polygons(polys, px: bool = False) -> str:
+    return " | ".join(fmt_points(p, px) for p in polys)
 
 
 _DECIMAL_COMMA = re.compile(r"^[+-]?\d*,\d+$")
@@ -198,12 +207,13 @@ class Field:
         k = self.kind
         if k in ("float", "int"):
             return fmt_num(value)
+        px = self.unit == "px"
         if k == "point":
-            return fmt_point(value)
+            return fmt_point(value, px)
         if k in ("points", "rects", "worldpoints"):
-            return fmt_points(value)
+            return fmt_points(value, px)
         if k == "polygons":
-            return fmt_polygons(value)
+            return fmt_polygons(value, px)
         if k == "floats":
             return ", ".join(fmt_num(float(v)) for v in value)
         return str(value)

@@ -20,11 +20,12 @@ from fieldtool.processing.calibration import calibrate_video, save_calibration
 from fieldtool.project.model import Project, project_to_dict
 from fieldtool.run import frames as run_frames
 from fieldtool.run import piv_cache
-from fieldtool.run.geometry import level_and_mapping, roi_and_mask
 from fieldtool.run.frames import Sized
+from fieldtool.run.geometry import level_and_mapping, roi_and_mask
 from fieldtool.run.inputs import load_inputs
 from fieldtool.run.pipeline import run_project
 from fieldtool.run.velocimetry import piv_params
+from fieldtool.tui.piv_summary import water_median, water_nodes
 
 
 class Job:
@@ -103,19 +104,22 @@ def _piv_setup(project: Project, inputs):
 
 
 def _preview(project: Project, res, mapping) -> dict:
-    """The PIV step's summary of a field: {"inputs": project tables, "stats": {...}}."""
+    """The PIV step's summary of a field: {"inputs": project tables, "stats": {...}}; the median speed is
+    that of the water nodes only (``piv_summary.water_nodes``: what moves), not of the banks."""
     speed = np.hypot(res.u, res.v)
+    water = water_nodes(res.u, res.v, getattr(res, "valid_fraction", None))
     stats = {
         "nodes": int(res.u.size),
+        "water_nodes": int(water.sum()),
         "pairs": int(res.n_pairs or len(res.u_pairs)),
         "valid_fraction": float(np.nanmean(res.valid_fraction)),
-        "median_speed_px_s": float(np.nanmedian(speed)) if np.isfinite(speed).any() else None,
+        "median_speed_px_s": water_median(speed, water),
     }
     if mapping is not None:
         U, V = mapping.rectify_velocity(res.x, res.y, res.u, res.v)
-        sp = np.hypot(U, V)
-        stats["median_speed_ms"] = float(np.nanmedian(sp)) if np.isfinite(sp).any() else None
+        stats["median_speed_ms"] = water_median(np.hypot(U, V), water)
     stats["field"] = (res.x, res.y, res.u, res.v)
+    stats["water"] = water
     return {"inputs": project_to_dict(project), "stats": stats}
 
 

@@ -35,3 +35,7 @@ FILTERS = [
 CROSS_SECTION = [
     Binding("ctrl+s", "write_csv", "Save as CSV"),
 ]
+
+RESULTS = [
+    Binding("ctrl+g", "report", "Report"),
+]

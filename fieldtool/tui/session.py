@@ -1,6 +1,6 @@
 """The measurement being edited: the Project, its file, and what was computed from it.
 
-Every change is written to the project file at once (atomically, by ``save_project``). Results are
+Every change is written to the project file at once (atomically, merged with other editors by ``project.sync``). Results are
 the files of the last run in ``out/`` beside the project file; ``result.json`` carries the inputs
 that made it, so a result whose inputs have changed since is known to be stale, even after the
 project is closed and opened again.
@@ -9,7 +9,6 @@ project is closed and opened again.
 from __future__ import annotations
 
 import csv
-import dataclasses
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -17,14 +16,15 @@ from typing import Any
 
 from fieldtool.errors import FieldToolError, InputFileError
 from fieldtool.processing.filters import FilterStack
-from fieldtool.project.model import Project, apply_changes, flat_changes, load_project, project_to_dict, save_project
+from fieldtool.project.model import Project, project_to_dict
+from fieldtool.project.sync import ProjectSync, SaveResult, adopt
 from fieldtool.run.inputs import load_inputs
 from fieldtool.tui.checks import CoreChecks, is_missing
 from fieldtool.tui.fields import field_errors
 from fieldtool.tui.jobs import PREVIEW_DIR, cached_piv
 from fieldtool.tui.steps import PIV_TABLES, STEP_IDS, STEPS, calibration_mode, fields_for, step_problems
 
-IGNORED_KEYS = ("name", "step", "rerun")
+IGNORED_KEYS = ("name", "step", "rerun", "site", "station", "operator", "viewer")  # no effect on Q
 
 
 @dataclass
@@ -40,9 +40,9 @@ class Session:
 
     def __init__(self, path: Path | str) -> None:
         self.path = Path(path).resolve()
+        self.sync = ProjectSync(self.path)  # the file as this session last read or wrote it (three-way merge)
         if self.path.exists():
-            self.project = load_project(self.path)
-            self._saved = project_to_dict(self.project)
+            self.project = self.sync.load()
         else:
             self.project = Project(name=self.path.parent.name or "measurement", root=self.path.parent)
             self.save()
@@ -58,36 +58,22 @@ class Session:
         self._cache_looked: str | None = None  # PIV tables the PIV cache was last looked up for
 
     # -- file --------------------------------------------------------------------------------
-    def save(self) -> None:
-        """Write the keys changed in this session since the last save into the file as it is on disk
-        now (``apply_changes``): keys other processes saved meanwhile (``fieldtool calibrate
-        --project``, the viewer) are kept, and taken into this session's project."""
-        now = project_to_dict(self.project)
-        saved = getattr(self, "_saved", None)
-        if saved is None or not self.path.exists():
-            save_project(self.project, self.path)
-        else:
-            changes = flat_changes(saved, now)
-            try:
-                merged = apply_changes(self.path, changes)
-            except FieldToolError:  # the file on disk no longer parses: this session's project wins
-                save_project(self.project, self.path)
-            else:
-                self._adopt(merged)
-        self._saved = project_to_dict(self.project)
+    def save(self) -> SaveResult:
+        """Merge this session's values into the file as it is on disk now (``ProjectSync.save``: per key
+        and per point against what this session last read, so a value another program saved meanwhile
+        is kept and never put back) and take the merged values in. Raises ``ProjectRefused`` (file
+        invalid or read-only: nothing written) or OSError; the entries stay in ``self.project``."""
+        res = self.sync.save(self.project)
+        adopt(self.project, res.project)
+        return res
 
-    def _adopt(self, merged: Project) -> None:
-        """Take every value of ``merged`` into ``self.project`` in place (widgets keep their object)."""
-        for f in dataclasses.fields(Project):
-            if not f.metadata.get("saved", True):
-                continue
-            new = getattr(merged, f.name)
-            if dataclasses.is_dataclass(new):
-                cur = getattr(self.project, f.name)
-                for sf in dataclasses.fields(new):
-                    setattr(cur, sf.name, getattr(new, sf.name))
-            else:
-                setattr(self.project, f.name, new)
+    def poll(self) -> SaveResult | None:
+        """The file's change by another program since the last read or write, merged into this
+        session's values (None when unchanged or invalid: ``self.sync.error`` says why)."""
+        res = self.sync.poll(self.project)
+        if res is not None:
+            adopt(self.project, res.project)
+        return res
 
     @property
     def out_dir(self) -> Path:

@@ -418,6 +418,15 @@ STEP_BY_ID = {s.id: s for s in STEPS}
 PIV_TABLES = ("video", "calibration", "stabilize", "roi", "filters", "piv")
 
 
+# the measurement's own description (printed on the report), on the discharge step below the result
+MEASUREMENT = [
+    Field("name", "Name", "", "text", "a name for this measurement (station, date); the report's title"),
+    Field("site", "Site", "", "text", "site this measurement belongs to (see `fieldtool site`); on the report"),
+    Field("station", "Station", "", "text", "gauging station name or code; on the report"),
+    Field("operator", "Operator", "", "text", "who made the measurement; on the report"),
+]
+
+
 def fields_for(step: str, ui: dict) -> list[Field]:
     """The Fields of a step."""
     return {

@@ -8,7 +8,7 @@ import threading
 
 
 def cmd_view(args: argparse.Namespace) -> int:
-    from fieldtool.viewer import images, picks, server  # lazy: viser and the viewer, not for every `fieldtool` command
+    from fieldtool.viewer import images, picks, registry, server  # lazy: viser and the viewer, not for every command
 
     if args.mode and args.mode not in picks.MODES:
         print(f"fieldtool: error: --mode {args.mode!r}: one of {', '.join(picks.MODES)}", file=sys.stderr)
@@ -20,6 +20,13 @@ def cmd_view(args: argparse.Namespace) -> int:
     def on_pick(field: str, value) -> None:
         print(f"saved {field} = {value}", flush=True)
 
+    running = registry.running_viewer(args.project)  # one viewer per project: attach to the running one
+    if running is not None:
+        print(f"a picking viewer already runs for this project (pid {running.pid}); use it:", flush=True)
+        print(f"picking viewer at {running.url}", flush=True)
+        print(f"  over SSH, on your computer run:  {running.ssh_hint}", flush=True)
+        print(f"  then open {running.local_url}", flush=True)
+        return 0
     handle = server.start_viewer(args.project, host=args.host, port=args.port, on_pick=on_pick)
     if handle.warning:
         print(handle.warning, file=sys.stderr, flush=True)

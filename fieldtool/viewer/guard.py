@@ -335,7 +335,9 @@ def ssh_hint(port: int, user: str | None = None, host: str | None = None) -> str
             user = getpass.getuser()
         except Exception:  # noqa: BLE001 - no login name (container): leave a placeholder
             user = "USER"
-    host = host or socket.getfqdn() or socket.gethostname() or "THIS-MACHINE"
+    if not host:  # "localhost" would name the operator's own computer there: this machine's name, or a placeholder
+        names = [n for n in (socket.getfqdn(), socket.gethostname()) if n and n.split(".")[0] not in ("localhost", "")]
+        host = names[0] if names else "THIS-MACHINE"
     return f"ssh -L {int(port)}:127.0.0.1:{int(port)} {user}@{host}"
 
 

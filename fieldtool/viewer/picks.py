@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from fieldtool.project.model import apply_changes
+from fieldtool.project.sync import ProjectSync
 from fieldtool.viewer.mapping import PlotAxes
 
 
@@ -439,10 +439,10 @@ def next_mode(states: dict[str, PickState]) -> str | None:
 
 
 def save_field(project_path, path: str, value: Any) -> Any:
-    """Set one dotted field in the project file, merged with what other programs saved meanwhile
-    (``project.apply_changes``: this one key, comments kept, atomic). Returns the project as
-    saved. The one place the viewer writes the project file."""
-    return apply_changes(project_path, {path: value})
+    """Set one dotted field in the project file as it is now (``project.sync``: this one key, comments
+    kept, atomic; an invalid or read-only file is refused). Returns the project as saved. The viewer
+    itself saves through its ``ProjectSync`` (three-way merge per point)."""
+    return ProjectSync(project_path).set_keys({path: value}).project
 
 
 def get_field(project: Any, path: str) -> Any:

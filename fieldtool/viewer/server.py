@@ -40,7 +40,9 @@ from websockets.datastructures import Headers
 from websockets.http11 import Response
 
 from fieldtool.errors import FieldToolError, ParameterError
-from fieldtool.project.model import load_project
+from fieldtool.project.model import load_project, project_to_dict
+from fieldtool.project.sync import ProjectSync, SaveResult, set_dotted
+from fieldtool.viewer import registry
 from fieldtool.viewer.guard import AccessGuard, install, page_path, ssh_hint
 from fieldtool.viewer.images import FRAME_LIKE, KINDS, Display, lens_of, load_display, load_field
 from fieldtool.viewer.mapping import (
@@ -52,7 +54,7 @@ from fieldtool.viewer.mapping import (
     ray_to_pixel,
     zoom_about_cursor,
 )
-from fieldtool.viewer.picks import MODES, PickState, checklist, get_field, next_mode, save_field
+from fieldtool.viewer.picks import MODES, PickState, checklist, get_field, next_mode
 from fieldtool.viewer.snap import snap_to_target
 
 LOOPBACK = ("127.0.0.1", "localhost", "::1")
@@ -79,6 +81,7 @@ class ViewerHandle:
         self.url: str = f"http://{shown}:{self.port}/{self.token}/"
         self.warning: str | None = viewer.host_warning
         self.notes: list[str] = []  # what the launch decided about the port, for the CLI/TUI to show
+        self.in_process = True  # served by this process (a viewer of another process: registry.RunningViewer)
 
     @property
     def ssh_hint(self) -> str:
@@ -203,13 +206,18 @@ def start_viewer(project_path: str | Path, host: str = "127.0.0.1", port: int | 
         viewer = _Viewer(server, path, host, host_warning, on_pick, guard)
         routes.viewer = viewer
         if got != remembered and (port is None and remembered == 0 or port is not None and port != 0):
-            save_field(path, "viewer.port", got)  # remembered: the next launch (and its tunnel) uses it again
+            ProjectSync(path).set_keys({"viewer.port": got})  # remembered: the next launch (and its tunnel) uses it again
             notes.append(f"port {got} is remembered in viewer.port of {path.name}")
     except BaseException:
         server.stop()
         raise
     handle = ViewerHandle(viewer)
     handle.notes = notes
+    if host in LOOPBACK or host in ("0.0.0.0", "::"):
+        try:
+            registry.register(path, host, handle.port, handle.token, handle.url)  # one viewer per project
+        except OSError as e:
+            notes.append(f"the viewer's info file was not written ({e.strerror or e}): a second viewer may start")
     return handle
 
 
@@ -288,7 +296,9 @@ class _Viewer:
         self.server, self.path, self.host, self.host_warning, self.on_pick = server, path, host, host_warning, on_pick
         self.guard = guard
         self._lock = threading.RLock()
-        self.project = load_project(path)
+        self.sync = ProjectSync(path)  # the file as this viewer last read or wrote it (three-way merge)
+        self.project = self.sync.load()
+        self._stopped = threading.Event()
         self.mode: str | None = None
         self.states: dict[str, PickState] = {}
         self.field: dict | None = None
@@ -354,6 +364,8 @@ class _Viewer:
         self.show_field(None)
         self.show_image("frame")
         self.update_checklist()
+        self._watcher = threading.Thread(target=self._watch, name="fieldtool-viewer-watch", daemon=True)
+        self._watcher.start()
 
     # ------------------------------------------------------------------ state
 
@@ -366,13 +378,46 @@ class _Viewer:
             self.states[key] = st
 
     def reload(self) -> None:
+        """Take in what another program saved in the project file (merged with this viewer's picks)."""
         with self._lock:
-            self.project = load_project(self.path)
-            self._load_states()
-            if self.display.kind == "dem_plot":
-                self.show_image("dem_plot")
-            self.update_checklist()
-            self.redraw()
+            res = self.sync.poll(self.project)
+            if res is None:
+                if self.sync.error:
+                    self.set_status(f"the project file is not valid now; picks are not saved: {self.sync.error}")
+                return
+            self._take(res, note=True)
+
+    def _take(self, res: SaveResult, note: bool = False) -> None:
+        """Make the viewer show ``res.project``: every pick mode whose field differs is loaded again."""
+        old = self.project
+        self.project = res.project
+        for key, spec in MODES.items():
+            st = self.states.get(key)
+            if st is None:
+                continue
+            new = get_field(res.project, spec.field)
+            cur = st.value()
+            if new != get_field(old, spec.field) or (cur is not ... and new != cur):
+                if spec.image == "dem_plot":
+                    st = spec.make(axes=getattr(st, "axes", None))
+                else:
+                    st = spec.make()
+                st.load(new)
+                self.states[key] = st
+        if res.conflicts:
+            self.set_status("CONFLICT, the file's value kept: " + "; ".join(c.text() for c in res.conflicts[:3]))
+        elif note and res.theirs_changed:
+            self.set_status(f"updated from {self.path.name}: {', '.join(res.theirs_changed[:4])}")
+        self.update_checklist()
+        self.redraw()
+
+    def _watch(self) -> None:
+        """Look at the project file twice a second; a change made elsewhere is shown within a second."""
+        while not self._stopped.wait(0.5):
+            try:
+                self.reload()
+            except Exception as e:  # noqa: BLE001 - a bad moment on disk must not stop the viewer
+                self.set_status(f"the project file could not be read again: {e}")
 
     def set_status(self, text: str) -> None:
         self.status_text = text
@@ -509,6 +554,9 @@ class _Viewer:
             if snapped is not None and state.value() != before:
                 msg += (f" - snapped to the target centre ({raw[0]:.2f}, {raw[1]:.2f}) px, "
                         f"{snapped.moved_px:.1f} px from the click (Undo if wrong)")
+            elif spec.snap and state.value() != before:  # say so: a click meant for a target stays where it fell
+                msg += (" - NOT snapped: no checker target found near the click (a small or far target); placed "
+                        "where clicked: zoom in (mouse wheel) to place it on the centre, or Undo")
         return self._commit(spec, state, msg)
 
     def _act(self, action: str) -> str:
@@ -534,11 +582,12 @@ class _Viewer:
         with self._lock:
             if value is not ...:
                 try:
-                    project = load_project(self.path)  # fresh: keeps what the TUI saved meanwhile
-                    if value != get_field(project, spec.field):
-                        project = save_field(self.path, spec.field, value)
-                        saved = True
-                    self.project = project
+                    mine = set_dotted(project_to_dict(self.project), spec.field, value)
+                    res = self.sync.save(mine)  # merged per point with what the TUI saved meanwhile
+                    saved = res.written
+                    self._take(res)
+                    if res.conflicts:
+                        msg = self.status_text
                 except (FieldToolError, OSError) as e:
                     msg = f"NOT SAVED: {e}"
             self.set_status(msg)
@@ -546,7 +595,7 @@ class _Viewer:
             self.redraw()
         if saved and self.on_pick is not None:
             try:
-                self.on_pick(spec.field, value)
+                self.on_pick(spec.field, get_field(self.project, spec.field))
             except Exception as e:  # noqa: BLE001 - the TUI's callback must not break picking
                 self.set_status(f"{msg} (the TUI was not updated: {e})")
         return msg
@@ -731,5 +780,7 @@ class _Viewer:
         return moved
 
     def stop(self) -> None:
+        self._stopped.set()
+        registry.unregister(self.path)
         with contextlib.redirect_stdout(io.StringIO()):
             self.server.stop()

@@ -9,6 +9,7 @@ from textual.screen import Screen
 from textual.widgets import Footer, OptionList, Static
 
 from fieldtool.errors import FieldToolError
+from fieldtool.project.sync import Conflict
 from fieldtool.tui import keys
 from fieldtool.tui.checks import core_check, is_missing
 from fieldtool.tui.fields import Field
@@ -105,10 +106,8 @@ class StepScreen(Screen):
         status = getattr(self.app, "status", ("", False))
         if not note and status[1] and status[0].startswith("NOT SAVED"):
             note = "NOT SAVED"
-        viewer = getattr(self.app, "viewer_url", None)
-        if viewer and not note:
-            note = f"viewer {viewer}"
-        self.query_one(TitleBar).show(self.project.name, self.session.path.name, note or "saved")
+        viewer = getattr(self.app, "viewer_url", None)  # shown whole, beside the save state, while the viewer runs
+        self.query_one(TitleBar).show(self.project.name, self.session.path.name, note or "saved", url=viewer)
 
     def update_visibility(self) -> None:
         for row in self.rows:
@@ -243,7 +242,43 @@ class StepScreen(Screen):
         self.refresh_view()
         self.refresh_marks()
 
-    # -- viewer picks -------------------------------------------------------------------------------
+    # -- viewer picks and other programs' edits ---------------------------------------------------
+    def show_keys(self, keys: list[str], before: dict[str, str] | None = None) -> list:
+        """Show the project's values of the changed ``keys`` (``project.sync`` keys: dotted, ``[i]`` per
+        point) in the rows that display them, and only in those: a row being typed in whose own key did not
+        change keeps its text (a refresh must never put an old value back into it).
+
+        ``before``: each row's text as the project's value gave it before the change came in. A row whose
+        text differs from it holds typing not yet taken in: it is left as it is and returned as a Conflict
+        (its text, the file's value) for the app to ask about."""
+        def hit(row_key: str) -> bool:
+            return any(row_key == k or k.startswith(row_key + "[") or row_key.startswith(k + "[") for k in keys)
+
+        shown = False
+        pending = []
+        for row in self.rows:
+            if hit(row.field.key):
+                mid_typing = (before is not None and row.display and row.field.key in keys
+                              and row.field.key in before and row.text() != before[row.field.key])
+                if mid_typing:  # this very key changed elsewhere while its row holds typing not taken in
+                    try:
+                        typed = row.field.parse(row.text())
+                    except ValueError:
+                        typed = row.text()
+                    pending.append(Conflict(row.field.key, typed, row.field.get(self.project)))
+                    row.held = True  # its typing is kept on screen, not stored, until the operator chose
+                    continue
+                text = row.field.format(row.field.get(self.project))
+                if row.text() != text:
+                    row.set_text(text)
+                row.refresh_error()
+                shown = True
+        if shown:
+            self.update_visibility()
+            self.refresh_view()
+            self.refresh_marks()
+        return pending
+
     def show_value(self, key: str) -> bool:
         """Show the project's value of ``key`` (set elsewhere, e.g. by a viewer pick) in its rows."""
         shown = False

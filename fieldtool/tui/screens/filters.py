@@ -30,7 +30,7 @@ def parse_params(text: str, name: str) -> dict:
             continue
         if "=" not in part:
             hint = f"; {DECIMAL_HINT}" if re.search(r"=\s*[+-]?\d+,\d", text) else ""
-            raise ParameterError(f"filter parameters: {part!r} is not 'name=value' (e.g. clip_limit=2.0){hint}")
+            raise ParameterError(f"filter parameters: {part!r} is not 'name=value' (e.g. clip_limit=40){hint}")
         k, v = (s.strip() for s in part.split("=", 1))
         try:
             val: object = int(v)
@@ -41,6 +41,14 @@ def parse_params(text: str, name: str) -> dict:
                 val = v
         item[k] = val
     return item
+
+
+def example_params(cls) -> str:
+    """The parameters input's placeholder: the chosen filter's own parameters with their defaults, so an
+    example never disagrees with the default beside it (``clahe``: "defaults: clip_limit=40, tile_grid=8")."""
+    shown = [f"{p.name}={fmt_num(p.default) if not isinstance(p.default, str) else p.default}"
+             for p in cls.params if p.default is not None]
+    return "defaults: " + ", ".join(shown) if shown else "no parameters to set" if not cls.params else "defaults"
 
 
 def describe(item: dict) -> str:
@@ -61,7 +69,7 @@ class FiltersScreen(StepScreen):
                          type_to_search=False)
         with Horizontal(classes="field-line"):
             yield Label("Parameters", classes="field-label")
-            yield Input(placeholder="defaults; e.g. clip_limit=2.0", compact=True, id="filter-params")
+            yield Input(placeholder=example_params(FILTERS["clahe"]), compact=True, id="filter-params")
         yield Static("", id="filter-doc")
 
     def compose_extra(self) -> ComposeResult:
@@ -94,6 +102,7 @@ class FiltersScreen(StepScreen):
             d = "from the image" if p.default is None else fmt_num(p.default) if not isinstance(p.default, str) else p.default
             parts.append(f"{p.name} ({p.doc or p.kind.__name__}; default {d})")
         self.query_one("#filter-doc", Static).update(Text(f"{doc}\n" + "; ".join(parts), style="dim"))
+        self.query_one("#filter-params", Input).placeholder = example_params(cls)
         self.query_one("#help", Static).update(Text(
             "ctrl+t adds the chosen filter with these parameters (empty = defaults); ctrl+y removes the last; "
             "ctrl+r previews"))

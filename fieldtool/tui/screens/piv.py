@@ -7,6 +7,7 @@ from textual.app import ComposeResult
 from textual.widgets import Static
 
 from fieldtool.tui import jobs, keys
+from fieldtool.tui.piv_summary import water_nodes
 from fieldtool.tui.screens.base import StepScreen
 from fieldtool.tui.widgets.plots import VectorGrid
 
@@ -42,16 +43,24 @@ class PivScreen(StepScreen):
                         f"mean velocity in the section {sm['mean_velocity_ms']:.3f} m/s (depth-averaged)")
             try:
                 with np.load(s.out_dir / "mean_field.npz") as z:
-                    grid.set_field(z["u_px_s"], z["v_px_s"])
+                    u, v = z["u_px_s"], z["v_px_s"]
+                    vf = z["valid_fraction"] if "valid_fraction" in z.files else None
+                grid.set_field(u, v, water_nodes(u, v, vf))
             except (OSError, KeyError, ValueError):
                 grid.set_field(None, None)
             return
         st = s.piv_preview["stats"]
-        ms = st.get("median_speed_ms")
-        speed = f"median speed {ms:.3f} m/s" if ms is not None else f"median speed {st['median_speed_px_s']:.1f} px/s"
-        info.update(f"{st['pairs']} pairs · {st['nodes']} nodes · valid {100 * st['valid_fraction']:.0f} % · {speed}")
         _, _, u, v = st["field"]
-        grid.set_field(u, v)
+        water = st.get("water")
+        if water is None:  # a summary of an older session: judged here
+            water = water_nodes(u, v)
+        ms, mpx = st.get("median_speed_ms"), st.get("median_speed_px_s")
+        speed = (f"median speed on the water {ms:.3f} m/s" if ms is not None else
+                 f"median speed on the water {mpx:.1f} px/s" if mpx is not None else "no moving water found")
+        n_water = int(np.sum(water))
+        info.update(f"{st['pairs']} pairs · {n_water} of {st['nodes']} nodes on the water · valid "
+                    f"{100 * st['valid_fraction']:.0f} % · {speed} · page down: the arrows")
+        grid.set_field(u, v, water)
 
     def action_run(self) -> None:
         msgs = self.errors()

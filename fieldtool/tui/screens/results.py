@@ -8,8 +8,13 @@ from textual.app import ComposeResult
 from textual.markup import escape
 from textual.widgets import DataTable, Static
 
+from fieldtool.errors import FieldToolError
+from fieldtool.project.model import atomic_write_bytes
+from fieldtool.records.report import load_result, render_html, render_pdf
 from fieldtool.tui import jobs, keys
 from fieldtool.tui.screens.base import StepScreen
+from fieldtool.tui.steps import MEASUREMENT
+from fieldtool.tui.widgets.field_row import FieldRow
 
 # (header, csv column, decimals)
 COLUMNS = (("#", "subsection", None), ("from m", "station_from_m", 2), ("to m", "station_to_m", 2),
@@ -53,13 +58,19 @@ def discharge_lines(s: dict) -> list[str]:
 class ResultsScreen(StepScreen):
     STEP = "results"
     INTRO = "discharge and export"
-    BINDINGS = [keys.run("Recompute")]
+    BINDINGS = [keys.run("Recompute"), *keys.RESULTS]
 
     def compose_extra(self) -> ComposeResult:
         yield Static("", id="summary")
         yield Static("", id="table-hint")
         yield DataTable(id="subsections", zebra_stripes=True, cursor_type="row")
         yield Static("", id="files")
+        yield Static(Text("The measurement, on the report (ctrl+g writes report.html and report.pdf in out/):",
+                          style="bold"), id="measurement-head")
+        for f in MEASUREMENT:  # below the result: Q and its warnings stay at the top of the 80 x 24 screen
+            row = FieldRow(f)
+            self.rows.append(row)
+            yield row
 
     def on_mount(self) -> None:
         super().on_mount()
@@ -112,8 +123,16 @@ class ResultsScreen(StepScreen):
         unc = s.get("water_level_uncertainty_m")
         unc_t = f" ± {unc:.3f}" if unc else ""
         alpha_t = " default" if s.get("alpha_default") else ""
+        warnings = [str(w) for w in s.get("warnings") or []]
+        warn_head = []
+        if warnings:  # next to Q, on the first screen: one line, the first warning cut to fit, how many and where
+            lead = f"⚠ {len(warnings)} warning{'s' if len(warnings) > 1 else ''} (in full below the table): "
+            room = max(self.query_one("#summary", Static).size.width or 54, 30) - len(lead) - 4  # ⚠ may take 2 cells
+            first = warnings[0] if len(warnings[0]) <= room else warnings[0][:room - 1] + "…"
+            warn_head = [f"[yellow]{escape(lead)}{escape(first)}[/yellow]"]
         summary.update(head + "\n".join([
             *discharge_lines(s),
+            *warn_head,
             f"water level    {s['water_level_m']:.3f}{unc_t} m ({s.get('water_level_method', '')})",
             f"wetted area    {s['wetted_area_m2']:.3f} m²    width {s['wetted_width_m']:.3f} m",
             f"mean velocity  {s['mean_velocity_ms']:.4f} m/s    alpha {s['alpha']:.2f}{alpha_t}"]))
@@ -171,3 +190,26 @@ class ResultsScreen(StepScreen):
 
     def action_next(self) -> None:
         self.notify("this is the last step; ctrl+b goes back, ctrl+p jumps to any step")
+
+    def action_report(self) -> None:
+        """Write report.html and report.pdf of the last result into out/, with the name, site, station and
+        operator as they are now (typed after the run: they do not change Q, so the run is not redone)."""
+        out = self.session.out_dir
+        try:
+            summary, images, rows = load_result(out)
+        except FieldToolError as e:
+            self.app.status = (f"no report: {e}", True)  # type: ignore[attr-defined]
+            self.app.show_status(self)  # type: ignore[attr-defined]
+            return
+        inputs = dict(summary.get("inputs") or {})
+        for f in MEASUREMENT:
+            inputs[f.key] = getattr(self.project, f.key)
+        summary["inputs"] = inputs
+        try:
+            atomic_write_bytes(out / "report.html", render_html(summary, images, rows).encode("utf-8"))
+            atomic_write_bytes(out / "report.pdf", render_pdf(summary, images, rows))
+        except (OSError, FieldToolError) as e:
+            self.app.status = (f"report NOT written: {e}", True)  # type: ignore[attr-defined]
+        else:
+            self.app.status = (f"wrote out/report.html and out/report.pdf ({self.project.name})", False)  # type: ignore[attr-defined]
+        self.app.show_status(self)  # type: ignore[attr-defined]

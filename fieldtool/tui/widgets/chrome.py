@@ -16,15 +16,30 @@ SIDEBAR_TEXT = 21  # characters of a reason shown under a ✗ step (the sidebar 
 
 
 class TitleBar(Static):
-    """Project name, file, save state and the viewer address."""
+    """Project name, file, save state and the viewer address. The viewer's URL (with its key) is always shown
+    whole while the viewer runs: the name and the file give way to it on a narrow (80 columns) terminal."""
 
-    def show(self, name: str, file: str, note: str = "") -> None:
+    def show(self, name: str, file: str, note: str = "", url: str | None = None) -> None:
+        width = self.size.width or (self.app.size.width if self.is_attached else 80) or 80
+        tail = (f"· {note}" + (" " if url else "") if note else "") + (f"· viewer {url}" if url else "")
+        room = width - len(" fieldtool ") - len(tail) - 1
+        head = f" {name} · {file} "
+        if len(head) > room:
+            head = f" {name} "
+        if len(head) > room:
+            head = f" {name[:max(room - 3, 1)]}… " if room > 4 else " "
         t = Text()
         t.append(" fieldtool ", style="bold reverse")
-        t.append(f" {name} ", style="bold")
-        t.append(f"· {file} ", style="dim")
+        if " · " in head:
+            n, f = head.split(" · ", 1)
+            t.append(f"{n} ", style="bold")
+            t.append(f"· {f}", style="dim")
+        else:
+            t.append(head, style="bold")
         if note:
-            t.append(f"· {note}", style="italic")
+            t.append(f"· {note}" + (" " if url else ""), style="italic")
+        if url:
+            t.append(f"· viewer {url}", style="bold")
         self.update(t)
 
 

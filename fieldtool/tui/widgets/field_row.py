@@ -41,6 +41,7 @@ class FieldRow(Vertical):
         self.field = field
         self.error: str | None = None
         self._text_error: str | None = None
+        self.held = False  # its key changed elsewhere while typed in: nothing is stored until the operator chose
 
     @property
     def project(self):
@@ -93,7 +94,12 @@ class FieldRow(Vertical):
 
     def _store(self, value) -> None:
         f = self.field
-        if f.get(self.project) != value:
+        if self.held:
+            return
+        current = f.get(self.project)
+        if current is not None and value is not None and f.format(current) == f.format(value):
+            value = current  # the text shows the value rounded (pixels: 2 decimals): not an edit, keep every digit
+        if current != value:
             try:
                 f.set(self.project, value)
             except IndexError:

@@ -146,16 +146,30 @@ _ARROWS = "→↘↓↙←↖↑↗"  # image axes: x right, y down; index = dir
 
 
 class VectorGrid(Widget):
-    """Mean velocity field as one arrow per cell (image axes), brighter = faster; · = no valid vector."""
+    """Mean velocity field as one arrow per cell (image axes), brighter = faster; · = no valid vector. With a
+    water mask, the grid is cropped to the water's rows and columns and nodes off the water stay blank (no
+    arrow on a bank)."""
 
     DEFAULT_CSS = "VectorGrid { height: 7; }"
 
     def __init__(self, *, id: str | None = None) -> None:
         super().__init__(id=id)
         self.field: tuple[np.ndarray, np.ndarray] | None = None
+        self.water: np.ndarray | None = None
 
-    def set_field(self, u: np.ndarray | None, v: np.ndarray | None) -> None:
-        self.field = None if u is None else (np.asarray(u, float), np.asarray(v, float))
+    def set_field(self, u: np.ndarray | None, v: np.ndarray | None, water: np.ndarray | None = None) -> None:
+        if u is None:
+            self.field, self.water = None, None
+        else:
+            u, v = np.asarray(u, float), np.asarray(v, float)
+            w = None if water is None else np.asarray(water, bool)
+            if w is not None and w.shape == u.shape and w.any():
+                rows, cols = np.nonzero(w.any(axis=1))[0], np.nonzero(w.any(axis=0))[0]
+                sl = np.s_[rows[0]:rows[-1] + 1, cols[0]:cols[-1] + 1]
+                u, v, w = u[sl], v[sl], w[sl]
+            elif w is not None and w.shape != u.shape:
+                w = None
+            self.field, self.water = (u, v), w
         self.refresh()
 
     def render(self) -> Text:
@@ -169,12 +183,17 @@ class VectorGrid(Widget):
         ri = np.linspace(0, ny - 1, rows).round().astype(int)
         ci = np.linspace(0, nx - 1, cols).round().astype(int)
         su, sv = u[np.ix_(ri, ci)], v[np.ix_(ri, ci)]
+        wet = None if self.water is None else self.water[np.ix_(ri, ci)]
         speed = np.hypot(su, sv)
-        top = np.nanmax(speed) if np.isfinite(speed).any() else 1.0
+        shown = np.isfinite(speed) & (wet if wet is not None else True)
+        top = np.nanmax(speed[shown]) if shown.any() else 1.0
         out = Text()
         for r in range(rows):
             for c in range(cols):
                 s = speed[r, c]
+                if wet is not None and not wet[r, c]:
+                    out.append(" ")  # not on the water: no arrow
+                    continue
                 if not np.isfinite(s):
                     out.append("·", style="dim red")
                     continue
