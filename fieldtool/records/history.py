@@ -38,7 +38,7 @@ from typing import Any, Iterator
 from fieldtool.errors import InputFileError, ParameterError
 from fieldtool.records import user_data_dir
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 BUSY_TIMEOUT_S = 60.0
 REFERENCE_METHODS = ("current_meter", "adcp", "gauge", "other")
 _SQLITE_MAGIC = b"SQLite format 3\x00"
@@ -81,8 +81,17 @@ CREATE TABLE reference_discharges (
 CREATE INDEX reference_measurement ON reference_discharges(measurement_id);
 """
 
+# version 2 (issue 27): the quality grade, the Monte Carlo interval and the ISO 748 / IVE block of the run; rows
+# written before it keep NULL there (and '{}' for the standard block), so an old history stays readable
+_SCHEMA_V2 = """
+ALTER TABLE measurements ADD COLUMN discharge_ci95_lo_m3s REAL;
+ALTER TABLE measurements ADD COLUMN discharge_ci95_hi_m3s REAL;
+ALTER TABLE measurements ADD COLUMN grade TEXT;
+ALTER TABLE measurements ADD COLUMN uncertainty_standard_json TEXT NOT NULL DEFAULT '{}';
+"""
+
 # migrations[v] brings a database from version v to v + 1
-_MIGRATIONS: dict[int, str] = {0: _SCHEMA_V1}
+_MIGRATIONS: dict[int, str] = {0: _SCHEMA_V1, 1: _SCHEMA_V2}
 
 # open History objects of this process, per resolved path
 _OPEN: dict[str, int] = {}
@@ -148,6 +157,14 @@ class Measurement:
     input_hash: str
     output_dir: str
     warnings_json: str
+    discharge_ci95_lo_m3s: float | None = None  # Monte Carlo 95 % interval (schema 2; NULL in older rows)
+    discharge_ci95_hi_m3s: float | None = None
+    grade: str | None = None  # good | doubtful | unusable (schema 2)
+    uncertainty_standard_json: str = "{}"  # result.json's uncertainty_standard: ISO 748 and IVE (schema 2)
+
+    @property
+    def uncertainty_standard(self) -> dict:
+        return json.loads(self.uncertainty_standard_json or "{}")
 
     @property
     def parameters(self) -> dict:
@@ -349,7 +366,8 @@ class History:
             mean_velocity_ms=_num(summary.get("mean_velocity_ms")), alpha=_num(summary.get("alpha")),
             wetted_area_m2=_num(summary.get("wetted_area_m2")), wetted_width_m=_num(summary.get("wetted_width_m")),
             parameters_json=json.dumps(inputs, sort_keys=True), tool_version=str(summary.get("fieldtool_version", "")),
-            input_hash=input_hash, output_dir=str(output_dir), warnings_json=json.dumps(summary.get("warnings", [])))
+            input_hash=input_hash, output_dir=str(output_dir), warnings_json=json.dumps(summary.get("warnings", [])),
+            **_uncertainty_columns(summary))
 
     def add_reference(self, measurement_id: int, discharge_m3s: float, method: str,
                       uncertainty_m3s: float | None = None, note: str = "") -> int:
@@ -466,6 +484,15 @@ class History:
 
     def integrity_ok(self) -> bool:
         return self.conn.execute("PRAGMA integrity_check").fetchone()[0] == "ok"
+
+
+def _uncertainty_columns(summary: dict) -> dict:
+    """The schema-2 columns of a ``result.json`` summary: the interval, the grade and the standard block."""
+    ci = summary.get("discharge_ci95_m3s") or [None, None]
+    quality = summary.get("quality") if isinstance(summary.get("quality"), dict) else {}
+    std = summary.get("uncertainty_standard") if isinstance(summary.get("uncertainty_standard"), dict) else {}
+    return {"discharge_ci95_lo_m3s": _num(ci[0]), "discharge_ci95_hi_m3s": _num(ci[1]),
+            "grade": quality.get("grade"), "uncertainty_standard_json": json.dumps(std, sort_keys=True)}
 
 
 def _split_sql(script: str) -> list[str]:
@@ -617,7 +644,8 @@ def _quick_check(path: Path) -> str | None:
 CSV_COLUMNS = ["id", "site", "video_time", "video_time_source", "water_level_m", "water_level_method", "discharge_m3s",
                "discharge_p05_m3s", "discharge_p95_m3s", "mean_velocity_ms", "alpha", "wetted_area_m2",
                "wetted_width_m", "reference_discharge_m3s", "reference_method", "tool_version", "input_hash",
-               "project_name", "video_path", "output_dir", "recorded_at", "parameters_json"]
+               "project_name", "video_path", "output_dir", "recorded_at", "parameters_json",
+               "discharge_ci95_lo_m3s", "discharge_ci95_hi_m3s", "grade", "iso748_u95_rel", "ive_u95_rel"]
 
 
 def export_csv(hist: History, rows: list[Measurement]) -> str:
@@ -634,6 +662,9 @@ def export_csv(hist: History, rows: list[Measurement]) -> str:
         d = {c: getattr(m, c) for c in _M_COLS}
         d["reference_discharge_m3s"] = ";".join(repr(r.discharge_m3s) for r in rr)
         d["reference_method"] = ";".join(r.method for r in rr)
+        std = m.uncertainty_standard
+        for key in ("iso748", "ive"):
+            d[f"{key}_u95_rel"] = (std.get(key) or {}).get("u95_rel")
         w.writerow(["" if d[c] is None else d[c] for c in CSV_COLUMNS])
     return buf.getvalue()
 

@@ -19,7 +19,7 @@ from fieldtool import __version__
 from fieldtool.errors import InputFileError
 from fieldtool.project.model import atomic_write_bytes
 from fieldtool.records.history import Measurement, Reference
-from fieldtool.records.report_content import budget_rows, discharge_text, header_rows, parameter_rows
+from fieldtool.records.report_content import budget_rows, discharge_text, header_rows, parameter_rows, standard_rows
 
 # plots of result.json "files", in report order, with captions
 PLOTS = (
@@ -140,6 +140,13 @@ def _discharge_html(summary: dict) -> list[str]:
         out.append(f"<p class='muted' id='spread'>Spread of the discharge of single frame pairs (not an interval "
                    f"of Q): 5–95 % {_f(lo, '.3f')} – {_f(hi, '.3f')} m³/s over {summary.get('n_pairs', '?')} "
                    "frame pairs.</p>")
+    std = standard_rows(summary)
+    if std:  # the hydrologists' standard uncertainty beside ours (issue 27)
+        out.append("<table id='standard'><tr><th class='k'>method (2σ)</th><th>95 % interval</th><th>relative</th>"
+                   "<th>USGS rating</th></tr>")
+        out += [f"<tr><td class='k'>{_e(a)}</td><td>{_e(b)}</td><td>{_e(c)}</td><td>{_e(d)}</td></tr>"
+                for a, b, c, d in std]
+        out.append("</table>")
     budget = budget_rows(summary)
     if budget:
         out.append("<table id='budget'><tr><th class='k'>uncertainty source</th><th>share of variance</th>"
@@ -289,6 +296,9 @@ def _pdf_text_page(fig, summary, measurement, references) -> None:
                           f"{_f(summary.get('discharge_p95_m3s'), '.3f')} m³/s over {summary.get('n_pairs', '?')} pairs",
                  fontsize=8, color="0.35")
         y -= 0.02
+    for a, b, c, d in standard_rows(summary):  # ISO 748 and IVE beside the Monte Carlo (issue 27)
+        fig.text(0.06, y, f"{a}: {b} ({c}){'' if d == '–' else ', ' + d}", fontsize=8.5)
+        y -= 0.016
     y -= 0.01
     res = [("Water level", f"{_f(summary.get('water_level_m'), '.3f', 'm')} ± {_f(summary.get('water_level_uncertainty_m'), '.3f', 'm')}"),
            ("Wetted area / width", f"{_f(summary.get('wetted_area_m2'), '.3f', 'm²')} / {_f(summary.get('wetted_width_m'), '.3f', 'm')}"),

@@ -21,7 +21,7 @@ from typing import Callable, Iterator
 import numpy as np
 
 from fieldtool import __version__
-from fieldtool.run import piv_cache, stiv_stage
+from fieldtool.run import piv_cache, standard_stage, stiv_stage
 from fieldtool.errors import Cancelled, FieldToolError, GeometryError, InputFileError, ParameterError
 from fieldtool.processing import cross_section as xs
 from fieldtool.processing import discharge as dq
@@ -113,6 +113,7 @@ class RunResult:
     piv_fast: dict | None = None  # region box and pair sampling of the fast path (see piv_region / run_piv_fast)
     video: dict = field(default_factory=dict)  # the clip's metadata (records.video_meta.video_info)
     prerendered: object | None = None  # plots.prerender.Prerender: figures drawn during the PIV
+    uncertainty_standard: dict | None = None  # ISO 748 and IVE beside the Monte Carlo (run/standard_stage.py)
 
     def summary(self) -> dict:
         d = self.discharge
@@ -123,6 +124,7 @@ class RunResult:
             "discharge_ci95_m3s": (list(self.uncertainty.ci95_m3s) if self.uncertainty is not None
                                    and np.all(np.isfinite(self.uncertainty.ci95_m3s)) else None),
             "uncertainty": self.uncertainty.to_dict() if self.uncertainty is not None else None,
+            "uncertainty_standard": self.uncertainty_standard,  # ISO 748 and IVE, 2σ (run/standard_stage.py)
             "quality": self.quality.to_dict() if self.quality is not None else None,
             "sections": self.sections or None,
             "sections_summary": _sections_summary(self.sections),
@@ -846,6 +848,11 @@ def _run_project(project: Project, out_dir: Path | str | None, progress: Progres
         unc = qual = None
         warnings.append(f"uncertainty and quality not computed ({type(e).__name__}: {e}); please report this")
     stiv_stage.add_reason(qual, stiv_block)  # "PIV and STIV disagree ..." (doubtful)
+    try:  # the hydrologists' standard uncertainty beside the Monte Carlo (issue 27)
+        unc_std = standard_stage.compute(project, level, mapping, geom, res, dres)
+    except Exception as e:  # noqa: BLE001 - the discharge and the Monte Carlo are kept; the gap is said
+        unc_std = None
+        warnings.append(f"ISO 748 / IVE uncertainty not computed ({type(e).__name__}: {e}); please report this")
     section_entries = []
     if extra_sections:
         from fieldtool.run import sections as secs
@@ -877,7 +884,7 @@ def _run_project(project: Project, out_dir: Path | str | None, progress: Progres
     result = RunResult(dres, q_pairs, level, mapping, res, geom, U, V, None, timings_s=timings, warnings=warnings,
                        stabilization=stab or None, project=project_to_dict(project), piv_reused=cached is not None,
                        uncertainty=unc, quality=qual, sections=section_entries, robust=robust_facts,
-                       stiv=stiv_block, piv_fast=fast, prerendered=prerendered)
+                       stiv=stiv_block, piv_fast=fast, prerendered=prerendered, uncertainty_standard=unc_std)
     if out_dir is not None:
         write_outputs(result, project, inputs, Path(out_dir))
     obs("result", result)
