@@ -38,7 +38,7 @@ from typing import Any, Iterator
 from fieldtool.errors import InputFileError, ParameterError
 from fieldtool.records import user_data_dir
 
-SCHEMA_VERSION = 2
+SCHEMA_VERSION = 3
 BUSY_TIMEOUT_S = 60.0
 REFERENCE_METHODS = ("current_meter", "adcp", "gauge", "other")
 _SQLITE_MAGIC = b"SQLite format 3\x00"
@@ -90,8 +90,30 @@ ALTER TABLE measurements ADD COLUMN grade TEXT;
 ALTER TABLE measurements ADD COLUMN uncertainty_standard_json TEXT NOT NULL DEFAULT '{}';
 """
 
+# version 3 (issue 27): the journal of `fieldtool station`: one row per clip (path, size and mtime) of an incoming
+# folder, so that a clip is measured exactly once across restarts (fieldtool/records/station.py)
+_SCHEMA_V3 = """
+CREATE TABLE station_journal (
+    id                  INTEGER PRIMARY KEY,
+    site                TEXT NOT NULL,
+    incoming            TEXT NOT NULL,     -- the watched folder (resolved)
+    path                TEXT NOT NULL,     -- the clip (resolved)
+    size                INTEGER NOT NULL,  -- bytes
+    mtime_ns            INTEGER NOT NULL,
+    state               TEXT NOT NULL,     -- pending | running | done | failed
+    reason              TEXT NOT NULL DEFAULT '',
+    level_source        TEXT NOT NULL DEFAULT '',
+    measurement_id      INTEGER REFERENCES measurements(id) ON DELETE SET NULL,
+    out_dir             TEXT NOT NULL DEFAULT '',
+    attempts            INTEGER NOT NULL DEFAULT 0,
+    updated_at          TEXT NOT NULL,
+    UNIQUE (site, path, size, mtime_ns)
+);
+CREATE INDEX station_journal_folder ON station_journal(site, incoming, state);
+"""
+
 # migrations[v] brings a database from version v to v + 1
-_MIGRATIONS: dict[int, str] = {0: _SCHEMA_V1, 1: _SCHEMA_V2}
+_MIGRATIONS: dict[int, str] = {0: _SCHEMA_V1, 1: _SCHEMA_V2, 2: _SCHEMA_V3}
 
 # open History objects of this process, per resolved path
 _OPEN: dict[str, int] = {}
@@ -341,33 +363,14 @@ class History:
     def add_measurement(self, **values: Any) -> int:
         """Insert one measurement; keys are column names of :class:`Measurement` (not ``id``).
         Returns the new id."""
-        unknown = set(values) - set(_M_COLS[1:])
-        if unknown:
-            raise ValueError(f"unknown history columns: {sorted(unknown)}")
-        values.setdefault("recorded_at", utc_now())
-        values.setdefault("parameters_json", "{}")
-        cols = ", ".join(values)
-        marks = ", ".join("?" for _ in values)
         with self.write() as c:
-            cur = c.execute(f"INSERT INTO measurements ({cols}) VALUES ({marks})", list(values.values()))
-            return int(cur.lastrowid)
+            return insert_measurement(c, values)
 
     def record_summary(self, summary: dict, *, site: str = "", output_dir: str | Path = "", video_path: str = "",
                        video_time: tuple[str | None, str | None] = (None, None), input_hash: str = "") -> int:
         """Record a run from its ``RunResult.summary()`` dict (``result.json``). Returns the id."""
-        inputs = summary.get("inputs") or {}
-        return self.add_measurement(
-            site=site, video_time=video_time[0], video_time_source=video_time[1],
-            project_name=str(inputs.get("name", "")), video_path=str(video_path),
-            water_level_m=_num(summary.get("water_level_m")), water_level_method=summary.get("water_level_method"),
-            discharge_m3s=_num(summary.get("discharge_m3s")),
-            discharge_p05_m3s=_num(summary.get("discharge_p05_m3s")),
-            discharge_p95_m3s=_num(summary.get("discharge_p95_m3s")),
-            mean_velocity_ms=_num(summary.get("mean_velocity_ms")), alpha=_num(summary.get("alpha")),
-            wetted_area_m2=_num(summary.get("wetted_area_m2")), wetted_width_m=_num(summary.get("wetted_width_m")),
-            parameters_json=json.dumps(inputs, sort_keys=True), tool_version=str(summary.get("fieldtool_version", "")),
-            input_hash=input_hash, output_dir=str(output_dir), warnings_json=json.dumps(summary.get("warnings", [])),
-            **_uncertainty_columns(summary))
+        return self.add_measurement(**summary_values(summary, site=site, output_dir=output_dir, video_path=video_path,
+                                                     video_time=video_time, input_hash=input_hash))
 
     def add_reference(self, measurement_id: int, discharge_m3s: float, method: str,
                       uncertainty_m3s: float | None = None, note: str = "") -> int:
@@ -484,6 +487,36 @@ class History:
 
     def integrity_ok(self) -> bool:
         return self.conn.execute("PRAGMA integrity_check").fetchone()[0] == "ok"
+
+
+def summary_values(summary: dict, *, site: str = "", output_dir: str | Path = "", video_path: str = "",
+                   video_time: tuple[str | None, str | None] = (None, None), input_hash: str = "") -> dict:
+    """The columns of one measurement row from a run's ``RunResult.summary()`` dict (``result.json``)."""
+    inputs = summary.get("inputs") or {}
+    return dict(
+        site=site, video_time=video_time[0], video_time_source=video_time[1],
+        project_name=str(inputs.get("name", "")), video_path=str(video_path),
+        water_level_m=_num(summary.get("water_level_m")), water_level_method=summary.get("water_level_method"),
+        discharge_m3s=_num(summary.get("discharge_m3s")),
+        discharge_p05_m3s=_num(summary.get("discharge_p05_m3s")),
+        discharge_p95_m3s=_num(summary.get("discharge_p95_m3s")),
+        mean_velocity_ms=_num(summary.get("mean_velocity_ms")), alpha=_num(summary.get("alpha")),
+        wetted_area_m2=_num(summary.get("wetted_area_m2")), wetted_width_m=_num(summary.get("wetted_width_m")),
+        parameters_json=json.dumps(inputs, sort_keys=True), tool_version=str(summary.get("fieldtool_version", "")),
+        input_hash=input_hash, output_dir=str(output_dir), warnings_json=json.dumps(summary.get("warnings", [])),
+        **_uncertainty_columns(summary))
+
+
+def insert_measurement(c: sqlite3.Connection, values: dict) -> int:
+    """Insert one measurement inside an open write transaction (:meth:`History.write`); keys are column
+    names of :class:`Measurement` (not ``id``). Returns the new id."""
+    unknown = set(values) - set(_M_COLS[1:])
+    if unknown:
+        raise ValueError(f"unknown history columns: {sorted(unknown)}")
+    values = {"recorded_at": utc_now(), "parameters_json": "{}", **values}
+    cols = ", ".join(values)
+    marks = ", ".join("?" for _ in values)
+    return int(c.execute(f"INSERT INTO measurements ({cols}) VALUES ({marks})", list(values.values())).lastrowid)
 
 
 def _uncertainty_columns(summary: dict) -> dict:
