@@ -673,7 +673,7 @@ class Station:
 
     def _loop_dask(self, max_idle_s: float | None) -> None:
         try:
-            from distributed import Client, wait  # imported only with --dask, as `batch --scheduler` does
+            from distributed import Client  # imported only with --dask, as `batch --scheduler` does
         except ImportError as e:
             raise ParameterError("--dask needs Dask distributed: pip install 'dask[distributed]'") from e
         try:
@@ -695,7 +695,10 @@ class Station:
                                           pure=False)
                         flight[f] = (jid, p)
                 if flight:
-                    done, _ = wait(list(flight), timeout=self.cfg.poll_s, return_when="FIRST_COMPLETED")
+                    done = [f for f in flight if f.done()]  # polled: wait() would look for a default client
+                    if not done:
+                        self.stop.wait(min(self.cfg.poll_s, 0.2))
+                        continue
                     for f in done:
                         jid, p = flight.pop(f)
                         try:
