@@ -3,7 +3,7 @@ as the marker colour. Times are ISO 8601 UTC text as the history stores them; Q 
 
 from __future__ import annotations
 
-from datetime import datetime
+from datetime import datetime, timedelta
 from pathlib import Path
 
 import numpy as np
@@ -39,6 +39,8 @@ def plot_timeseries(path: Path | str, rows: list[dict], *, site: str = "") -> Pa
             ax_q.vlines(ti, lo[ok], hi[ok], color=[c for c, k in zip(colours, ok) if k], lw=1.5, alpha=0.6, zorder=2)
         ax_q.scatter(t, q, c=colours, s=28, zorder=3, edgecolors="white", linewidths=0.5)
         ax_h.plot(t, h, color="#0969da", lw=1, marker="o", ms=3)
+        if (max(t) - min(t)).total_seconds() < 60:  # one time only: an hour around it, not years
+            ax_h.set_xlim(min(t) - timedelta(minutes=30), max(t) + timedelta(minutes=30))
         for name, c in [*GRADE_COLOURS.items(), ("no grade", NO_GRADE)]:
             ax_q.scatter([], [], c=c, s=28, label=name)
         ax_q.legend(loc="best", fontsize=8, title="grade (bars: 95 % interval)", title_fontsize=8)

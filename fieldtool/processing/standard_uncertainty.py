@@ -179,7 +179,7 @@ def iso748(station_edges, depth, velocity, filled, q, exposure_s: float, sig: St
     u2 = u_s ** 2 + u_m ** 2 + sum(c ** 2 for c in comp.values())
     out = _interval(Q, float(np.sqrt(u2)))
     out["components"] = {"u_s": u_s, "u_m": u_m, **comp, **sys_parts}
-    out["n_verticals"] = int(len(d))
+    out["n_verticals"] = len(d)
     out["exposure_s"] = float(exposure_s) if np.isfinite(exposure_s) else None
     return out
 

@@ -48,15 +48,21 @@ import signal
 import threading
 import time
 import tomllib
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
-from typing import Callable
 
 from fieldtool.errors import FieldToolError, InputFileError, ParameterError
 from fieldtool.records.batch import VIDEO_EXTS, BatchItem, ItemResult, run_item
-from fieldtool.records.history import History, insert_measurement, parse_time, summary_values, utc_now, \
-    video_datetime
+from fieldtool.records.history import (
+    History,
+    insert_measurement,
+    parse_time,
+    summary_values,
+    utc_now,
+    video_datetime,
+)
 from fieldtool.records.sites import SITE_FILE, Site, load_site, new_measurement
 
 try:  # the lock; every Unix has it
@@ -374,7 +380,7 @@ class StationLock:
         self.path = Path(incoming) / LOCK_NAME
         self.fd: int | None = None
 
-    def acquire(self) -> "StationLock":
+    def acquire(self) -> StationLock:
         fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
         try:
             if fcntl is not None:
@@ -416,7 +422,7 @@ class StationLock:
                 os.close(self.fd)
                 self.fd = None
 
-    def __enter__(self) -> "StationLock":
+    def __enter__(self) -> StationLock:
         return self.acquire()
 
     def __exit__(self, *exc) -> None:
@@ -562,7 +568,9 @@ class Station:
     def refresh(self, new_id: int | None = None) -> None:
         """Rewrite timeseries.png/.csv and rating.png from the history (every measurement of the site); the
         measurement ``new_id`` goes to the rerun stream."""
-        from fieldtool.plots.station import plot_timeseries  # matplotlib: imported when the first plot is drawn
+        from fieldtool.plots.station import (
+            plot_timeseries,  # matplotlib: imported when the first plot is drawn
+        )
 
         rows = []
         for m in self.hist.query(site=self.site.name):
@@ -617,7 +625,9 @@ class Station:
             if n:
                 self.log(f"{n} clip(s) left in flight by a stopped station: measured again")
             if self.rerun_target:
-                from fieldtool.viewer.station_log import StationSeries  # rerun: imported only when asked for
+                from fieldtool.viewer.station_log import (
+                    StationSeries,  # rerun: imported only when asked for
+                )
 
                 self.series = StationSeries(self.rerun_target, self.site.name)
             self.log(f"station {self.site.name}: watching {self.incoming} (results in {self.out_root}; "
@@ -673,7 +683,9 @@ class Station:
 
     def _loop_dask(self, max_idle_s: float | None) -> None:
         try:
-            from distributed import Client  # imported only with --dask, as `batch --scheduler` does
+            from distributed import (
+                Client,  # imported only with --dask, as `batch --scheduler` does
+            )
         except ImportError as e:
             raise ParameterError("--dask needs Dask distributed: pip install 'dask[distributed]'") from e
         try:
