@@ -3,8 +3,10 @@ from a level file (a small flood: the same clip each time, so Q follows the wett
 
     PYTHONPATH=. .venv/bin/python benchmarks/station_demo.py   # writes /tmp/st_docs/out/timeseries.png
 """
-import os, shutil, time
+import os
+import shutil
 from pathlib import Path
+
 from fieldtool.synthetic import presets, render_scene
 from fieldtool.project.model import load_project
 from fieldtool.records.sites import create_site, load_site
