@@ -299,3 +299,16 @@ def test_clips_dropped_at_once_on_a_local_dask_cluster(station_site, tmp_path):
     assert r.returncode == 0, r.stderr + r.stdout
     assert f"Dask {cluster.scheduler_address}" in r.stdout
     _check_outputs(db, inc, inc / "fieldtool_station", names)
+
+
+def test_level_file_read_again_when_the_logger_appends(station_site, tmp_path):
+    f = tmp_path / "levels.csv"
+    f.write_text("2024-05-01T10:00:00Z,10.0\n")
+    site = load_site("cam1", station_site["sites"])
+    with History(tmp_path / "h.sqlite") as h:
+        s = st.Station(site, station_site["sites"], tmp_path, h, st.station_config(site, level_file=str(f)),
+                       log=lambda _l: None)
+        assert len(s._levels()) == 1
+        with open(f, "a") as fh:
+            fh.write("2024-05-01T10:10:00Z,10.1\n")
+        assert [lv for _, lv in s._levels()] == [10.0, 10.1]

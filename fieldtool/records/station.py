@@ -343,12 +343,6 @@ def _claim(hist: History, site: str, incoming: str, path: str, size: int, mtime_
         return int(row[0])
 
 
-def _known(hist: History, site: str, path: str, size: int, mtime_ns: int) -> str | None:
-    r = hist._select("SELECT state FROM station_journal WHERE site = ? AND path = ? AND size = ? AND mtime_ns = ?",
-                     (site, path, size, mtime_ns))
-    return r[0][0] if r else None
-
-
 def _finish(hist: History, jid: int, outcome: ClipOutcome, site: str) -> int | None:
     """Record the outcome: the measurement and the journal's ``done`` in one transaction; or ``failed``."""
     with hist.write() as c:
@@ -532,14 +526,35 @@ class Station:
         self.dask, self.rerun_target, self.log = dask, rerun, log
         self.stop = threading.Event()
         self.series = None
-        self.level_rows = read_level_file(cfg.level_file) if cfg.level_file is not None and \
-            "file" in cfg.level_sources else None
+        self._level_stamp: tuple[int, int] | None = None
+        self.level_rows: list[tuple[float, float]] | None = None
+        self._levels()
         self.n_done = self.n_failed = 0
+
+    def _levels(self) -> list[tuple[float, float]] | None:
+        """The level file's rows, read again whenever the file changed (a logger appends to it)."""
+        f = self.cfg.level_file
+        if f is None or "file" not in self.cfg.level_sources:
+            return None
+        try:
+            stt = f.stat()
+        except OSError as e:
+            raise InputFileError(f"{f}: level file not found ({e.strerror}); give it with --level-file") from e
+        stamp = (stt.st_size, stt.st_mtime_ns)
+        if stamp != self._level_stamp:
+            self.level_rows = read_level_file(f)
+            self._level_stamp = stamp
+        return self.level_rows
 
     # -- one clip ---------------------------------------------------------------------------
     def _task(self, clip: Path, size: int, mtime_ns: int) -> tuple[ClipTask | None, str]:
         when, _src = video_datetime(clip)
-        choices, why = level_choices(self.site, self.cfg, clip, when, self.level_rows)
+        try:
+            rows = self._levels()
+        except FieldToolError as e:  # a level file being rewritten: this clip fails with the reason
+            rows = None
+            self.log(f"level file: {e}")
+        choices, why = level_choices(self.site, self.cfg, clip, when, rows)
         out = clip_out_dir(self.out_root, clip, size, mtime_ns)
         task = ClipTask(self.site.name, str(self.sites_root), str(clip), str(out), choices,
                         single_thread=self.dask is not None)
@@ -604,14 +619,19 @@ class Station:
             self.series.warnings.clear()
 
     # -- the loop ---------------------------------------------------------------------------
+    def _states(self) -> dict[tuple[str, int, int], str]:
+        """(path, size, mtime_ns) -> state of this folder's journal, in one read (a retry asked for by another
+        process shows here as pending)."""
+        rows = self.hist._select("SELECT path, size, mtime_ns, state FROM station_journal WHERE site = ? AND "
+                                 "incoming = ?", (self.site.name, str(self.incoming)))
+        return {(r[0], r[1], r[2]): r[3] for r in rows}
+
     def _candidates(self, watcher: Watcher, busy: set[str]) -> list[tuple[Path, int, int]]:
         out = []
+        states = self._states()
         for p, size, mt in watcher.ready(clip_files(self.incoming)):
             path = str(p.resolve())
-            if path in busy:
-                continue
-            state = _known(self.hist, self.site.name, path, size, mt)
-            if state in (None, "pending"):
+            if path not in busy and states.get((path, size, mt)) in (None, "pending"):
                 out.append((p, size, mt))
         return out
 
@@ -677,8 +697,9 @@ class Station:
 
     def _unsettled(self, watcher: Watcher):
         """Clips seen but not yet complete (still being written)."""
+        states = self._states()
         for key, (size, mt, _since) in watcher.seen.items():
-            if _known(self.hist, self.site.name, str(Path(key).resolve()), size, mt) in (None, "pending"):
+            if states.get((str(Path(key).resolve()), size, mt)) in (None, "pending"):
                 yield key
 
     def _loop_dask(self, max_idle_s: float | None) -> None:
