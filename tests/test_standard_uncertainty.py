@@ -187,3 +187,26 @@ def test_history_migrates_a_schema_1_database(tmp_path):
         assert m.uncertainty_standard == std
         text = hmod.export_csv(h, h.query(site="A"))
     assert "iso748_u95_rel" in text.splitlines()[0] and ",0.07," in text
+
+
+def test_read_only_schema_1_history_still_lists(tmp_path, monkeypatch):
+    """A history of schema 1 on a read-only disk cannot be migrated; it is still listed (new columns empty)."""
+    import sqlite3
+
+    from fieldtool.records import history as hmod
+
+    db = tmp_path / "old.sqlite"
+    c = sqlite3.connect(db)
+    c.executescript(hmod._SCHEMA_V1)
+    c.execute("INSERT INTO measurements (site, recorded_at, parameters_json, discharge_m3s) "
+              "VALUES ('A', '2024-01-01T00:00:00Z', '{}', 3.5)")
+    c.execute("PRAGMA user_version = 1")
+    c.commit()
+    c.close()
+    monkeypatch.setattr(hmod, "_writable", lambda _p: False)
+    with hmod.History(db, create=False) as h:
+        assert h.readonly
+        m = h.query(site="A")[0]
+        assert m.discharge_m3s == 3.5 and m.grade is None and m.uncertainty_standard == {}
+        assert h.get(m.id).discharge_ci95_lo_m3s is None
+    assert sqlite3.connect(db).execute("PRAGMA user_version").fetchone()[0] == 1  # left as it was

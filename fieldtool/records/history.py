@@ -399,7 +399,7 @@ class History:
 
     # -- reading --------------------------------------------------------------------------
     def get(self, measurement_id: int) -> Measurement:
-        row = self.conn.execute(f"SELECT {', '.join(_M_COLS)} FROM measurements WHERE id = ?",
+        row = self.conn.execute(f"SELECT {self._m_select()} FROM measurements WHERE id = ?",
                                 (measurement_id,)).fetchone()
         if row is None:
             raise ParameterError(f"measurement {measurement_id}: not in the history {self.path}; "
@@ -417,7 +417,7 @@ class History:
             if val is not None:
                 where.append(f"{col} {op} ?")
                 args.append(val)
-        sql = f"SELECT {', '.join(_M_COLS)} FROM measurements"
+        sql = f"SELECT {self._m_select()} FROM measurements"
         if where:
             sql += " WHERE " + " AND ".join(where)
         order = "DESC" if newest_first else "ASC"
@@ -425,6 +425,15 @@ class History:
         if limit is not None:
             sql += f" LIMIT {int(limit)}"
         return [Measurement(*r) for r in self._select(sql, args)]
+
+    def _m_select(self) -> str:
+        """The measurement columns to select: a read-only history of an older schema (not migrated, it cannot
+        be written) lacks the newer columns, read as NULL (and '{}' for the standard uncertainty)."""
+        if getattr(self, "_m_cols", None) is None:
+            have = {r[1] for r in self.conn.execute("PRAGMA table_info(measurements)")}
+            self._m_cols = ", ".join(c if c in have else ("'{}'" if c.endswith("_json") else "NULL") + f" AS {c}"
+                                     for c in _M_COLS)
+        return self._m_cols
 
     def _select(self, sql: str, args=()) -> list:
         """The rows of a read. SQLite answers "disk I/O error" now and then to a reader of a WAL database while

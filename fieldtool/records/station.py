@@ -45,6 +45,7 @@ import errno
 import math
 import os
 import signal
+import sqlite3
 import threading
 import time
 import tomllib
@@ -312,7 +313,10 @@ def journal(hist: History, site: str, incoming: Path | str, state: str | None = 
     if state is not None:
         sql += " AND state = ?"
         args.append(state)
-    return [JournalRow(*r) for r in hist._select(sql + " ORDER BY id", args)]
+    try:
+        return [JournalRow(*r) for r in hist._select(sql + " ORDER BY id", args)]
+    except sqlite3.OperationalError:  # a read-only history of an older schema: no journal yet
+        return []
 
 
 def retry_failed(hist: History, site: str, incoming: Path | str, clip: str | None = None) -> int:
