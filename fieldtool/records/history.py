@@ -430,7 +430,7 @@ class History:
         """The measurement columns to select: a read-only history of an older schema (not migrated, it cannot
         be written) lacks the newer columns, read as NULL (and '{}' for the standard uncertainty)."""
         if getattr(self, "_m_cols", None) is None:
-            have = {r[1] for r in self.conn.execute("PRAGMA table_info(measurements)")}
+            have = {r[1] for r in self._select("PRAGMA table_info(measurements)")}
             self._m_cols = ", ".join(c if c in have else ("'{}'" if c.endswith("_json") else "NULL") + f" AS {c}"
                                      for c in _M_COLS)
         return self._m_cols
