@@ -17,7 +17,8 @@ count runs, and renders (independent PIV fields) separately. Only result.json's 
 plots and files are not written (``write_outputs`` is skipped; the PIV cache still is).
 
 The true discharge is integrated by the generator from the velocity profile it drew (``River.truth()``).
-Prints per scene: runs, coverage, median relative width (half-width / Q) and median |error|; then all.
+Prints per scene: runs, coverage, median relative width (half-width / Q) and median |error|; then all; then
+the same coverage for the ISO 748 and IVE intervals (``uncertainty_standard``, 2σ) beside the Monte Carlo one.
 """
 
 from __future__ import annotations
@@ -67,12 +68,20 @@ def one_scene(name: str, seed: int, duration: float, variants: int, tmp: Path, r
         s = r.summary()
         lo, hi = s["discharge_ci95_m3s"]
         q, qt = s["discharge_m3s"], truth.discharge_m3s
+        std = s.get("uncertainty_standard") or {}
+        iso, ive = std.get("iso748") or {}, std.get("ive") or {}
+        iso_ci, ive_ci = iso.get("ci95_m3s") or [np.nan, np.nan], ive.get("ci95_m3s") or [np.nan, np.nan]
         rows.append({"scene": name, "seed": seed, "variant": k, "click_px": round(click, 3), "level_sigma_m": round(s_l, 4),
                      "q": q, "q_true": qt, "error_pct": 100 * (q - qt) / qt, "lo": lo, "hi": hi,
                      "inside": bool(lo <= qt <= hi), "rel_half_width": 0.5 * (hi - lo) / q,
-                     "grade": s["quality"]["grade"], "seconds": round(time.perf_counter() - t0, 2)})
+                     "grade": s["quality"]["grade"], "seconds": round(time.perf_counter() - t0, 2),
+                     "iso_inside": bool(iso_ci[0] <= qt <= iso_ci[1]), "iso_rel": iso.get("u95_rel", np.nan),
+                     "ive_inside": bool(ive_ci[0] <= qt <= ive_ci[1]), "ive_rel": ive.get("u95_rel", np.nan),
+                     "iso_rating": iso.get("rating")})
         print(f"{name:10s} seed {seed:3d} v{k} err {rows[-1]['error_pct']:+6.2f} %  interval ±{100 * rows[-1]['rel_half_width']:.1f} %"
-              f"  {'in ' if rows[-1]['inside'] else 'OUT'}  {rows[-1]['grade']}", flush=True)
+              f"  {'in ' if rows[-1]['inside'] else 'OUT'}  {rows[-1]['grade']}  ISO ±{100 * rows[-1]['iso_rel']:.1f} % "
+              f"{'in ' if rows[-1]['iso_inside'] else 'OUT'}  IVE ±{100 * rows[-1]['ive_rel']:.1f} % "
+              f"{'in ' if rows[-1]['ive_inside'] else 'OUT'}", flush=True)
 
 
 def summarize(rows: list[dict]) -> None:
@@ -86,6 +95,14 @@ def summarize(rows: list[dict]) -> None:
         w = np.median([r["rel_half_width"] for r in sel])
         e = np.median([abs(r["error_pct"]) for r in sel])
         print(f"| {g} | {len(sel)} | {100 * cov:.1f} % | ±{100 * w:.1f} % | {e:.2f} % |")
+    print("\n| scenes | runs | Monte Carlo: coverage, median ± | ISO 748: coverage, median ± | IVE: coverage, median ± |")
+    print("|---|---|---|---|---|")
+    for g in [*groups, "all"]:
+        sel = [r for r in rows if g == "all" or r["scene"] == g]
+        cells = []
+        for inside, rel in (("inside", "rel_half_width"), ("iso_inside", "iso_rel"), ("ive_inside", "ive_rel")):
+            cells.append(f"{100 * np.mean([r[inside] for r in sel]):.1f} %, ±{100 * np.nanmedian([r[rel] for r in sel]):.1f} %")
+        print(f"| {g} | {len(sel)} | " + " | ".join(cells) + " |")
 
 
 def main() -> None:

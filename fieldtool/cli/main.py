@@ -25,6 +25,7 @@ EXTENSIONS = (
     "fieldtool.tui.commands",
     "fieldtool.viewer.commands",
     "fieldtool.records.commands",
+    "fieldtool.records.station_commands",  # fieldtool station (issue 27)
     "fieldtool.cli.commands",
 )
 

@@ -145,6 +145,16 @@ def cmd_site_new_measurement(args) -> int:
 # history
 
 
+def _relative_widths(m) -> str:
+    """'MC/ISO/IVE' relative half-widths of the 95 % intervals in percent ('-' where a row has none)."""
+    std = m.uncertainty_standard
+    mc = (None if m.discharge_ci95_lo_m3s is None or m.discharge_ci95_hi_m3s is None or not m.discharge_m3s
+          else 50 * (m.discharge_ci95_hi_m3s - m.discharge_ci95_lo_m3s) / abs(m.discharge_m3s))
+    vals = [mc] + [None if (std.get(k) or {}).get("u95_rel") is None else 100 * std[k]["u95_rel"]
+                   for k in ("iso748", "ive")]
+    return "/".join("-" if v is None else f"{v:.1f}" for v in vals)
+
+
 def cmd_history_list(args) -> int:
     hist = _history_or_none(args)
     if hist is None:
@@ -158,12 +168,13 @@ def cmd_history_list(args) -> int:
         print("no measurements match")
         return 0
     print(f"{'id':>5}  {'site':<14} {'video time (UTC)':<20} {'level m':>8} {'Q m3/s':>9} {'5-95 % m3/s':>17} "
-          f"{'v m/s':>7} {'alpha':>5} {'refs':>4}  output")
+          f"{'v m/s':>7} {'alpha':>5} {'grade':<9} {'MC/ISO/IVE ±%':>15} {'refs':>4}  output")
     for m in rows:
         spread = f"{_fmt(m.discharge_p05_m3s)}-{_fmt(m.discharge_p95_m3s)}"
         print(f"{m.id:>5}  {(m.site or '-')[:14]:<14} {(m.video_time or '-'):<20} {_fmt(m.water_level_m, '.3f'):>8} "
               f"{_fmt(m.discharge_m3s):>9} {spread:>17} {_fmt(m.mean_velocity_ms, '.3f'):>7} "
-              f"{_fmt(m.alpha, '.2f'):>5} {nref.get(m.id, 0):>4}  {m.output_dir}")
+              f"{_fmt(m.alpha, '.2f'):>5} {(m.grade or '-'):<9} {_relative_widths(m):>15} {nref.get(m.id, 0):>4}  "
+              f"{m.output_dir}")
     return 0
 
 

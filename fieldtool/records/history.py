@@ -40,7 +40,7 @@ from fieldtool.project.model import project_to_dict
 from fieldtool.processing.paths import is_pattern, literal_glob
 from fieldtool.records import user_data_dir
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 3
 BUSY_TIMEOUT_S = 60.0
 REFERENCE_METHODS = ("current_meter", "adcp", "gauge", "other")
 _SQLITE_MAGIC = b"SQLite format 3\x00"
@@ -83,8 +83,39 @@ CREATE TABLE reference_discharges (
 CREATE INDEX reference_measurement ON reference_discharges(measurement_id);
 """
 
+# version 2 (issue 27): the quality grade, the Monte Carlo interval and the ISO 748 / IVE block of the run; rows
+# written before it keep NULL there (and '{}' for the standard block), so an old history stays readable
+_SCHEMA_V2 = """
+ALTER TABLE measurements ADD COLUMN discharge_ci95_lo_m3s REAL;
+ALTER TABLE measurements ADD COLUMN discharge_ci95_hi_m3s REAL;
+ALTER TABLE measurements ADD COLUMN grade TEXT;
+ALTER TABLE measurements ADD COLUMN uncertainty_standard_json TEXT NOT NULL DEFAULT '{}';
+"""
+
+# version 3 (issue 27): the journal of `fieldtool station`: one row per clip (path, size and mtime) of an incoming
+# folder, so that a clip is measured exactly once across restarts (fieldtool/records/station.py)
+_SCHEMA_V3 = """
+CREATE TABLE station_journal (
+    id                  INTEGER PRIMARY KEY,
+    site                TEXT NOT NULL,
+    incoming            TEXT NOT NULL,     -- the watched folder (resolved)
+    path                TEXT NOT NULL,     -- the clip (resolved)
+    size                INTEGER NOT NULL,  -- bytes
+    mtime_ns            INTEGER NOT NULL,
+    state               TEXT NOT NULL,     -- pending | running | done | failed
+    reason              TEXT NOT NULL DEFAULT '',
+    level_source        TEXT NOT NULL DEFAULT '',
+    measurement_id      INTEGER REFERENCES measurements(id) ON DELETE SET NULL,
+    out_dir             TEXT NOT NULL DEFAULT '',
+    attempts            INTEGER NOT NULL DEFAULT 0,
+    updated_at          TEXT NOT NULL,
+    UNIQUE (site, path, size, mtime_ns)
+);
+CREATE INDEX station_journal_folder ON station_journal(site, incoming, state);
+"""
+
 # migrations[v] brings a database from version v to v + 1
-_MIGRATIONS: dict[int, str] = {0: _SCHEMA_V1}
+_MIGRATIONS: dict[int, str] = {0: _SCHEMA_V1, 1: _SCHEMA_V2, 2: _SCHEMA_V3}
 
 # open History objects of this process, per resolved path
 _OPEN: dict[str, int] = {}
@@ -150,6 +181,14 @@ class Measurement:
     input_hash: str
     output_dir: str
     warnings_json: str
+    discharge_ci95_lo_m3s: float | None = None  # Monte Carlo 95 % interval (schema 2; NULL in older rows)
+    discharge_ci95_hi_m3s: float | None = None
+    grade: str | None = None  # good | doubtful | unusable (schema 2)
+    uncertainty_standard_json: str = "{}"  # result.json's uncertainty_standard: ISO 748 and IVE (schema 2)
+
+    @property
+    def uncertainty_standard(self) -> dict:
+        return json.loads(self.uncertainty_standard_json or "{}")
 
     @property
     def parameters(self) -> dict:
@@ -326,33 +365,14 @@ class History:
     def add_measurement(self, **values: Any) -> int:
         """Insert one measurement; keys are column names of :class:`Measurement` (not ``id``).
         Returns the new id."""
-        unknown = set(values) - set(_M_COLS[1:])
-        if unknown:
-            raise ValueError(f"unknown history columns: {sorted(unknown)}")
-        values.setdefault("recorded_at", utc_now())
-        values.setdefault("parameters_json", "{}")
-        cols = ", ".join(values)
-        marks = ", ".join("?" for _ in values)
         with self.write() as c:
-            cur = c.execute(f"INSERT INTO measurements ({cols}) VALUES ({marks})", list(values.values()))
-            assert cur.lastrowid is not None  # an INSERT sets it
-            return int(cur.lastrowid)
+            return insert_measurement(c, values)
 
     def record_summary(self, summary: dict, *, site: str = "", output_dir: str | Path = "", video_path: str = "",
                        video_time: tuple[str | None, str | None] = (None, None), input_hash: str = "") -> int:
         """Record a run from its ``RunResult.summary()`` dict (``result.json``). Returns the id."""
-        inputs = summary.get("inputs") or {}
-        return self.add_measurement(
-            site=site, video_time=video_time[0], video_time_source=video_time[1],
-            project_name=str(inputs.get("name", "")), video_path=str(video_path),
-            water_level_m=_num(summary.get("water_level_m")), water_level_method=summary.get("water_level_method"),
-            discharge_m3s=_num(summary.get("discharge_m3s")),
-            discharge_p05_m3s=_num(summary.get("discharge_p05_m3s")),
-            discharge_p95_m3s=_num(summary.get("discharge_p95_m3s")),
-            mean_velocity_ms=_num(summary.get("mean_velocity_ms")), alpha=_num(summary.get("alpha")),
-            wetted_area_m2=_num(summary.get("wetted_area_m2")), wetted_width_m=_num(summary.get("wetted_width_m")),
-            parameters_json=json.dumps(inputs, sort_keys=True), tool_version=str(summary.get("fieldtool_version", "")),
-            input_hash=input_hash, output_dir=str(output_dir), warnings_json=json.dumps(summary.get("warnings", [])))
+        return self.add_measurement(**summary_values(summary, site=site, output_dir=output_dir, video_path=video_path,
+                                                     video_time=video_time, input_hash=input_hash))
 
     def add_reference(self, measurement_id: int, discharge_m3s: float, method: str,
                       uncertainty_m3s: float | None = None, note: str = "") -> int:
@@ -382,7 +402,7 @@ class History:
 
     # -- reading --------------------------------------------------------------------------
     def get(self, measurement_id: int) -> Measurement:
-        row = self.conn.execute(f"SELECT {', '.join(_M_COLS)} FROM measurements WHERE id = ?",
+        row = self.conn.execute(f"SELECT {self._m_select()} FROM measurements WHERE id = ?",
                                 (measurement_id,)).fetchone()
         if row is None:
             raise ParameterError(f"measurement {measurement_id}: not in the history {self.path}; "
@@ -400,7 +420,7 @@ class History:
             if val is not None:
                 where.append(f"{col} {op} ?")
                 args.append(val)
-        sql = f"SELECT {', '.join(_M_COLS)} FROM measurements"
+        sql = f"SELECT {self._m_select()} FROM measurements"
         if where:
             sql += " WHERE " + " AND ".join(where)
         order = "DESC" if newest_first else "ASC"
@@ -408,6 +428,15 @@ class History:
         if limit is not None:
             sql += f" LIMIT {int(limit)}"
         return [Measurement(*r) for r in self._select(sql, args)]
+
+    def _m_select(self) -> str:
+        """The measurement columns to select: a read-only history of an older schema (not migrated, it cannot
+        be written) lacks the newer columns, read as NULL (and '{}' for the standard uncertainty)."""
+        if getattr(self, "_m_cols", None) is None:
+            have = {r[1] for r in self._select("PRAGMA table_info(measurements)")}
+            self._m_cols = ", ".join(c if c in have else ("'{}'" if c.endswith("_json") else "NULL") + f" AS {c}"
+                                     for c in _M_COLS)
+        return self._m_cols
 
     def _select(self, sql: str, args=()) -> list:
         """The rows of a read. SQLite answers "disk I/O error" now and then to a reader of a WAL database while
@@ -470,6 +499,45 @@ class History:
 
     def integrity_ok(self) -> bool:
         return self.conn.execute("PRAGMA integrity_check").fetchone()[0] == "ok"
+
+
+def summary_values(summary: dict, *, site: str = "", output_dir: str | Path = "", video_path: str = "",
+                   video_time: tuple[str | None, str | None] = (None, None), input_hash: str = "") -> dict:
+    """The columns of one measurement row from a run's ``RunResult.summary()`` dict (``result.json``)."""
+    inputs = summary.get("inputs") or {}
+    return dict(
+        site=site, video_time=video_time[0], video_time_source=video_time[1],
+        project_name=str(inputs.get("name", "")), video_path=str(video_path),
+        water_level_m=_num(summary.get("water_level_m")), water_level_method=summary.get("water_level_method"),
+        discharge_m3s=_num(summary.get("discharge_m3s")),
+        discharge_p05_m3s=_num(summary.get("discharge_p05_m3s")),
+        discharge_p95_m3s=_num(summary.get("discharge_p95_m3s")),
+        mean_velocity_ms=_num(summary.get("mean_velocity_ms")), alpha=_num(summary.get("alpha")),
+        wetted_area_m2=_num(summary.get("wetted_area_m2")), wetted_width_m=_num(summary.get("wetted_width_m")),
+        parameters_json=json.dumps(inputs, sort_keys=True), tool_version=str(summary.get("fieldtool_version", "")),
+        input_hash=input_hash, output_dir=str(output_dir), warnings_json=json.dumps(summary.get("warnings", [])),
+        **_uncertainty_columns(summary))
+
+
+def insert_measurement(c: sqlite3.Connection, values: dict) -> int:
+    """Insert one measurement inside an open write transaction (:meth:`History.write`); keys are column
+    names of :class:`Measurement` (not ``id``). Returns the new id."""
+    unknown = set(values) - set(_M_COLS[1:])
+    if unknown:
+        raise ValueError(f"unknown history columns: {sorted(unknown)}")
+    values = {"recorded_at": utc_now(), "parameters_json": "{}", **values}
+    cols = ", ".join(values)
+    marks = ", ".join("?" for _ in values)
+    return int(c.execute(f"INSERT INTO measurements ({cols}) VALUES ({marks})", list(values.values())).lastrowid)
+
+
+def _uncertainty_columns(summary: dict) -> dict:
+    """The schema-2 columns of a ``result.json`` summary: the interval, the grade and the standard block."""
+    ci = summary.get("discharge_ci95_m3s") or [None, None]
+    quality = summary.get("quality") if isinstance(summary.get("quality"), dict) else {}
+    std = summary.get("uncertainty_standard") if isinstance(summary.get("uncertainty_standard"), dict) else {}
+    return {"discharge_ci95_lo_m3s": _num(ci[0]), "discharge_ci95_hi_m3s": _num(ci[1]),
+            "grade": quality.get("grade"), "uncertainty_standard_json": json.dumps(std, sort_keys=True)}
 
 
 def _split_sql(script: str) -> list[str]:
@@ -621,7 +689,8 @@ def _quick_check(path: Path) -> str | None:
 CSV_COLUMNS = ["id", "site", "video_time", "video_time_source", "water_level_m", "water_level_method", "discharge_m3s",
                "discharge_p05_m3s", "discharge_p95_m3s", "mean_velocity_ms", "alpha", "wetted_area_m2",
                "wetted_width_m", "reference_discharge_m3s", "reference_method", "tool_version", "input_hash",
-               "project_name", "video_path", "output_dir", "recorded_at", "parameters_json"]
+               "project_name", "video_path", "output_dir", "recorded_at", "parameters_json",
+               "discharge_ci95_lo_m3s", "discharge_ci95_hi_m3s", "grade", "iso748_u95_rel", "ive_u95_rel"]
 
 
 def export_csv(hist: History, rows: list[Measurement]) -> str:
@@ -638,6 +707,9 @@ def export_csv(hist: History, rows: list[Measurement]) -> str:
         d = {c: getattr(m, c) for c in _M_COLS}
         d["reference_discharge_m3s"] = ";".join(repr(r.discharge_m3s) for r in rr)
         d["reference_method"] = ";".join(r.method for r in rr)
+        std = m.uncertainty_standard
+        for key in ("iso748", "ive"):
+            d[f"{key}_u95_rel"] = (std.get(key) or {}).get("u95_rel")
         w.writerow(["" if d[c] is None else d[c] for c in CSV_COLUMNS])
     return buf.getvalue()
 

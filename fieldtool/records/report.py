@@ -27,6 +27,7 @@ from fieldtool.records.report_content import (
     discharge_text,
     header_rows,
     parameter_rows,
+    standard_rows,
     result_rows,
     subsection_cell,
 )
@@ -132,6 +133,13 @@ def _discharge_html(summary: dict) -> list[str]:
         out.append(f"<p class='muted' id='spread'>Spread of the discharge of single frame pairs (not an interval "
                    f"of Q): 5–95 % {_f(lo, '.3f')} – {_f(hi, '.3f')} m³/s over {summary.get('n_pairs', '?')} "
                    "frame pairs.</p>")
+    std = standard_rows(summary)
+    if std:  # the hydrologists' standard uncertainty beside ours (issue 27)
+        out.append("<table id='standard'><tr><th class='k'>method (2σ)</th><th>95 % interval</th><th>relative</th>"
+                   "<th>USGS rating</th></tr>")
+        out += [f"<tr><td class='k'>{_e(a)}</td><td>{_e(b)}</td><td>{_e(c)}</td><td>{_e(d)}</td></tr>"
+                for a, b, c, d in std]
+        out.append("</table>")
     budget = budget_rows(summary)
     if budget:
         out.append("<table id='budget'><tr><th class='k'>uncertainty source</th><th>share of variance</th>"

@@ -3,6 +3,7 @@
 - :func:`header_rows`: site, station, operator, video file, recording time, duration, size, rate;
 - :func:`discharge_text`: Q with its 95 % interval (``discharge_ci95_m3s`` / ``uncertainty``) and
   the quality grade with its reasons (``quality``), or what is missing when the run lacks them;
+- :func:`standard_rows`: the ISO 748 and IVE intervals (``uncertainty_standard``) beside the Monte Carlo one;
 - :func:`parameter_rows`: the measurement's parameters in words and units. Internal keys (picked
   pixel lists, the TUI's last step, the live-stream settings) are not shown: the input hash and
   ``result.json`` keep the exact values.
@@ -118,6 +119,30 @@ def budget_rows(summary: dict) -> list[tuple[str, str, str]]:
         if isinstance(b, dict):
             rows.append((names.get(str(b.get("source")), str(b.get("source"))), _num(100 * float(b.get("share") or 0), ".0f", "%"),
                          _num(b.get("u_m3s"), ".3f", "m³/s")))
+    return rows
+
+
+STANDARD_NAMES = (("iso748", "ISO 748:2007 (velocity-area)"), ("ive", "IVE (Cohn et al. 2013)"))
+
+
+def standard_rows(summary: dict) -> list[tuple[str, str, str, str]]:
+    """(method, 95 % interval, ± relative, USGS rating) of the Monte Carlo and the standard methods (2σ);
+    empty when the result has no ``uncertainty_standard`` (older runs)."""
+    std = summary.get("uncertainty_standard")
+    if not isinstance(std, dict):
+        return []
+    rows = []
+    ci = interval(summary)
+    q = summary.get("discharge_m3s")
+    if ci is not None and q:
+        rel = (ci[1] - ci[0]) / 2 / abs(float(q))
+        rows.append(("Monte Carlo (fieldtool)", f"{ci[0]:.3f} – {ci[1]:.3f} m³/s", f"± {100 * rel:.1f} %", "–"))
+    for key, name in STANDARD_NAMES:
+        b = std.get(key)
+        if not isinstance(b, dict) or not b.get("ci95_m3s"):
+            continue
+        lo, hi = b["ci95_m3s"]
+        rows.append((name, f"{lo:.3f} – {hi:.3f} m³/s", f"± {100 * float(b['u95_rel']):.1f} %", str(b.get("rating") or "–")))
     return rows
 
 

@@ -30,6 +30,7 @@ from fieldtool.records.report_content import (
     header_rows,
     parameter_rows,
     result_rows,
+    standard_rows,
     sections_rows,
     subsection_cell,
 )
@@ -176,6 +177,10 @@ def render_pdf(summary: dict, images: dict[str, bytes], subsections: list[dict],
         flow.gap(4)
         flow.pairs(header_rows(summary, measurement), size=8.5, key_w=0.16)
         _q_block(flow, summary)
+        std = standard_rows(summary)
+        if std:  # the hydrologists' standard uncertainty beside ours, as in the HTML
+            flow.heading("Uncertainty by method (2σ)")
+            flow.table(["method", "95 % interval", "relative", "USGS rating"], [list(r) for r in std])
         budget = budget_rows(summary)
         if budget:
             flow.heading("Uncertainty budget")

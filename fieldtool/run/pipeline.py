@@ -108,7 +108,8 @@ def _run_project(project: Project, out_dir: Path | str | None, progress: Progres
                        timings_s=lap.timings, warnings=warnings, stabilization=vel.stabilization or None,
                        project=project_to_dict(project), piv_reused=vel.reused, uncertainty=verdict.uncertainty,
                        quality=verdict.quality, sections=verdict.sections, robust=q.robust, stiv=q.stiv,
-                       piv_fast=vel.fast, prerendered=prerendered)
+                       piv_fast=vel.fast, prerendered=prerendered,
+                       uncertainty_standard=verdict.standard)
     if out_dir is not None:
         outputs.write_outputs(result, project, inputs, Path(out_dir))
     obs("result", result)

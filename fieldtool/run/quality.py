@@ -17,7 +17,7 @@ from fieldtool.processing import ortho
 from fieldtool.processing.quality import Reason
 from fieldtool.project.model import Project
 from fieldtool.project import sections as secs
-from fieldtool.run import stiv_stage
+from fieldtool.run import standard_stage, stiv_stage
 from fieldtool.run.assess import assess_run
 from fieldtool.run.discharge import Discharge, PairDischarge
 from fieldtool.run.geometry import build_section
@@ -35,6 +35,7 @@ class Verdict:
     uncertainty: object | None
     quality: object | None
     sections: list
+    standard: dict | None = None  # ISO 748 and IVE beside the Monte Carlo, 2σ (run/standard_stage.py)
 
 
 def assess(project: Project, inputs: Inputs, level, mapping: ortho.OrthoMapping, vel: Velocimetry, q: Discharge,
@@ -49,6 +50,11 @@ def assess(project: Project, inputs: Inputs, level, mapping: ortho.OrthoMapping,
         unc = qual = None
         warnings.append(f"uncertainty and quality not computed ({type(e).__name__}: {e}); please report this")
     stiv_stage.add_reason(qual, q.stiv)  # "PIV and STIV disagree ..." (doubtful)
+    try:  # the hydrologists' standard uncertainty beside the Monte Carlo (issue 27)
+        standard = standard_stage.compute(project, level, mapping, q.geom, res, dres)
+    except Exception as e:  # noqa: BLE001 - the discharge and the Monte Carlo are kept; the gap is said
+        standard = None
+        warnings.append(f"ISO 748 / IVE uncertainty not computed ({type(e).__name__}: {e}); please report this")
     entries: list = []
     if extra:
         sec = project.section
@@ -64,7 +70,7 @@ def assess(project: Project, inputs: Inputs, level, mapping: ortho.OrthoMapping,
             if "error" in e:
                 warnings.append(f"section {e['name']!r}: {e['error']}")
         _sections_reason(project, qual, secs.summarize(entries))
-    return Verdict(unc, qual, entries)
+    return Verdict(unc, qual, entries, standard)
 
 
 def _sections_reason(project: Project, qual, summ: dict | None) -> None:

@@ -39,6 +39,7 @@ class RunResult:
     robust: dict | None = None  # facts of the robust stages (processing/surface.py, robust.py, planning.py)
     piv_fast: dict | None = None  # region box and pair sampling of the fast path (see piv_region / run_piv_fast)
     video: dict = field(default_factory=dict)  # the clip's metadata (records.video_meta.video_info)
+    uncertainty_standard: dict | None = None  # ISO 748 and IVE beside the Monte Carlo (run/standard_stage.py)
     prerendered: object | None = None  # plots.prerender.Prerender: figures drawn during the PIV
 
     def summary(self) -> dict:
@@ -50,6 +51,7 @@ class RunResult:
             "discharge_ci95_m3s": (list(self.uncertainty.ci95_m3s) if self.uncertainty is not None
                                    and np.all(np.isfinite(self.uncertainty.ci95_m3s)) else None),
             "uncertainty": self.uncertainty.to_dict() if self.uncertainty is not None else None,
+            "uncertainty_standard": self.uncertainty_standard,  # ISO 748 and IVE, 2σ (run/standard_stage.py)
             "quality": self.quality.to_dict() if self.quality is not None else None,
             "sections": self.sections or None,
             "sections_summary": sections_summary(self.sections),

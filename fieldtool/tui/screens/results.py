@@ -45,6 +45,14 @@ def discharge_lines(s: dict) -> list[str]:
                    for r in quality.get("reasons") or []]
         text = f"quality        [{style}]{escape(grade)}[/{style}]" if style else f"quality        {escape(grade)}"
         lines.append(text + (": " + escape("; ".join(reasons)) if reasons else " (no reason for doubt found)"))
+    std = s.get("uncertainty_standard")  # ISO 748 and IVE beside the Monte Carlo (issue 27)
+    if isinstance(std, dict):
+        parts = [f"{name} ±{100 * b['u95_rel']:.1f} % ({escape(str(b.get('rating') or '–'))}) "
+                 f"{b['ci95_m3s'][0]:.3f} .. {b['ci95_m3s'][1]:.3f}"
+                 for key, name in (("iso748", "ISO 748"), ("ive", "IVE"))
+                 if isinstance(b := std.get(key), dict) and b.get("ci95_m3s") and b.get("u95_rel") is not None]
+        if parts:
+            lines.append("standard 2σ    " + "  ·  ".join(parts))
     sm = s.get("sections_summary")
     if isinstance(sm, dict) and sm.get("n"):
         each = ", ".join(f"{escape(str(e.get('name')))} {e['discharge_m3s']:.3f}" for e in s.get("sections") or []
