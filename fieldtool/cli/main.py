@@ -46,6 +46,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     out = Path(args.out) if args.out else Path(args.project).resolve().parent / "out"
     if out.exists() and not out.is_dir():
         raise InputFileError(f"--out {out}: is a file, not a folder; give a folder for the results")
+    if args.overlay:
+        project.overlay.enabled = True  # this run only; the project file is not changed
     check(project)  # every key, before any step (run_project checks again: other callers rely on it)
     observer = None
     if args.rerun or project.rerun.mode != "off":
@@ -75,6 +77,10 @@ def cmd_run(args: argparse.Namespace) -> int:
         print(f"warning: {w}")
     if result.piv_reused:
         print("PIV field     reused from the output folder (same clip, corrections and PIV parameters)")
+    ov = s.get("overlay")
+    if ov and "overlay" in s["files"]:
+        print(f"overlay video {out / s['files']['overlay']}  ({ov['frames']} frames + {ov['card_frames']} of the closing "
+              f"card, {ov['width_px']}x{ov['height_px']} at {ov['fps']:.3g} fps, {ov['codec']})")
     print(f"results in    {out}  ({time.perf_counter() - t0:.1f} s)")
     if args.record:
         from fieldtool.records.history import record_run
@@ -144,6 +150,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--rerun", choices=["save", "connect", "serve"], help="stream to rerun (see README)")
     p.add_argument("--rerun-path", help="rerun: .rrd file for --rerun save")
     p.add_argument("--rerun-url", help="rerun: rerun+http://HOST:PORT/proxy for --rerun connect")
+    p.add_argument("--overlay", action="store_true",
+                   help="also write overlay.mp4: the clip with the vectors, the section and Q drawn on it ([overlay])")
     p.add_argument("--record", action="store_true", help="record the result in the measurement history")
     p.add_argument("--site", help="site name for --record (default: the project's site)")
     p.add_argument("--db", help="history database for --record (default: $FIELDTOOL_DB or the user data folder)")

@@ -21,7 +21,7 @@ from typing import Callable, Iterator
 import numpy as np
 
 from fieldtool import __version__
-from fieldtool.run import piv_cache, stiv_stage
+from fieldtool.run import overlay_stage, piv_cache, stiv_stage
 from fieldtool.errors import Cancelled, FieldToolError, GeometryError, InputFileError, ParameterError
 from fieldtool.processing import cross_section as xs
 from fieldtool.processing import discharge as dq
@@ -50,6 +50,15 @@ class Observer:
 
     def warning(self, message: str) -> None: ...
 
+    def wants_every_frame(self) -> bool:
+        """True while the observer wants ``every_frame`` (the overlay video: run/overlay_stage.py)."""
+        return False
+
+    def every_frame(self, index: int, t_s: float, image: np.ndarray) -> None:
+        """Every working frame (lens, stabilisation) while ``wants_every_frame()``; ``frames_done()`` ends a pass."""
+
+    def frames_done(self) -> None: ...
+
 
 class _Guarded:
     """Calls an observer, turning its failures into warnings: logging never fails a run."""
@@ -65,6 +74,9 @@ class _Guarded:
         except Exception as e:  # noqa: BLE001 - a logger must not break a measurement
             self.failed = True
             self.warnings.append(f"live logging stopped: {type(e).__name__}: {e}")
+
+    def wants_every_frame(self) -> bool:
+        return self.obs is not None and not self.failed and bool(getattr(self.obs, "wants_every_frame", bool)())
 
 
 @dataclass
@@ -113,6 +125,7 @@ class RunResult:
     piv_fast: dict | None = None  # region box and pair sampling of the fast path (see piv_region / run_piv_fast)
     video: dict = field(default_factory=dict)  # the clip's metadata (records.video_meta.video_info)
     prerendered: object | None = None  # plots.prerender.Prerender: figures drawn during the PIV
+    overlay: object | None = None  # run.overlay_stage.Recorder (overlay.mp4 drawn as the frames streamed) or None
 
     def summary(self) -> dict:
         d = self.discharge
@@ -153,6 +166,7 @@ class RunResult:
             "robust": self.robust,
             **_fast_summary(self.piv_fast, int(getattr(self.piv, "n_pairs", 0) or len(self.q_pairs))),
             "video": self.video,
+            "overlay": getattr(self.overlay, "info", None),  # overlay.mp4's size, rate, frames (run/overlay_stage.py)
             "warnings": self.warnings + d.warnings,
             "timings_s": self.timings_s,
             "files": self.files,
@@ -382,7 +396,8 @@ def working_frames(project: Project, inputs: Inputs, cancel: Callable[[], bool] 
 
     # filters work inside the ROI only (thesis 9.2.7): banks and sky do not set their statistics
     stack = FilterStack.from_config(project.filters, roi=roi_and_mask(project, inputs)[0]) if project.filters else None
-    if project.stabilize.enabled or getattr(stack, "temporal", False):
+    every = observer is not None and observer.wants_every_frame()  # the overlay video draws every frame
+    if project.stabilize.enabled or getattr(stack, "temporal", False) or every:
         want = None
     stabilizer = None
     total = inputs.source.estimated_count()
@@ -426,9 +441,13 @@ def working_frames(project: Project, inputs: Inputs, cancel: Callable[[], bool] 
         out = stack.apply(img) if stack is not None else img if raw else img.astype(np.float32)
         if observer is not None and k % log_every == 0:
             observer("frame", idx, t, img, out)
+        if every:
+            observer("every_frame", idx, t, img)
         if progress is not None:
             progress(stage, k + 1, total)
         yield t, out
+    if every:
+        observer("frames_done")
     if stab_report is not None and stabilizer is not None:
         stab_report.update(stabilizer.report())
 
@@ -557,7 +576,8 @@ def _run_project(project: Project, out_dir: Path | str | None, progress: Progres
     from fieldtool.processing import piv as piv_mod
 
     warnings: list[str] = []
-    obs = _Guarded(observer, warnings)
+    overlay = overlay_stage.start(project, out_dir, ends)  # [overlay] enabled: overlay.mp4 drawn as frames stream
+    obs = _Guarded(overlay_stage.fan_out(observer, overlay, warnings), warnings)
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
 
@@ -641,6 +661,7 @@ def _run_project(project: Project, out_dir: Path | str | None, progress: Progres
 
         return q
 
+    overlay_stage.bind(overlay, inputs, mapping, geom)
     obs("geometry", pair_q_fn(geom))
     obs("stage", "piv")
     prerendered = None
@@ -793,7 +814,9 @@ def _run_project(project: Project, out_dir: Path | str | None, progress: Progres
         if v.end_s is not None and decoded and fps > 0 and decoded[0] < v.end_s - (v.step + 1) / fps:
             warnings.append(f"video.end_s: the clip decoded only up to {decoded[0]:.2f} s of the {v.end_s:g} s asked "
                             f"(its container claims more); the measurement covers {v.start_s:g}-{decoded[0]:.2f} s")
-    stiv_stage.ensure_sampled(stiv_run, lambda: working_frames(project, inputs, cancel))
+    overlay_stage.feed_cached(overlay, res)  # a reused PIV field: the overlay draws from STIV's pass or its own
+    stiv_stage.ensure_sampled(stiv_run, lambda: working_frames(project, inputs, cancel, obs))
+    overlay_stage.ensure_drawn(overlay, lambda: working_frames(project, inputs, cancel, obs, raw=True))
     lap("frames_and_piv")
 
     obs("stage", "discharge")
@@ -877,7 +900,7 @@ def _run_project(project: Project, out_dir: Path | str | None, progress: Progres
     result = RunResult(dres, q_pairs, level, mapping, res, geom, U, V, None, timings_s=timings, warnings=warnings,
                        stabilization=stab or None, project=project_to_dict(project), piv_reused=cached is not None,
                        uncertainty=unc, quality=qual, sections=section_entries, robust=robust_facts,
-                       stiv=stiv_block, piv_fast=fast, prerendered=prerendered)
+                       stiv=stiv_block, piv_fast=fast, prerendered=prerendered, overlay=overlay)
     if out_dir is not None:
         write_outputs(result, project, inputs, Path(out_dir))
     obs("result", result)
@@ -900,6 +923,7 @@ def write_outputs(result: RunResult, project: Project, inputs: Inputs, out: Path
         from fieldtool.writers import write_standard
 
         write_standard(result, project, inputs, stage.path)  # mean_field.nc, rectified.tif (with a CRS), video metadata
+        overlay_stage.finish(result, stage.path)  # overlay.mp4: closing card, file closed and moved in
         _write_figures(result, inputs, stage.path)  # last: the figure process draws them meanwhile
         result.timings_s["outputs"] = round(time.perf_counter() - t0, 3)  # all but result.json itself
         _write_result_json(result, stage.path)
