@@ -88,10 +88,12 @@ def text_scale(img: np.ndarray) -> float:
 
 def put_text(img: np.ndarray, text: str, org: tuple[int, int], scale: float, colour=(255, 255, 255),
              thickness: int | None = None) -> None:
-    """Text with a dark outline, readable on any background."""
+    """Text with a dark outline, readable on any background (the outline is the text drawn 1 px off in four
+    directions: a thicker stroke would advance the glyphs further and drift from the text)."""
     t = max(1, int(round(scale * 1.8))) if thickness is None else thickness
     s = ascii_text(text)
-    cv2.putText(img, s, org, FONT, scale, (0, 0, 0), t + 2, cv2.LINE_AA)
+    for dx, dy in ((-1, -1), (1, -1), (-1, 1), (1, 1)):
+        cv2.putText(img, s, (org[0] + dx, org[1] + dy), FONT, scale, (0, 0, 0), t, cv2.LINE_AA)
     cv2.putText(img, s, org, FONT, scale, colour, t, cv2.LINE_AA)
 
 
@@ -143,7 +145,7 @@ _LEGENDS: dict = {}  # (frame shape, range, table, title) -> (patch, x0, y0): th
 
 def draw_legend(img: np.ndarray, vmin: float, vmax: float, table: np.ndarray,
                 title: str = "surface velocity (m/s)") -> None:
-    """A vertical colour bar in the top-right corner with 5 ticks in m/s, on a dark box."""
+    """A vertical colour bar in the top-right corner with round ticks in m/s, on a dark box."""
     key = (img.shape, float(vmin), float(vmax), table.tobytes(), title)
     if key not in _LEGENDS:
         if len(_LEGENDS) > 16:
@@ -158,7 +160,7 @@ def _legend_patch(shape, vmin: float, vmax: float, table: np.ndarray, title: str
     canvas = np.zeros((h, w, 3), np.uint8)
     s = text_scale(canvas)
     bar_h, bar_w = int(h * 0.35), max(10, int(h * 0.025))
-    thick = max(1, int(round(s * 0.8 * 1.8))) + 2  # as put_text draws it, outline included
+    thick = max(1, int(round(s * 0.8 * 1.8)))  # as put_text draws it
     (tw, th), _ = cv2.getTextSize(ascii_text(title), FONT, s * 0.8, thick)
     (lw, _), _ = cv2.getTextSize(f"{vmax:.2f}", FONT, s * 0.8, thick)
     x1 = w - int(h * 0.03)
@@ -171,13 +173,24 @@ def _legend_patch(shape, vmin: float, vmax: float, table: np.ndarray, title: str
     ramp = table[::-1][np.linspace(0, 255, bar_h).astype(int)]
     canvas[y0:y0 + bar_h, x0:x1] = ramp[:, None, :]
     cv2.rectangle(canvas, (x0, y0), (x1 - 1, y0 + bar_h - 1), (255, 255, 255), 1)
-    for f in np.linspace(0.0, 1.0, 5):
+    for f in np.linspace(0.0, 1.0, _ticks(vmax - vmin) + 1):
         y = int(round(y0 + (1.0 - f) * (bar_h - 1)))
         label = f"{vmin + f * (vmax - vmin):.2f}"
         cv2.line(canvas, (x0 - 5, y), (x0, y), (255, 255, 255), 1)
         (lw2, lh2), _ = cv2.getTextSize(label, FONT, s * 0.8, thick)
         put_text(canvas, label, (x0 - 8 - lw2, y + lh2 // 2), s * 0.8)
     return canvas[by0:by1, bx0:bx1].copy(), bx0, by0
+
+
+def _ticks(span: float) -> int:
+    """Number of tick intervals (2 to 6) that make round steps of ``span`` (1, 2, 2.5 or 5 x 10^k); 4 else."""
+    for n in (4, 5, 3, 6, 2):
+        step = span / n
+        if step > 0:
+            m = step / 10.0 ** np.floor(np.log10(step))
+            if any(abs(m - r) < 1e-6 for r in (1.0, 2.0, 2.5, 5.0, 10.0)):
+                return n
+    return 4
 
 
 def _shade(img: np.ndarray, x0: int, y0: int, x1: int, y1: int, alpha: float = 0.55) -> None:
@@ -195,7 +208,7 @@ def draw_panel(img: np.ndarray, lines: list[str], corner: str = "tl") -> None:
         return
     h, w = img.shape[:2]
     s = text_scale(img)
-    sizes = [cv2.getTextSize(t, FONT, s, max(1, int(round(s * 1.8))) + 2)[0] for t in lines]
+    sizes = [cv2.getTextSize(t, FONT, s, max(1, int(round(s * 1.8))))[0] for t in lines]
     lh = int(max(sz[1] for sz in sizes) * 1.7) + 2
     bw = max(sz[0] for sz in sizes) + 20
     bh = lh * len(lines) + 10
