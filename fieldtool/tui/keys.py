@@ -35,3 +35,7 @@ FILTERS = [
 CROSS_SECTION = [
     Binding("ctrl+s", "write_csv", "Save as CSV"),
 ]
+
+RESULTS = [
+    Binding("ctrl+g", "overlay", "Overlay video"),  # run again with overlay.mp4 (the PIV field is reused)
+]

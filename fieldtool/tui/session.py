@@ -21,7 +21,7 @@ from fieldtool.tui.checks import CoreChecks, is_missing
 from fieldtool.tui.fields import field_errors
 from fieldtool.tui.steps import PIV_TABLES, STEP_IDS, STEPS, calibration_mode, fields_for, step_problems
 
-IGNORED_KEYS = ("name", "step", "rerun")
+IGNORED_KEYS = ("name", "step", "rerun", "overlay")  # tables that do not change the measurement
 
 
 @dataclass
