@@ -51,6 +51,7 @@ from fieldtool.writers import overlay as draw
 FILE = "overlay.mp4"
 BUFFER_BYTES = 96 * 2**20  # downscaled gray frames waiting for their pair (bounded: the clip is never held)
 MAX_LAG_S = 4.0  # a frame waits at most this long (clip time) for the pair at its time
+MIN_ARROW_GAP_PX = 10.0  # nodes closer than this on the video are thinned (a 1080p clip on a 960 px video)
 WAIT_SLICE_S = 0.2  # waits are sliced so that a failed or stopped drawing thread never blocks the run
 
 
@@ -187,6 +188,7 @@ class Recorder:
         self._last_base: np.ndarray | None = None
         self._vrange: tuple[float, float] | None = None
         self._arrow_s: float | None = None
+        self._stride = 1
         self._drawn = self._card_frames = 0
         self._busy_s = self._wait_s = self._prep_s = self._encode_s = 0.0
         self._pairs_used: set[int] = set()
@@ -333,13 +335,16 @@ class Recorder:
             spacing = float(np.median(np.diff(xs))) if len(xs) > 1 else 16.0
             sp = np.hypot(u[ok], v[ok])
             ref = float(np.percentile(sp, 90)) if sp.size else 0.0
-            self._arrow_s = 1.2 * spacing / ref if ref > 0 else 0.5
+            self._stride = max(1, int(round(MIN_ARROW_GAP_PX / (spacing * self._M[0, 0])))) \
+                if self.view == "camera" else 1  # nodes closer than that on the video: every stride-th drawn
+            self._arrow_s = 1.2 * spacing * self._stride / ref if ref > 0 else 0.5
             world = np.hypot(U[ok], V[ok])
             self._vrange = (0.0, draw.nice_ceil(float(np.percentile(world, 98))))  # fixed for the video
         a = self._arrow_s or 0.0
-        p.start = np.c_[p.x[ok], p.y[ok]]
-        p.end = p.start + np.c_[u[ok], v[ok]] * a
-        p.speed = np.hypot(U[ok], V[ok])
+        shown = ok & _every(np.shape(ok), self._stride)
+        p.start = np.c_[p.x[shown], p.y[shown]]
+        p.end = p.start + np.c_[u[shown], v[shown]] * a
+        p.speed = np.hypot(U[shown], V[shown])
         with np.errstate(invalid="ignore"):
             p.v_sub = np.abs(dq.subsection_velocity(self.geom, p.x, p.y, U, V))
         if self.pair_q is not None:
@@ -356,7 +361,7 @@ class Recorder:
         if self._vrange is None:
             return
         lo, hi = self._vrange
-        th = max(1, int(round(img.shape[0] / 400)))
+        th = max(1, int(round(img.shape[0] / 270)))  # 2 px at 540 lines
         if start is not None and len(start):
             draw.draw_arrows(img, self.to_view(start), self.to_view(end),
                             draw.colours(speed, lo, hi, self.table, levels=48), th)
@@ -440,6 +445,7 @@ class Recorder:
         p, d = result.piv, result.discharge
         ok = np.asarray(p.valid, bool) & np.isfinite(p.u) & np.isfinite(p.v)
         if self._arrow_s is not None:
+            ok &= _every(np.shape(ok), self._stride)
             start = np.c_[p.x[ok], p.y[ok]]
             end = start + np.c_[p.u[ok], p.v[ok]] * self._arrow_s
             speed = np.hypot(np.asarray(result.world_u)[ok], np.asarray(result.world_v)[ok])
@@ -473,6 +479,14 @@ class Recorder:
         if self._tmp is not None:
             self._tmp.unlink(missing_ok=True)
             self._tmp = None
+
+
+def _every(shape: tuple, stride: int) -> np.ndarray:
+    """Bool mask of every ``stride``-th node in each direction of a (ny, nx) grid (all for a 1-D one)."""
+    if stride <= 1 or len(shape) != 2:
+        return np.ones(shape, bool)
+    r, c = np.indices(shape)
+    return (r % stride == 0) & (c % stride == 0)
 
 
 def downscale(img: np.ndarray, size: tuple[int, int]) -> np.ndarray:

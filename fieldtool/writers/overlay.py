@@ -219,15 +219,16 @@ def draw_panel(img: np.ndarray, lines: list[str], corner: str = "tl") -> None:
         put_text(img, t, (x0 + 10, y0 + 5 + lh * (k + 1) - lh // 4), s)
 
 
-def draw_card(img: np.ndarray, lines: list[tuple[str, tuple[int, int, int], float]]) -> None:
-    """The closing card: ``(text, BGR colour, relative size)`` lines centred on the frame, on a shaded box."""
+def draw_card(img: np.ndarray, lines: list[tuple[str, tuple[int, int, int], float]], centre: float = 0.72) -> None:
+    """The closing card: ``(text, BGR colour, relative size)`` lines centred across the frame at ``centre`` of its
+    height (below the middle, where the section usually is), on a shaded box."""
     h, w = img.shape[:2]
     s = text_scale(img)
     sizes = [cv2.getTextSize(ascii_text(t), FONT, s * r, max(1, int(round(s * r * 1.8))))[0] for t, _, r in lines]
     heights = [int(sz[1] * 2.0) for sz in sizes]
     total = sum(heights)
     bw = max(sz[0] for sz in sizes) + int(0.06 * w)
-    y = int(h * 0.5 - total / 2)
+    y = int(min(h * centre - total / 2, h - total - 0.06 * h))
     _shade(img, (w - bw) // 2, y - int(0.02 * h), (w + bw) // 2, y + total + int(0.04 * h), alpha=0.7)
     for (t, c, r), lh, (tw, _) in zip(lines, heights, sizes):
         y += lh
