@@ -40,9 +40,10 @@ def _count_passes(monkeypatch):
 
 @pytest.fixture(scope="module")
 def runs(short_scene, tmp_path_factory):
-    """Four runs of the 1.2 s oblique scene: plain; overlay into the same folder (PIV field reused); overlay in a
+    """Five runs of the 1.2 s oblique scene: plain; overlay into the same folder (PIV field reused); overlay in a
     fresh folder with the rerun stream beside it (whole clip: the stationary-pattern removal's path); overlay of
-    0.2-1.0 s (too short for that removal: the fast path that builds only its pairs' frames)."""
+    0.2-1.0 s (too short for that removal: the fast path that builds only its pairs' frames); the rectified view
+    at half the clip's rate."""
     root = tmp_path_factory.mktemp("overlay")
     for f in short_scene.project_path.parent.iterdir():
         if f.is_file():
@@ -52,9 +53,12 @@ def runs(short_scene, tmp_path_factory):
     try:
         for name, overlay, folder, rerun, rng in (("plain", False, "a", False, None), ("cached", True, "a", False, None),
                                                   ("streamed", True, "c", True, None),
-                                                  ("range", True, "d", False, (0.2, 1.0))):
+                                                  ("range", True, "d", False, (0.2, 1.0)),
+                                                  ("rectified", True, "e", False, None)):
             p = load_project(root / "project.toml")
             p.overlay.enabled = overlay
+            if name == "rectified":  # the map view at half the clip's rate, 640 px, a 0.5 s card
+                p.overlay.view, p.overlay.fps, p.overlay.width_px, p.overlay.card_s = "rectified", 15.0, 640, 0.5
             if rng:
                 p.video.start_s, p.video.end_s = rng
             obs = observer_from_args(p, argparse.Namespace(rerun="save", rerun_path=None, rerun_url=None),
@@ -108,6 +112,20 @@ def test_frames_and_times_match_the_analysed_range(runs, name):
     assert info["pairs_drawn"] >= 2
     data = (out / "overlay.mp4").read_bytes()
     assert 0 < data.find(b"moov") < data.find(b"mdat")  # +faststart: a browser plays it while it loads
+
+
+def test_rectified_view_at_half_the_rate(runs):
+    p, res, out, *_ = runs["rectified"]
+    (codec, pix, w, h, fps), frames = _decode(out / "overlay.mp4")
+    assert fps == 15.0 and w <= 640 and (w % 2, h % 2) == (0, 0) and codec == "h264"
+    kept = _analysed(p)[::2]  # 30 fps clip, 15 fps video: every second frame, at its own time
+    n_card = int(round(0.5 * fps))
+    assert len(frames) == len(kept) + n_card
+    got = np.array([t for t, _ in frames[:len(kept)]])
+    assert np.max(np.abs(got - np.array([f.t_s - kept[0].t_s for f in kept]))) < 0.25 / fps
+    mid = frames[len(kept) // 2][1].astype(int)
+    assert ((mid.max(axis=2) - mid.min(axis=2)) > 40).sum() > 300  # vectors and section on the map
+    assert res.summary()["overlay"]["view"] == "rectified"
 
 
 def test_no_second_decode_of_the_clip(runs):
@@ -272,3 +290,23 @@ SEEK_AND_COUNT = """(t) => new Promise(res => { const v = document.querySelector
     res({w: v.videoWidth, h: v.videoHeight, duration: v.duration, colourful: col, err: v.error && v.error.code}); },
     {once: true});
   v.currentTime = t; })"""
+
+
+def test_a_cancelled_run_leaves_no_partial_video(short_scene, tmp_path, monkeypatch):
+    import tempfile
+
+    from fieldtool.errors import Cancelled
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path / "tmp"))
+    (tmp_path / "tmp").mkdir()
+    p = load_project(short_scene.project_path)
+    p.overlay.enabled = True
+    seen = []
+
+    def cancel():
+        seen.append(1)
+        return len(seen) > 20
+
+    with pytest.raises(Cancelled):
+        run_project(p, tmp_path / "out", cancel=cancel)
+    assert list((tmp_path / "tmp").iterdir()) == [] and not (tmp_path / "out" / "overlay.mp4").exists()

@@ -176,6 +176,7 @@ class Recorder:
         self._last_index = -1
         self._t0: float | None = None
         self._last_pts = -1
+        self._pts_slack = 0.25
         self._buf: collections.deque = collections.deque()
         self._cond = threading.Condition()
         self._ended = False
@@ -203,6 +204,9 @@ class Recorder:
         info = getattr(inputs.source, "info", None)
         clip_fps = float(getattr(info, "fps", 0) or 0) / max(1, int(getattr(inputs.source, "step", 1) or 1))
         self.fps = float(self.fps_set) if self.fps_set else (clip_fps if clip_fps > 0 else 25.0)
+        # a frame takes the video's period it falls in, with a quarter of the clip's period of slack for the
+        # container's timestamp jitter: at the clip's rate every frame is kept, at half of it every second one
+        self._pts_slack = 0.25 * self.fps / clip_fps if clip_fps > 0 else 0.25
         out_w = w if self.width_px == 0 else min(self.width_px, w)
         if self.view == "rectified":
             A, size = _rectified_frame(mapping, (h, w), out_w)
@@ -254,7 +258,7 @@ class Recorder:
         self._last_index = index
         if self._t0 is None:
             self._t0 = float(t_s)
-        pts = int(round((float(t_s) - self._t0) * self.fps))
+        pts = int(np.floor((float(t_s) - self._t0) * self.fps + self._pts_slack))
         if pts <= self._last_pts:  # the video's rate is below the clip's: this frame is dropped
             return
         self._last_pts = pts
