@@ -39,8 +39,8 @@ import shutil
 import tempfile
 import threading
 import time
+from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Callable, Iterator
 
 import cv2
 import numpy as np
@@ -55,7 +55,7 @@ MIN_ARROW_GAP_PX = 10.0  # nodes closer than this on the video are thinned (a 10
 WAIT_SLICE_S = 0.2  # waits are sliced so that a failed or stopped drawing thread never blocks the run
 
 
-def start(project, out_dir, ends=None) -> "Recorder | None":
+def start(project, out_dir, ends=None) -> Recorder | None:
     """The recorder of ``project``'s overlay, or None (``[overlay] enabled = false``, or no output folder).
     ``ends`` (a contextlib.ExitStack) gets its :meth:`Recorder.abort`, so a failed run leaves no file."""
     if out_dir is None or not project.overlay.enabled:
@@ -66,7 +66,7 @@ def start(project, out_dir, ends=None) -> "Recorder | None":
     return rec
 
 
-def fan_out(observer, recorder: "Recorder | None", warnings: list[str]):
+def fan_out(observer, recorder: Recorder | None, warnings: list[str]):
     """One observer calling ``observer`` (the user's, may be None) and ``recorder``; ``observer`` itself when
     there is no recorder (the run behaves exactly as without an overlay)."""
     if recorder is None:
@@ -102,13 +102,13 @@ class Fanout:
         return call
 
 
-def bind(recorder: "Recorder | None", inputs, mapping, geom: dq.SectionGeometry) -> None:
+def bind(recorder: Recorder | None, inputs, mapping, geom: dq.SectionGeometry) -> None:
     """Give the recorder the clip, the mapping and the section (before the PIV streams)."""
     if recorder is not None:
         recorder.bind(inputs, mapping, geom)
 
 
-def feed_cached(recorder: "Recorder | None", piv_res) -> None:
+def feed_cached(recorder: Recorder | None, piv_res) -> None:
     """A run that reused its PIV field: hand the recorder the cached per-pair fields (before any frame)."""
     if recorder is None or recorder.frames_seen or recorder.pairs:
         return
@@ -117,7 +117,7 @@ def feed_cached(recorder: "Recorder | None", piv_res) -> None:
         recorder.pair(k, float(piv_res.t_pairs[k]), piv_res.x, piv_res.y, u, v, np.isfinite(u) & np.isfinite(v))
 
 
-def ensure_drawn(recorder: "Recorder | None", frames: Callable[[], Iterator]) -> None:
+def ensure_drawn(recorder: Recorder | None, frames: Callable[[], Iterator]) -> None:
     """Stream the clip for the recorder when the run streamed none (its PIV field and STIV were reused)."""
     if recorder is not None and recorder.wants_every_frame() and not recorder.frames_seen:
         for _ in frames():
@@ -146,7 +146,7 @@ def finish(result, folder: Path) -> None:
 class _Pair:
     """One measured pair as the overlay draws it (computed in the drawing thread, once)."""
 
-    __slots__ = ("t", "x", "y", "u", "v", "ok", "start", "end", "speed", "v_sub", "q")
+    __slots__ = ("end", "ok", "q", "speed", "start", "t", "u", "v", "v_sub", "x", "y")
 
     def __init__(self, t, x, y, u, v, ok):
         self.t, self.x, self.y, self.u, self.v, self.ok = t, x, y, u, v, ok
