@@ -69,6 +69,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--rerun", choices=["save", "connect", "serve"], help="stream to rerun (see README)")
     p.add_argument("--rerun-path", help="rerun: .rrd file for --rerun save")
     p.add_argument("--rerun-url", help="rerun: rerun+http://HOST:PORT/proxy for --rerun connect")
+    p.add_argument("--overlay", action="store_true",
+                   help="also write overlay.mp4: the clip with the vectors, the section and Q drawn on it ([overlay])")
     p.add_argument("--record", action="store_true", help="record the result in the measurement history")
     p.add_argument("--site", help="site name for --record (default: the project's site)")
     p.add_argument("--db", help="history database for --record (default: $FIELDTOOL_DB or the user data folder)")

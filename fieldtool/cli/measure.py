@@ -40,6 +40,8 @@ def run(args: argparse.Namespace) -> int:
     project = load_project(args.project)
     out = Path(args.out) if args.out else Path(args.project).resolve().parent / "out"
     check_out(out, project)  # not a file, not read-only, not the project's folder nor one holding an input
+    if args.overlay:
+        project.overlay.enabled = True  # this run only; the project file is not changed
     check(project)  # every key, before any step (run_project checks again: other callers rely on it)
     observer = None
     if args.rerun or project.rerun.mode != "off":
@@ -74,6 +76,10 @@ def run(args: argparse.Namespace) -> int:
         print(f"warning: {w}")
     if result.piv_reused:
         print("PIV field     reused from the output folder (same clip, corrections and PIV parameters)")
+    ov = s.get("overlay")
+    if ov and "overlay" in s["files"]:
+        print(f"overlay video {out / s['files']['overlay']}  ({ov['frames']} frames + {ov['card_frames']} of the closing "
+              f"card, {ov['width_px']}x{ov['height_px']} at {ov['fps']:.3g} fps, {ov['codec']})")
     print(f"results in    {out}  ({time.perf_counter() - t0:.1f} s)")
     if args.record:
         mid = record_run(project, s, out, site=args.site or project.site, db=args.db)

@@ -256,6 +256,19 @@ class ViewerCfg:
 
 
 @dataclass
+class OverlayCfg:
+    """[overlay] overlay.mp4: the analysed clip with the vectors, the section and Q drawn on it, made while the
+    run streams the frames (see fieldtool/run/overlay_stage.py)."""
+
+    enabled: bool = key(False)  # write overlay.mp4 into the output folder (also: fieldtool run --overlay)
+    view: str = key("camera", choices=("camera", "rectified"))  # camera (frames as the run saw them: lens and stabilisation applied) | rectified (north-up map of the water plane)
+    width_px: int = key(960, ge=0, le=7680)  # frame width of the video (px, rounded down to even, never above the clip's); 0 = the clip's own width
+    fps: float | None = key(None, unit="1/s", gt=0.0, le=240.0)  # frames per second of the video (frames are dropped, never repeated); None = the clip's rate after video.step
+    colormap: str = key("viridis", choices=("viridis", "cividis"))  # perceptual colour map of the velocities: viridis | cividis
+    card_s: float = key(2.0, unit="s", ge=0.0, le=30.0)  # closing card with the final Q, its 95 % interval and the grade (s); 0 = none
+
+
+@dataclass
 class Project:
     """One measurement. ``root`` is the folder relative paths are resolved from (not saved)."""
 
@@ -282,6 +295,7 @@ class Project:
     quality: QualityCfg = field(default_factory=QualityCfg)
     uncertainty: UncertaintyCfg = field(default_factory=UncertaintyCfg)
     viewer: ViewerCfg = field(default_factory=ViewerCfg)
+    overlay: OverlayCfg = field(default_factory=OverlayCfg)
     root: Path = field(default=Path("."), metadata={"saved": False})
 
     def resolve(self, rel: str) -> Path:

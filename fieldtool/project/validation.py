@@ -388,7 +388,7 @@ class _Validator:
         for name, fn in (("video", self.video), ("cross_section", self.cross_section), ("filters", self.filters),
                          ("stabilize", self.stabilize), ("ortho", self.ortho), ("water_level", self.water_level),
                          ("roi", self.roi), ("piv", self.piv), ("section", self.section),
-                         ("calibration", self.calibration), ("sections", self.sections)):
+                         ("calibration", self.calibration), ("sections", self.sections), ("overlay", self.overlay)):
             self.guarded(name, fn)
         if self.files:
             self.guarded("paths", self.unused_paths)
@@ -788,6 +788,12 @@ class _Validator:
             elif v.search_px > 8 * v.window_px:
                 self.err("piv.search_px", f"{v.search_px} px is more than 8 windows ({8 * v.window_px} px); use a "
                                           "larger window_px or a smaller search area")
+
+    def overlay(self) -> None:
+        o = self.p.overlay
+        if self.ok("overlay.width_px") and 0 < o.width_px < 160:
+            self.err("overlay.width_px", f"{o.width_px} px leaves no room for the legend and the text; give 160 px "
+                                         "or more (960 is usual), or 0 for the clip's own width")
 
     def section(self) -> None:
         s = self.p.section

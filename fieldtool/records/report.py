@@ -11,6 +11,7 @@ import base64
 import csv
 import html
 import json
+import os
 from collections.abc import Sequence
 from datetime import UTC, datetime
 from pathlib import Path
@@ -32,6 +33,8 @@ from fieldtool.records.report_content import (
     subsection_cell,
 )
 from fieldtool.records.report_content import fmt_value as _f
+
+VIDEO_EMBED_MAX_BYTES = 24 * 2**20  # overlay.mp4 is embedded (base64) up to this size, linked beside the report above
 
 
 def load_result(result_dir: Path | str) -> tuple[dict, dict[str, bytes], list[dict]]:
@@ -95,7 +98,7 @@ table{border-collapse:collapse;font-size:.9em;margin:.4em 0}
 td,th{border:1px solid #d0d7de;padding:.25em .6em;text-align:right}
 th{background:#f6f8fa} td.k,th.k{text-align:left} .warn{color:#9a6700}
 figure{margin:1em 0;page-break-inside:avoid} figure img{max-width:100%;border:1px solid #d0d7de}
-figcaption{font-size:.88em;color:#57606a}
+figcaption{font-size:.88em;color:#57606a} figure video{max-width:100%;border:1px solid #d0d7de;background:#000}
 @media print{body{margin:0;max-width:none;font-size:10pt} h2{page-break-after:avoid} .qbox{page-break-inside:avoid}}
 """
 
@@ -177,10 +180,41 @@ def _sections_html(summary: dict) -> list[str]:
     return out
 
 
+def overlay_video(result_dir: Path | str, summary: dict, report_path: Path | str | None = None) -> bytes | str | None:
+    """The run's overlay.mp4 for the report: its bytes (embedded) up to :data:`VIDEO_EMBED_MAX_BYTES`, else its
+    path relative to ``report_path`` (linked); None when the run wrote none."""
+    d = Path(result_dir)
+    name = (summary.get("files") or {}).get("overlay")
+    f = inside(d, name) if isinstance(name, str) else None
+    if f is None or not f.is_file():
+        return None
+    if f.stat().st_size <= VIDEO_EMBED_MAX_BYTES:
+        return f.read_bytes()
+    base = Path(report_path).resolve().parent if report_path is not None else d.resolve()
+    return Path(os.path.relpath(f, base)).as_posix()
+
+
+def _video_html(video: bytes | str | None, summary: dict) -> list[str]:
+    """The overlay video in a ``<video>`` element (embedded, or linked when large)."""
+    if video is None:
+        return []
+    info = summary.get("overlay") or {}
+    src = (f"data:video/mp4;base64,{base64.b64encode(video).decode('ascii')}" if isinstance(video, bytes)
+           else _e(video))
+    cap = (f"The analysed clip with the per-pair vectors, the section's subsections coloured by surface velocity and "
+           f"the running Q; closing card with the final Q, its 95 % interval and the grade "
+           f"({_e(info.get('frames', '?'))} frames + {_e(info.get('card_frames', 0))} of the card, "
+           f"{_e(info.get('width_px', '?'))}x{_e(info.get('height_px', '?'))}, {_e(info.get('view', ''))} view).")
+    return ["<h2>Overlay video</h2>",
+            f"<figure id='overlay'><video id='overlay-video' controls muted playsinline preload='auto' src='{src}'>"
+            f"your browser does not play MP4 video: open overlay.mp4</video><figcaption>{cap}</figcaption></figure>"]
+
+
 def render_html(summary: dict, images: dict[str, bytes], subsections: list[dict], *,
                 measurement: Measurement | None = None, references: Sequence[Reference] = (),
-                title: str | None = None) -> str:
-    """The report as one HTML string with every plot embedded (no external file or network)."""
+                title: str | None = None, video: bytes | str | None = None) -> str:
+    """The report as one HTML string with every plot embedded (no external file or network); ``video`` is the
+    overlay video (:func:`overlay_video`: bytes embedded, or a relative path linked)."""
     inputs = summary.get("inputs") or {}
     name = title or inputs.get("name") or "measurement"
     q = summary.get("discharge_m3s")
@@ -211,6 +245,7 @@ def render_html(summary: dict, images: dict[str, bytes], subsections: list[dict]
     if warnings:
         out.append("<h2>Warnings</h2><ul>" + "".join(f"<li class='warn'>{_e(w)}</li>" for w in warnings) + "</ul>")
 
+    out += _video_html(video, summary)
     out.append("<h2>Figures</h2>")
     captions = dict(PLOTS)
     order = [k for k, _ in PLOTS if k in images] + sorted(k for k in images if k not in captions)
@@ -261,8 +296,9 @@ def write_report(result_dir: Path | str, out: Path | str | None = None, *, pdf: 
     result_dir = Path(result_dir)
     summary, images, rows = load_result(result_dir)
     out = Path(out) if out else result_dir / "report.html"
-    atomic_write_bytes(out, render_html(summary, images, rows, measurement=measurement,
-                                        references=references).encode("utf-8"))
+    video = overlay_video(result_dir, summary, out)
+    atomic_write_bytes(out, render_html(summary, images, rows, measurement=measurement, references=references,
+                                        video=video).encode("utf-8"))
     written = [out]
     if pdf:
         p = out.with_suffix(".pdf")

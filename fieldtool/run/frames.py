@@ -39,7 +39,8 @@ def working_frames(project: Project, inputs: Inputs, cancel: Callable[[], bool] 
     ``count``: every frame the decoder delivers is counted in ``count.frames`` (a filter's prepass too)."""
     # filters work inside the ROI only (thesis 9.2.7): banks and sky do not set their statistics
     stack = FilterStack.from_config(project.filters, roi=roi_and_mask(project, inputs)[0]) if project.filters else None
-    if project.stabilize.enabled or getattr(stack, "temporal", False):
+    every = observer is not None and observer.wants_every_frame()  # the overlay video draws every frame
+    if project.stabilize.enabled or getattr(stack, "temporal", False) or every:
         want = None
     stabilizer = None
     total = inputs.source.estimated_count()
@@ -83,9 +84,13 @@ def working_frames(project: Project, inputs: Inputs, cancel: Callable[[], bool] 
         out = stack.apply(img) if stack is not None else img if raw else img.astype(np.float32)
         if observer is not None and k % log_every == 0:
             observer("frame", idx, t, img, out)
+        if every:
+            observer("every_frame", idx, t, img)
         if progress is not None:
             progress(stage, k + 1, total)
         yield t, out
+    if every:
+        observer("frames_done")
     if stab_report is not None and stabilizer is not None:
         stab_report.update(stabilizer.report())
 

@@ -32,6 +32,15 @@ class Observer:
 
     def warning(self, message: str) -> None: ...
 
+    def wants_every_frame(self) -> bool:
+        """True while the observer wants ``every_frame`` (the overlay video: run/overlay_stage.py)."""
+        return False
+
+    def every_frame(self, index: int, t_s: float, image: np.ndarray) -> None:
+        """Every working frame (lens, stabilisation) while ``wants_every_frame()``; ``frames_done()`` ends a pass."""
+
+    def frames_done(self) -> None: ...
+
 
 class Guarded:
     """Calls an observer, turning its failures into warnings: logging never fails a run."""
@@ -47,3 +56,6 @@ class Guarded:
         except Exception as e:  # noqa: BLE001 - a logger must not break a measurement
             self.failed = True
             self.warnings.append(f"live logging stopped: {type(e).__name__}: {e}")
+
+    def wants_every_frame(self) -> bool:
+        return self.obs is not None and not self.failed and bool(getattr(self.obs, "wants_every_frame", bool)())

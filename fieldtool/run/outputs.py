@@ -22,7 +22,7 @@ from fieldtool.plots import prerender
 from fieldtool.project.model import Project, atomic_write_bytes
 from fieldtool.run import stiv_stage
 from fieldtool.run.inputs import Inputs
-from fieldtool.run import outdir
+from fieldtool.run import outdir, overlay_stage
 from fieldtool.run.outdir import strict_json
 from fieldtool.run.result import RunResult
 from fieldtool.writers import write_standard
@@ -43,6 +43,7 @@ def write_outputs(result: RunResult, project: Project, inputs: Inputs, out: Path
     with outdir.claim(out, project) as stage:  # the run's own claim (run_project), or one for this call alone
         _write_outputs(result, inputs, stage.path)
         write_standard(result, project, inputs, stage.path)  # mean_field.nc, rectified.tif (with a CRS), video metadata
+        overlay_stage.finish(result, stage.path)  # overlay.mp4: closing card, file closed and moved in
         _write_figures(result, inputs, stage.path)  # last: the figure process draws them meanwhile
         result.timings_s["outputs"] = round(time.perf_counter() - t0, 3)  # all but result.json itself
         _write_result_json(result, stage.path)

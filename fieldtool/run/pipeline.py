@@ -29,7 +29,7 @@ from fieldtool.plots.prerender import Prerender
 from fieldtool.project.model import Project, project_to_dict
 from fieldtool.project.validation import check
 from fieldtool.project import sections
-from fieldtool.run import discharge, geometry, outdir, outputs, quality, velocimetry
+from fieldtool.run import discharge, geometry, outdir, outputs, overlay_stage, quality, velocimetry
 from fieldtool.run.inputs import load_inputs
 from fieldtool.run.observer import Guarded, Observer, Progress
 from fieldtool.run.result import RunResult
@@ -61,7 +61,8 @@ def _run_project(project: Project, out_dir: Path | str | None, progress: Progres
                  cancel: Callable[[], bool] | None, observer: Observer | None, ends) -> RunResult:
     """:func:`run_project`; ``ends`` (a contextlib.ExitStack) takes what must be closed when the run ends."""
     warnings: list[str] = []
-    obs = Guarded(observer, warnings)
+    overlay = overlay_stage.start(project, out_dir, ends)  # [overlay] enabled: overlay.mp4 drawn as frames stream
+    obs = Guarded(overlay_stage.fan_out(observer, overlay, warnings), warnings)
     lap = _Laps()
     # the output folder's lock, checks and staging folder (run/outdir.py): everything, the PIV cache too, is
     # written there and swapped in as a unit at the end
@@ -82,6 +83,7 @@ def _run_project(project: Project, out_dir: Path | str | None, progress: Progres
     placed = geometry.place_sections(project, inputs, level.level_m, mapping, extra)
     setup = velocimetry.setup(project, inputs, mapping, placed, warnings)
     pairs = discharge.PairDischarge(mapping, inputs.cross_section, level.level_m, project.section.alpha)
+    overlay_stage.bind(overlay, inputs, mapping, placed.geom)
     obs("geometry", pairs.on(placed.geom))
     obs("stage", "piv")
     prerendered = None
@@ -92,7 +94,8 @@ def _run_project(project: Project, out_dir: Path | str | None, progress: Progres
     # streaming to an observer, who wants to see the frames and pairs)
     cache_dir = Path(out_dir) if out_dir is not None and observer is None else None
     vel = velocimetry.measure_velocity(project, inputs, setup, pairs.on(placed.geom), cache_dir,
-                                       stage.path if stage is not None else None, cancel, obs, progress, warnings)
+                                       stage.path if stage is not None else None, cancel, obs, progress, warnings,
+                                       overlay)
     lap("frames_and_piv")
 
     obs("stage", "discharge")
@@ -109,7 +112,7 @@ def _run_project(project: Project, out_dir: Path | str | None, progress: Progres
                        project=project_to_dict(project), piv_reused=vel.reused, uncertainty=verdict.uncertainty,
                        quality=verdict.quality, sections=verdict.sections, robust=q.robust, stiv=q.stiv,
                        piv_fast=vel.fast, prerendered=prerendered,
-                       uncertainty_standard=verdict.standard)
+                       uncertainty_standard=verdict.standard, overlay=overlay)
     if out_dir is not None:
         outputs.write_outputs(result, project, inputs, Path(out_dir))
     obs("result", result)

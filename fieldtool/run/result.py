@@ -40,7 +40,8 @@ class RunResult:
     piv_fast: dict | None = None  # region box and pair sampling of the fast path (see piv_region / run_piv_fast)
     video: dict = field(default_factory=dict)  # the clip's metadata (records.video_meta.video_info)
     uncertainty_standard: dict | None = None  # ISO 748 and IVE beside the Monte Carlo (run/standard_stage.py)
-    prerendered: object | None = None  # plots.prerender.Prerender: figures drawn during the PIV
+    prerendered: object | None = None
+    overlay: object | None = None  # run.overlay_stage.Recorder (overlay.mp4 drawn as the frames streamed) or None  # plots.prerender.Prerender: figures drawn during the PIV
 
     def summary(self) -> dict:
         d = self.discharge
@@ -82,6 +83,7 @@ class RunResult:
             "robust": self.robust,
             **fast_summary(self.piv_fast, int(getattr(self.piv, "n_pairs", 0) or len(self.q_pairs))),
             "video": self.video,
+            "overlay": getattr(self.overlay, "info", None),  # overlay.mp4's size, rate, frames (run/overlay_stage.py)
             "warnings": self.warnings + d.warnings,
             "timings_s": self.timings_s,
             "files": self.files,

@@ -23,7 +23,7 @@ from fieldtool.processing import piv_fast, planning, surface
 from fieldtool.processing.piv import PivParams
 from fieldtool.project.model import Project
 from fieldtool.run import frames as frames_mod
-from fieldtool.run import clip_pass, piv_cache, piv_rounds, stiv_stage
+from fieldtool.run import clip_pass, overlay_stage, piv_cache, piv_rounds, stiv_stage
 from fieldtool.run.geometry import Sections
 from fieldtool.run.inputs import Inputs
 from fieldtool.run.observer import Guarded, Progress
@@ -184,7 +184,7 @@ class _Streams:
 
 def measure_velocity(project: Project, inputs: Inputs, s: PivSetup, pair_q: Callable[..., float],
                      cache_dir: Path | None, save_dir: Path | None, cancel, obs: Guarded,
-                     progress: Progress | None, warnings: list[str]) -> Velocimetry:
+                     progress: Progress | None, warnings: list[str], overlay=None) -> Velocimetry:
     """The PIV field of the clip (and STIV's sampling on the way). ``pair_q(x, y, u, v)`` is the discharge of
     one pair's field on the main section (m³/s), which the rounds converge on; ``cache_dir``: the folder whose
     PIV cache is read (None: none); ``save_dir``: where a new one is written, the run's staging folder, so that
@@ -217,7 +217,10 @@ def measure_velocity(project: Project, inputs: Inputs, s: PivSetup, pair_q: Call
         piv_cache.save(save_dir, key, res, st.stab or None, {**fast, "frame_stats": st.frame_stats})
     if cached is None:  # what the PIV's streams decoded (a reused field decodes nothing for it)
         fast.update(frames_decoded=st.count.frames, frames_in_range=st.count.in_range)
-    stiv_stage.ensure_sampled(s.stiv_run, lambda: frames_mod.working_frames(project, inputs, cancel))
+    if cached is not None:  # a reused PIV field: the overlay draws from STIV's pass or its own
+        overlay_stage.feed_cached(overlay, res)
+    stiv_stage.ensure_sampled(s.stiv_run, lambda: frames_mod.working_frames(project, inputs, cancel, obs))
+    overlay_stage.ensure_drawn(overlay, lambda: frames_mod.working_frames(project, inputs, cancel, obs, raw=True))
     return Velocimetry(res, st.stab, st.frame_stats, st.surface_stats, st.plan, fast, cached is not None)
 
 

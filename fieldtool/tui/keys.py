@@ -38,4 +38,5 @@ CROSS_SECTION = [
 
 RESULTS = [
     Binding("ctrl+g", "report", "Report"),
+    Binding("ctrl+l", "overlay", "Overlay video"),  # run again with overlay.mp4 (the PIV field is reused)
 ]

@@ -24,7 +24,7 @@ from fieldtool.tui.fields import field_errors
 from fieldtool.tui.jobs import PREVIEW_DIR, cached_piv
 from fieldtool.tui.steps import PIV_TABLES, STEP_IDS, STEPS, calibration_mode, fields_for, step_problems
 
-IGNORED_KEYS = ("name", "step", "rerun", "site", "station", "operator", "viewer")  # no effect on Q
+IGNORED_KEYS = ("name", "step", "rerun", "site", "station", "operator", "viewer", "overlay")  # no effect on Q
 
 
 @dataclass

@@ -23,7 +23,8 @@ entity                                 content
 ``discharge/running_m3s``              "running estimate": median of the pair discharges so far
 ``discharge/final_m3s``                "final Q": the run's discharge, drawn over the clip span
 ``discharge/final_ci95_lo_m3s``, _hi   "final Q 95 % lower/upper": its interval (when the run has one)
-``log``                                ``TextLog``: stages and warnings
+``log``                                ``TextLog``: stages and warnings (and the overlay video's path)
+``overlay/video``                      ``AssetVideo`` of overlay.mp4 (``--overlay``) with its frames on ``time``
 =====================================  ==========================================================
 
 Map coordinates: screen x = world X, screen y = -world Y (2D views draw y down; this keeps north up),
@@ -64,6 +65,7 @@ from fieldtool.run.observer import Observer
 from fieldtool.viewer.rerun_web import OfflineWebViewer, disable_rerun_analytics
 
 MODES = ("off", "save", "connect", "serve")
+OVERLAY_MAX_BYTES = 64 * 2**20  # overlay.mp4 is put into the recording up to this size (else only named in the log)
 PROFILE_SCALE = 10.0  # section profile: 1 m/s is drawn as 10 "metres" of station, so both axes read well
 SERIES = {"pair_m3s": ("per-pair Q (one frame pair's field)", [150, 150, 150]),
           "running_m3s": ("running estimate (median of the pairs so far)", [255, 140, 0]),
@@ -331,6 +333,32 @@ class RerunObserver(Observer):
             self.rec.log("log", rr.TextLog(qual[0], level=qual[1]))
         for w in res.warnings:
             self.rec.log("log", rr.TextLog(w, level="WARN"))
+        self._overlay(res)
+
+    def _overlay(self, res) -> None:
+        """overlay.mp4 (``fieldtool run --overlay``): a log line naming it and, when small enough, the video
+        itself at ``overlay/video`` on the clip's timeline. Its failure is a warning; the rest was logged."""
+        name = (res.files or {}).get("overlay")
+        if not name or res.out_dir is None:
+            return
+        path = Path(res.out_dir) / name
+        info = res.summary().get("overlay") or {}
+        self.rec.log("log", self.rr.TextLog(
+            f"overlay video: {path} ({info.get('frames', '?')} frames of the analysed range + "
+            f"{info.get('card_frames', 0)} of the closing card, {info.get('codec', '?')}); also at /overlay/video",
+            level="INFO"))
+        try:
+            if info.get("codec") != "h264" or path.stat().st_size > OVERLAY_MAX_BYTES:
+                return
+            rr = self.rr
+            video = rr.AssetVideo(path=path)
+            self.rec.log("overlay/video", video, static=True)
+            ts = video.read_frame_timestamps_nanos()
+            t0 = float(info.get("t_first_s") or 0.0)
+            self.rec.send_columns("overlay/video", indexes=[rr.TimeColumn("time", duration=t0 + ts * 1e-9)],
+                                  columns=rr.VideoFrameReference.columns_nanos(ts))
+        except Exception as e:  # noqa: BLE001 - the video is extra; the run's log is complete without it
+            self.warnings.append(f"rerun: overlay.mp4 not added to the recording ({type(e).__name__}: {e})")
 
     def _map_background(self, res, first: np.ndarray) -> None:
         """The rectified first frame under the map, pixel (c, r) centre at (Xmin + c r, -(Ymax - r r))."""

@@ -63,6 +63,17 @@ def discharge_lines(s: dict) -> list[str]:
     return lines
 
 
+def overlay_line(s: dict) -> str:
+    """Where the overlay video is, or how to make it (markup)."""
+    ov = s.get("overlay")
+    name = (s.get("files") or {}).get("overlay")
+    if isinstance(ov, dict) and name:
+        return (f"overlay video  {escape(str(name))}: {ov.get('frames', '?')} frames + {ov.get('card_frames', 0)} of the "
+                f"closing card, {ov.get('width_px', '?')}x{ov.get('height_px', '?')} ({ov.get('view', '')} view); "
+                "ctrl+l renders it again")
+    return "[dim]ctrl+l renders the overlay video (overlay.mp4: vectors, section and Q drawn on the clip)[/dim]"
+
+
 class ResultsScreen(StepScreen):
     STEP = "results"
     INTRO = "discharge and export"
@@ -95,7 +106,8 @@ class ResultsScreen(StepScreen):
 
     def focus_help(self, widget) -> str:
         if isinstance(widget, DataTable):
-            return "↑ / ↓ / page up / page down scroll the subsections · ctrl+r recomputes · ctrl+b goes back"
+            return ("↑ / ↓ / page up / page down scroll the subsections · ctrl+r recomputes · ctrl+l renders the "
+                    "overlay video · ctrl+b goes back")
         return super().focus_help(widget)
 
     def refresh_view(self) -> None:
@@ -105,7 +117,7 @@ class ResultsScreen(StepScreen):
     def computing(self) -> bool:
         """Whether the running job computes the discharge."""
         job = self.app.job  # type: ignore[attr-defined]
-        return job is not None and job.name in ("results", "piv")
+        return job is not None and job.name in ("results", "piv", "overlay")
 
     def fill(self) -> None:
         summary = self.query_one("#summary", Static)
@@ -160,7 +172,8 @@ class ResultsScreen(StepScreen):
         note = "* velocity filled from a neighbour\n" if filled else ""
         names = sorted(set((s.get("files") or {}).values()))
         warn = "".join(f"\n[yellow]warning: {escape(w)}[/yellow]" for w in s.get("warnings", []))
-        files.update(f"{note}files in out/ beside {self.session.path.name}: {', '.join(names)}{warn}")
+        files.update(f"{note}files in out/ beside {self.session.path.name}: {', '.join(names)}\n"
+                     f"{overlay_line(s)}{warn}")
         self.call_after_refresh(self.update_hint)
 
     def update_hint(self) -> None:
@@ -194,6 +207,22 @@ class ResultsScreen(StepScreen):
         p = jobs.snapshot(self.project)
         out = self.session.out_dir
         if self.app.start_job("results", "Discharge", lambda job: jobs.run_full(p, out, job)):  # type: ignore[attr-defined]
+            self.fill()
+
+    def action_overlay(self) -> None:
+        """Run again with ``[overlay] enabled`` for this run only: overlay.mp4 beside the other results (the PIV
+        field of the last run is reused when its inputs did not change; the clip is then read once)."""
+        from fieldtool.tui import jobs
+
+        bad = [st for st in ("cross_section", "video", "calibration", "ortho", "water_level", "roi", "filters", "piv",
+                             "section") if self.session.step_errors(st)]
+        if bad:
+            self.show_errors([f"step '{st}' is not complete: " + self.session.step_errors(st)[0] for st in bad])
+            return
+        p = jobs.snapshot(self.project)
+        p.overlay.enabled = True
+        out = self.session.out_dir
+        if self.app.start_job("overlay", "Overlay video", lambda job: jobs.run_full(p, out, job)):  # type: ignore[attr-defined]
             self.fill()
 
     def action_next(self) -> None:
