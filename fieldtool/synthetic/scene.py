@@ -45,6 +45,7 @@ from fieldtool.project.model import (
     save_project,
 )
 from fieldtool.synthetic.camera import Camera, render_canvas
+from fieldtool.synthetic.nuisances import Layer, Nuisances
 
 
 @dataclass(frozen=True)
@@ -243,6 +244,7 @@ class SceneSpec:
     section_skew_deg: float = 0.0  # surveyed section at this angle to the channel's normal (flow stays along +X)
     jpeg_quality: int = 0  # 1..100: each frame goes through JPEG at this quality before the video codec
     drop_fraction: float = 0.0  # > 0: variable-frame-rate Matroska (MJPEG) with this share of frames dropped
+    nuisances: Nuisances = field(default_factory=Nuisances)  # low light, rain, shadows, ... (synthetic/nuisances.py)
 
     @property
     def n_frames(self) -> int:
@@ -252,7 +254,10 @@ class SceneSpec:
         """A copy with fields replaced; ``river__x`` / ``camera__x`` change a field of those parts."""
         river = {k[7:]: v for k, v in changes.items() if k.startswith("river__")}
         cam = {k[8:]: v for k, v in changes.items() if k.startswith("camera__")}
+        nzc = {k[11:]: v for k, v in changes.items() if k.startswith("nuisances__")}
         own = {k: v for k, v in changes.items() if "__" not in k}
+        if nzc:
+            own["nuisances"] = replace(self.nuisances, **nzc)
         if river:
             own["river"] = replace(self.river, **river)
         if cam:
@@ -723,6 +728,8 @@ def render_scene(
     flicker_rng = _aux_rng(spec, 5)
     ripples = _ripples(spec, offset, canvas) if spec.ripple_amp > 0 else None
 
+    nuis = _nuisance_layer(spec, offset, canvas, H_world, sec_world)  # None when the scene has none
+
     video_path = out / spec.video_name
     times = frame_times(spec)
     if spec.drop_fraction > 0:
@@ -766,6 +773,8 @@ def render_scene(
             if ripples is not None:
                 rip = _ripple_image(ripples, t, canvas)
                 img += cv2.warpPerspective(rip, Hs, canvas) if shaken and not cam.has_distortion else rip
+            if nuis is not None:
+                img = nuis.canvas(img, t)
             if cam.has_distortion:
                 img = cv2.remap(img, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0.5)
                 if shaken:
@@ -779,6 +788,8 @@ def render_scene(
                 lit = (flicker_rng.uniform(size=len(layers)) < spec.glint_duty) * flicker_rng.uniform(0.6, 1.2, len(layers))
                 img[gy0:gy1, gx0:gx1] += np.tensordot(lit.astype(np.float32), layers, axes=1)
             img *= 255.0
+            if nuis is not None:
+                img = nuis.sensor(img, t, rng)
             if spec.noise_sigma > 0:
                 noise[:] = rng.standard_normal((h, w), dtype=np.float32)
                 img += spec.noise_sigma * noise
@@ -786,7 +797,8 @@ def render_scene(
             if spec.jpeg_quality > 0:
                 enc = cv2.imencode(".jpg", frame, [cv2.IMWRITE_JPEG_QUALITY, int(spec.jpeg_quality)])[1]
                 frame = cv2.imdecode(enc, cv2.IMREAD_GRAYSCALE)
-            write(cv2.cvtColor(frame, cv2.COLOR_GRAY2BGR), t)
+            bgr = cv2.cvtColor(frame, cv2.COLOR_GRAY2BGR)
+            write(bgr if nuis is None else nuis.colour(bgr, t), t)
             if progress is not None:
                 progress(i + 1, n)
     finally:
@@ -873,7 +885,9 @@ def render_scene(
         "seconds_per_frame": spf,
         "codec": "MJPEG in Matroska (variable frame rate)" if spec.drop_fraction > 0 else spec.fourcc,
         "checkerboard_video": cb_path.name if cb_path else None,
-        "spec": _jsonable({k: v for k, v in asdict(spec).items() if k not in _VARIANT_DEFAULTS or v != _VARIANT_DEFAULTS[k]}),
+        "spec": _jsonable({k: v for k, v in asdict(spec).items()
+                           if (k not in _VARIANT_DEFAULTS or v != _VARIANT_DEFAULTS[k])
+                           and (k != "nuisances" or spec.nuisances.any)}),
     }
     if spec.drop_fraction > 0:
         truth_doc["frame_times_s"] = times
@@ -889,6 +903,22 @@ _VARIANT_FIELDS = ("patch_cover", "patch_scale_m", "empty_band_m", "empty_after_
                    "ripple_lambda_m", "ripple_waves", "section_skew_deg", "jpeg_quality", "drop_fraction")
 # truth.json lists a variant field only when it is set, so the base scenes' files stay as they were
 _VARIANT_DEFAULTS = {k: SceneSpec.__dataclass_fields__[k].default for k in _VARIANT_FIELDS}
+
+
+def _nuisance_layer(spec: SceneSpec, offset: tuple[int, int], canvas: tuple[int, int], H_world: np.ndarray,
+                    sec_world: np.ndarray) -> Layer | None:
+    """The scene's nuisances prepared on its canvas (world X, Y of each canvas pixel), or None."""
+    if not spec.nuisances.any:
+        return None
+    cw, ch = canvas
+    gx, gy = np.meshgrid(np.arange(cw, dtype=np.float32) - offset[0], np.arange(ch, dtype=np.float32) - offset[1])
+    pts, ok = _world_of_pixels(spec.camera, spec.river.level_m, np.column_stack([gx.ravel(), gy.ravel()]))
+    X = np.where(ok, pts[:, 0], np.nan).reshape(ch, cw).astype(np.float32)
+    Y = np.where(ok, pts[:, 1], np.nan).reshape(ch, cw).astype(np.float32)
+    p = np.column_stack([sec_world[:, :2], np.ones(2)]) @ H_world.T
+    sec_canvas = p[:, :2] / p[:, 2:3]
+    return Layer(spec.nuisances, spec.seed, spec.river, np.stack([X, Y]), H_world, sec_canvas, spec.fps,
+                 spec.roi_half_length_m)
 
 
 def _bank_mask(spec: SceneSpec, ras: _Raster) -> np.ndarray:
