@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import json
+import math
 import os
 import sys
 import threading
@@ -61,7 +62,9 @@ def cmd_run(args: argparse.Namespace) -> int:
     end_progress_line()
     s = result.summary()
     ci = s.get("discharge_ci95_m3s")
-    if ci and None not in ci:
+    if not math.isfinite(s["discharge_m3s"]):  # nothing measured (run/unmeasured.py): graded unusable below
+        print("discharge     not measured")
+    elif ci and None not in ci:
         print(f"discharge     {s['discharge_m3s']:.4f} m3/s  (95 % interval {ci[0]:.4f} - {ci[1]:.4f}, Monte Carlo)")
     else:
         print(f"discharge     {s['discharge_m3s']:.4f} m3/s")

@@ -608,11 +608,10 @@ def _run_project(project: Project, out_dir: Path | str | None, progress: Progres
     if project.piv.remove_stationary and not standardize:
         warnings.append(f"piv.remove_stationary: the clip has {n_clip} frames, fewer than the {2 * HALF_WINDOW + 1} its "
                         "time window needs; glints and other patterns fixed in the image are not removed")
-    if standardize:
-        from fieldtool.processing.surface import MIN_TEXTURE
-        from dataclasses import replace
+    from fieldtool.run import clip_check, unmeasured  # issue 23: gates from the clip's noise and contrast
 
-        params = replace(params, min_texture=MIN_TEXTURE)
+    clip = clip_check.check(inputs, roi, n_clip)
+    params = clip.params(params, standardize)
     roi_user = roi
     segments = [geom.p_img] + [inputs.to_working(s.points_px) for s in extra_sections if len(s.points_px)]
     roi = piv_region(project, inputs, params, roi, segments)
@@ -699,7 +698,7 @@ def _run_project(project: Project, out_dir: Path | str | None, progress: Progres
             surface_stats.frames = 0  # each round of the fast path standardises the clip again: count one pass
             frames = threaded(frames)  # decoding (and STIV's sampling) in a thread of its own
             frames = surface.standardize(frames, roi, margin=max(64, params.search_px or 0), half=surface.HALF_WINDOW,
-                                         shrink=surface.SHRINK, stats=surface_stats, want=want_std)
+                                         shrink=clip.gates.shrink, stats=surface_stats, want=want_std)
         return frames
 
     def plan_pairs(frames):
@@ -756,7 +755,7 @@ def _run_project(project: Project, out_dir: Path | str | None, progress: Progres
         try:
             if n_exp - gap >= 2:
                 res, conv = run_piv_fast(make_frames, n_exp - gap, gap, params, roi, mask, max_speed, cancel, on_pair,
-                                         pair_q_fn(geom), project.piv.converge_rel_ci, project.piv.min_pairs,
+                                         pair_q_fn(geom), project.piv.converge_rel_ci, clip.min_pairs(project.piv.min_pairs),
                                          drain_first=standardize and stiv_run is not None, near=near,
                                          first_guess=plan.guess)
                 fast.update(conv)
@@ -799,6 +798,16 @@ def _run_project(project: Project, out_dir: Path | str | None, progress: Progres
     obs("stage", "discharge")
     U, V = mapping.rectify_velocity(res.x, res.y, res.u, res.v)
     v_sub = dq.subsection_velocity(geom, res.x, res.y, U, V)
+    if unmeasured.nothing_measured(v_sub):  # issue 23: an unusable verdict (exit 3) with every file, not exit 2
+        dres, qual = unmeasured.verdict(geom, cs, level.level_m, sec.alpha, clip.facts())
+        result = RunResult(dres, np.zeros(0), level, mapping, res, geom, U, V, None, timings_s=timings,
+                           warnings=warnings, stabilization=stab or None, project=project_to_dict(project),
+                           piv_reused=cached is not None, quality=qual, robust={"plan": None, **clip.facts()},
+                           piv_fast=fast)
+        if out_dir is not None:
+            write_outputs(result, project, inputs, Path(out_dir))
+        obs("result", result)
+        return result
     dres = dq.compute_discharge(geom, cs, level.level_m, v_sub, sec.alpha)
     if dres.discharge_m3s < 0:
         # P1/P2 picked right-to-left: swap them so P1 is the left edge, as the stations assume
@@ -809,6 +818,7 @@ def _run_project(project: Project, out_dir: Path | str | None, progress: Progres
         v_sub = dq.subsection_velocity(geom, res.x, res.y, U, V)
         dres = dq.compute_discharge(geom, cs, level.level_m, v_sub, sec.alpha)
     robust_facts: dict = {"plan": plan.as_dict() if plan is not None else None}
+    robust_facts.update(clip.facts())  # issue 23: robust.noise, robust.contrast, robust.gates
     if surface_stats is not None:
         robust_facts["stationary_removed"] = {"frames": surface_stats.frames, "std_ref": surface_stats.std_ref,
                                               "specular_fraction": surface_stats.specular_fraction}

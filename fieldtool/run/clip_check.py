@@ -1,0 +1,51 @@
+"""The run's look at the clip itself before PIV (issue 23): noise, tracer contrast, glare, and the gates set from them.
+
+Reads the first :data:`N_FRAMES` frames of the clip (raw grey, inside the PIV region), estimates them with
+:mod:`fieldtool.processing.clip_stats` and derives the standardisation's soft threshold, the PIV texture gate
+and the ensemble's pair count. ``facts()`` is what ``result.json`` reports under ``robust``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from itertools import islice
+
+import numpy as np
+
+from fieldtool.processing import clip_stats
+from fieldtool.processing.surface import MIN_TEXTURE, SHRINK
+
+#: frames read for the estimates (~0.7 s at 30 fps)
+N_FRAMES = 20
+
+
+@dataclass
+class ClipCheck:
+    stats: clip_stats.ClipStats | None
+    gates: clip_stats.Gates
+
+    def params(self, params, standardize: bool):
+        """PIV parameters with the texture gate set (only where the standardisation is on, as before)."""
+        return replace(params, min_texture=self.gates.min_texture) if standardize else params
+
+    def min_pairs(self, project_min_pairs: int) -> int:
+        return max(project_min_pairs, self.gates.min_pairs or 0)
+
+    def facts(self) -> dict:
+        s = self.stats
+        return {"noise": None if s is None else {"temporal_sd_gray": s.noise, "frames": s.frames},
+                "contrast": None if s is None else {"tracer_gray": s.contrast, "cnr": s.cnr, "texture_gray": s.texture,
+                                                    "level_gray": s.level, "glare_fraction": s.glare_fraction,
+                                                    "window_contrast_p10_p90": list(s.contrast_spread)},
+                "gates": self.gates.to_dict()}
+
+
+def check(inputs, roi, n_clip: int) -> ClipCheck:
+    """Estimates and gates for the clip of ``inputs`` inside ``roi`` (x0, y0, x1, y1 px of the working frame)."""
+    frames = [np.asarray(f.image) for f in islice(iter(inputs.source), N_FRAMES) if f.image is not None]
+    default = clip_stats.Gates("standard", SHRINK, MIN_TEXTURE, None, ["too few frames to estimate: default gates"])
+    if len(frames) < 3:
+        return ClipCheck(None, default)
+    stats = clip_stats.estimate(frames, roi, step=2)
+    return ClipCheck(stats, clip_stats.gates(stats, shrink_default=SHRINK, min_texture_default=MIN_TEXTURE,
+                                             min_pairs=2, n_frames=n_clip or len(frames)))
