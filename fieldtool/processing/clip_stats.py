@@ -33,6 +33,9 @@ NOISE_FLOOR = 0.5
 CNR_WEAK = 6.0
 #: bright by more than this many noise sd above the pixel's median: a glint candidate
 GLARE_K = 8.0
+#: weak clips only: above this share of glint candidates, glints are masked frame by frame (in a weak clip the
+#: tracers are faint, so what stands that far above the median is specular)
+GLARE_ON = 0.005
 #: share of the clip's frames in which a glint candidate may be bright (short-lived)
 GLARE_DUTY = 0.3
 
@@ -50,9 +53,16 @@ class ClipStats:
     glare_fraction: float  # share of box pixels with short-lived specular flicker
     windows: int  # windows that entered the medians
     contrast_spread: tuple[float, float] = field(default=(0.0, 0.0))  # 10th, 90th percentile of window contrast
+    median: np.ndarray | None = field(default=None, repr=False)  # per-pixel temporal median of the box (grey levels)
+    box: tuple[int, int, int, int] | None = None  # (x0, y0, x1, y1) px the estimates cover
+
+    @property
+    def glint_threshold(self) -> float:
+        """Grey levels above the pixel's median beyond which a pixel is a glint candidate."""
+        return max(GLARE_K * self.noise, 2.0 * self.contrast)
 
     def to_dict(self) -> dict:
-        d = asdict(self)
+        d = {k: v for k, v in asdict(self).items() if k not in ("median", "box")}
         d["contrast_spread"] = list(self.contrast_spread)
         return {k: (round(v, 4) if isinstance(v, float) else v) for k, v in d.items()}
 
@@ -97,7 +107,8 @@ def estimate(frames, box: tuple[int, int, int, int] | None = None, *, win: int =
     glare = float(np.mean((share > 0) & (share <= GLARE_DUTY)))
     return ClipStats(frames=n, noise=noise, contrast=contrast, cnr=contrast / noise, texture=float(np.median(texs or [0.0])),
                      level=float(np.median(med)), glare_fraction=glare, windows=len(cons),
-                     contrast_spread=(float(np.percentile(cons_a, 10)), float(np.percentile(cons_a, 90))))
+                     contrast_spread=(float(np.percentile(cons_a, 10)), float(np.percentile(cons_a, 90))),
+                     median=med, box=(x0, y0, x1, y1))
 
 
 def soft_threshold_residual(k: float) -> float:
@@ -116,10 +127,13 @@ class Gates:
     min_texture: float  # PIV texture gate (standardised units)
     min_pairs: int | None  # ensemble: at least this many pairs (None = the project's)
     reasons: list[str] = field(default_factory=list)
+    denoise_half: int = 0  # > 0: temporal mean over 2 * half + 1 frames (processing/lowlight.py)
+    mask_glints: bool = False  # per-frame masking of short-lived specular pixels (processing/lowlight.py)
 
     def to_dict(self) -> dict:
         return {"plan": self.plan, "shrink": round(self.shrink, 4), "min_texture": round(self.min_texture, 5),
-                "min_pairs": self.min_pairs, "reasons": list(self.reasons)}
+                "min_pairs": self.min_pairs, "denoise_frames": 2 * self.denoise_half + 1 if self.denoise_half else 1,
+                "mask_glints": self.mask_glints, "reasons": list(self.reasons)}
 
 
 def gates(stats: ClipStats, *, shrink_default: float, min_texture_default: float, min_pairs: int,
@@ -145,7 +159,11 @@ def gates(stats: ClipStats, *, shrink_default: float, min_texture_default: float
     resid = soft_threshold_residual(k)
     std_noise = 0.5  # standardised noise sd where noise dominates: sd / (sd + std_ref), std_ref ~ sd
     mt = min(min_texture_default, 0.5 * resid * std_noise)
-    return Gates("low_light", k, mt, max(min_pairs, n_frames - 1),
-                 [f"tracer contrast {stats.contrast:.1f} grey levels is only {stats.cnr:.1f} x the noise "
+    glare = stats.glare_fraction > GLARE_ON
+    why = [f"{100 * stats.glare_fraction:.1f} % of the pixels flicker brighter than {stats.glint_threshold:.0f} grey "
+           "levels above their median in a few frames only: masked per frame"] if glare else []
+    return Gates("low_light" + ("+glare" if glare else ""), k, mt, max(min_pairs, n_frames - 1),
+                 why + [f"temporal mean over 3 frames (noise / sqrt(3))", f"tracer contrast {stats.contrast:.1f} grey levels is only {stats.cnr:.1f} x the noise "
                   f"({stats.noise:.2f}, below {CNR_WEAK:g}): soft threshold {k:.2f} sd (default {shrink_default:g}), "
-                  f"texture gate {mt:.4f} (default {min_texture_default:g}), ensemble over every pair"])
+                  f"texture gate {mt:.4f} (default {min_texture_default:g}), ensemble over every pair"],
+                 denoise_half=1, mask_glints=glare)

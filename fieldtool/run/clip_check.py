@@ -12,7 +12,7 @@ from itertools import islice
 
 import numpy as np
 
-from fieldtool.processing import clip_stats
+from fieldtool.processing import clip_stats, lowlight
 from fieldtool.processing.surface import MIN_TEXTURE, SHRINK
 
 #: frames read for the estimates (~0.7 s at 30 fps)
@@ -27,6 +27,21 @@ class ClipCheck:
     def params(self, params, standardize: bool):
         """PIV parameters with the texture gate set (only where the standardisation is on, as before)."""
         return replace(params, min_texture=self.gates.min_texture) if standardize else params
+
+    def before(self, frames):
+        """Raw frames -> frames with the short-lived glints masked (weak clips with glare only)."""
+        s = self.stats
+        if not self.gates.mask_glints or s is None or s.median is None:
+            return frames
+        return lowlight.mask_glints(frames, s.median, s.box, s.glint_threshold)
+
+    def std_want(self, want):
+        """The standardisation builds every frame when the denoising averages them."""
+        return None if self.gates.denoise_half else want
+
+    def after(self, frames, want):
+        """Standardised frames -> their temporal mean (weak clips only); ``want`` as the standardisation's."""
+        return lowlight.temporal_mean(frames, self.gates.denoise_half, want) if self.gates.denoise_half else frames
 
     def min_pairs(self, project_min_pairs: int) -> int:
         return max(project_min_pairs, self.gates.min_pairs or 0)

@@ -696,9 +696,10 @@ def _run_project(project: Project, out_dir: Path | str | None, progress: Progres
             from fieldtool.processing.piv_fast import threaded
 
             surface_stats.frames = 0  # each round of the fast path standardises the clip again: count one pass
-            frames = threaded(frames)  # decoding (and STIV's sampling) in a thread of its own
+            frames = threaded(clip.before(frames))  # decoding (and STIV's sampling) in a thread of its own
             frames = surface.standardize(frames, roi, margin=max(64, params.search_px or 0), half=surface.HALF_WINDOW,
-                                         shrink=clip.gates.shrink, stats=surface_stats, want=want_std)
+                                         shrink=clip.gates.shrink, stats=surface_stats, want=clip.std_want(want_std))
+            frames = clip.after(frames, want_std)  # issue 23: weak clips' glint mask (before) and denoising
         return frames
 
     def plan_pairs(frames):
