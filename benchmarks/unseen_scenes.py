@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import subprocess
 import sys
 import time
@@ -25,6 +26,7 @@ from fieldtool.synthetic import presets, render_scene
 
 
 def run_cli(project: Path, out: Path) -> tuple[int, dict | None, float]:
+    shutil.rmtree(out, ignore_errors=True)  # never reuse a PIV cache written by other code
     t0 = time.perf_counter()
     p = subprocess.run([sys.executable, "-m", "fieldtool.cli", "run", str(project), "--out", str(out)],
                        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=os.environ.copy())
