@@ -135,3 +135,17 @@ def test_temporal_mean_lowers_noise_and_keeps_the_displacement():
     assert skip[1][1] is None and skip[2][1] is not None
     np.testing.assert_allclose(skip[2][1], out[2][1])
     np.testing.assert_allclose(out[0][1], (fr[0] + fr[1]) / 2, rtol=1e-5)
+
+
+def test_selfcheck_prefers_the_consistent_variant():
+    from fieldtool.processing import selfcheck
+    from fieldtool.processing.piv import PivParams
+
+    good = [f - 22.0 for f in _clip(n=10, amp=40.0, noise=1.0, speed=1.5, density=0.003)]
+    rng = np.random.default_rng(3)
+    bad = [rng.standard_normal(good[0].shape).astype(np.float32) for _ in good]  # no motion: pure noise
+    prm = PivParams(window_px=32, overlap_px=16)
+    best, scores = selfcheck.choose({"noise": lambda: (bad, prm), "tracers": lambda: (good, prm)}, 1 / 30)
+    assert best == "tracers"
+    s = {v.name: v for v in scores}
+    assert s["tracers"].score > s["noise"].score and s["tracers"].fb < 0.2 and s["tracers"].valid > 0.5

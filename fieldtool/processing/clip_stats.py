@@ -129,15 +129,21 @@ class Gates:
     reasons: list[str] = field(default_factory=list)
     denoise_half: int = 0  # > 0: temporal mean over 2 * half + 1 frames (processing/lowlight.py)
     mask_glints: bool = False  # per-frame masking of short-lived specular pixels (processing/lowlight.py)
+    variants: list | None = None  # self-check scores of the variants tried (processing/selfcheck.py), if any
 
     def to_dict(self) -> dict:
         return {"plan": self.plan, "shrink": round(self.shrink, 4), "min_texture": round(self.min_texture, 5),
                 "min_pairs": self.min_pairs, "denoise_frames": 2 * self.denoise_half + 1 if self.denoise_half else 1,
-                "mask_glints": self.mask_glints, "reasons": list(self.reasons)}
+                "mask_glints": self.mask_glints, "variants": self.variants, "reasons": list(self.reasons)}
+
+
+def ambiguous(stats: ClipStats) -> bool:
+    """True where the contrast-to-noise ratio is within a factor 2 of :data:`CNR_WEAK` (either plan may fit)."""
+    return CNR_WEAK / 2.0 <= stats.cnr < 2.0 * CNR_WEAK
 
 
 def gates(stats: ClipStats, *, shrink_default: float, min_texture_default: float, min_pairs: int,
-          n_frames: int) -> Gates:
+          n_frames: int, force: str | None = None) -> Gates:
     """The soft threshold, texture gate and pair count for a clip.
 
     Where the tracers stand well above the noise (cnr >= :data:`CNR_WEAK`) the defaults stand: they were set
@@ -145,9 +151,10 @@ def gates(stats: ClipStats, *, shrink_default: float, min_texture_default: float
     threshold would erase tracers as faint as the noise: it is lowered to half the tracers' contrast in noise
     sd, the texture gate to the rms that pure noise keeps after that threshold (a window with less is
     featureless, one with tracers has more), scaled like the default is to the default threshold's residual,
-    and the ensemble uses every pair (noise averages out as 1 / sqrt(pairs)).
+    and the ensemble uses every pair (noise averages out as 1 / sqrt(pairs)). ``force``: "standard" or
+    "low_light" whatever the ratio (the self-check's variants).
     """
-    if stats.cnr >= CNR_WEAK:
+    if force == "standard" or (force is None and stats.cnr >= CNR_WEAK):
         return Gates("standard", shrink_default, min_texture_default, None,
                      [f"tracer contrast {stats.contrast:.1f} grey levels is {stats.cnr:.1f} x the noise "
                       f"({stats.noise:.2f}): default gates"])

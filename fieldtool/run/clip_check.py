@@ -12,7 +12,7 @@ from itertools import islice
 
 import numpy as np
 
-from fieldtool.processing import clip_stats, lowlight
+from fieldtool.processing import clip_stats, lowlight, selfcheck, surface
 from fieldtool.processing.surface import MIN_TEXTURE, SHRINK
 
 #: frames read for the estimates (~0.7 s at 30 fps)
@@ -55,12 +55,37 @@ class ClipCheck:
                 "gates": self.gates.to_dict()}
 
 
-def check(inputs, roi, n_clip: int) -> ClipCheck:
-    """Estimates and gates for the clip of ``inputs`` inside ``roi`` (x0, y0, x1, y1 px of the working frame)."""
-    frames = [np.asarray(f.image) for f in islice(iter(inputs.source), N_FRAMES) if f.image is not None]
+def check(inputs, roi, n_clip: int, params=None, mask=None, standardize: bool = True) -> ClipCheck:
+    """Estimates and gates for the clip of ``inputs`` inside ``roi`` (x0, y0, x1, y1 px of the working frame).
+    Where the estimates are ambiguous (:func:`clip_stats.ambiguous`) and the standardisation is on, the
+    standard and the weak-signal gates are both run on the first frames' pairs and the more self-consistent
+    one is kept (:mod:`fieldtool.processing.selfcheck`)."""
+    got = [f for f in islice(iter(inputs.source), N_FRAMES) if f.image is not None]
+    frames = [np.asarray(f.image) for f in got]
     default = clip_stats.Gates("standard", SHRINK, MIN_TEXTURE, None, ["too few frames to estimate: default gates"])
     if len(frames) < 3:
         return ClipCheck(None, default)
     stats = clip_stats.estimate(frames, roi, step=2)
-    return ClipCheck(stats, clip_stats.gates(stats, shrink_default=SHRINK, min_texture_default=MIN_TEXTURE,
-                                             min_pairs=2, n_frames=n_clip or len(frames)))
+    kw = dict(shrink_default=SHRINK, min_texture_default=MIN_TEXTURE, min_pairs=2, n_frames=n_clip or len(frames))
+    g = clip_stats.gates(stats, **kw)
+    out = ClipCheck(stats, g)
+    if params is None or not standardize or not clip_stats.ambiguous(stats):
+        return out
+    variants = {"standard": clip_stats.gates(stats, **kw, force="standard"),
+                "weak_signal": clip_stats.gates(stats, **kw, force="low_light")}
+    dt = float(np.median(np.diff([f.t_s for f in got]))) or 1.0 / 30.0
+
+    def make(gv):
+        def run():
+            c = ClipCheck(stats, gv)
+            fr = surface.standardize(c.before(list(zip([f.t_s for f in got], frames))), roi, half=surface.HALF_WINDOW,
+                                     shrink=gv.shrink)
+            fr = c.after(fr, None)
+            return [f for _, f in fr], replace(c.params(params, True), frame_gap=2)
+        return run
+
+    best, scores = selfcheck.choose({k: make(v) for k, v in variants.items()}, dt, roi, mask)
+    chosen = variants[best]
+    chosen.reasons.append(f"ambiguous estimates: variants scored by self-consistency, {best} kept")
+    chosen.variants = [sc.to_dict() for sc in scores]
+    return ClipCheck(stats, chosen)

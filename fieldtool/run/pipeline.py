@@ -610,7 +610,7 @@ def _run_project(project: Project, out_dir: Path | str | None, progress: Progres
                         "time window needs; glints and other patterns fixed in the image are not removed")
     from fieldtool.run import clip_check, unmeasured  # issue 23: gates from the clip's noise and contrast
 
-    clip = clip_check.check(inputs, roi, n_clip)
+    clip = clip_check.check(inputs, roi, n_clip, params, mask, standardize)
     params = clip.params(params, standardize)
     roi_user = roi
     segments = [geom.p_img] + [inputs.to_working(s.points_px) for s in extra_sections if len(s.points_px)]
