@@ -4,8 +4,8 @@ Where the clip's estimates are ambiguous (tracer contrast neither plainly above 
 a few variants of the pre-processing are run on the first frames' pairs and scored by the field's own
 consistency, never by the discharge it would give:
 
-- frame-gap agreement (the forward-backward test's role): the velocities (px/s) from pairs 1 frame apart and
-  from pairs 2 frames apart must agree; ``fb`` = median |u_2 - u_1| / median |u_1| over the nodes valid in both
+- frame-gap agreement (the forward-backward test's role): the velocities (px/s) from pairs g frames apart and
+  from pairs 2g frames apart must agree; ``fb`` = median |u_2g - u_g| / median |u_g| over the nodes valid in both
   (0 = perfect). (Correlating b -> a instead of a -> b on the same windows only flips the sign of the same
   peak, so a literal forward-backward test on one pass is always perfect and says nothing.)
 - valid fraction: the nodes' mean share of pairs with a valid vector;
@@ -44,12 +44,13 @@ def _field(frames: Sequence[np.ndarray], dt: float, params: piv.PivParams, roi, 
 
 
 def score(name: str, frames: Sequence[np.ndarray], dt: float, params: piv.PivParams, roi=None,
-          mask: np.ndarray | None = None) -> VariantScore:
+          mask: np.ndarray | None = None, gap: int = 1) -> VariantScore:
     """Consistency of the field of ``frames`` (pre-processed, >= 4, ``dt`` s apart) under ``params``
-    (averaging forced to ``mean``: per-pair fields; frame gaps 1 and 2)."""
+    (averaging forced to ``mean``: per-pair fields; frame gaps ``gap`` and ``2 * gap``: with a temporal filter,
+    give at least its window so that no pair shares an input frame)."""
     p = replace(params, averaging="mean", passes=1, search_px=None)
-    fw = _field(frames, dt, replace(p, frame_gap=1), roi, mask)
-    bw = _field(frames, dt, replace(p, frame_gap=2), roi, mask)
+    fw = _field(frames, dt, replace(p, frame_gap=gap), roi, mask)
+    bw = _field(frames, dt, replace(p, frame_gap=2 * gap), roi, mask)
     both = fw.valid & bw.valid & np.isfinite(fw.u) & np.isfinite(bw.u)
     sp = np.hypot(fw.u, fw.v)
     if both.sum() < 3 or not np.isfinite(np.median(sp[both])) or np.median(sp[both]) <= 0:
@@ -68,14 +69,14 @@ def score(name: str, frames: Sequence[np.ndarray], dt: float, params: piv.PivPar
 
 
 def choose(variants: dict[str, Callable[[], tuple[Sequence[np.ndarray], piv.PivParams]]], dt: float, roi=None,
-           mask: np.ndarray | None = None) -> tuple[str, list[VariantScore]]:
+           mask: np.ndarray | None = None, gap: int = 1) -> tuple[str, list[VariantScore]]:
     """Score each variant (name -> () -> (pre-processed frames, params)); the name of the best and every score.
     Ties keep the first variant given (list the default first)."""
     scores = []
     for name, make in variants.items():
         try:
             fr, prm = make()
-            scores.append(score(name, fr, dt, prm, roi, mask))
+            scores.append(score(name, fr, dt, prm, roi, mask, gap))
         except Exception:  # noqa: BLE001 - a variant that cannot be scored loses
             scores.append(VariantScore(name, float("nan"), 0.0, float("nan"), 0.0))
     best = max(range(len(scores)), key=lambda i: (scores[i].score, -i))

@@ -610,7 +610,7 @@ def _run_project(project: Project, out_dir: Path | str | None, progress: Progres
                         "time window needs; glints and other patterns fixed in the image are not removed")
     from fieldtool.run import clip_check, unmeasured  # issue 23: gates from the clip's noise and contrast
 
-    clip = clip_check.check(inputs, roi, n_clip, params, mask, standardize)
+    clip = clip_check.check(inputs, roi, n_clip, params, mask, standardize, project.piv.frame_gap)
     params = clip.params(params, standardize)
     roi_user = roi
     segments = [geom.p_img] + [inputs.to_working(s.points_px) for s in extra_sections if len(s.points_px)]
@@ -711,6 +711,8 @@ def _run_project(project: Project, out_dir: Path | str | None, progress: Progres
             if plan.guess is not None:
                 plan.search_px = None  # the first pass starts from the look's field
             params = _replace(params, frame_gap=plan.frame_gap, search_px=params.search_px or plan.search_px)
+            params = clip.gap(params)  # issue 23: denoised frames are paired beyond their averaging window
+            plan.frame_gap = params.frame_gap
             if plan.frame_gap > 1 or plan.search_px or plan.guess is not None:
                 warnings.append(
                     f"piv: from a first look at {plan.pairs_looked} pairs (slow nodes {plan.slow_px_per_frame:.1f}, "
