@@ -149,3 +149,23 @@ def test_selfcheck_prefers_the_consistent_variant():
     assert best == "tracers"
     s = {v.name: v for v in scores}
     assert s["tracers"].score > s["noise"].score and s["tracers"].fb < 0.2 and s["tracers"].valid > 0.5
+
+
+@pytest.mark.slow
+def test_blank_clip_ends_unusable_with_every_file(tmp_path: Path):
+    """Dark water without a single tracer: nothing can be measured -> exit 3, result.json with a null discharge,
+    grade unusable and its reason (exit 2 "no valid velocity vector" before issue 23)."""
+    from fieldtool.synthetic import presets, render_scene
+
+    spec = presets.get("low_light", seed=0, duration_s=2.0, particle_brightness=0.0, camera__width_px=640,
+                       camera__height_px=360, piv_window_px=16, piv_overlap_px=8)
+    truth = render_scene(spec, tmp_path / "scene")
+    out = tmp_path / "res"
+    p = subprocess.run([sys.executable, "-m", "fieldtool.cli", "run", str(truth.project_path), "--out", str(out)],
+                       capture_output=True, text=True, env=os.environ.copy())
+    assert p.returncode == 3, p.stderr[-500:]
+    res = json.loads((out / "result.json").read_text())
+    assert res["discharge_m3s"] is None and res["quality"]["grade"] == "unusable"
+    assert res["quality"]["reasons"][0]["code"] == "nothing_measured"
+    for f in ("subsections.csv", "mean_field.npz", "vectors.png", "section.png"):
+        assert (out / f).exists(), f

@@ -60,6 +60,12 @@ class ClipCheck:
     def min_pairs(self, project_min_pairs: int) -> int:
         return max(project_min_pairs, self.gates.min_pairs or 0)
 
+    def annotate(self, robust: dict) -> None:
+        """Add the estimates and gates to ``robust`` (result.json) and the pre-processing chosen to its plan."""
+        robust.update(self.facts())
+        if isinstance(robust.get("plan"), dict):
+            robust["plan"]["preprocessing"] = self.gates.plan
+
     def facts(self) -> dict:
         s = self.stats
         return {"noise": None if s is None else {"temporal_sd_gray": s.noise, "frames": s.frames},

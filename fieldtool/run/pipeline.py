@@ -821,7 +821,7 @@ def _run_project(project: Project, out_dir: Path | str | None, progress: Progres
         v_sub = dq.subsection_velocity(geom, res.x, res.y, U, V)
         dres = dq.compute_discharge(geom, cs, level.level_m, v_sub, sec.alpha)
     robust_facts: dict = {"plan": plan.as_dict() if plan is not None else None}
-    robust_facts.update(clip.facts())  # issue 23: robust.noise, robust.contrast, robust.gates
+    clip.annotate(robust_facts)  # issue 23: robust.noise, robust.contrast, robust.gates, robust.plan.preprocessing
     if surface_stats is not None:
         robust_facts["stationary_removed"] = {"frames": surface_stats.frames, "std_ref": surface_stats.std_ref,
                                               "specular_fraction": surface_stats.specular_fraction}

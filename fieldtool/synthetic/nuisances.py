@@ -240,17 +240,24 @@ class Layer:
 
     def _draw_debris(self, img: np.ndarray, t: float) -> None:
         x0, y, u, shapes, val = self._debris
-        mask = np.zeros(img.shape, np.uint8)
         span = 4 * self.L
         xs = self.river.x_section_m
+        h, w = img.shape
         for j in range(len(x0)):
             xc = xs - 3 * self.L + np.mod(x0[j] - (xs - 3 * self.L) + u[j] * t, span)
             pts = self._project(shapes[j] + [xc, y[j]])
-            mask[:] = 0
-            cv2.fillPoly(mask, [np.round(pts * 16).astype(np.int32)], 255, cv2.LINE_AA, 4)
+            if not np.all(np.isfinite(pts)):
+                continue
+            c0, r0 = np.maximum(np.floor(pts.min(axis=0)).astype(int) - 4, 0)
+            c1, r1 = np.minimum(np.ceil(pts.max(axis=0)).astype(int) + 5, [w, h])
+            if c1 <= c0 or r1 <= r0:
+                continue
+            mask = np.zeros((r1 - r0, c1 - c0), np.uint8)  # the object's box only
+            cv2.fillPoly(mask, [np.round((pts - [c0, r0]) * 16).astype(np.int32)], 255, cv2.LINE_AA, 4)
             m = cv2.GaussianBlur(mask, (0, 0), 0.7).astype(np.float32) / 255.0
-            img *= 1.0 - m
-            img += m * val[j]
+            sub = img[r0:r1, c0:c1]
+            sub *= 1.0 - m
+            sub += m * val[j]
 
     # -- the sensor (grey levels) ----------------------------------------------------------------
     def gain(self, t: float) -> float:
