@@ -8,7 +8,8 @@ through ``fieldtool run`` as a new user would (a subprocess: its exit code is pa
 the generator's (integrated from the profile it drew). A row passes when the exit code is not 2 and either
 |error| <= 5 %, or the grade is not good, the truth lies inside the 95 % interval and its half-width is <= 25 %;
 a good grade with |error| > 5 % fails. ``--baseline``: also rerun the kind scenes' projects in BASELINE/<scene>/scene
-and print the change of their error against BASELINE/<scene>/results/result.json (percentage points).
+and print the change of their error against BASELINE/<scene>/results/result.json (percentage points); the kind
+scenes (oblique, nadir, far_bank) fail when it exceeds 0.5 pp.
 """
 
 from __future__ import annotations
@@ -23,6 +24,10 @@ import time
 from pathlib import Path
 
 from fieldtool.synthetic import presets, render_scene
+
+
+#: the kind scenes, which must move by no more than 0.5 percentage points from their baseline
+KIND = ("oblique", "nadir", "far_bank")
 
 
 def run_cli(project: Path, out: Path) -> tuple[int, dict | None, float]:
@@ -97,7 +102,8 @@ def main() -> int:
             rc, res, dt = run_cli(b / "scene" / "project.toml", out)
             r = row(name, "base", rc, res, q_true, dt)
             moved = None if r["err"] is None else r["err"] - e0
-            r["pass"] = r["pass"] and moved is not None and abs(moved) <= 0.5
+            if name in KIND:  # the kind scenes must not move; the old hard ones are held to the row's rule only
+                r["pass"] = r["pass"] and moved is not None and abs(moved) <= 0.5
             rows.append(r)
             print(fmt(r, f"  baseline {e0:+.2f} %, moved {moved:+.2f} pp" if moved is not None else ""), flush=True)
     n_fail = sum(not r["pass"] for r in rows)

@@ -36,6 +36,9 @@ GLARE_K = 8.0
 #: weak clips only: above this share of glint candidates, glints are masked frame by frame (in a weak clip the
 #: tracers are faint, so what stands that far above the median is specular)
 GLARE_ON = 0.005
+#: windows where more than this share of the bright events last one frame only are glare windows, left out of the
+#: contrast (tracers light a pixel for several frames)
+GLARE_ISOLATED = 0.5
 #: share of the clip's frames in which a glint candidate may be bright (short-lived)
 GLARE_DUTY = 0.3
 
@@ -92,7 +95,14 @@ def estimate(frames, box: tuple[int, int, int, int] | None = None, *, win: int =
     sm = np.stack([cv2.GaussianBlur(r, (0, 0), 1.5) for r in resid])
     sig_s = float(max(np.median(temporal_noise(sm[:, ::step, ::step])), 1e-4))
     hh, ww = med.shape
-    cons, texs = [], []
+    # short-lived bright pixels against the noise alone, per window: a glint column's windows are left out of
+    # the contrast (their glints would read as tracers of 100+ grey levels)
+    flick = resid > GLARE_K * noise
+    # a glint shines in one frame at a place; a tracer (a blob of several px, moving a few px a frame) lights
+    # a pixel in runs of frames: the share of a window's bright events that are isolated in time sets it apart
+    iso = flick[1:-1] & ~flick[:-2] & ~flick[2:]
+    n_iso, n_all = iso.sum(axis=0), flick[1:-1].sum(axis=0)
+    cons, texs, fl = [], [], []
     for r0 in range(0, max(hh - win // 2, 1), win):
         for c0 in range(0, max(ww - win // 2, 1), win):
             blk = sm[:, r0:r0 + win, c0:c0 + win]
@@ -100,8 +110,11 @@ def estimate(frames, box: tuple[int, int, int, int] | None = None, *, win: int =
                 continue
             cons.append(max(float(np.percentile(blk, 99.0)) - 2.33 * sig_s, 0.0))
             texs.append(float(np.sqrt(np.mean(blk * blk))))
+            fl.append(float(n_iso[r0:r0 + win, c0:c0 + win].sum()) / max(float(n_all[r0:r0 + win, c0:c0 + win].sum()), 1.0))
     cons_a = np.asarray(cons) if cons else np.zeros(1)
-    contrast = float(np.median(cons_a))
+    fl_a = np.asarray(fl) if fl else np.zeros(1)
+    clean = fl_a <= GLARE_ISOLATED
+    contrast = float(np.median(cons_a[clean] if clean.any() else cons_a))
     bright = resid > np.maximum(GLARE_K * noise, 2.0 * contrast)
     share = bright.mean(axis=0)
     glare = float(np.mean((share > 0) & (share <= GLARE_DUTY)))
