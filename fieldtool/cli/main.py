@@ -83,8 +83,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("demo", help="render a synthetic river with a known discharge and measure it")
     p.add_argument("--out", default="demo_out", help="output folder (default demo_out)")
-    p.add_argument("--scene", default="oblique", help="scene preset: oblique, nadir, far_bank, or a hard one (glints_section, ripples, "
-                        "sparse_patchy, fast_1080p, grazing, compressed, skewed, dropped_frames)")
+    p.add_argument("--scene", default="oblique", help="scene preset: oblique, nadir, far_bank, a hard one (glints_section, ripples, "
+                        "sparse_patchy, fast_1080p, grazing, compressed, skewed, dropped_frames) or an unseen one (low_light, "
+                        "glare_column, rain, shadows, exposure, debris, standing_waves, drone_4k)")
     p.set_defaults(func=cmd_demo)
 
     for name in EXTENSIONS:

@@ -14,7 +14,7 @@ from fieldtool.processing import cross_section as xs
 from fieldtool.processing import discharge as dq
 from fieldtool.processing import ortho, robust
 from fieldtool.project.model import Project
-from fieldtool.run import stiv_stage
+from fieldtool.run import stiv_stage, unmeasured
 from fieldtool.run.geometry import build_section
 from fieldtool.run.inputs import Inputs
 from fieldtool.run.velocimetry import PivSetup, Velocimetry
@@ -62,6 +62,7 @@ class Discharge:
     q_pairs: np.ndarray
     stiv: dict | None
     robust: dict
+    unmeasured: object | None = None  # processing.quality.Quality (unusable) when nothing was measured on the section
 
 
 def compute_discharge(project: Project, inputs: Inputs, level_m: float, mapping: ortho.OrthoMapping,
@@ -71,6 +72,9 @@ def compute_discharge(project: Project, inputs: Inputs, level_m: float, mapping:
     cs, sec, res = inputs.cross_section, project.section, vel.piv
     U, V = mapping.rectify_velocity(res.x, res.y, res.u, res.v)
     v_sub = dq.subsection_velocity(geom, res.x, res.y, U, V)
+    if unmeasured.nothing_measured(v_sub):  # an unusable verdict (exit 3) with every file, not exit 2 (issue 23)
+        dres, qual = unmeasured.verdict(geom, cs, level_m, sec.alpha, setup.clip.facts())
+        return Discharge(dres, geom, U, V, np.zeros(0), None, {"plan": None, **setup.clip.facts()}, qual)
     dres = dq.compute_discharge(geom, cs, level_m, v_sub, sec.alpha)
     if dres.discharge_m3s < 0:
         # P1/P2 picked right-to-left: swap them so P1 is the left edge, as the stations assume
@@ -81,6 +85,7 @@ def compute_discharge(project: Project, inputs: Inputs, level_m: float, mapping:
         v_sub = dq.subsection_velocity(geom, res.x, res.y, U, V)
         dres = dq.compute_discharge(geom, cs, level_m, v_sub, sec.alpha)
     robust_facts: dict = {"plan": vel.plan.as_dict() if vel.plan is not None else None}
+    setup.clip.annotate(robust_facts)  # robust.noise, robust.contrast, robust.gates, robust.plan.preprocessing
     if vel.surface_stats is not None:
         ss = vel.surface_stats
         robust_facts["stationary_removed"] = {"frames": ss.frames, "std_ref": ss.std_ref,

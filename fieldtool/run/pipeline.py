@@ -101,10 +101,12 @@ def _run_project(project: Project, out_dir: Path | str | None, progress: Progres
     obs("stage", "discharge")
     q = discharge.compute_discharge(project, inputs, level.level_m, mapping, placed.geom, setup, vel, pairs, warnings)
     lap("discharge")
-    if prerendered is not None:  # the velocity figures are drawn in the figure process during the Monte Carlo
-        prerendered.results(inputs, q.result, vel.piv, q.world_u, q.world_v, q.geom, mapping, inputs.cross_section)
-
-    verdict = quality.assess(project, inputs, level, mapping, vel, q, pairs, extra, warnings)
+    if q.unmeasured is None:
+        if prerendered is not None:  # the velocity figures are drawn in the figure process during the Monte Carlo
+            prerendered.results(inputs, q.result, vel.piv, q.world_u, q.world_v, q.geom, mapping, inputs.cross_section)
+        verdict = quality.assess(project, inputs, level, mapping, vel, q, pairs, extra, warnings)
+    else:  # nothing measured on the section: graded unusable with its reasons, every file still written
+        verdict = quality.Verdict(None, q.unmeasured, [])
     lap("uncertainty_and_quality")
 
     result = RunResult(q.result, q.q_pairs, level, mapping, vel.piv, q.geom, q.world_u, q.world_v, None,

@@ -23,7 +23,7 @@ from fieldtool.processing import piv_fast, planning, surface
 from fieldtool.processing.piv import PivParams
 from fieldtool.project.model import Project
 from fieldtool.run import frames as frames_mod
-from fieldtool.run import clip_pass, overlay_stage, piv_cache, piv_rounds, stiv_stage
+from fieldtool.run import clip_check, clip_pass, overlay_stage, piv_cache, piv_rounds, stiv_stage
 from fieldtool.run.geometry import Sections
 from fieldtool.run.inputs import Inputs
 from fieldtool.run.observer import Guarded, Progress
@@ -68,6 +68,7 @@ class PivSetup:
     near: tuple | None
     max_speed: np.ndarray | None
     stiv_run: stiv_stage.StivRun | None
+    clip: clip_check.ClipCheck  # the clip's noise and contrast and the gates set from them (issue 23)
 
 
 def setup(project: Project, inputs: Inputs, mapping, sections: Sections, warnings: list[str]) -> PivSetup:
@@ -83,8 +84,8 @@ def setup(project: Project, inputs: Inputs, mapping, sections: Sections, warning
         warnings.append(f"piv.remove_stationary: the clip has {n_clip} frames, fewer than the "
                         f"{2 * surface.HALF_WINDOW + 1} its time window needs; glints and other patterns fixed in "
                         "the image are not removed")
-    if standardize:
-        params = replace(params, min_texture=surface.MIN_TEXTURE)
+    clip = clip_check.check(inputs, roi, n_clip, params, mask, standardize, project.piv.frame_gap)
+    params = clip.params(params, standardize)  # the texture gate from the clip's noise (run/clip_check.py)
     box = piv_region(project, inputs, params, roi, sections.segments)
     near = None
     if project.piv.region == "section" and box is not None:  # in the band's box, only the nodes near the sections
@@ -94,7 +95,7 @@ def setup(project: Project, inputs: Inputs, mapping, sections: Sections, warning
     max_speed = None
     if project.piv.max_velocity_ms is not None:
         max_speed = project.piv.max_velocity_ms / mapping.scale_m_per_px(x, y)
-    return PivSetup(params, bool(standardize), box, roi, mask, near, max_speed, stiv_run)
+    return PivSetup(params, bool(standardize), box, roi, mask, near, max_speed, stiv_run, clip)
 
 
 @dataclass
@@ -146,10 +147,11 @@ class _Streams:
         frames = frames_mod.count_identical(self._tracked(frames), self.frame_stats)
         if s.standardize:
             self.surface_stats.frames = 0  # each round of the fast path standardises the clip again: count one pass
-            frames = piv_fast.threaded(frames)  # decoding (and STIV's sampling) in a thread of its own
+            frames = piv_fast.threaded(s.clip.before(frames))  # decoding (and STIV's sampling) in a thread of its own
             frames = surface.standardize(frames, s.roi, margin=max(64, self.params.search_px or 0),
-                                         half=surface.HALF_WINDOW, shrink=surface.SHRINK, stats=self.surface_stats,
-                                         want=want_std)
+                                         half=surface.HALF_WINDOW, shrink=s.clip.gates.shrink,
+                                         stats=self.surface_stats, want=s.clip.std_want(want_std))
+            frames = s.clip.after(frames, want_std)  # weak clips: the glints masked (before) and the temporal mean
         return frames
 
     def _tracked(self, it):
@@ -169,6 +171,8 @@ class _Streams:
             if plan.guess is not None:
                 plan.search_px = None  # the first pass starts from the look's field
             self.params = replace(params, frame_gap=plan.frame_gap, search_px=params.search_px or plan.search_px)
+            self.params = self.s.clip.gap(self.params)  # denoised frames are paired beyond their averaging window
+            plan.frame_gap = self.params.frame_gap
             if plan.frame_gap > 1 or plan.search_px or plan.guess is not None:
                 self.warnings.append(
                     f"piv: from a first look at {plan.pairs_looked} pairs (slow nodes {plan.slow_px_per_frame:.1f}, "
@@ -242,13 +246,14 @@ def _rounds(project: Project, st: _Streams, n_exp: int, pair_q, on_pair, fast: d
     box = surface._box((h, w), s.roi, max(64, s.params.search_px or 0)) if s.standardize else (0, 0, w, h)
     # whole working frames without filters hold whole grey levels: kept as uint8 (clip_pass.KeptFrames._stored)
     bytes_px = 1 if not s.standardize and not project.filters else 4
-    kept.plan(n_exp - gap, min(max(int(project.piv.min_pairs), 2), n_exp - gap), gap, box, bytes_px)
+    min_pairs = s.clip.min_pairs(project.piv.min_pairs)  # weak clips average more pairs (run/clip_check.py)
+    kept.plan(n_exp - gap, min(max(int(min_pairs), 2), n_exp - gap), gap, box, bytes_px)
     drain = s.stiv_run is not None or len(kept.keep) > 1  # the pass reaches the clip's end
     try:
         if n_exp - gap >= 2:
             res, conv = piv_rounds.run_piv_fast(make_frames, n_exp - gap, gap, params, s.roi, s.mask, s.max_speed,
                                                 st.cancel, on_pair, pair_q, project.piv.converge_rel_ci,
-                                                project.piv.min_pairs, drain_first=drain,
+                                                min_pairs, drain_first=drain,
                                                 near=s.near, first_guess=st.plan.guess)
             fast.update(conv)
         else:

@@ -30,6 +30,21 @@ truth integrated from the profile it draws (``River.truth()``), deterministic by
 - ``dropped_frames``: oblique view as a variable-frame-rate Matroska (MJPEG) clip: ~20 % of the frames of a
   30 fps recording dropped in runs of 1-4, +-2 ms jitter; container timestamps exact (10 µs ticks).
 
+Unseen scenes (:data:`NEW_NAMES`, 6 s; synthetic/nuisances.py draws them), each on a base view chosen by the
+seed (seed % 3: oblique, nadir, far_bank; ``drone_4k`` always nadir) so that seeds vary the geometry too, with
+the nuisances' positions drawn from the seed:
+
+- ``low_light``: dusk; water at 22 grey levels, tracers 6-10 levels above it, shot + read noise ~5 levels at
+  the water, vignetting 30 % at the corners.
+- ``glare_column``: a column of one-frame glitter (~400 glints a frame) across the middle of the section, faint
+  tracers (~13 levels) under a bright haze.
+- ``rain``: raindrop rings born at fixed points (not advected), spreading at 0.35 m/s, plus streaks in the air.
+- ``shadows``: a hard bridge shadow band fixed in the world near the section plus swaying leaf shadows.
+- ``exposure``: auto-exposure pumping (gain 0.8-1.25, 2 s cycle and steps) and a white-balance drift.
+- ``debris``: sparse seeding (4 /m²) with 8 large floating objects (0.3-0.9 m) moving with the surface.
+- ``standing_waves``: a standing wave train and a hydraulic jump's foam roller, both fixed in the world.
+- ``drone_4k``: a 3840x2160 drone looking straight down from 25 m.
+
 Any other keyword replaces a :class:`SceneSpec` field (``seed=3``, ``duration_s=4``); ``river__x``
 and ``camera__x`` replace a field of the river or the camera (``river__u_max_ms=0.9``).
 """
@@ -40,6 +55,7 @@ from dataclasses import replace
 
 from fieldtool.errors import ParameterError
 from fieldtool.synthetic.camera import Camera
+from fieldtool.synthetic.nuisances import Nuisances
 from fieldtool.synthetic.scene import River, SceneSpec
 
 NAMES = ("oblique", "nadir", "far_bank")
@@ -125,12 +141,62 @@ _HARD = {"glints_section": _glints_section, "ripples": _ripples, "sparse_patchy"
          "dropped_frames": _dropped_frames}
 
 
+NEW_NAMES = ("low_light", "glare_column", "rain", "shadows", "exposure", "debris", "standing_waves", "drone_4k")
+NEW_DURATION_S = 6.0
+
+
+def _base_by_seed(seed: int) -> SceneSpec:
+    """The base view of an unseen scene: oblique, nadir, far_bank for seed % 3 = 0, 1, 2."""
+    return (_oblique, _nadir, _far_bank)[int(seed) % 3]()
+
+
+def _low_light(seed: int) -> SceneSpec:
+    return replace(_base_by_seed(seed), water_gray=22 / 255, bank_gray=0.16, bank_contrast=0.06,
+                   particle_brightness=8 / 255, noise_sigma=0.0,
+                   nuisances=Nuisances(read_noise=4.0, shot_gain=0.41, vignette=0.3))
+
+
+def _glare_column(seed: int) -> SceneSpec:
+    return replace(_base_by_seed(seed), particle_brightness=0.05,
+                   nuisances=Nuisances(glitter_per_frame=400, glitter_halfwidth_px=50.0, haze=0.35))
+
+
+def _rain(seed: int) -> SceneSpec:
+    return replace(_base_by_seed(seed), nuisances=Nuisances(rain_rate_m2s=3.0, rain_streaks=60))
+
+
+def _shadows(seed: int) -> SceneSpec:
+    return replace(_base_by_seed(seed), nuisances=Nuisances(shadow_band_depth=0.6, leaf_shadows=12))
+
+
+def _exposure(seed: int) -> SceneSpec:
+    return replace(_base_by_seed(seed), nuisances=Nuisances(exposure_amp=0.2, white_balance_amp=0.15))
+
+
+def _debris(seed: int) -> SceneSpec:
+    return replace(_base_by_seed(seed), particle_density_m2=4.0, nuisances=Nuisances(debris=8))
+
+
+def _standing_waves(seed: int) -> SceneSpec:
+    return replace(_base_by_seed(seed), nuisances=Nuisances(standing_amp=0.06, jump_amp=0.15))
+
+
+def _drone_4k(seed: int) -> SceneSpec:
+    s = _nadir()
+    cam = replace(s.camera, width_px=3840, height_px=2160)
+    return replace(s, camera=cam, texture_res_m=0.006, particle_diameters_m=(0.06,))
+
+
+_NEW = {"low_light": _low_light, "glare_column": _glare_column, "rain": _rain, "shadows": _shadows,
+        "exposure": _exposure, "debris": _debris, "standing_waves": _standing_waves, "drone_4k": _drone_4k}
+
+
 STRONG_DISTORTION = (-0.35, 0.03675, 0.0, 0.0, 0.0)
 
 
 def get(name: str, *, shake: bool = False, distortion: bool = False, glints: bool = False, lens_gcps: bool = False,
         **overrides) -> SceneSpec:
-    """The scene ``name`` (one of :data:`NAMES` or :data:`HARD_NAMES`) with variant flags and field
+    """The scene ``name`` (one of :data:`NAMES`, :data:`HARD_NAMES` or :data:`NEW_NAMES`) with variant flags and field
     overrides applied. Hard scenes last :data:`HARD_DURATION_S` unless ``duration_s`` is given.
 
     ``lens_gcps=True``: a strong barrel lens (k1 -0.35, k2 0.037, 62 degrees) aimed so the section lies
@@ -138,10 +204,12 @@ def get(name: str, *, shake: bool = False, distortion: bool = False, glints: boo
     """
     if name in _HARD:
         spec = replace(_HARD[name](), name=name, duration_s=HARD_DURATION_S)
+    elif name in _NEW:  # the seed chooses the base view
+        spec = replace(_NEW[name](int(overrides.get("seed", 0))), name=name, duration_s=NEW_DURATION_S)
     elif name in _BASE:
         spec = _BASE[name]()
     else:
-        raise ParameterError(f"synthetic scene {name!r}: choose one of {', '.join(NAMES + HARD_NAMES)}")
+        raise ParameterError(f"synthetic scene {name!r}: choose one of {', '.join(NAMES + HARD_NAMES + NEW_NAMES)}")
     suffix = []
     if shake:
         spec = replace(spec, shake_px=3.0, shake_deg=0.3, shake_drift_px_s=20.0)

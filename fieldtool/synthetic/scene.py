@@ -46,6 +46,7 @@ from fieldtool.project.model import (
 )
 from fieldtool.synthetic.camera import Camera, render_canvas
 from fieldtool.synthetic.checkerboard import render_checkerboard
+from fieldtool.synthetic.nuisances import Layer, Nuisances
 from fieldtool.synthetic.mkv import TIMECODE_SCALE_NS, MkvWriter, ticks_of
 
 
@@ -245,6 +246,7 @@ class SceneSpec:
     section_skew_deg: float = 0.0  # surveyed section at this angle to the channel's normal (flow stays along +X)
     jpeg_quality: int = 0  # 1..100: each frame goes through JPEG at this quality before the video codec
     drop_fraction: float = 0.0  # > 0: variable-frame-rate Matroska (MJPEG) with this share of frames dropped
+    nuisances: Nuisances = field(default_factory=Nuisances)  # low light, rain, shadows, ... (synthetic/nuisances.py)
 
     @property
     def n_frames(self) -> int:
@@ -254,7 +256,10 @@ class SceneSpec:
         """A copy with fields replaced; ``river__x`` / ``camera__x`` change a field of those parts."""
         river = {k[7:]: v for k, v in changes.items() if k.startswith("river__")}
         cam = {k[8:]: v for k, v in changes.items() if k.startswith("camera__")}
+        nzc = {k[11:]: v for k, v in changes.items() if k.startswith("nuisances__")}
         own = {k: v for k, v in changes.items() if "__" not in k}
+        if nzc:
+            own["nuisances"] = replace(self.nuisances, **nzc)
         if river:
             own["river"] = replace(self.river, **river)
         if cam:
@@ -702,11 +707,17 @@ def _seed_particles(spec: SceneSpec, ras: _Raster, H_static: np.ndarray, rng: np
 def _section_and_gcps(spec: SceneSpec) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(section's two water edges px on frame 0 through the lens, GCP world points, their px)."""
     cam, river = spec.camera, spec.river
-    xs = river.x_section_m
-    skew = np.tan(np.radians(spec.section_skew_deg)) * river.width_m / 2.0
-    sec_world = np.array([[xs + skew, river.y_left_edge, river.level_m], [xs - skew, river.y_right_edge, river.level_m]])
+    sec_world = _section_world(spec)
     gw = gcp_world(spec)
     return cam.project(sec_world), gw, cam.project(gw)
+
+
+def _section_world(spec: SceneSpec) -> np.ndarray:
+    """The section's two water edges on the water plane (X, Y, Z m), skewed by ``section_skew_deg``."""
+    river = spec.river
+    xs = river.x_section_m
+    skew = np.tan(np.radians(spec.section_skew_deg)) * river.width_m / 2.0
+    return np.array([[xs + skew, river.y_left_edge, river.level_m], [xs - skew, river.y_right_edge, river.level_m]])
 
 
 class _FrameRenderer:
@@ -728,6 +739,7 @@ class _FrameRenderer:
             self.static_img = cv2.warpPerspective(static_tex, H_static, canvas, flags=cv2.INTER_LINEAR,
                                                   borderMode=cv2.BORDER_CONSTANT, borderValue=0.5)
         self.noise = np.empty((cam.height_px, cam.width_px), np.float32)
+        self.nuis: Layer | None = None  # low light, rain, shadows, ... (synthetic/nuisances.py), set by render_scene
 
     def _tracers(self, i: int, t: float) -> tuple[np.ndarray, np.ndarray]:
         """The tracers splatted, blurred and warped to the canvas; and the frame's shake homography."""
@@ -766,6 +778,8 @@ class _FrameRenderer:
         if self.ripples is not None:
             rip = _ripple_image(self.ripples, t, canvas)
             img += cv2.warpPerspective(rip, Hs, canvas) if shaken and not cam.has_distortion else rip
+        if self.nuis is not None:
+            img = self.nuis.canvas(img, t)
         if cam.has_distortion:
             img = cv2.remap(img, self.map_x, self.map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
                             borderValue=0.5)
@@ -781,6 +795,8 @@ class _FrameRenderer:
                    * self.flicker_rng.uniform(0.6, 1.2, len(layers)))
             img[gy0:gy1, gx0:gx1] += np.tensordot(lit.astype(np.float32), layers, axes=1)
         img *= 255.0
+        if self.nuis is not None:
+            img = self.nuis.sensor(img, t, self.rng)
         if spec.noise_sigma > 0:
             self.noise[:] = self.rng.standard_normal((h, w), dtype=np.float32)
             img += spec.noise_sigma * self.noise
@@ -788,7 +804,8 @@ class _FrameRenderer:
         if spec.jpeg_quality > 0:
             enc = cv2.imencode(".jpg", frame, [cv2.IMWRITE_JPEG_QUALITY, int(spec.jpeg_quality)])[1]
             frame = cv2.imdecode(enc, cv2.IMREAD_GRAYSCALE)
-        return cv2.cvtColor(frame, cv2.COLOR_GRAY2BGR)
+        bgr = cv2.cvtColor(frame, cv2.COLOR_GRAY2BGR)
+        return bgr if self.nuis is None else self.nuis.colour(bgr, t)
 
 
 def _write_video(spec: SceneSpec, video_path: Path, times: list[float], draw: Callable[[int, float], np.ndarray],
@@ -906,7 +923,9 @@ def _truth_doc(spec: SceneSpec, truth: dict, res: "SceneTruth", gcp_clicked: np.
         "seconds_per_frame": res.seconds_per_frame,
         "codec": "MJPEG in Matroska (variable frame rate)" if spec.drop_fraction > 0 else spec.fourcc,
         "checkerboard_video": res.checkerboard_path.name if res.checkerboard_path else None,
-        "spec": _jsonable({k: v for k, v in asdict(spec).items() if k not in _VARIANT_DEFAULTS or v != _VARIANT_DEFAULTS[k]}),
+        "spec": _jsonable({k: v for k, v in asdict(spec).items()
+                           if (k not in _VARIANT_DEFAULTS or v != _VARIANT_DEFAULTS[k])
+                           and (k != "nuisances" or spec.nuisances.any)}),
     }
     if spec.drop_fraction > 0:
         doc["frame_times_s"] = times
@@ -953,6 +972,7 @@ def render_scene(
     renderer = _FrameRenderer(spec, ras, parts, static_tex, H_static, shake, canvas, map_x, map_y, rng, glint_layers,
                               _section_glint_layers(spec) if spec.section_glints > 0 else None, _aux_rng(spec, 5),
                               _ripples(spec, offset, canvas) if spec.ripple_amp > 0 else None)
+    renderer.nuis = _nuisance_layer(spec, offset, canvas, H_world, _section_world(spec))  # None when it has none
 
     video_path = out / spec.video_name
     times = frame_times(spec)
@@ -979,6 +999,22 @@ _VARIANT_FIELDS = ("patch_cover", "patch_scale_m", "empty_band_m", "empty_after_
                    "ripple_lambda_m", "ripple_waves", "section_skew_deg", "jpeg_quality", "drop_fraction")
 # truth.json lists a variant field only when it is set, so the base scenes' files stay as they were
 _VARIANT_DEFAULTS = {k: SceneSpec.__dataclass_fields__[k].default for k in _VARIANT_FIELDS}
+
+
+def _nuisance_layer(spec: SceneSpec, offset: tuple[int, int], canvas: tuple[int, int], H_world: np.ndarray,
+                    sec_world: np.ndarray) -> Layer | None:
+    """The scene's nuisances prepared on its canvas (world X, Y of each canvas pixel), or None."""
+    if not spec.nuisances.any:
+        return None
+    cw, ch = canvas
+    gx, gy = np.meshgrid(np.arange(cw, dtype=np.float32) - offset[0], np.arange(ch, dtype=np.float32) - offset[1])
+    pts, ok = _world_of_pixels(spec.camera, spec.river.level_m, np.column_stack([gx.ravel(), gy.ravel()]))
+    X = np.where(ok, pts[:, 0], np.nan).reshape(ch, cw).astype(np.float32)
+    Y = np.where(ok, pts[:, 1], np.nan).reshape(ch, cw).astype(np.float32)
+    p = np.column_stack([sec_world[:, :2], np.ones(2)]) @ H_world.T
+    sec_canvas = p[:, :2] / p[:, 2:3]
+    return Layer(spec.nuisances, spec.seed, spec.river, np.stack([X, Y]), H_world, sec_canvas, spec.fps,
+                 spec.roi_half_length_m)
 
 
 def _bank_mask(spec: SceneSpec, ras: _Raster) -> np.ndarray:

@@ -1,0 +1,189 @@
+"""What a clip's own frames say about its noise, tracer contrast, texture and glare, and the gates set from them.
+
+Thresholds in grey levels fit one camera and one light; these estimates let every gate be set relative to the
+clip instead (issue 23). All from a few dozen frames inside the region PIV reads:
+
+- **noise** (grey levels): per-pixel temporal noise, the robust MAD over time of frame-to-frame differences
+  divided by sqrt(2) (moving tracers cross a pixel in a few frames, so the median ignores them); the median
+  over the box is reported.
+- **contrast** (grey levels): how far the tracers stand above the water, per window of ``win`` px: the 99th
+  percentile of the frame minus its pixel's temporal median, smoothed by a 1.5 px Gaussian (tracers are
+  blobs of several pixels, sensor noise is white), less 2.33 times that smoothed residual's own noise; the
+  median over the windows is reported (a glint column or an empty band does not set it).
+- **cnr**: contrast / noise (dimensionless).
+- **texture** (grey levels): the windows' rms of the smoothed residual (median reported).
+- **glare_fraction**: share of box pixels that are bright (above their median by more than
+  ``GLARE_K`` noise and twice the tracer contrast) in a few of the frames only: specular flicker.
+
+:func:`gates` turns them into the standardisation's soft threshold and the PIV texture gate, and a plan name.
+Pure numpy: no file, no print.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+from math import erfc, exp, pi, sqrt
+
+import cv2
+import numpy as np
+
+#: grey levels: the noise never reads below the quantisation's (a codec reproduces static areas exactly)
+NOISE_FLOOR = 0.5
+#: below this contrast-to-noise ratio the clip is "weak" (dusk, night, haze): the low-light plan
+CNR_WEAK = 6.0
+#: bright by more than this many noise sd above the pixel's median: a glint candidate
+GLARE_K = 8.0
+#: weak clips only: above this share of glint candidates, glints are masked frame by frame (in a weak clip the
+#: tracers are faint, so what stands that far above the median is specular)
+GLARE_ON = 0.005
+#: windows where more than this share of the bright events last one frame only are glare windows, left out of the
+#: contrast (tracers light a pixel for several frames)
+GLARE_ISOLATED = 0.5
+#: share of the clip's frames in which a glint candidate may be bright (short-lived)
+GLARE_DUTY = 0.3
+
+
+@dataclass
+class ClipStats:
+    """Estimates from the frames (grey levels of the frames given, dimensionless ratios)."""
+
+    frames: int
+    noise: float  # median per-pixel temporal noise sd (grey levels)
+    contrast: float  # median over windows of the tracers' contrast above the noise (grey levels)
+    cnr: float  # contrast / noise
+    texture: float  # median over windows of the rms of the smoothed residual (grey levels)
+    level: float  # median brightness of the box (grey levels)
+    glare_fraction: float  # share of box pixels with short-lived specular flicker
+    windows: int  # windows that entered the medians
+    contrast_spread: tuple[float, float] = field(default=(0.0, 0.0))  # 10th, 90th percentile of window contrast
+    median: np.ndarray | None = field(default=None, repr=False)  # per-pixel temporal median of the box (grey levels)
+    box: tuple[int, int, int, int] | None = None  # (x0, y0, x1, y1) px the estimates cover
+
+    @property
+    def glint_threshold(self) -> float:
+        """Grey levels above the pixel's median beyond which a pixel is a glint candidate."""
+        return max(GLARE_K * self.noise, 2.0 * self.contrast)
+
+    def to_dict(self) -> dict:
+        d = {k: v for k, v in asdict(self).items() if k not in ("median", "box")}
+        d["contrast_spread"] = list(self.contrast_spread)
+        return {k: (round(v, 4) if isinstance(v, float) else v) for k, v in d.items()}
+
+
+def temporal_noise(stack: np.ndarray) -> np.ndarray:
+    """Per-pixel temporal noise sd (grey levels) of ``stack`` (n >= 3, h, w): 1.4826 MAD of the differences / sqrt(2)."""
+    d = np.diff(stack.astype(np.float32), axis=0)
+    med = np.median(d, axis=0)
+    return 1.4826 * np.median(np.abs(d - med), axis=0) / np.sqrt(2.0)
+
+
+def estimate(frames, box: tuple[int, int, int, int] | None = None, *, win: int = 64, step: int = 1) -> ClipStats:
+    """Estimates from ``frames`` (a sequence of 2-D grey arrays, >= 3) inside ``box`` (x0, y0, x1, y1, px; None =
+    whole frame). ``step``: take every step-th pixel for the noise (cost)."""
+    fr = [np.asarray(f) for f in frames if f is not None]
+    if len(fr) < 3:
+        raise ValueError("clip_stats.estimate needs at least 3 frames")
+    h, w = fr[0].shape[:2]
+    x0, y0, x1, y1 = (0, 0, w, h) if box is None else (max(int(box[0]), 0), max(int(box[1]), 0),
+                                                       min(int(box[2]), w), min(int(box[3]), h))
+    st = np.stack([f[y0:y1, x0:x1] for f in fr]).astype(np.float32)
+    n = st.shape[0]
+    sig = temporal_noise(st[:, ::step, ::step])
+    noise = float(max(np.median(sig), NOISE_FLOOR))
+    med = np.median(st, axis=0)
+    resid = st - med
+    sm = np.stack([cv2.GaussianBlur(r, (0, 0), 1.5) for r in resid])
+    sig_s = float(max(np.median(temporal_noise(sm[:, ::step, ::step])), 1e-4))
+    hh, ww = med.shape
+    # short-lived bright pixels against the noise alone, per window: a glint column's windows are left out of
+    # the contrast (their glints would read as tracers of 100+ grey levels)
+    flick = resid > GLARE_K * noise
+    # a glint shines in one frame at a place; a tracer (a blob of several px, moving a few px a frame) lights
+    # a pixel in runs of frames: the share of a window's bright events that are isolated in time sets it apart
+    iso = flick[1:-1] & ~flick[:-2] & ~flick[2:]
+    n_iso, n_all = iso.sum(axis=0), flick[1:-1].sum(axis=0)
+    cons, texs, fl = [], [], []
+    for r0 in range(0, max(hh - win // 2, 1), win):
+        for c0 in range(0, max(ww - win // 2, 1), win):
+            blk = sm[:, r0:r0 + win, c0:c0 + win]
+            if blk.size == 0:
+                continue
+            cons.append(max(float(np.percentile(blk, 99.0)) - 2.33 * sig_s, 0.0))
+            texs.append(float(np.sqrt(np.mean(blk * blk))))
+            fl.append(float(n_iso[r0:r0 + win, c0:c0 + win].sum()) / max(float(n_all[r0:r0 + win, c0:c0 + win].sum()), 1.0))
+    cons_a = np.asarray(cons) if cons else np.zeros(1)
+    fl_a = np.asarray(fl) if fl else np.zeros(1)
+    clean = fl_a <= GLARE_ISOLATED
+    contrast = float(np.median(cons_a[clean] if clean.any() else cons_a))
+    bright = resid > np.maximum(GLARE_K * noise, 2.0 * contrast)
+    share = bright.mean(axis=0)
+    glare = float(np.mean((share > 0) & (share <= GLARE_DUTY)))
+    return ClipStats(frames=n, noise=noise, contrast=contrast, cnr=contrast / noise, texture=float(np.median(texs or [0.0])),
+                     level=float(np.median(med)), glare_fraction=glare, windows=len(cons),
+                     contrast_spread=(float(np.percentile(cons_a, 10)), float(np.percentile(cons_a, 90))),
+                     median=med, box=(x0, y0, x1, y1))
+
+
+def soft_threshold_residual(k: float) -> float:
+    """rms (in noise sd) of Gaussian noise left by a soft threshold at ``k`` sd: sqrt(2[(1+k²)Q(k) - k φ(k)])."""
+    q = 0.5 * erfc(k / sqrt(2.0))
+    phi = exp(-0.5 * k * k) / sqrt(2 * pi)
+    return sqrt(max(2.0 * ((1 + k * k) * q - k * phi), 0.0))
+
+
+@dataclass
+class Gates:
+    """Gates derived from :class:`ClipStats` (standardised units where the standardisation is on)."""
+
+    plan: str  # "standard" | "low_light"
+    shrink: float  # the standardisation's soft threshold (robust sd of the standardised frame)
+    min_texture: float  # PIV texture gate (standardised units)
+    min_pairs: int | None  # ensemble: at least this many pairs (None = the project's)
+    reasons: list[str] = field(default_factory=list)
+    denoise_half: int = 0  # > 0: temporal mean over 2 * half + 1 frames (processing/lowlight.py)
+    mask_glints: bool = False  # per-frame masking of short-lived specular pixels (processing/lowlight.py)
+    variants: list | None = None  # self-check scores of the variants tried (processing/selfcheck.py), if any
+
+    def to_dict(self) -> dict:
+        return {"plan": self.plan, "shrink": round(self.shrink, 4), "min_texture": round(self.min_texture, 5),
+                "min_pairs": self.min_pairs, "denoise_frames": 2 * self.denoise_half + 1 if self.denoise_half else 1,
+                "mask_glints": self.mask_glints, "variants": self.variants, "reasons": list(self.reasons)}
+
+
+def ambiguous(stats: ClipStats) -> bool:
+    """True where the contrast-to-noise ratio is within a factor 2 of :data:`CNR_WEAK` (either plan may fit)."""
+    return CNR_WEAK / 2.0 <= stats.cnr < 2.0 * CNR_WEAK
+
+
+def gates(stats: ClipStats, *, shrink_default: float, min_texture_default: float, min_pairs: int,
+          n_frames: int, force: str | None = None) -> Gates:
+    """The soft threshold, texture gate and pair count for a clip.
+
+    Where the tracers stand well above the noise (cnr >= :data:`CNR_WEAK`) the defaults stand: they were set
+    for such clips (a threshold at ``shrink_default`` noise sd removes noise, not tracers). Below it, the
+    threshold would erase tracers as faint as the noise: it is lowered to half the tracers' contrast in noise
+    sd, the texture gate to the rms that pure noise keeps after that threshold (a window with less is
+    featureless, one with tracers has more), scaled like the default is to the default threshold's residual,
+    and the ensemble uses every pair (noise averages out as 1 / sqrt(pairs)). ``force``: "standard" or
+    "low_light" whatever the ratio (the self-check's variants).
+    """
+    if force == "standard" or (force is None and stats.cnr >= CNR_WEAK):
+        return Gates("standard", shrink_default, min_texture_default, None,
+                     [f"tracer contrast {stats.contrast:.1f} grey levels is {stats.cnr:.1f} x the noise "
+                      f"({stats.noise:.2f}): default gates"])
+    k = max(0.5 * stats.cnr, 0.0)
+    k = min(k, shrink_default)
+    # the default gate is min_texture_default at a residual of soft_threshold_residual(shrink_default) noise
+    # sd; keep the gate at the same fraction of the standardised noise, but never above what pure noise
+    # keeps at the lower threshold (so tracer windows, which keep more, pass)
+    resid = soft_threshold_residual(k)
+    std_noise = 0.5  # standardised noise sd where noise dominates: sd / (sd + std_ref), std_ref ~ sd
+    mt = min(min_texture_default, 0.5 * resid * std_noise)
+    glare = stats.glare_fraction > GLARE_ON
+    why = [f"{100 * stats.glare_fraction:.1f} % of the pixels flicker brighter than {stats.glint_threshold:.0f} grey "
+           "levels above their median in a few frames only: masked per frame"] if glare else []
+    return Gates("low_light" + ("+glare" if glare else ""), k, mt, max(min_pairs, n_frames - 1),
+                 why + [f"temporal mean over 3 frames (noise / sqrt(3))", f"tracer contrast {stats.contrast:.1f} grey levels is only {stats.cnr:.1f} x the noise "
+                  f"({stats.noise:.2f}, below {CNR_WEAK:g}): soft threshold {k:.2f} sd (default {shrink_default:g}), "
+                  f"texture gate {mt:.4f} (default {min_texture_default:g}), ensemble over every pair"],
+                 denoise_half=1, mask_glints=glare)
