@@ -105,20 +105,20 @@ def kill_once(start, parent: Path, rng, span: float, write_span: float) -> str:
 
 if __name__ == "__main__":
     from fieldtool.cli.main import main
-    from fieldtool.run import outdir, pipeline
+    from fieldtool.run import frames, outdir, outputs
 
     frame_delay, write_delay = float(sys.argv[1]), float(sys.argv[2])
     if frame_delay > 0:
-        streamed = pipeline.working_frames
+        streamed = frames.working_frames
 
         def slow_frames(*args, **kwargs):
             for item in streamed(*args, **kwargs):
                 time.sleep(frame_delay)
                 yield item
 
-        pipeline.working_frames = slow_frames
+        frames.working_frames = slow_frames
     if write_delay > 0:
-        write = pipeline.atomic_write_bytes
+        write = outputs.atomic_write_bytes
         carry = outdir._carry
 
         def slow_write(*args, **kwargs):
@@ -129,6 +129,6 @@ if __name__ == "__main__":
             time.sleep(write_delay)
             return carry(*args, **kwargs)
 
-        pipeline.atomic_write_bytes = slow_write
+        outputs.atomic_write_bytes = slow_write
         outdir._carry = slow_carry
     sys.exit(main(sys.argv[3:]))

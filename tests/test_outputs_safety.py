@@ -157,20 +157,20 @@ def test_read_only_out_is_refused_and_not_swapped(scene, capsys):
 
 
 def test_full_disk_gives_one_line_and_keeps_the_old_run(scene, capsys, monkeypatch):
-    from fieldtool.run import pipeline
+    from fieldtool.run import outputs
 
     proj = _project(scene)
     out = scene / "out"
     assert _run(capsys, "run", proj, "--out", out, "--quiet")[0] == 0
     before = snapshot(out)
-    write = pipeline.atomic_write_bytes
+    write = outputs.atomic_write_bytes
 
     def full(path, data):
         if Path(path).name == "mean_field.npy":
             raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
         return write(path, data)
 
-    monkeypatch.setattr(pipeline, "atomic_write_bytes", full)
+    monkeypatch.setattr(outputs, "atomic_write_bytes", full)
     proj = _project(scene, _new_settings)
     code, _, err = _run(capsys, "run", proj, "--out", out, "--quiet")
     assert code == 2, err
@@ -182,7 +182,7 @@ def test_full_disk_gives_one_line_and_keeps_the_old_run(scene, capsys, monkeypat
 def test_interrupted_run_keeps_the_old_piv_cache(scene, capsys, monkeypatch):
     """Ctrl-C after the PIV (while the figures are drawn): the old piv_cache.npz is the old run's, byte for byte."""
     import fieldtool.plots.discharge as plots
-    from fieldtool.run import pipeline
+    from fieldtool.run import outputs
 
     proj = _project(scene)
     out = scene / "out"
@@ -192,7 +192,7 @@ def test_interrupted_run_keeps_the_old_piv_cache(scene, capsys, monkeypatch):
     def interrupted(*a, **k):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(pipeline, "_write_figures", interrupted)
+    monkeypatch.setattr(outputs, "_write_figures", interrupted)
     monkeypatch.setattr(plots, "plot_section", interrupted)
     proj = _project(scene, _new_settings)
     code, _, err = _run(capsys, "run", proj, "--out", out, "--quiet")

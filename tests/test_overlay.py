@@ -17,7 +17,7 @@ from fieldtool.processing.frames import FrameSource
 from fieldtool.project.model import load_project
 from fieldtool.project.validation import validate
 from fieldtool.records.report import write_report
-from fieldtool.run import overlay_stage
+from fieldtool.run import clip_check, overlay_stage
 from fieldtool.run.pipeline import run_project
 from fieldtool.viewer.rerun_log import observer_from_args
 from fieldtool.writers import overlay as draw
@@ -26,13 +26,18 @@ CARD_S = 2.0  # the default [overlay] card_s: the closing card's frames follow t
 
 
 def _count_passes(monkeypatch):
-    """Count the passes over the clip (each one a decode of its frames from the start)."""
-    passes = []
+    """Count the passes over the clip (each one a decode of its frames from the start) that read more than the
+    clip check's look at the first frames (run/clip_check.py: N_FRAMES frames, before any pass of the run)."""
+    passes: list[bool] = []
     orig = FrameSource._iter_video
 
     def counted(self, want=None):
-        passes.append(want is None)
-        return orig(self, want)
+        n = 0
+        for item in orig(self, want):
+            n += 1
+            if n == clip_check.N_FRAMES + 1:
+                passes.append(want is None)
+            yield item
 
     monkeypatch.setattr(FrameSource, "_iter_video", counted)
     return passes

@@ -102,9 +102,8 @@ def value_problems(project, keys: Iterable[str]) -> list[Problem]:
     """The problems of each value of ``keys`` by itself: type, unit range, finiteness, list shape (what a key's
     declaration says; no check across keys, nothing on disk). For a writer of single keys (the viewer's picks,
     ``calibrate --project``): a half-picked list of GCPs passes, a NaN in it does not."""
-    from fieldtool.project.model import Project
-
     v = _Validator(project, False)
+    v.partial = True
     wanted = set(keys)
     hints = typing.get_type_hints(Project)
     for f in dataclasses.fields(Project):
@@ -340,6 +339,7 @@ class _Validator:
         self.problems: list[Problem] = []
         self.bad: set[str] = set()
         self.checked: set[str] = set()  # path keys whose file was checked
+        self.partial = False  # a writer of single keys: a point list still being picked passes its count check
 
     def err(self, key: str, msg: str) -> None:
         self.bad.add(key)
@@ -478,7 +478,8 @@ class _Validator:
         if len(v) > limit:
             self.err(k, f"{len(v)} items is too many (at most {limit})")
             return
-        if spec.counts is not None and len(v) not in spec.counts:
+        half_picked = self.partial and spec.counts is not None and len(v) < max(spec.counts)
+        if spec.counts is not None and len(v) not in spec.counts and not half_picked:
             self.err(k, f"has {len(v)} items; give {' or '.join(str(c) for c in spec.counts)}")
             return
         (item_tp,) = typing.get_args(tp) or (Any,)

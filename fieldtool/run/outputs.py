@@ -14,6 +14,7 @@ import json
 import threading
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 
@@ -101,19 +102,15 @@ def _write_figures(result: RunResult, inputs: Inputs, out: Path) -> None:
             atomic_write_bytes(out / name, png)
             files[key] = name
         else:
-            # matplotlib (~0.5 s) is imported only when a figure is drawn here, not in the figure process
-            from fieldtool.plots import discharge as plots
-
-            files[key] = draw(plots, out / name).name
+            files[key] = draw(_plots().discharge, out / name).name
     try:
         png = pre.file("water_level.png") if pre is not None else None
         if png:
             atomic_write_bytes(out / "water_level.png", png)
             files["water_level_png"] = "water_level.png"
         else:
-            from fieldtool.plots.water_level import plot_level  # matplotlib, as above
-
-            files["water_level_png"] = plot_level(out / "water_level.png", inputs.cross_section, result.level).name
+            files["water_level_png"] = _plots().water_level.plot_level(out / "water_level.png", inputs.cross_section,
+                                                                       result.level).name
     except FieldToolError as e:
         result.warnings.append(f"water-level plot not written: {e}")
 
@@ -126,3 +123,11 @@ def json_default(o):
     if isinstance(o, Path):
         return str(o)
     raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+
+
+def _plots():
+    """fieldtool.plots with its discharge and water_level modules, imported only when a figure is drawn in this
+    process rather than in the figure process (matplotlib: ~0.5 s)."""
+    from fieldtool.plots import discharge, water_level  # lazy: matplotlib, only for a figure drawn here
+
+    return SimpleNamespace(discharge=discharge, water_level=water_level)

@@ -212,8 +212,6 @@ class ResultsScreen(StepScreen):
     def action_overlay(self) -> None:
         """Run again with ``[overlay] enabled`` for this run only: overlay.mp4 beside the other results (the PIV
         field of the last run is reused when its inputs did not change; the clip is then read once)."""
-        from fieldtool.tui import jobs
-
         bad = [st for st in ("cross_section", "video", "calibration", "ortho", "water_level", "roi", "filters", "piv",
                              "section") if self.session.step_errors(st)]
         if bad:
