@@ -60,8 +60,15 @@ class Outcome:
 
     @property
     def ok(self) -> bool:
-        return not (self.traceback or self.multi_line or self.damaged_project or self.partial_output
-                    or self.non_json or self.wrong_code or self.hang)
+        return not (
+            self.traceback
+            or self.multi_line
+            or self.damaged_project
+            or self.partial_output
+            or self.non_json
+            or self.wrong_code
+            or self.hang
+        )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -113,35 +120,75 @@ def _bad_values(tp: Any, key: str, full: bool) -> list[tuple[str, Any, bool]]:
         origin = typing.get_origin(tp)
     huge_list = [1.0] * 200_001
     if tp is float:
-        out = [("type", "abc", True), ("nan", math.nan, True), ("inf", math.inf, True), ("-inf", -math.inf, True),
-               ("huge", 1e308, True), ("-huge", -1e308, True), ("negative", -1.0, False), ("zero", 0.0, False),
-               ("bool", True, True), ("list", [1.0], True)]
+        out = [
+            ("type", "abc", True),
+            ("nan", math.nan, True),
+            ("inf", math.inf, True),
+            ("-inf", -math.inf, True),
+            ("huge", 1e308, True),
+            ("-huge", -1e308, True),
+            ("negative", -1.0, False),
+            ("zero", 0.0, False),
+            ("bool", True, True),
+            ("list", [1.0], True),
+        ]
     elif tp is int:
-        out = [("type", "abc", True), ("float", 1.5, True), ("huge", 2**62, True), ("-huge", -2**62, True),
-               ("negative", -1, False), ("zero", 0, False), ("bool", True, True)]
+        out = [
+            ("type", "abc", True),
+            ("float", 1.5, True),
+            ("huge", 2**62, True),
+            ("-huge", -(2**62), True),
+            ("negative", -1, False),
+            ("zero", 0, False),
+            ("bool", True, True),
+        ]
     elif tp is bool:
         out = [("type", "yes", True), ("int", 1, True)]
     elif tp is str:
-        out = [("type", 12, True), ("empty", "", False), ("long", "x" * 5000, True), ("newline", "a\nb", True),
-               ("nul", "a\x00b", True), ("table", {"a": 1}, True), ("unicode", "Mesure à l'écluse ✓", False)]
+        out = [
+            ("type", 12, True),
+            ("empty", "", False),
+            ("long", "x" * 5000, True),
+            ("newline", "a\nb", True),
+            ("nul", "a\x00b", True),
+            ("table", {"a": 1}, True),
+            ("unicode", "Mesure à l'écluse ✓", False),
+        ]
         if key.endswith(("path", "video", "image1", "image2")):
-            out += [("parent", "../../../../nonexistent/x", False), ("proc", "/proc/self/status", False),
-                    ("dev", "/dev/zero", True), ("dir", "/", False)]
+            out += [
+                ("parent", "../../../../nonexistent/x", False),
+                ("proc", "/proc/self/status", False),
+                ("dev", "/dev/zero", True),
+                ("dir", "/", False),
+            ]
     elif origin is list:
         (item,) = typing.get_args(tp) or (Any,)
         out = [("type", "x", True), ("empty", [], False), ("nested", NESTED, True), ("strings", ["a", "b"], True)]
         if typing.get_origin(item) is list:
-            out += [("ragged", [[1.0], [2.0, 3.0, 4.0]], True), ("nan", [[math.nan, 1.0]] * 4, True),
-                    ("huge", [[1e308, 1e308]] * 4, True), ("flat", [1.0, 2.0], True),
-                    ("deep", [[[1.0, 2.0]]], True), ("coincident", [[100.0, 100.0]] * 4, False)]
+            out += [
+                ("ragged", [[1.0], [2.0, 3.0, 4.0]], True),
+                ("nan", [[math.nan, 1.0]] * 4, True),
+                ("huge", [[1e308, 1e308]] * 4, True),
+                ("flat", [1.0, 2.0], True),
+                ("deep", [[[1.0, 2.0]]], True),
+                ("coincident", [[100.0, 100.0]] * 4, False),
+            ]
         elif item is dict or typing.get_origin(item) is dict:
-            out += [("unknown", [{"name": "nope"}], True), ("no-name", [{}], True),
-                    ("nan-param", [{"name": "clahe", "clip_limit": math.nan}], True),
-                    ("bg-201", [{"name": "background", "method": "median", "samples": 201}], False),
-                    ("nested-param", [{"name": "clahe", "clip_limit": NESTED}], True)]
+            out += [
+                ("unknown", [{"name": "nope"}], True),
+                ("no-name", [{}], True),
+                ("nan-param", [{"name": "clahe", "clip_limit": math.nan}], True),
+                ("bg-201", [{"name": "background", "method": "median", "samples": 201}], False),
+                ("nested-param", [{"name": "clahe", "clip_limit": NESTED}], True),
+            ]
         else:
-            out += [("nan", [math.nan] * 6, True), ("inf", [math.inf] * 6, True), ("huge", [1e308] * 6, True),
-                    ("ragged", [[1.0], [2.0, 3.0]], True), ("one", [1.0], False)]
+            out += [
+                ("nan", [math.nan] * 6, True),
+                ("inf", [math.inf] * 6, True),
+                ("huge", [1e308] * 6, True),
+                ("ragged", [[1.0], [2.0, 3.0]], True),
+                ("one", [1.0], False),
+            ]
         if full:
             out.append(("long", huge_list, True))
     else:
@@ -166,7 +213,10 @@ def key_cases(full: bool = True) -> list[Case]:
                 k = f"{f.name}.{sf.name}"
                 cases += [Case(f"{k}={label}", k, v, refuse) for label, v, refuse in _bad_values(sub[sf.name], k, full)]
         else:
-            cases += [Case(f"{f.name}={label}", f.name, v, refuse) for label, v, refuse in _bad_values(hints[f.name], f.name, full)]
+            cases += [
+                Case(f"{f.name}={label}", f.name, v, refuse)
+                for label, v, refuse in _bad_values(hints[f.name], f.name, full)
+            ]
             cases.append(Case(f"{f.name}=table", f.name, {"a": 1}, True))
     cases.append(Case("unknown-key", "piv.windoww", 3, True))
     return cases
@@ -193,10 +243,12 @@ def _write(path: Path, data: bytes) -> None:
 
 def file_cases(full: bool = True) -> list[Case]:
     """Broken files: the project file, the video, the cross-section (run in a subprocess)."""
+
     def proj_edit(fn):
         def setup(d: Path, proj: Path) -> list[str]:
             fn(d, proj)
             return ["run", str(proj), "--out", str(d / "out"), "--quiet"]
+
         return setup
 
     def set_video(content: bytes | None = None, kind: str = "file"):
@@ -210,6 +262,7 @@ def file_cases(full: bool = True) -> list[Case]:
                 v.write_bytes(content)
             txt = proj.read_text(encoding="utf-8").replace('path = "river.mp4"', 'path = "broken.mp4"')
             proj.write_text(txt, encoding="utf-8")
+
         return fn
 
     def truncated_video(d: Path, proj: Path):
@@ -220,11 +273,13 @@ def file_cases(full: bool = True) -> list[Case]:
     def set_xs(content: bytes):
         def fn(d: Path, proj: Path):
             (d / "cross_section.csv").write_bytes(content)
+
         return fn
 
     def proj_bytes(fn_bytes):
         def fn(d: Path, proj: Path):
             proj.write_bytes(fn_bytes(proj.read_bytes()))
+
         return fn
 
     def proj_fifo(d: Path, proj: Path):
@@ -240,6 +295,7 @@ def file_cases(full: bool = True) -> list[Case]:
 
     def latin(b):
         return b.decode().replace('name = "synthetic oblique"', 'name = "Mesure à l\'écluse"').encode("latin-1")
+
     cases = [
         Case("project-missing", setup=proj_edit(proj_missing)),
         Case("project-empty", setup=proj_edit(proj_bytes(lambda b: b""))),
@@ -258,14 +314,18 @@ def file_cases(full: bool = True) -> list[Case]:
         Case("video-truncated", setup=proj_edit(truncated_video), must_refuse=False),
         Case("xs-empty", setup=proj_edit(set_xs(b""))),
         Case("xs-binary", setup=proj_edit(set_xs(bytes(range(256)) * 4))),
-        Case("xs-latin1", setup=proj_edit(set_xs("# profil mesuré\n0,11\n1,10\n2,9\n10,9\n11,10\n12,11\n".encode("latin-1"))),
-             must_refuse=False),
+        Case(
+            "xs-latin1",
+            setup=proj_edit(set_xs("# profil mesuré\n0,11\n1,10\n2,9\n10,9\n11,10\n12,11\n".encode("latin-1"))),
+            must_refuse=False,
+        ),
     ]
     return cases
 
 
 def command_cases() -> list[Case]:
     """Other subcommands with broken inputs (subprocess; the argv comes from setup)."""
+
     def c(id_, fn, refuse=True):
         return Case(id_, setup=fn, command=True, must_refuse=refuse)
 
@@ -273,8 +333,19 @@ def command_cases() -> list[Case]:
         def fn(d, proj):
             (d / "levels.csv").write_bytes(content)
             (d / "videos").mkdir()
-            return ["batch", "--site", "nosuchsite", "--videos", str(d / "videos"), "--levels", str(d / "levels.csv"),
-                    "--no-history", "--sites", str(d / "sites")]
+            return [
+                "batch",
+                "--site",
+                "nosuchsite",
+                "--videos",
+                str(d / "videos"),
+                "--levels",
+                str(d / "levels.csv"),
+                "--no-history",
+                "--sites",
+                str(d / "sites"),
+            ]
+
         return fn
 
     def report_json(content: bytes):
@@ -282,6 +353,7 @@ def command_cases() -> list[Case]:
             (d / "res").mkdir()
             (d / "res" / "result.json").write_bytes(content)
             return ["report", str(d / "res"), "--db", str(d / "h.db")]
+
         return fn
 
     def batch_same_out(d, proj):
@@ -290,7 +362,10 @@ def command_cases() -> list[Case]:
     return [
         c("run-out-is-file", lambda d, p: (d / "f").write_text("x") and ["run", str(p), "--out", str(d / "f")]),
         c("run-out-proc", lambda d, p: ["run", str(p), "--out", "/proc/fieldtool_fuzz"]),
-        c("run-out-under-file", lambda d, p: (d / "f").write_text("x") and ["run", str(p), "--out", str(d / "f" / "o")]),
+        c(
+            "run-out-under-file",
+            lambda d, p: (d / "f").write_text("x") and ["run", str(p), "--out", str(d / "f" / "o")],
+        ),
         c("calibrate-out-dir", lambda d, p: ["calibrate", str(d / "river.mp4"), "--out", str(d)]),
         c("calibrate-square-inf", lambda d, p: ["calibrate", str(d / "river.mp4"), "--square-mm", "inf"]),
         c("calibrate-square-nan", lambda d, p: ["calibrate", str(d / "river.mp4"), "--square-mm", "nan"]),
@@ -328,6 +403,7 @@ def snapshot(folder: Path) -> dict[str, bytes] | None:
 def strict_load(data: bytes) -> Any:
     def bad(c):
         raise ValueError(f"non-JSON constant {c}")
+
     return json.loads(data, parse_constant=bad)
 
 
@@ -358,12 +434,26 @@ def check_output(out: Path, before: dict[str, bytes] | None, rc: int) -> tuple[b
     return False, False
 
 
-def judge(case: Case, rc: int, stderr: str, proj: Path, proj_bytes: bytes | None, out: Path,
-          before: dict[str, bytes] | None, hang: bool = False) -> Outcome:
+def judge(
+    case: Case,
+    rc: int,
+    stderr: str,
+    proj: Path,
+    proj_bytes: bytes | None,
+    out: Path,
+    before: dict[str, bytes] | None,
+    hang: bool = False,
+) -> Outcome:
     o = Outcome(case, rc, stderr, hang=hang)
     o.traceback = "Traceback" in stderr
-    errs = [ln for ln in stderr.splitlines() if ln.strip() and not ln.startswith("fieldtool: warning:")
-            and not ln.startswith("  ") and not ln.startswith("\r")]
+    errs = [
+        ln
+        for ln in stderr.splitlines()
+        if ln.strip()
+        and not ln.startswith("fieldtool: warning:")
+        and not ln.startswith("  ")
+        and not ln.startswith("\r")
+    ]
     errs = [ln for ln in errs if "\r" not in ln or "fieldtool:" in ln]
     o.multi_line = rc == 2 and len(errs) != 1
     if rc == 2 and errs and not errs[-1].startswith("fieldtool: error:"):
@@ -399,8 +489,14 @@ def run_in_process(argv: list[str]) -> tuple[int, str]:
 def run_subprocess(argv: list[str], cwd: Path, timeout: float = 240.0) -> tuple[int, str, bool]:
     env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]), FIELDTOOL_DB=str(cwd / "h.db"))
     try:
-        p = subprocess.run([sys.executable, "-m", "fieldtool.cli.main", *argv], cwd=cwd, capture_output=True, text=True,
-                           timeout=timeout, env=env)
+        p = subprocess.run(
+            [sys.executable, "-m", "fieldtool.cli.main", *argv],
+            cwd=cwd,
+            capture_output=True,
+            text=True,
+            timeout=timeout,
+            env=env,
+        )
         return p.returncode, p.stderr, False
     except subprocess.TimeoutExpired as e:
         return 124, (e.stderr or b"").decode() if isinstance(e.stderr, bytes) else (e.stderr or ""), True
@@ -454,8 +550,14 @@ def totals(outcomes: list[Outcome]) -> dict[str, Any]:
     codes: dict[int, int] = {}
     for o in outcomes:
         codes[o.rc] = codes.get(o.rc, 0) + 1
-    return {"cases": len(outcomes), "exit_codes": dict(sorted(codes.items())),
-            "tracebacks": sum(o.traceback for o in outcomes), "multi_line_errors": sum(o.multi_line for o in outcomes),
-            "wrong_exit_codes": sum(o.wrong_code for o in outcomes), "non_json_results": sum(o.non_json for o in outcomes),
-            "damaged_projects": sum(o.damaged_project for o in outcomes),
-            "partial_output_folders": sum(o.partial_output for o in outcomes), "hangs": sum(o.hang for o in outcomes)}
+    return {
+        "cases": len(outcomes),
+        "exit_codes": dict(sorted(codes.items())),
+        "tracebacks": sum(o.traceback for o in outcomes),
+        "multi_line_errors": sum(o.multi_line for o in outcomes),
+        "wrong_exit_codes": sum(o.wrong_code for o in outcomes),
+        "non_json_results": sum(o.non_json for o in outcomes),
+        "damaged_projects": sum(o.damaged_project for o in outcomes),
+        "partial_output_folders": sum(o.partial_output for o in outcomes),
+        "hangs": sum(o.hang for o in outcomes),
+    }

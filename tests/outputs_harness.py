@@ -26,7 +26,7 @@ def snapshot(folder: Path) -> dict[str, bytes] | None:
 
 
 def verdict(now: dict | None, old: dict, new: dict) -> str:
-    """"old" when ``now`` is the old run byte for byte, "new" when it is the new run (byte for byte but for the
+    """ "old" when ``now`` is the old run byte for byte, "new" when it is the new run (byte for byte but for the
     files every run writes afresh, which must still be the new run's and agree with each other), else what is
     wrong (a mixed folder, a missing one)."""
     if now is None:

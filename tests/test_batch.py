@@ -55,8 +55,9 @@ def test_batch_on_local_dask_cluster_matches_single_runs(three_scenes, tmp_path)
     distributed = pytest.importorskip("distributed")
     paths = [p for p, _ in three_scenes]
     items = plan_projects(paths, out_root=tmp_path / "out", site="synthetic")
-    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
-                                  protocol="tcp", dashboard_address=None) as cluster:
+    with distributed.LocalCluster(
+        n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1", protocol="tcp", dashboard_address=None
+    ) as cluster:
         assert cluster.scheduler_address.startswith("tcp://127.0.0.1:")
         with History(tmp_path / "h.sqlite") as hist:
             res = run_batch(items, history=hist, scheduler=cluster.scheduler_address)
@@ -84,8 +85,22 @@ def test_batch_folder_of_videos_with_failures(three_scenes, tmp_path, capsys):
     (vids / "broken.mp4").write_bytes(b"\x00\x01garbage" * 500)
     shutil.copy(Path(project).parent / "river.mp4", vids / "nolevel.mp4")
     (vids / "levels.csv").write_text("video,water_level_m\ngood.mp4,10.0\nbroken.mp4,10.0\nghost.mp4,9.0\n")
-    args = ["batch", "--site", "demo", "--videos", str(vids), "--levels", str(vids / "levels.csv"), "--workers", "2",
-            "--sites", str(sites), "--db", str(db), "--report"]
+    args = [
+        "batch",
+        "--site",
+        "demo",
+        "--videos",
+        str(vids),
+        "--levels",
+        str(vids / "levels.csv"),
+        "--workers",
+        "2",
+        "--sites",
+        str(sites),
+        "--db",
+        str(db),
+        "--report",
+    ]
     assert main(args) == 1
     out = capsys.readouterr().out
     assert "1 of 4 done" in out

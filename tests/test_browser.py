@@ -18,8 +18,12 @@ from fieldtool.viewer.server import start_viewer
 pytestmark = pytest.mark.browser
 
 # disc centres (px) and colours (RGB) that the page itself never uses
-MARKERS = [((70.0, 64.0), (255, 0, 255)), ((262.0, 52.0), (0, 255, 255)),
-           ((246.0, 203.0), (0, 255, 0)), ((84.0, 190.0), (255, 255, 0))]
+MARKERS = [
+    ((70.0, 64.0), (255, 0, 255)),
+    ((262.0, 52.0), (0, 255, 255)),
+    ((246.0, 203.0), (0, 255, 0)),
+    ((84.0, 190.0), (255, 255, 0)),
+]
 
 
 @pytest.fixture(scope="session")
@@ -55,8 +59,9 @@ def _locate_markers(page, timeout_s=30.0):
     """Marker centres on screen (CSS px), once two screenshots in a row agree (camera settled)."""
     prev, t0 = None, time.time()
     while time.time() - t0 < timeout_s:
-        shot = cv2.cvtColor(cv2.imdecode(np.frombuffer(page.screenshot(), np.uint8), cv2.IMREAD_COLOR),
-                            cv2.COLOR_BGR2RGB)
+        shot = cv2.cvtColor(
+            cv2.imdecode(np.frombuffer(page.screenshot(), np.uint8), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB
+        )
         found = [_find(shot, rgb) for _, rgb in MARKERS]
         if all(f is not None for f in found):
             cur = np.array(found)
@@ -80,8 +85,14 @@ def test_four_clicks_in_chromium_store_gcp_pixels(tmp_path, chromium):
             try:
                 page = browser.new_page(viewport={"width": 1280, "height": 800}, device_scale_factor=1)
                 outside = []
-                page.on("request", lambda r: outside.append(r.url)
-                        if r.url.startswith(("http:", "https:", "ws:", "wss:")) and "127.0.0.1" not in r.url else None)
+                page.on(
+                    "request",
+                    lambda r: (
+                        outside.append(r.url)
+                        if r.url.startswith(("http:", "https:", "ws:", "wss:")) and "127.0.0.1" not in r.url
+                        else None
+                    ),
+                )
                 page.goto(handle.url)
                 page.wait_for_selector("canvas", timeout=30000)
                 screen = _locate_markers(page)

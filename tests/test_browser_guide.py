@@ -91,8 +91,9 @@ def _settled(page, which, timeout_s=20.0):
     prev, t0 = None, time.time()
     time.sleep(0.3)
     while time.time() - t0 < timeout_s:
-        shot = cv2.cvtColor(cv2.imdecode(np.frombuffer(page.screenshot(), np.uint8), cv2.IMREAD_COLOR),
-                            cv2.COLOR_BGR2RGB)
+        shot = cv2.cvtColor(
+            cv2.imdecode(np.frombuffer(page.screenshot(), np.uint8), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB
+        )
         found = [_find(shot, MARKERS[i][1]) for i in which]
         if all(f is not None for f in found):
             cur = np.array(found)
@@ -118,7 +119,8 @@ def _screen_of(page, handle, px) -> tuple[float, float]:
     left, top, w, h = page.evaluate(
         "(() => { const c = [...document.querySelectorAll('canvas')].sort((a, b) => "
         "b.clientWidth * b.clientHeight - a.clientWidth * a.clientHeight)[0]; "
-        "const r = c.getBoundingClientRect(); return [r.left, r.top, r.width, r.height]; })()")
+        "const r = c.getBoundingClientRect(); return [r.left, r.top, r.width, r.height]; })()"
+    )
     nx = v @ r / (v @ f) / (t * w / h)
     ny = v @ u / (v @ f) / t
     return left + (nx + 1) / 2 * w, top + (1 - ny) / 2 * h

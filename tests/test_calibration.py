@@ -15,7 +15,9 @@ from fieldtool.processing.calibration import LensModel, calibrate_video, load_ca
 
 DATA = Path(__file__).parents[1] / ".." / "shared" / "data"
 REAL = DATA / "real"
-needs_data = pytest.mark.skipif(not DATA.is_dir(), reason=f"real data folder {DATA} is absent (only CI and the dev machine have it)")
+needs_data = pytest.mark.skipif(
+    not DATA.is_dir(), reason=f"real data folder {DATA} is absent (only CI and the dev machine have it)"
+)
 
 W, H = 640, 480
 K_TRUE = np.array([[500.0, 0, 322.0], [0, 500.0, 238.0], [0, 0, 1]])
@@ -103,7 +105,9 @@ def board_video(tmp_path_factory) -> Path:
 
 def test_recovers_known_camera(board_video):
     progress = []
-    m = calibrate_video(board_video, (COLS, ROWS), square_mm=30.0, n_frames=12, progress=lambda d, t: progress.append((d, t)))
+    m = calibrate_video(
+        board_video, (COLS, ROWS), square_mm=30.0, n_frames=12, progress=lambda d, t: progress.append((d, t))
+    )
     assert m.image_size == (W, H)
     assert m.fx == pytest.approx(K_TRUE[0, 0], rel=0.01)
     assert m.fy == pytest.approx(K_TRUE[1, 1], rel=0.01)

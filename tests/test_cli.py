@@ -34,8 +34,15 @@ def test_run_succeeds_and_writes_outputs(short_scene, tmp_path, capsys):
     code, out, _ = _run(capsys, "run", str(proj), "--out", str(tmp_path / "out"), "--quiet")
     assert code == 0, out
     assert "discharge" in out
-    for name in ("result.json", "subsections.csv", "mean_field.npz", "mean_field.npy", "vectors.png",
-                 "rectified.png", "section.png"):
+    for name in (
+        "result.json",
+        "subsections.csv",
+        "mean_field.npz",
+        "mean_field.npy",
+        "vectors.png",
+        "rectified.png",
+        "section.png",
+    ):
         assert (tmp_path / "out" / name).is_file(), name
 
 
@@ -45,6 +52,7 @@ def _set(path, value):
         for k in path[:-1]:
             node = node.setdefault(k, {})
         node[path[-1]] = value
+
     return edit
 
 
@@ -78,8 +86,9 @@ def test_bad_input_exit_2(short_scene, tmp_path, capsys, name, edit, message):
 
 
 def test_missing_project_via_subprocess(tmp_path):
-    res = subprocess.run([sys.executable, "-m", "fieldtool.cli.main", "run", str(tmp_path / "none.toml")],
-                         capture_output=True, text=True)
+    res = subprocess.run(
+        [sys.executable, "-m", "fieldtool.cli.main", "run", str(tmp_path / "none.toml")], capture_output=True, text=True
+    )
     assert res.returncode == 2 and "project file not found" in res.stderr and "Traceback" not in res.stderr
 
 

@@ -11,6 +11,7 @@ from fieldtool.cli import main as cli
 def _boom_with(exc):
     def boom(args):
         raise exc
+
     return boom
 
 
@@ -18,6 +19,7 @@ def _boom_with(exc):
 def patched_init(monkeypatch):
     def set_exc(exc):
         monkeypatch.setattr(cli, "cmd_init", _boom_with(exc))
+
     return set_exc
 
 
@@ -35,8 +37,15 @@ def test_debug_shows_the_traceback(patched_init):
         cli.main(["--debug", "init", "x"])
 
 
-@pytest.mark.parametrize("code,word", [(errno.ENOSPC, "free some space"), (errno.EACCES, "permission"),
-                                       (errno.ENOTDIR, "not a folder"), (errno.EROFS, "read-only")])
+@pytest.mark.parametrize(
+    "code,word",
+    [
+        (errno.ENOSPC, "free some space"),
+        (errno.EACCES, "permission"),
+        (errno.ENOTDIR, "not a folder"),
+        (errno.EROFS, "read-only"),
+    ],
+)
 def test_os_errors_exit_2_naming_the_path(patched_init, capsys, code, word):
     patched_init(OSError(code, "system text", "/data/out/result.json"))
     assert cli.main(["init", "x"]) == 2
@@ -65,7 +74,8 @@ def test_project_file_in_other_encodings(short_scene, tmp_path, encoding, capsys
     for p in (short_scene.video_path, short_scene.cross_section_path):
         shutil.copy(p, tmp_path / p.name)
     text = short_scene.project_path.read_text(encoding="utf-8").replace(
-        'name = "synthetic oblique"', 'name = "Mesure à l\'écluse"')
+        'name = "synthetic oblique"', 'name = "Mesure à l\'écluse"'
+    )
     (tmp_path / "project.toml").write_bytes(text.encode(encoding))
     from fieldtool.project.model import load_project
 

@@ -23,7 +23,7 @@ def _clip(n=24, h=128, w=192, level=22.0, amp=8.0, noise=5.0, speed=2.0, density
     out = []
     for i in range(n):
         img = np.full((h, w), level, np.float32)
-        for x, y in zip((x0 + speed * i) % w, y0):
+        for x, y in zip((x0 + speed * i) % w, y0, strict=False):
             img += amp * np.exp(-((xx - x) ** 2 + (yy - y) ** 2) / (2 * 2.0**2))
         if glints:
             gy, gx = rng.integers(0, h, glints), rng.integers(0, w // 4, glints)
@@ -62,15 +62,17 @@ def test_box_and_too_few_frames():
 def test_soft_threshold_residual():
     assert cs.soft_threshold_residual(0.0) == pytest.approx(1.0)
     r = [cs.soft_threshold_residual(k) for k in (0.5, 1.0, 2.0, 3.0)]
-    assert all(a > b for a, b in zip(r, r[1:])) and r[-1] < 0.05
+    assert all(a > b for a, b in zip(r, r[1:], strict=False)) and r[-1] < 0.05
 
 
 def test_gates_keep_the_defaults_on_a_kind_clip_and_lower_them_in_the_dark():
-    kind = cs.gates(cs.estimate(_clip(amp=60.0, noise=2.0)), shrink_default=3.0, min_texture_default=0.05,
-                    min_pairs=2, n_frames=240)
+    kind = cs.gates(
+        cs.estimate(_clip(amp=60.0, noise=2.0)), shrink_default=3.0, min_texture_default=0.05, min_pairs=2, n_frames=240
+    )
     assert (kind.plan, kind.shrink, kind.min_texture, kind.min_pairs) == ("standard", 3.0, 0.05, None)
-    dark = cs.gates(cs.estimate(_clip(amp=8.0, noise=5.0)), shrink_default=3.0, min_texture_default=0.05,
-                    min_pairs=2, n_frames=240)
+    dark = cs.gates(
+        cs.estimate(_clip(amp=8.0, noise=5.0)), shrink_default=3.0, min_texture_default=0.05, min_pairs=2, n_frames=240
+    )
     assert dark.plan == "low_light" and dark.shrink < 3.0 and dark.min_texture <= 0.05 and dark.min_pairs == 239
     assert json.dumps(dark.to_dict())
 
@@ -91,12 +93,15 @@ def test_unmeasured_verdict_is_unusable_with_nan_discharge():
     orig = dq.subsection_areas
     dq.subsection_areas = lambda g, c, lv: (np.ones(5), np.ones(5))
     try:
-        dres, q = unmeasured.verdict(G(), cs_, 10.0, 0.85, {"noise": {"temporal_sd_gray": 5.0},
-                                                            "contrast": {"tracer_gray": 1.0, "cnr": 0.2}})
+        dres, q = unmeasured.verdict(
+            G(), cs_, 10.0, 0.85, {"noise": {"temporal_sd_gray": 5.0}, "contrast": {"tracer_gray": 1.0, "cnr": 0.2}}
+        )
     finally:
         dq.subsection_areas = orig
     assert np.isnan(dres.discharge_m3s) and dres.velocity_filled.all()
-    assert q.grade == "unusable" and q.reasons[0].code == "nothing_measured" and "0.20 x its noise" in q.reasons[0].message
+    assert (
+        q.grade == "unusable" and q.reasons[0].code == "nothing_measured" and "0.20 x its noise" in q.reasons[0].message
+    )
 
 
 @pytest.mark.slow
@@ -105,12 +110,23 @@ def test_dark_clip_is_never_exit_2(tmp_path: Path):
     now it is a measurement (exit 0, right or not graded good) or an unusable verdict (exit 3) with result.json."""
     from fieldtool.synthetic import presets, render_scene
 
-    spec = presets.get("low_light", seed=0, duration_s=3.0, camera__width_px=640, camera__height_px=360,
-                       piv_window_px=16, piv_overlap_px=8)
+    spec = presets.get(
+        "low_light",
+        seed=0,
+        duration_s=3.0,
+        camera__width_px=640,
+        camera__height_px=360,
+        piv_window_px=16,
+        piv_overlap_px=8,
+    )
     truth = render_scene(spec, tmp_path / "scene")
     out = tmp_path / "res"
-    p = subprocess.run([sys.executable, "-m", "fieldtool.cli", "run", str(truth.project_path), "--out", str(out)],
-                       capture_output=True, text=True, env=os.environ.copy())
+    p = subprocess.run(
+        [sys.executable, "-m", "fieldtool.cli", "run", str(truth.project_path), "--out", str(out)],
+        capture_output=True,
+        text=True,
+        env=os.environ.copy(),
+    )
     assert p.returncode in (0, 3), p.stderr[-500:]
     res = json.loads((out / "result.json").read_text())
     assert res["robust"]["gates"]["plan"] == "low_light"
@@ -157,12 +173,24 @@ def test_blank_clip_ends_unusable_with_every_file(tmp_path: Path):
     grade unusable and its reason (exit 2 "no valid velocity vector" before issue 23)."""
     from fieldtool.synthetic import presets, render_scene
 
-    spec = presets.get("low_light", seed=0, duration_s=2.0, particle_brightness=0.0, camera__width_px=640,
-                       camera__height_px=360, piv_window_px=16, piv_overlap_px=8)
+    spec = presets.get(
+        "low_light",
+        seed=0,
+        duration_s=2.0,
+        particle_brightness=0.0,
+        camera__width_px=640,
+        camera__height_px=360,
+        piv_window_px=16,
+        piv_overlap_px=8,
+    )
     truth = render_scene(spec, tmp_path / "scene")
     out = tmp_path / "res"
-    p = subprocess.run([sys.executable, "-m", "fieldtool.cli", "run", str(truth.project_path), "--out", str(out)],
-                       capture_output=True, text=True, env=os.environ.copy())
+    p = subprocess.run(
+        [sys.executable, "-m", "fieldtool.cli", "run", str(truth.project_path), "--out", str(out)],
+        capture_output=True,
+        text=True,
+        env=os.environ.copy(),
+    )
     assert p.returncode == 3, p.stderr[-500:]
     res = json.loads((out / "result.json").read_text())
     assert res["discharge_m3s"] is None and res["quality"]["grade"] == "unusable"

@@ -38,8 +38,18 @@ def test_report_embeds_only_the_runs_own_images(tmp_path):
     png = cv2.imencode(".png", np.zeros((4, 4, 3), np.uint8))[1].tobytes()
     (out / "vectors.png").write_bytes(png)
     (tmp_path / "secret_plot.png").write_bytes(png)
-    (out / "result.json").write_text(json.dumps({"discharge_m3s": 1.0, "files": {
-        "vectors_png": "vectors.png", "secret_png": "../secret_plot.png",
-        "abs_png": str(tmp_path / "secret_plot.png"), "subsections": "../../etc/passwd"}}))
+    (out / "result.json").write_text(
+        json.dumps(
+            {
+                "discharge_m3s": 1.0,
+                "files": {
+                    "vectors_png": "vectors.png",
+                    "secret_png": "../secret_plot.png",
+                    "abs_png": str(tmp_path / "secret_plot.png"),
+                    "subsections": "../../etc/passwd",
+                },
+            }
+        )
+    )
     _, images, rows = load_result(out)
     assert set(images) == {"vectors_png"} and rows == []

@@ -35,8 +35,9 @@ def test_calibration_from_rendered_checkerboard(tmp_path):
     truth = render_scene(presets.get("oblique", duration_s=2.0, distortion=True), tmp_path / "scene")
     proj = load_project(truth.project_path)
     cal = proj.calibration
-    lens = calibrate_video(proj.resolve(cal.checkerboard_video), corners=tuple(cal.corners),
-                           square_mm=cal.square_mm, n_frames=cal.n_frames)
+    lens = calibrate_video(
+        proj.resolve(cal.checkerboard_video), corners=tuple(cal.corners), square_mm=cal.square_mm, n_frames=cal.n_frames
+    )
     assert lens.camera_matrix[0, 0] == pytest.approx(truth.K[0, 0], rel=0.01)
     assert lens.camera_matrix[1, 1] == pytest.approx(truth.K[1, 1], rel=0.01)
     save_calibration(lens, tmp_path / "scene" / "calibration.toml")

@@ -36,7 +36,12 @@ def test_partial_area_sums_to_total():
 
 
 def test_parse_separators_and_header():
-    for text in ("x,y\n0,5\n1,3\n2,5\n", "0;5\n1;3\n2;5", "0 5\n1\t3\n2 5\n", "# survey\nstation elevation\n0 5\n1 3\n2 5"):
+    for text in (
+        "x,y\n0,5\n1,3\n2,5\n",
+        "0;5\n1;3\n2;5",
+        "0 5\n1\t3\n2 5\n",
+        "# survey\nstation elevation\n0 5\n1 3\n2 5",
+    ):
         cs = parse_xy_text(text)
         assert list(cs.station) == [0, 1, 2] and list(cs.elevation) == [5, 3, 5]
     cs = from_shape("trapezoidal", top_width_m=10, bottom_width_m=4, depth_m=2)

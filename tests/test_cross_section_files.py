@@ -10,28 +10,34 @@ ST = [0.0, 5.5, 12.0]
 EL = [10.6, 8.25, 10.5]
 
 
-@pytest.mark.parametrize("text", [
-    "0,0;10,6\n5,5;8,25\n12;10,5\n",  # European: ';' between fields, decimal commas
-    "station;elevation\n0,0;10,6\n5,5;8,25\n12,0;10,5\n",
-    "station\televation\n0,0\t10,6\n5,5\t8,25\n12\t10,5\n",  # tabs with decimal commas
-    "station_m,elevation_m\n0,10.6\n5.5,8.25\n12,10.5\n",
-    "0 10.6\n5.5   8.25\n12 10.5\n",
-    "Station (cm);Elevation (m)\n0;10,6\n550;8,25\n1200;10,5\n",  # units in the header
-    "Elevation (m),Distance (m)\n10.6,0\n8.25,5.5\n10.5,12\n",  # columns named in another order
-    "# survey 2026-05-01\nPoint;Station [m];Z [m]\n1;0;10,6\n2;5,5;8,25\n3;12;10,5\n",
-])
+@pytest.mark.parametrize(
+    "text",
+    [
+        "0,0;10,6\n5,5;8,25\n12;10,5\n",  # European: ';' between fields, decimal commas
+        "station;elevation\n0,0;10,6\n5,5;8,25\n12,0;10,5\n",
+        "station\televation\n0,0\t10,6\n5,5\t8,25\n12\t10,5\n",  # tabs with decimal commas
+        "station_m,elevation_m\n0,10.6\n5.5,8.25\n12,10.5\n",
+        "0 10.6\n5.5   8.25\n12 10.5\n",
+        "Station (cm);Elevation (m)\n0;10,6\n550;8,25\n1200;10,5\n",  # units in the header
+        "Elevation (m),Distance (m)\n10.6,0\n8.25,5.5\n10.5,12\n",  # columns named in another order
+        "# survey 2026-05-01\nPoint;Station [m];Z [m]\n1;0;10,6\n2;5,5;8,25\n3;12;10,5\n",
+    ],
+)
 def test_spreadsheet_text_styles_read_right(text):
     cs = parse_xy_text(text)
     assert np.allclose(cs.station, ST) and np.allclose(cs.elevation, EL)
 
 
-@pytest.mark.parametrize("text, match", [
-    ("0,10\n5,8,1\n12,10\n", "line 2: 3 fields"),
-    ("station;elevation\n0;10\n5;abc\n", "line 3: 'abc' is not a number"),
-    ("Depth (m);Station (m)\n0;0\n1;5\n", "line 1: the header names a depth column"),
-    ("Station (in);Elevation (m)\n0;0\n1;5\n", "line 1: unit 'in'"),
-    ("0;10\n", "1 data row"),
-])
+@pytest.mark.parametrize(
+    "text, match",
+    [
+        ("0,10\n5,8,1\n12,10\n", "line 2: 3 fields"),
+        ("station;elevation\n0;10\n5;abc\n", "line 3: 'abc' is not a number"),
+        ("Depth (m);Station (m)\n0;0\n1;5\n", "line 1: the header names a depth column"),
+        ("Station (in);Elevation (m)\n0;0\n1;5\n", "line 1: unit 'in'"),
+        ("0;10\n", "1 data row"),
+    ],
+)
 def test_bad_rows_are_named_by_line(text, match):
     with pytest.raises(InputFileError, match=match):
         parse_xy_text(text)

@@ -25,7 +25,11 @@ def built_site(tmp_path_factory):
     env = dict(os.environ, NO_MKDOCS_2_WARNING="1")
     proc = subprocess.run(
         [sys.executable, "-m", "mkdocs", "build", "--strict", "-f", str(ROOT / "mkdocs.yml"), "-d", str(site)],
-        cwd=ROOT, env=env, capture_output=True, text=True, timeout=300,
+        cwd=ROOT,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
     )
     return proc, site
 
@@ -58,8 +62,9 @@ def test_built_pages_load_nothing_from_another_host(built_site):
 def test_keys_page_is_in_the_guide(built_site):
     """The generated key table reaches the built page (one row per key of docs/keys.md)."""
     _, site = built_site
-    rows = [line for line in (ROOT / "docs" / "keys.md").read_text(encoding="utf-8").splitlines()
-            if line.startswith("| `")]
+    rows = [
+        line for line in (ROOT / "docs" / "keys.md").read_text(encoding="utf-8").splitlines() if line.startswith("| `")
+    ]
     html = (site / "keys.html").read_text(encoding="utf-8")
     assert len(rows) > 100
     assert html.count("<tr>") >= len(rows)

@@ -28,8 +28,11 @@ def _sample():
     keys = [c for c in F.key_cases(full=False) if c.must_refuse][::16]
     passing = [c for c in F.key_cases(full=False) if c.id in ("name=unicode", "video.start_s=zero")]
     files = [c for c in F.file_cases() if c.id in ("project-binary", "project-truncated", "video-fifo", "xs-binary")]
-    cmds = [c for c in F.command_cases() if c.id in ("calibrate-square-inf", "report-list-json",
-                                                     "batch-levels-no-delimiter", "run-out-is-file")]
+    cmds = [
+        c
+        for c in F.command_cases()
+        if c.id in ("calibrate-square-inf", "report-list-json", "batch-levels-no-delimiter", "run-out-is-file")
+    ]
     return keys + passing + files + cmds
 
 
@@ -39,8 +42,15 @@ SAMPLE = _sample()
 @pytest.mark.parametrize("case", SAMPLE, ids=[c.id for c in SAMPLE])
 def test_fuzz_case(runner, case, short_scene):
     o = runner.run(case)
-    assert o.ok, (case.id, o.rc, o.stderr[-600:], {k: getattr(o, k) for k in (
-        "traceback", "multi_line", "damaged_project", "partial_output", "non_json", "wrong_code", "hang")})
+    assert o.ok, (
+        case.id,
+        o.rc,
+        o.stderr[-600:],
+        {
+            k: getattr(o, k)
+            for k in ("traceback", "multi_line", "damaged_project", "partial_output", "non_json", "wrong_code", "hang")
+        },
+    )
 
 
 def test_geometry_cases(runner, short_scene):

@@ -115,7 +115,9 @@ def test_patchy_band_empties(tmp_path):
     first, last = frames[0][band], frames[-1][band]
     assert (first > 90).sum() > 20  # tracers in the band at the start ...
     assert (last > 90).sum() == 0  # ... none once it emptied
-    assert (frames[-1][_water_mask(spec, (-2.0, 2.0), (5.0, 11.0))] > 90).sum() > 20  # the rest of the river still carries some
+    assert (
+        frames[-1][_water_mask(spec, (-2.0, 2.0), (5.0, 11.0))] > 90
+    ).sum() > 20  # the rest of the river still carries some
 
 
 def test_fast_grazing_compressed_skewed_geometry(rendered, tmp_path):
@@ -150,6 +152,9 @@ def test_dropped_frames_timestamps_reach_the_piv(rendered):
     np.testing.assert_allclose(got, want, atol=2e-5)  # the container's timestamps, read back
     gaps = np.diff(want) * spec.fps
     assert gaps.max() > 1.9 and np.ptp(gaps) > 0.5  # variable frame rate
-    res = piv.analyze([(f.t_s, f.image) for f in FrameSource(truth.video_path)],
-                      piv.PivParams(window_px=32, overlap_px=16, passes=1, averaging="median"), roi=(400, 200, 720, 440))
+    res = piv.analyze(
+        [(f.t_s, f.image) for f in FrameSource(truth.video_path)],
+        piv.PivParams(window_px=32, overlap_px=16, passes=1, averaging="median"),
+        roi=(400, 200, 720, 440),
+    )
     np.testing.assert_allclose(res.dt_s, np.diff(want), atol=2e-5)

@@ -31,19 +31,41 @@ from fieldtool.records.rating import fit_rating
 
 
 def fake_summary(q: float, level: float, name: str = "m", v: float = 1.0) -> dict:
-    return {"discharge_m3s": q, "discharge_p05_m3s": 0.95 * q, "discharge_p95_m3s": 1.05 * q, "water_level_m": level,
-            "water_level_method": "value", "mean_velocity_ms": v, "alpha": 0.85, "wetted_area_m2": q / v,
-            "wetted_width_m": 10.0, "warnings": ["w1"], "fieldtool_version": "9.9.9",
-            "inputs": {"name": name, "piv": {"window_px": 32}}}
+    return {
+        "discharge_m3s": q,
+        "discharge_p05_m3s": 0.95 * q,
+        "discharge_p95_m3s": 1.05 * q,
+        "water_level_m": level,
+        "water_level_method": "value",
+        "mean_velocity_ms": v,
+        "alpha": 0.85,
+        "wetted_area_m2": q / v,
+        "wetted_width_m": 10.0,
+        "warnings": ["w1"],
+        "fieldtool_version": "9.9.9",
+        "inputs": {"name": name, "piv": {"window_px": 32}},
+    }
 
 
 def fill(h: History) -> list[int]:
     """Two sites, five measurements at known times."""
-    rows = [("A", "2024-05-01T08:00:00Z", 2.0, 10.2), ("A", "2024-05-03T08:00:00Z", 3.0, 10.4),
-            ("B", "2024-05-02T08:00:00Z", 5.0, 3.1), ("A", "2024-06-01T08:00:00Z", 4.0, 10.6),
-            ("B", "2024-07-01T08:00:00Z", 6.0, 3.3)]
-    return [h.record_summary(fake_summary(q, lv, f"{s}{i}"), site=s, video_time=(t, "container"),
-                             output_dir=f"/out/{i}", input_hash=f"h{i}") for i, (s, t, q, lv) in enumerate(rows)]
+    rows = [
+        ("A", "2024-05-01T08:00:00Z", 2.0, 10.2),
+        ("A", "2024-05-03T08:00:00Z", 3.0, 10.4),
+        ("B", "2024-05-02T08:00:00Z", 5.0, 3.1),
+        ("A", "2024-06-01T08:00:00Z", 4.0, 10.6),
+        ("B", "2024-07-01T08:00:00Z", 6.0, 3.3),
+    ]
+    return [
+        h.record_summary(
+            fake_summary(q, lv, f"{s}{i}"),
+            site=s,
+            video_time=(t, "container"),
+            output_dir=f"/out/{i}",
+            input_hash=f"h{i}",
+        )
+        for i, (s, t, q, lv) in enumerate(rows)
+    ]
 
 
 def test_default_path_env_and_xdg(monkeypatch, tmp_path):
@@ -105,7 +127,7 @@ def test_references_stats_export_delete(tmp_path):
         assert a.mean_abs_percent == pytest.approx(np.mean(np.abs(e)))
         assert a.rmse_percent == pytest.approx(np.sqrt(np.mean(np.square(e))))
         assert a.max_abs_percent == pytest.approx(20.0)
-        assert a.rmse_m3s == pytest.approx(np.sqrt((0.2 ** 2 + 0.5 ** 2) / 2))
+        assert a.rmse_m3s == pytest.approx(np.sqrt((0.2**2 + 0.5**2) / 2))
         assert stats[("A", "adcp")].n == 1 and stats[("A", "current_meter")].bias_percent == pytest.approx(20.0)
         assert stats[("B", "all")].bias_percent == pytest.approx(0.0)
         assert ("B", "gauge") not in stats  # one method only: no repeated line
@@ -186,7 +208,7 @@ def test_damaged_database_refused_and_untouched(tmp_path):
     blob = bytearray(db.read_bytes())
     page = struct.unpack(">H", blob[16:18])[0]
     assert len(blob) >= 4 * page
-    blob[2 * page:3 * page] = b"\xa5" * page  # a table page overwritten
+    blob[2 * page : 3 * page] = b"\xa5" * page  # a table page overwritten
     db.write_bytes(bytes(blob))
     before = _snapshot(tmp_path)
     with pytest.raises(InputFileError, match="damaged.*left untouched"):
@@ -243,8 +265,15 @@ def test_two_processes_write_at_once(tmp_path):
     go = tmp_path / "go"
     n = 60
     env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]))
-    procs = [subprocess.Popen([sys.executable, "-c", WRITER, str(db), tag, str(n), str(go), mode], env=env,
-                              stderr=subprocess.PIPE, text=True) for tag, mode in (("p1", "keep"), ("p2", "reopen"))]
+    procs = [
+        subprocess.Popen(
+            [sys.executable, "-c", WRITER, str(db), tag, str(n), str(go), mode],
+            env=env,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        for tag, mode in (("p1", "keep"), ("p2", "reopen"))
+    ]
     go.touch()
     for p in procs:
         _, err = p.communicate(timeout=120)
@@ -303,8 +332,13 @@ def test_input_hash_follows_content_not_location(tmp_path):
         d.mkdir()
         (d / "river.mp4").write_bytes(b"\x01" * 3_000_000)  # more than one hashing chunk
         (d / "xs.csv").write_text("0,1\n5,0\n10,1\n")
-    proj = {"name": "x", "step": "piv", "video": {"path": "river.mp4"}, "cross_section": {"path": "xs.csv"},
-            "piv": {"window_px": 32}}
+    proj = {
+        "name": "x",
+        "step": "piv",
+        "video": {"path": "river.mp4"},
+        "cross_section": {"path": "xs.csv"},
+        "piv": {"window_px": 32},
+    }
     h_a = input_hash(proj, a)
     assert h_a == input_hash({**proj, "name": "other name", "step": "roi"}, b)
     moved = {**proj, "video": {"path": str(a / "river.mp4")}, "cross_section": {"path": "b/xs.csv"}}
@@ -373,8 +407,9 @@ def test_a_read_is_tried_again_after_a_transient_disk_io_error(tmp_path, monkeyp
     import sqlite3
 
     with History(tmp_path / "h.sqlite") as h:
-        h.record_summary({"discharge_m3s": 1.0, "water_level_m": 1.0, "inputs": {"name": "a"}}, site="a",
-                         input_hash="a-1")
+        h.record_summary(
+            {"discharge_m3s": 1.0, "water_level_m": 1.0, "inputs": {"name": "a"}}, site="a", input_hash="a-1"
+        )
         real = h.conn
         fails = {"n": 2}
 
@@ -396,7 +431,6 @@ def test_a_read_is_tried_again_after_a_transient_disk_io_error(tmp_path, monkeyp
                 h.query()
         finally:
             h.conn = real
-
 
 
 def test_the_check_leaves_the_side_files_another_process_has_started_to_use(tmp_path, monkeypatch):

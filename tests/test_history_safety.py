@@ -34,10 +34,13 @@ def _sqlite_file(path: Path, *statements: str) -> None:
     assert path.read_bytes()[18:20] == b"\x01\x01"
 
 
-@pytest.mark.parametrize("statements, match", [
-    (("CREATE TABLE birds (name TEXT)", "INSERT INTO birds VALUES ('wren')"), "other tables"),
-    (("CREATE TABLE measurements (id INTEGER)", f"PRAGMA user_version = {SCHEMA_VERSION + 1}"), "newer fieldtool"),
-])
+@pytest.mark.parametrize(
+    "statements, match",
+    [
+        (("CREATE TABLE birds (name TEXT)", "INSERT INTO birds VALUES ('wren')"), "other tables"),
+        (("CREATE TABLE measurements (id INTEGER)", f"PRAGMA user_version = {SCHEMA_VERSION + 1}"), "newer fieldtool"),
+    ],
+)
 def test_foreign_or_newer_file_is_refused_byte_identical(tmp_path, statements, match):
     from fieldtool.cli.main import main
 
@@ -62,8 +65,13 @@ def _as_reader(cmd: list[str]) -> subprocess.CompletedProcess:
         if setpriv is None:
             pytest.skip("running as root without setpriv: file modes cannot be made to bind")
         prefix = [setpriv, "--bounding-set", "-dac_override,-dac_read_search,-fowner", "--"]
-    return subprocess.run([*prefix, sys.executable, "-m", "fieldtool.cli.main", *cmd], capture_output=True, text=True,
-                          env=env, timeout=120)
+    return subprocess.run(
+        [*prefix, sys.executable, "-m", "fieldtool.cli.main", *cmd],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=120,
+    )
 
 
 @pytest.fixture

@@ -118,8 +118,12 @@ def test_a_50_mb_cross_section_answers_in_seconds(scene):
         while fh.tell() < 50_000_000:
             fh.write(rows)
     t0 = time.monotonic()
-    r = subprocess.run([sys.executable, "-m", "fieldtool.cli", "run", str(_project(scene)), "--out",
-                        str(scene / "out"), "--quiet"], capture_output=True, text=True, timeout=120)
+    r = subprocess.run(
+        [sys.executable, "-m", "fieldtool.cli", "run", str(_project(scene)), "--out", str(scene / "out"), "--quiet"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert r.returncode == 2, r.stderr
     assert "cross_section.csv" in r.stderr and "MB" in r.stderr and len(r.stderr.splitlines()) == 1
     assert time.monotonic() - t0 < 60
@@ -128,8 +132,9 @@ def test_a_50_mb_cross_section_answers_in_seconds(scene):
 # --- values typed on the command line go through the validation layer -----------------------------------
 
 
-@pytest.mark.parametrize("option", [["--level", "nan"], ["--level", "inf"], ["--level", "9.5",
-                                                                              "--level-uncertainty", "-0.1"]])
+@pytest.mark.parametrize(
+    "option", [["--level", "nan"], ["--level", "inf"], ["--level", "9.5", "--level-uncertainty", "-0.1"]]
+)
 def test_new_measurement_refuses_values_the_project_refuses(tmp_path, capsys, option):
     from test_sites import make_project
 
@@ -139,8 +144,20 @@ def test_new_measurement_refuses_values_the_project_refuses(tmp_path, capsys, op
     v = tmp_path / "new.mp4"
     v.write_bytes(b"v")
     capsys.readouterr()
-    code = main(["site", "new-measurement", "st7", "--sites", str(root), "--video", str(v), *option,
-                 "--out", str(tmp_path / "visit")])
+    code = main(
+        [
+            "site",
+            "new-measurement",
+            "st7",
+            "--sites",
+            str(root),
+            "--video",
+            str(v),
+            *option,
+            "--out",
+            str(tmp_path / "visit"),
+        ]
+    )
     err = capsys.readouterr().err
     assert code == 2 and "water_level." in err, err
     assert not (tmp_path / "visit" / "project.toml").exists()
@@ -150,8 +167,14 @@ def test_new_measurement_refuses_values_the_project_refuses(tmp_path, capsys, op
 
 
 def _evidence(**kw):
-    base = dict(subsection_width_m=np.ones(5), subsection_velocity_ms=np.full(5, 0.8), discharge_m3s=4.0,
-                valid_fraction_section=0.9, peak_median=0.6, n_frame_pairs=100)
+    base = dict(
+        subsection_width_m=np.ones(5),
+        subsection_velocity_ms=np.full(5, 0.8),
+        discharge_m3s=4.0,
+        valid_fraction_section=0.9,
+        peak_median=0.6,
+        n_frame_pairs=100,
+    )
     base.update(kw)
     return ql.Evidence(**base)
 
@@ -236,15 +259,35 @@ def test_unwritable_home_adds_no_matplotlib_lines(scene, tmp_path_factory):
     env = {k: v for k, v in os.environ.items() if k not in ("MPLCONFIGDIR", "XDG_CONFIG_HOME", "XDG_CACHE_HOME")}
     env["HOME"] = str(blocker / "home")
     env["FIELDTOOL_DB"] = str(blocker / "home" / "history.sqlite")
-    r = subprocess.run([sys.executable, "-m", "fieldtool.cli", "run", str(_project(scene)), "--out",
-                        str(scene / "out"), "--quiet", "--record"], capture_output=True, text=True, timeout=300,
-                       env=env)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "fieldtool.cli",
+            "run",
+            str(_project(scene)),
+            "--out",
+            str(scene / "out"),
+            "--quiet",
+            "--record",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env=env,
+    )
     assert "matplotlib" not in r.stderr.lower(), r.stderr
     assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr
 
 
-@pytest.mark.parametrize("key,value", [("water_level.value_m", float("nan")), ("water_level.uncertainty_m", -0.1),
-                                       ("ortho.gcp_px", [[1.0, 2.0], [float("inf"), 3.0]])])
+@pytest.mark.parametrize(
+    "key,value",
+    [
+        ("water_level.value_m", float("nan")),
+        ("water_level.uncertainty_m", -0.1),
+        ("ortho.gcp_px", [[1.0, 2.0], [float("inf"), 3.0]]),
+    ],
+)
 def test_a_single_key_written_from_outside_goes_through_validation(short_scene, tmp_path, key, value):
     """calibrate --project and the viewer write one key (project.sync.ProjectSync.set_keys): refused like the rest."""
     from fieldtool.errors import ParameterError

@@ -30,7 +30,10 @@ def test_presets_exist_and_vary_the_base_view_with_the_seed():
                 assert s.nuisances.any
     assert len(cams) >= 3
     low = presets.get("low_light")
-    assert round(low.water_gray * 255) == 22 and 5.5 <= low.particle_brightness * 255 * 0.7 < low.particle_brightness * 255 * 1.3 <= 10.5
+    assert (
+        round(low.water_gray * 255) == 22
+        and 5.5 <= low.particle_brightness * 255 * 0.7 < low.particle_brightness * 255 * 1.3 <= 10.5
+    )
     assert presets.get("drone_4k").camera.width_px == 3840
     assert not presets.get("oblique").nuisances.any  # the base scenes draw none
 

@@ -45,8 +45,12 @@ def _run(capsys, *argv):
 
 
 def _child(*argv, frame_delay=0.0, write_delay=0.0, **kw):
-    return subprocess.Popen([sys.executable, str(HARNESS), str(frame_delay), str(write_delay), *map(str, argv)],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, **kw)
+    return subprocess.Popen(
+        [sys.executable, str(HARNESS), str(frame_delay), str(write_delay), *map(str, argv)],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        **kw,
+    )
 
 
 def _wait_for(cond, proc, limit=120.0):
@@ -261,13 +265,15 @@ def test_kill_9_at_random_moments_leaves_the_old_run_or_the_new_one(scene, capsy
     assert _run(capsys, "run", proj_new, "--out", ref, "--quiet")[0] == 0  # the new run over the old one
     new = snapshot(ref)
     shutil.rmtree(ref)
+
     def start():
         return _child("run", proj_new, "--out", out, "--quiet", frame_delay=0.01, write_delay=0.05)
 
     timed = scene / "timed"
     shutil.copytree(out, timed)
-    span, write_span = time_phases(lambda: _child("run", proj_new, "--out", timed, "--quiet", frame_delay=0.01,
-                                                  write_delay=0.05), scene)
+    span, write_span = time_phases(
+        lambda: _child("run", proj_new, "--out", timed, "--quiet", frame_delay=0.01, write_delay=0.05), scene
+    )
     shutil.rmtree(timed)
     rng = random.Random(25)
     seen = []

@@ -43,8 +43,11 @@ def test_netcdf_is_cf_with_units_names_bounds_and_the_project(world_run):
     assert result.files["netcdf"] == "mean_field.nc"
     with xr.open_dataset(out / "mean_field.nc", decode_times=False) as ds:
         assert ds.attrs["Conventions"] == "CF-1.8"
-        for name, std in (("surface_velocity_x", "sea_water_x_velocity"), ("surface_velocity_y", "sea_water_y_velocity"),
-                          ("surface_speed", "sea_water_speed")):
+        for name, std in (
+            ("surface_velocity_x", "sea_water_x_velocity"),
+            ("surface_velocity_y", "sea_water_y_velocity"),
+            ("surface_speed", "sea_water_speed"),
+        ):
             v = ds[name]
             assert v.attrs["standard_name"] == std and v.attrs["units"] == "m s-1" and v.attrs["long_name"]
             assert v.dims == ("time", "y", "x") and v.attrs["grid_mapping"] == "crs"
@@ -67,8 +70,11 @@ def test_netcdf_is_cf_with_units_names_bounds_and_the_project(world_run):
         p = result.piv
         ok = p.valid & np.isfinite(result.world_u)
         XY = result.mapping.image_to_world(np.c_[p.x[ok], p.y[ok]])
-        got = ds.surface_velocity_x.isel(time=0).sel(x=xr.DataArray(XY[:, 0], dims="n"), y=xr.DataArray(XY[:, 1], dims="n"),
-                                                      method="nearest").values
+        got = (
+            ds.surface_velocity_x.isel(time=0)
+            .sel(x=xr.DataArray(XY[:, 0], dims="n"), y=xr.DataArray(XY[:, 1], dims="n"), method="nearest")
+            .values
+        )
         fin = np.isfinite(got)
         assert fin.mean() > 0.9  # every node has data in its own cell (the edges of the hull aside)
         err = np.abs(got[fin] - result.world_u[ok][fin])

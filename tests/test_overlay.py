@@ -56,18 +56,24 @@ def runs(short_scene, tmp_path_factory):
     mp = pytest.MonkeyPatch()
     out = {}
     try:
-        for name, overlay, folder, rerun, rng in (("plain", False, "a", False, None), ("cached", True, "a", False, None),
-                                                  ("streamed", True, "c", True, None),
-                                                  ("range", True, "d", False, (0.2, 1.0)),
-                                                  ("rectified", True, "e", False, None)):
+        for name, overlay, folder, rerun, rng in (
+            ("plain", False, "a", False, None),
+            ("cached", True, "a", False, None),
+            ("streamed", True, "c", True, None),
+            ("range", True, "d", False, (0.2, 1.0)),
+            ("rectified", True, "e", False, None),
+        ):
             p = load_project(root / "project.toml")
             p.overlay.enabled = overlay
             if name == "rectified":  # the map view at half the clip's rate, 640 px, a 0.5 s card
                 p.overlay.view, p.overlay.fps, p.overlay.width_px, p.overlay.card_s = "rectified", 15.0, 640, 0.5
             if rng:
                 p.video.start_s, p.video.end_s = rng
-            obs = observer_from_args(p, argparse.Namespace(rerun="save", rerun_path=None, rerun_url=None),
-                                     root / folder) if rerun else None
+            obs = (
+                observer_from_args(p, argparse.Namespace(rerun="save", rerun_path=None, rerun_url=None), root / folder)
+                if rerun
+                else None
+            )
             passes = _count_passes(mp)
             res = run_project(p, root / folder, observer=obs)
             mp.undo()
@@ -106,10 +112,10 @@ def test_frames_and_times_match_the_analysed_range(runs, name):
     n_card = int(round(CARD_S * fps))
     assert len(frames) == len(expected) + n_card
     t0 = expected[0].t_s
-    got = np.array([t for t, _ in frames[:len(expected)]])
+    got = np.array([t for t, _ in frames[: len(expected)]])
     want = np.array([f.t_s - t0 for f in expected])
     assert np.max(np.abs(got - want)) < 0.5 / fps
-    card = np.array([t for t, _ in frames[len(expected):]])
+    card = np.array([t for t, _ in frames[len(expected) :]])
     assert np.allclose(np.diff(card), 1.0 / fps, atol=1e-6) and card[0] > got[-1]
     info = res.summary()["overlay"]
     assert info["frames"] == len(expected) and info["card_frames"] == n_card
@@ -126,7 +132,7 @@ def test_rectified_view_at_half_the_rate(runs):
     kept = _analysed(p)[::2]  # 30 fps clip, 15 fps video: every second frame, at its own time
     n_card = int(round(0.5 * fps))
     assert len(frames) == len(kept) + n_card
-    got = np.array([t for t, _ in frames[:len(kept)]])
+    got = np.array([t for t, _ in frames[: len(kept)]])
     assert np.max(np.abs(got - np.array([f.t_s - kept[0].t_s for f in kept]))) < 0.25 / fps
     mid = frames[len(kept) // 2][1].astype(int)
     assert ((mid.max(axis=2) - mid.min(axis=2)) > 40).sum() > 300  # vectors and section on the map
@@ -165,7 +171,7 @@ def test_vectors_are_drawn_in_the_colour_map_inside_the_band(runs):
     assert np.mean(cos.max(axis=1) > 0.9) > 0.8
     # away from the band, the legend and the text boxes the frame is the clip's (up to the encoder's error)
     far = np.zeros((h, w), bool)
-    far[int(0.62 * h):int(0.85 * h), int(0.72 * w):int(0.97 * w)] = True
+    far[int(0.62 * h) : int(0.85 * h), int(0.72 * w) : int(0.97 * w)] = True
     far &= ~cv2.dilate(band.astype(np.uint8), np.ones((41, 41), np.uint8)).astype(bool)
     assert far.sum() > 1000
     assert np.mean(np.abs(drawn[far] - raw[far].astype(int))) < 8
@@ -291,7 +297,8 @@ SEEK_AND_COUNT = """(t) => new Promise(res => { const v = document.querySelector
   v.addEventListener('seeked', () => { const c = document.createElement('canvas'); c.width = v.videoWidth;
     c.height = v.videoHeight; const g = c.getContext('2d'); g.drawImage(v, 0, 0);
     const d = g.getImageData(0, 0, c.width, c.height).data; let col = 0;
-    for (let i = 0; i < d.length; i += 4) { if (Math.max(d[i], d[i+1], d[i+2]) - Math.min(d[i], d[i+1], d[i+2]) > 40) col++; }
+    for (let i = 0; i < d.length; i += 4) {
+      if (Math.max(d[i], d[i+1], d[i+2]) - Math.min(d[i], d[i+1], d[i+2]) > 40) col++; }
     res({w: v.videoWidth, h: v.videoHeight, duration: v.duration, colourful: col, err: v.error && v.error.code}); },
     {once: true});
   v.currentTime = t; })"""

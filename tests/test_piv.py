@@ -266,8 +266,12 @@ def test_cancel_stops_within_a_pair_and_streams():
 def test_progress_total_and_on_pair():
     frames = particle_clip(uniform(1.0, 0.5), n_frames=3, seed=15)
     calls, pairs = [], []
-    analyze(frames, PivParams(), progress=lambda d, t: calls.append((d, t)),
-            on_pair=lambda i, t, x, y, u, v, ok: pairs.append((i, t, u.shape, ok.dtype)))
+    analyze(
+        frames,
+        PivParams(),
+        progress=lambda d, t: calls.append((d, t)),
+        on_pair=lambda i, t, x, y, u, v, ok: pairs.append((i, t, u.shape, ok.dtype)),
+    )
     assert calls == [(1, 2), (2, 2)]
     assert [p[0] for p in pairs] == [0, 1] and pairs[0][1] == pytest.approx(0.25) and pairs[0][3] == np.dtype(bool)
 
@@ -375,8 +379,12 @@ def numpy_as_cupy(monkeypatch):
 
     from fieldtool.processing import piv_gpu
 
-    fake = types.SimpleNamespace(**{k: getattr(np, k) for k in ("ascontiguousarray", "where", "sqrt", "maximum",
-                                                                   "float32", "conj", "asarray", "lib")})
+    fake = types.SimpleNamespace(
+        **{
+            k: getattr(np, k)
+            for k in ("ascontiguousarray", "where", "sqrt", "maximum", "float32", "conj", "asarray", "lib")
+        }
+    )
     fake.asnumpy = np.asarray
     monkeypatch.setattr(piv_gpu, "_cupy", lambda: (fake, scipy.fft))
     monkeypatch.setattr(piv_gpu, "_CHECKED", None)
@@ -429,8 +437,9 @@ def test_second_peak_is_highest_other_local_maximum(s, margin, blur):
     for i in np.flatnonzero(pk.ok):
         ky, kx = np.unravel_index(np.argmax(planes[i, :span, :span]), (span, span))
         p2 = _second_peak_reference(planes[i], ky, kx, span)
-        assert pk.snr[i] == pytest.approx(min(planes[i, ky, kx] / p2, piv_engine._SNR_CAP) if p2 > 0 else piv_engine._SNR_CAP,
-                                          rel=1e-6)
+        assert pk.snr[i] == pytest.approx(
+            min(planes[i, ky, kx] / p2, piv_engine._SNR_CAP) if p2 > 0 else piv_engine._SNR_CAP, rel=1e-6
+        )
 
 
 @pytest.mark.parametrize("sized", [True, False])
@@ -467,8 +476,7 @@ def test_openpiv_ensemble_over_many_pairs():
     """The OpenPIV engine has no spectrum-only correlation: a clip long enough for the ensemble's sample of pairs
     (more than 2 * ENSEMBLE_PAIRS) is correlated pair by pair (it raised a TypeError)."""
     n = 2 * piv.ENSEMBLE_PAIRS + 5
-    frames = particle_clip(lambda x, y: (np.full_like(x, 3.0), np.full_like(y, -1.0)), h=96, w=128, n_frames=n,
-                           seed=4)
+    frames = particle_clip(lambda x, y: (np.full_like(x, 3.0), np.full_like(y, -1.0)), h=96, w=128, n_frames=n, seed=4)
     res = analyze(frames, PivParams(window_px=32, overlap_px=16, engine="openpiv", averaging="ensemble"))
     assert res.n_pairs == n - 1
     assert np.nanmedian(res.u) == pytest.approx(3.0 / 0.5, abs=0.1)  # 3 px per 0.5 s frame to the right

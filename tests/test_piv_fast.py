@@ -206,6 +206,7 @@ def test_float16_window_storage_agrees_with_float32(monkeypatch):
         assert np.abs(a - b).max() < 0.01 * max(np.abs(a).max(), 1.0)
         assert not np.array_equal(a, b) or not a.any()
 
+
 def _standardized_by_the_formula(frames, box, half, shrink):
     """The module docstring's formula in plain numpy, whole clip in memory: each frame's box minus the pixel's
     centred temporal mean, over its temporal spread plus the box's median spread, soft-thresholded at
@@ -215,14 +216,14 @@ def _standardized_by_the_formula(frames, box, half, shrink):
     st = np.array([f[y0:y1, x0:x1] for _, f in frames], np.float64)
     n = len(st)
     lo = [min(max(k - half, 0), n - (2 * half + 1)) for k in range(n)]  # first frame of k's window
-    mean = np.array([st[a:a + 2 * half + 1].mean(axis=0) for a in lo])
-    sd = np.array([st[a:a + 2 * half + 1].std(axis=0) for a in lo])
+    mean = np.array([st[a : a + 2 * half + 1].mean(axis=0) for a in lo])
+    sd = np.array([st[a : a + 2 * half + 1].std(axis=0) for a in lo])
     ref = np.median(sd[0])
     z = (st - mean) / (sd + ref)
     for k in range(n):
         tau = shrink * 1.4826 * np.median(np.abs(z[k][::4, ::4]))
         z[k] = np.sign(z[k]) * np.maximum(np.abs(z[k]) - tau, 0)
-    zm = np.array([z[a:a + 2 * half + 1].mean(axis=0) for a in lo])
+    zm = np.array([z[a : a + 2 * half + 1].mean(axis=0) for a in lo])
     out = np.zeros((n,) + frames[0][1].shape)
     out[:, y0:y1, x0:x1] = z - zm
     return out
@@ -236,8 +237,10 @@ def test_the_streaming_standardisation_is_the_formula(dtype):
 
     rng = np.random.default_rng(5)
     base = rng.random((40, 50)) * 150
-    frames = [(k / 30, np.clip(base + rng.normal(0, 25, base.shape) + 80 * (k % 3 == 0) * (base > 140), 0, 255)
-               .astype(dtype)) for k in range(30)]
+    frames = [
+        (k / 30, np.clip(base + rng.normal(0, 25, base.shape) + 80 * (k % 3 == 0) * (base > 140), 0, 255).astype(dtype))
+        for k in range(30)
+    ]
     roi = (8, 6, 40, 30)
     got = list(surface.standardize(frames, roi, margin=3, half=5, shrink=surface.SHRINK))
     want = _standardized_by_the_formula(frames, (5, 3, 43, 33), 5, surface.SHRINK)

@@ -29,8 +29,9 @@ def _mask(h, w):
     return m
 
 
-@pytest.mark.parametrize("averaging,sample", [("ensemble", 30), ("ensemble", 2), ("mean", 30)],
-                         ids=["ensemble", "ensemble-sampled", "mean"])
+@pytest.mark.parametrize(
+    "averaging,sample", [("ensemble", 30), ("ensemble", 2), ("mean", 30)], ids=["ensemble", "ensemble-sampled", "mean"]
+)
 def test_skipping_masked_nodes_gives_the_same_vectors(monkeypatch, averaging, sample):
     monkeypatch.setattr(piv, "ENSEMBLE_PAIRS", sample)  # 2: every other pair feeds the ensemble without peaks
     frames = particle_clip(rankine, n_frames=5, seed=3)
@@ -75,9 +76,22 @@ def test_nodes_far_from_the_section_are_skipped_and_the_near_ones_unchanged(monk
     full = analyze(frames, params)
     n_full = sum(calls)
     assert n_near < 0.8 * n_full
-    fin_dist = np.array([[np.hypot(*(p - seg[0] - np.clip((p - seg[0]) @ (seg[1] - seg[0]) / np.sum((seg[1] - seg[0]) ** 2),
-                                                             0, 1) * (seg[1] - seg[0])))
-                          for p in np.stack([x, y], -1)] for x, y in zip(full.x, full.y, strict=True)])
+    fin_dist = np.array(
+        [
+            [
+                np.hypot(
+                    *(
+                        p
+                        - seg[0]
+                        - np.clip((p - seg[0]) @ (seg[1] - seg[0]) / np.sum((seg[1] - seg[0]) ** 2), 0, 1)
+                        * (seg[1] - seg[0])
+                    )
+                )
+                for p in np.stack([x, y], -1)
+            ]
+            for x, y in zip(full.x, full.y, strict=True)
+        ]
+    )
     inside = fin_dist <= reach[1]
     assert 0.2 < inside.mean() < 0.8
     assert np.isnan(near.valid_fraction[~inside]).all() and not near.valid[~inside].any()
@@ -100,7 +114,9 @@ def test_search_area_spectra_only_for_the_frames_that_need_them(monkeypatch):
     # first level: 32 px windows (A, padded to 48), 48 px search areas (B); final level: 16 px windows
     assert sizes.count(48) == 3 and sizes.count(32) == 3 and sizes.count(16) == 3 + 3  # A frames, deformed Bs
     full_prepare = piv_engine._Engine.prepare
-    monkeypatch.setattr(piv_engine._Engine, "prepare", lambda self, frame, as_a=True, as_b=True: full_prepare(self, frame))
+    monkeypatch.setattr(
+        piv_engine._Engine, "prepare", lambda self, frame, as_a=True, as_b=True: full_prepare(self, frame)
+    )
     sizes.clear()
     every = analyze(iter(frames), params, select=sel)
     assert sizes.count(48) == 6 and sizes.count(32) == 6

@@ -14,7 +14,9 @@ from fieldtool.processing.calibration import LensModel
 from fieldtool.processing.pose import plane_homography, solve_pose
 
 DATA = Path(__file__).parents[1] / ".." / "shared" / "data"
-needs_data = pytest.mark.skipif(not DATA.is_dir(), reason=f"real data folder {DATA} is absent (only CI and the dev machine have it)")
+needs_data = pytest.mark.skipif(
+    not DATA.is_dir(), reason=f"real data folder {DATA} is absent (only CI and the dev machine have it)"
+)
 
 K = np.array([[1500.0, 0, 960], [0, 1500.0, 540], [0, 0, 1]])
 DIST = np.array([-0.3, 0.05, 0.0, 0.0, 0.0])

@@ -37,8 +37,15 @@ def _check_outputs(out, res):
         data = (out / name).read_bytes()
         assert data.startswith(PNG) and len(data) > 10_000, name
     assert (out / "section_profile.csv").read_text().startswith("station_m,")
-    assert {"vectors_png", "rectified_png", "section_png", "profile_png", "gcp_png", "water_level_png",
-            "section_profile"} <= set(res.files)
+    assert {
+        "vectors_png",
+        "rectified_png",
+        "section_png",
+        "profile_png",
+        "gcp_png",
+        "water_level_png",
+        "section_profile",
+    } <= set(res.files)
 
 
 @needs_fork
@@ -49,10 +56,16 @@ def test_every_figure_comes_from_the_figure_process(scene, own_tmp, monkeypatch)
         def draw(*a, **k):
             assert os.getpid() != parent, f"{real.__name__} drawn in the parent"
             return real(*a, **k)
+
         return draw
 
-    for mod, name in ((plots, "plot_vectors"), (plots, "plot_rectified"), (plots, "plot_section"),
-                      (report_figures, "write_profile"), (report_figures, "write_gcp")):
+    for mod, name in (
+        (plots, "plot_vectors"),
+        (plots, "plot_rectified"),
+        (plots, "plot_section"),
+        (report_figures, "write_profile"),
+        (report_figures, "write_gcp"),
+    ):
         monkeypatch.setattr(mod, name, only_in_child(getattr(mod, name)))
     res = run_project(load_project(scene / "project.toml"), scene / "out")
     _check_outputs(scene / "out", res)
@@ -182,10 +195,16 @@ def test_the_run_process_never_imports_matplotlib(scene):
     import subprocess
     import sys
 
-    code = ("import sys; from fieldtool.cli.main import main; rc = main(['run', sys.argv[1], '--out', sys.argv[2], "
-            "'--quiet']); print('matplotlib' in sys.modules, rc)")
-    r = subprocess.run([sys.executable, "-c", code, str(scene / "project.toml"), str(scene / "out")],
-                       capture_output=True, text=True, timeout=300)
+    code = (
+        "import sys; from fieldtool.cli.main import main; rc = main(['run', sys.argv[1], '--out', sys.argv[2], "
+        "'--quiet']); print('matplotlib' in sys.modules, rc)"
+    )
+    r = subprocess.run(
+        [sys.executable, "-c", code, str(scene / "project.toml"), str(scene / "out")],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert r.stdout.strip().splitlines()[-1] == "False 0", r.stdout + r.stderr
     for name in FIGURES:
         assert (scene / "out" / name).read_bytes().startswith(PNG)

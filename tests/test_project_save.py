@@ -21,7 +21,7 @@ def test_template_comments_survive_edits(tmp_path):
     # every comment line of the template is still there, and the edited keys kept their comments
     assert all(ln in text for ln in before if ln.lstrip().startswith("#") and "end_s" not in ln)
     assert 'path = "clip.mp4"  # video file' in text
-    assert "filters = [{name = \"clahe\"}]  # ordered stack" in text
+    assert 'filters = [{name = "clahe"}]  # ordered stack' in text
     q = load_project(path)
     assert (q.video.end_s, q.section.n_sub, q.name, q.filters) == (4.0, 20, "Mesure à l'écluse", [{"name": "clahe"}])
 

@@ -32,6 +32,7 @@ def _project(tmp_path):
 
 # -- the merge --------------------------------------------------------------------------------------
 
+
 def test_merge_takes_each_sides_own_points():
     base = {"ortho": {"gcp_px": P}}
     theirs = {"ortho": {"gcp_px": [P[0], [111.5, 21.5], P[2], P[3]]}}  # P2 re-picked elsewhere
@@ -70,6 +71,7 @@ def test_set_path_sets_and_removes_points():
 
 
 # -- the cases, two editors on one file ---------------------------------------------------
+
 
 def test_p2_repicked_in_the_viewer_then_p1_typed_in_the_tui_keeps_p2(tmp_path):
     path = _project(tmp_path)

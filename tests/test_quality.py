@@ -134,8 +134,18 @@ def _ev(v, **kw) -> ql.Evidence:
 
 
 def test_good_when_nothing_is_wrong():
-    q = ql.assess(_ev(np.full(10, 1.0), valid_fraction_section=0.9, displacement_px=5, median_displacement_px=4,
-                      first_window_px=64, peak_median=0.5, flow_angle_deg=5, max_speed_ms=1.2))
+    q = ql.assess(
+        _ev(
+            np.full(10, 1.0),
+            valid_fraction_section=0.9,
+            displacement_px=5,
+            median_displacement_px=4,
+            first_window_px=64,
+            peak_median=0.5,
+            flow_angle_deg=5,
+            max_speed_ms=1.2,
+        )
+    )
     assert q.grade == "good" and q.reasons == []
 
 
@@ -143,7 +153,9 @@ def test_stalled_subsections_make_it_doubtful_then_unusable():
     v = np.full(10, 1.0)
     v[4] = -0.05
     q = ql.assess(_ev(v))
-    assert q.grade == "doubtful" and q.reasons[0].code == "stalled_subsections" and "5 (-0.05 m/s)" in q.reasons[0].message
+    assert (
+        q.grade == "doubtful" and q.reasons[0].code == "stalled_subsections" and "5 (-0.05 m/s)" in q.reasons[0].message
+    )
     v[2:6] = 0.02
     assert ql.assess(_ev(v)).grade == "unusable"
 
@@ -163,8 +175,9 @@ def test_with_a_first_guess_the_displacement_check_reads_the_residual():
     """22 px per frame in a 64 px window is beyond the one-quarter rule, but not when the first pass moved its
     windows by the first look's field and only 2 px were left to find; 20 px left is doubtful again."""
     v = np.full(10, 1.0)
-    assert "displacement_limit" not in {r.code for r in ql.assess(_ev(v, displacement_px=22.0, residual_px=2.0,
-                                                                       first_window_px=64)).reasons}
+    assert "displacement_limit" not in {
+        r.code for r in ql.assess(_ev(v, displacement_px=22.0, residual_px=2.0, first_window_px=64)).reasons
+    }
     q = ql.assess(_ev(v, displacement_px=22.0, residual_px=20.0, first_window_px=64))
     r = {r.code: r for r in q.reasons}["displacement_limit"]
     assert "first look" in r.message and r.value == pytest.approx(20 / 64) and q.grade == "doubtful"
@@ -179,7 +192,9 @@ def test_speed_bound_and_no_motion_are_unusable():
 
 def test_a_new_check_is_one_function():
     def disagree(ev, th):
-        return [ql.Reason("stiv_disagrees", "doubtful", "STIV says otherwise", 0.2, 0.1)] if ev.extra.get("stiv") else []
+        return (
+            [ql.Reason("stiv_disagrees", "doubtful", "STIV says otherwise", 0.2, 0.1)] if ev.extra.get("stiv") else []
+        )
 
     q = ql.assess(_ev(np.ones(5), extra={"stiv": True}), checks=[*ql.CHECKS, disagree])
     assert q.grade == "doubtful" and q.to_dict()["reasons"][0]["code"] == "stiv_disagrees"
@@ -201,10 +216,24 @@ def _model(n_pairs: int = 12) -> un.McModel:
     x, y = np.meshgrid(np.arange(0, 1200, 16.0), np.arange(-200, 200, 16.0))
     u = np.zeros_like(x)
     v = np.full_like(x, -100.0)  # -y in the image = +Y in the world: the downstream normal of P1 -> P2 (along +X)
-    return un.McModel(cross_section=_rect_cs(), level_m=1.0, section_px=np.array([[50.0, 0.0], [1150.0, 0.0]]),
-                      n_sub=10, station_offset_m=None, alpha=0.85, mapping_fn=lambda g, r, lv: np.diag([0.01, -0.01, 1.0]),
-                      method="none", gcp_px=np.zeros((0, 2)), gcp_ref=np.zeros(0), x=x, y=y, u=u, v=v,
-                      u_pairs=u + rng.normal(0, 10, (n_pairs,) + x.shape), v_pairs=v + rng.normal(0, 10, (n_pairs,) + x.shape))
+    return un.McModel(
+        cross_section=_rect_cs(),
+        level_m=1.0,
+        section_px=np.array([[50.0, 0.0], [1150.0, 0.0]]),
+        n_sub=10,
+        station_offset_m=None,
+        alpha=0.85,
+        mapping_fn=lambda g, r, lv: np.diag([0.01, -0.01, 1.0]),
+        method="none",
+        gcp_px=np.zeros((0, 2)),
+        gcp_ref=np.zeros(0),
+        x=x,
+        y=y,
+        u=u,
+        v=v,
+        u_pairs=u + rng.normal(0, 10, (n_pairs,) + x.shape),
+        v_pairs=v + rng.normal(0, 10, (n_pairs,) + x.shape),
+    )
 
 
 def test_monte_carlo_budget_shares_sum_to_one_and_level_sigma_widens_it():

@@ -12,8 +12,10 @@ from fieldtool.project.model import project_from_dict
 from fieldtool.run.pipeline import run_project
 
 REAL = SHARED_DATA / "real"
-pytestmark = pytest.mark.skipif(not (REAL / "geul_dk_control.mp4").is_file(),
-                                reason="../shared/data/real is absent (a user's fresh clone has no test data)")
+pytestmark = pytest.mark.skipif(
+    not (REAL / "geul_dk_control.mp4").is_file(),
+    reason="../shared/data/real is absent (a user's fresh clone has no test data)",
+)
 
 
 def test_geul_timestamps_from_container():
@@ -25,15 +27,23 @@ def test_geul_timestamps_from_container():
 def test_geul_pose_orthorectification_and_piv(tmp_path):
     cfg = json.loads((REAL / "geul_dk_cam_config.json").read_text())
     z0 = cfg["gcps"]["z_0"]
-    proj = project_from_dict({
-        "video": {"path": str(REAL / "geul_dk_control.mp4")},
-        "cross_section": {"shape": "trapezoidal", "top_width_m": 12.0, "bottom_width_m": 6.0, "depth_m": 1.2,
-                          "bank_elevation_m": z0 + 0.73},
-        "calibration": {"path": str(REAL / "geul_dk_cam_config.json")},
-        "ortho": {"method": "pose", "gcp_px": cfg["gcps"]["src"], "gcp_world_m": cfg["gcps"]["dst"]},
-        "water_level": {"method": "value", "value_m": z0},
-        "section": {"points_px": [[560.0, 480.0], [1640.0, 520.0]]},
-    }, tmp_path)
+    proj = project_from_dict(
+        {
+            "video": {"path": str(REAL / "geul_dk_control.mp4")},
+            "cross_section": {
+                "shape": "trapezoidal",
+                "top_width_m": 12.0,
+                "bottom_width_m": 6.0,
+                "depth_m": 1.2,
+                "bank_elevation_m": z0 + 0.73,
+            },
+            "calibration": {"path": str(REAL / "geul_dk_cam_config.json")},
+            "ortho": {"method": "pose", "gcp_px": cfg["gcps"]["src"], "gcp_world_m": cfg["gcps"]["dst"]},
+            "water_level": {"method": "value", "value_m": z0},
+            "section": {"points_px": [[560.0, 480.0], [1640.0, 520.0]]},
+        },
+        tmp_path,
+    )
     # whole-pixel picks of the authors: GCP 5 misses the water plane by 0.22 m (16 px), over the 0.10 m default
     with pytest.raises(GeometryError, match=r"GCP 5 misses by 0\.2\d+ m"):
         run_project(proj, tmp_path / "out")

@@ -13,10 +13,25 @@ from fieldtool.project.model import load_project
 from fieldtool.run.pipeline import run_project
 from fieldtool.viewer.rerun_log import RerunObserver, _map_arrow_s, observer_from_args
 
-EXPECTED = {"/frames/input", "/frames/filtered", "/frames/input/pair_vectors", "/frames/input/mean_field",
-            "/frames/input/section", "/map/mean_field", "/map/section/subsections", "/section/surface_velocity_ms",
-            "/section/discharge_m3s", "/piv/valid_fraction", "/discharge/pair_m3s", "/discharge/running_m3s",
-            "/discharge/final_m3s", "/log", "/map/background", "/section/profile/velocity", "/section/profile/band"}
+EXPECTED = {
+    "/frames/input",
+    "/frames/filtered",
+    "/frames/input/pair_vectors",
+    "/frames/input/mean_field",
+    "/frames/input/section",
+    "/map/mean_field",
+    "/map/section/subsections",
+    "/section/surface_velocity_ms",
+    "/section/discharge_m3s",
+    "/piv/valid_fraction",
+    "/discharge/pair_m3s",
+    "/discharge/running_m3s",
+    "/discharge/final_m3s",
+    "/log",
+    "/map/background",
+    "/section/profile/velocity",
+    "/section/profile/band",
+}
 
 
 def _column(rows, name):
@@ -78,8 +93,12 @@ def test_discharge_scalars(logged_run):
     np.testing.assert_allclose(pair_q, fin)
     running = np.ravel(_column(ent["/discharge/running_m3s"], "Scalars:scalars"))
     assert running[-1] == pytest.approx(np.median(fin))
-    ns = [v for rb in ent["/discharge/pair_m3s"] if "time" in rb.schema.names
-          for v in rb.column("time").cast(pa.int64()).to_pylist()]
+    ns = [
+        v
+        for rb in ent["/discharge/pair_m3s"]
+        if "time" in rb.schema.names
+        for v in rb.column("time").cast(pa.int64()).to_pylist()
+    ]
     t_pairs = np.asarray(result.piv.t_pairs)[np.isfinite(result.q_pairs)]
     np.testing.assert_allclose(np.array(ns) / 1e9, t_pairs, atol=1e-6)  # on the clip's time timeline (s)
 
@@ -115,6 +134,7 @@ def test_a_failing_logger_becomes_a_warning_and_the_run_goes_on(short_scene, tmp
         def __getattr__(self, name):
             def fail(*a, **k):
                 raise ConnectionError("viewer went away")
+
             return fail
 
     project = load_project(short_scene.project_path)
@@ -182,8 +202,12 @@ def test_the_recording_holds_the_blueprint_and_named_series(logged_run):
             if col.endswith("display_name"):
                 names += [v for v in rb.column(col).to_pylist() if v]
     names = [n[0] if isinstance(n, list) else n for n in names]
-    for want in ("Current frame and live vectors", "Rectified map and mean field", "Section: surface velocity",
-                 "Discharge over time"):
+    for want in (
+        "Current frame and live vectors",
+        "Rectified map and mean field",
+        "Section: surface velocity",
+        "Discharge over time",
+    ):
         assert any(want in n for n in names), (want, names)
     series = {}
     for path, rows in ent.items():

@@ -87,8 +87,9 @@ def test_texture_gate_makes_empty_windows_featureless():
     frozen = rng.normal(0, 1.0, (96, 128)).astype(np.float32)
     frames = [(t, np.concatenate([f[:, :128], 40.0 + frozen], axis=1)) for t, f in frames]
     z = list(surface.standardize(frames, None, half=5))
-    res = piv.analyze(z, piv.PivParams(window_px=32, overlap_px=16, passes=1, averaging="ensemble",
-                                       min_texture=surface.MIN_TEXTURE))
+    res = piv.analyze(
+        z, piv.PivParams(window_px=32, overlap_px=16, passes=1, averaging="ensemble", min_texture=surface.MIN_TEXTURE)
+    )
     right = res.x > 128 + 16
     assert not res.valid[right & ~res.replaced].any()  # no (zero) vector from the frozen noise
     assert np.isfinite(res.u[~right]).mean() > 0.8
@@ -216,10 +217,14 @@ def test_fast_flow_first_pass_starts_from_the_first_look():
     res = piv.analyze(replay, params, first_guess=plan.guess)
     ok = res.valid & ~res.replaced
     dt = float(np.median(res.dt_s))
-    assert ok.mean() > 0.7 and abs(np.median(np.abs(res.u[ok])) * dt - 11.0) < 0.05  # the upstream edge sees new texture
+    assert (
+        ok.mean() > 0.7 and abs(np.median(np.abs(res.u[ok])) * dt - 11.0) < 0.05
+    )  # the upstream edge sees new texture
     assert res.first_guess.shape == res.x.shape + (2,)
     _, search = planning.choose(plan.slow_px_per_frame, plan.fast_px_per_frame, 32)
-    wide = piv.analyze(iter(frames), replace_params(passes=2, window_px=16, overlap_px=8, search_px=search))  # the other way: a wider search area
+    wide = piv.analyze(
+        iter(frames), replace_params(passes=2, window_px=16, overlap_px=8, search_px=search)
+    )  # the other way: a wider search area
     okw = wide.valid & ~wide.replaced
     assert search > 32 and abs(np.median(np.abs(wide.u[okw])) - np.median(np.abs(res.u[ok]))) * dt < 0.05
     with pytest.raises(Exception, match="piv.search_px"):  # the GPU engine cannot move its windows

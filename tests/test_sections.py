@@ -23,8 +23,10 @@ def _section_px(truth, x_m: float) -> list[list[float]]:
 def test_three_sections_each_near_the_truth(short_scene, tmp_path):
     p = load_project(short_scene.project_path)
     xs = short_scene.spec.river.x_section_m
-    p.sections = [{"name": "upstream", "points_px": _section_px(short_scene, xs - 1.0)},
-                  {"name": "downstream", "points_px": _section_px(short_scene, xs + 1.0)[::-1]}]  # picked right first
+    p.sections = [
+        {"name": "upstream", "points_px": _section_px(short_scene, xs - 1.0)},
+        {"name": "downstream", "points_px": _section_px(short_scene, xs + 1.0)[::-1]},
+    ]  # picked right first
     res = run_project(p, tmp_path / "out")
     doc = json.loads((tmp_path / "out" / "result.json").read_text())
     q_true = short_scene.discharge_m3s
@@ -71,11 +73,16 @@ def test_sections_crossing_an_island(tmp_path):
 def test_report_lists_the_sections():
     from fieldtool.records.report import render_html
 
-    summary = {"discharge_m3s": 10.0, "files": {}, "sections": [
-        {"name": "main", "discharge_m3s": 10.0, "discharge_ci95_m3s": [9.5, 10.5], "grade": "good"},
-        {"name": "upstream", "discharge_m3s": 10.4, "discharge_ci95_m3s": None, "grade": "doubtful"},
-        {"name": "far", "error": "section: crosses a bank"}],
-        "sections_summary": {"n": 2, "mean_m3s": 10.2, "std_m3s": 0.283, "cv": 0.0277}}
+    summary = {
+        "discharge_m3s": 10.0,
+        "files": {},
+        "sections": [
+            {"name": "main", "discharge_m3s": 10.0, "discharge_ci95_m3s": [9.5, 10.5], "grade": "good"},
+            {"name": "upstream", "discharge_m3s": 10.4, "discharge_ci95_m3s": None, "grade": "doubtful"},
+            {"name": "far", "error": "section: crosses a bank"},
+        ],
+        "sections_summary": {"n": 2, "mean_m3s": 10.2, "std_m3s": 0.283, "cv": 0.0277},
+    }
     html = render_html(summary, {}, [])
     assert "<h2>Sections</h2>" in html and "upstream" in html and "crosses a bank" in html
     assert "CV 2.8" in html and "9.5000 – 10.5000" in html
@@ -84,9 +91,13 @@ def test_report_lists_the_sections():
 def test_tui_results_line_for_sections():
     from fieldtool.tui.screens.results import discharge_lines
 
-    lines = discharge_lines({"discharge_m3s": 10.0, "sections": [
-        {"name": "main", "discharge_m3s": 10.0}, {"name": "up", "discharge_m3s": 10.4}],
-        "sections_summary": {"n": 2, "mean_m3s": 10.2, "std_m3s": 0.283, "cv": 0.0277}})
+    lines = discharge_lines(
+        {
+            "discharge_m3s": 10.0,
+            "sections": [{"name": "main", "discharge_m3s": 10.0}, {"name": "up", "discharge_m3s": 10.4}],
+            "sections_summary": {"n": 2, "mean_m3s": 10.2, "std_m3s": 0.283, "cv": 0.0277},
+        }
+    )
     assert any("sections" in ln and "CV 2.8 %" in ln and "up 10.400" in ln for ln in lines)
 
 

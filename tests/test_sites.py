@@ -24,15 +24,22 @@ def make_project(folder: Path) -> Path:
     (folder / "lens.json").write_bytes(CALIB)
     (folder / "clip.mp4").write_bytes(b"not decoded here")
     d = {
-        "name": "station 7, 2024-05-01", "step": "piv",
+        "name": "station 7, 2024-05-01",
+        "step": "piv",
         "video": {"path": "clip.mp4", "start_s": 1.0, "end_s": 6.0, "step": 2},
         "cross_section": {"path": "section.csv"},
         "calibration": {"path": "lens.json", "checkerboard_video": "board.mp4", "square_mm": 25.0},
         "stabilize": {"enabled": True, "regions_px": [[0.0, 0.0, 100.0, 80.0], [1100.0, 0.0, 1270.0, 90.0]]},
-        "ortho": {"method": "distances", "gcp_px": [[100.0, 600.0], [300.0, 200.0], [900.0, 210.0], [1150.0, 620.0]],
-                  "distances_m": [8.0, 13.6, 8.0, 13.6, 15.78, 15.78]},
+        "ortho": {
+            "method": "distances",
+            "gcp_px": [[100.0, 600.0], [300.0, 200.0], [900.0, 210.0], [1150.0, 620.0]],
+            "distances_m": [8.0, 13.6, 8.0, 13.6, 15.78, 15.78],
+        },
         "water_level": {"method": "value", "value_m": 10.05, "uncertainty_m": 0.01, "edges_px": [[5.0, 6.0]]},
-        "roi": {"rect_px": [200.0, 150.0, 1000.0, 650.0], "masks_px": [[[300.0, 300.0], [350.0, 300.0], [320.0, 350.0]]]},
+        "roi": {
+            "rect_px": [200.0, 150.0, 1000.0, 650.0],
+            "masks_px": [[[300.0, 300.0], [350.0, 300.0], [320.0, 350.0]]],
+        },
         "filters": [{"name": "clahe", "clip_limit": 2.0}],
         "piv": {"window_px": 48, "overlap_px": 24, "passes": 2, "snr_min": 1.5},
         "section": {"points_px": [[250.0, 500.0], [950.0, 480.0]], "n_sub": 12, "alpha": 0.82},
@@ -42,8 +49,12 @@ def make_project(folder: Path) -> Path:
     return path
 
 
-PER_VISIT = {("video", "path"), ("water_level", "value_m"), ("water_level", "edges_px"),
-             ("calibration", "checkerboard_video")}
+PER_VISIT = {
+    ("video", "path"),
+    ("water_level", "value_m"),
+    ("water_level", "edges_px"),
+    ("calibration", "checkerboard_video"),
+}
 
 
 def test_site_round_trip(tmp_path):
@@ -88,8 +99,11 @@ def test_site_round_trip(tmp_path):
     assert new.site == "station-7"  # the visit knows its site (for `fieldtool run --record`)
     nd, od = project_to_dict(new), copy.deepcopy(orig)
     for d in (nd, od):
-        for table, key in PER_VISIT | {("cross_section", "path"), ("calibration", "path"),
-                                       ("water_level", "uncertainty_m")}:
+        for table, key in PER_VISIT | {
+            ("cross_section", "path"),
+            ("calibration", "path"),
+            ("water_level", "uncertainty_m"),
+        }:
             d[table].pop(key, None)
         d.pop("name"), d.pop("step"), d.pop("site")
     assert nd == od
@@ -148,8 +162,24 @@ def test_site_cli(tmp_path, capsys):
     assert "lowest bed 9.000 m" in out and "4 GCPs" in out and "2 stable region(s)" in out
     v = tmp_path / "new.mp4"
     v.write_bytes(b"v")
-    assert main(["site", "new-measurement", "st7", "--sites", str(root), "--video", str(v), "--level", "9.5",
-                 "--out", str(tmp_path / "visit")]) == 0
+    assert (
+        main(
+            [
+                "site",
+                "new-measurement",
+                "st7",
+                "--sites",
+                str(root),
+                "--video",
+                str(v),
+                "--level",
+                "9.5",
+                "--out",
+                str(tmp_path / "visit"),
+            ]
+        )
+        == 0
+    )
     assert load_project(tmp_path / "visit" / "project.toml").water_level.value_m == 9.5
 
 

@@ -42,7 +42,9 @@ def _scene(n=15, flow=3, shake=5.0, rot_deg=0.6, seed=0, renew_water=False, drif
         if t:
             M = cv2.getRotationMatrix2D((W / 2, H / 2), rng.uniform(-rot_deg, rot_deg), 1.0)
             M[:, 2] += rng.uniform(-shake, shake, 2) + np.asarray(drift) * t
-        frames.append(cv2.warpAffine(s, M, (W, H), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT).astype(np.uint8))
+        frames.append(
+            cv2.warpAffine(s, M, (W, H), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT).astype(np.uint8)
+        )
         scenes.append(s)
         maps.append(np.vstack([M, [0, 0, 1]]))
     return frames, scenes, maps

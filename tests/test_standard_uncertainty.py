@@ -20,7 +20,7 @@ def test_iso748_by_hand():
     # u_s² = 0.01² + 0.01² + 0.03² ; u_m(5) = 7.5 % ; per vertical (1/5)² · (0.005² + 0.005² + 0.07² + 0.01² + 0.08²)
     e, d, v, f, q = _uniform()
     out = su.iso748(e, d, v, f, q, exposure_s=10.0, sig=su.StandardSigmas(alpha_rel=0.03))
-    u2 = 1.1e-3 + 0.075 ** 2 + (0.005 ** 2 + 0.005 ** 2 + 0.07 ** 2 + 0.01 ** 2 + 0.08 ** 2) / 5
+    u2 = 1.1e-3 + 0.075**2 + (0.005**2 + 0.005**2 + 0.07**2 + 0.01**2 + 0.08**2) / 5
     assert out["u_rel"] == pytest.approx(np.sqrt(u2), rel=1e-9)
     assert out["u95_rel"] == pytest.approx(2 * np.sqrt(u2), rel=1e-9)
     Q = q.sum()
@@ -33,15 +33,15 @@ def test_shallow_depth_and_bed_sigma():
     e, d, v, f, q = _uniform(n=1, depth=0.2)
     sig = su.StandardSigmas(bed_m=0.02, u_sm=0, u_so=0, alpha_rel=0)
     out = su.iso748(e, d, v, f, q, 10.0, sig)
-    assert out["components"]["u_d"] == pytest.approx(np.sqrt(0.015 ** 2 + (0.02 / 0.2) ** 2))
+    assert out["components"]["u_d"] == pytest.approx(np.sqrt(0.015**2 + (0.02 / 0.2) ** 2))
 
 
 def test_more_verticals_smaller_u_m_and_u():
     um = [su.u_verticals(n) for n in (3, 5, 8, 10, 15, 20, 25, 30, 35, 50)]
-    assert all(a >= b for a, b in zip(um, um[1:]))
+    assert all(a >= b for a, b in zip(um, um[1:], strict=False))
     assert su.u_verticals(12) < su.u_verticals(8)
     u = [su.iso748(*_uniform(n), exposure_s=10.0)["u_rel"] for n in (5, 10, 20, 40)]
-    assert all(a > b for a, b in zip(u, u[1:]))
+    assert all(a > b for a, b in zip(u, u[1:], strict=False))
 
 
 def test_exposure_from_pairs_shrinks_with_duration():
@@ -107,8 +107,18 @@ def test_ive_floor_and_few_verticals():
     assert np.isfinite(out["u_rel"])
 
 
-@pytest.mark.parametrize("u95, name", [(0.015, "excellent"), (0.02, "excellent"), (0.04, "good"),
-                                       (0.07, "fair"), (0.09, "poor"), (float("nan"), None), (None, None)])
+@pytest.mark.parametrize(
+    "u95, name",
+    [
+        (0.015, "excellent"),
+        (0.02, "excellent"),
+        (0.04, "good"),
+        (0.07, "fair"),
+        (0.09, "poor"),
+        (float("nan"), None),
+        (None, None),
+    ],
+)
 def test_rating(u95, name):
     assert su.rating(u95) == name
 
@@ -154,9 +164,14 @@ def test_run_writes_uncertainty_standard(scene):
 def test_tui_results_line():
     from fieldtool.tui.screens.results import discharge_lines
 
-    s = {"discharge_m3s": 2.0, "discharge_ci95_m3s": [1.8, 2.2],
-         "uncertainty_standard": {"iso748": {"u95_rel": 0.06, "ci95_m3s": [1.88, 2.12], "rating": "fair"},
-                                  "ive": {"u95_rel": 0.04, "ci95_m3s": [1.92, 2.08], "rating": "good"}}}
+    s = {
+        "discharge_m3s": 2.0,
+        "discharge_ci95_m3s": [1.8, 2.2],
+        "uncertainty_standard": {
+            "iso748": {"u95_rel": 0.06, "ci95_m3s": [1.88, 2.12], "rating": "fair"},
+            "ive": {"u95_rel": 0.04, "ci95_m3s": [1.92, 2.08], "rating": "good"},
+        },
+    }
     line = [x for x in discharge_lines(s) if x.startswith("standard")]
     assert line and "ISO 748 ±6.0 % (fair) 1.880 .. 2.120" in line[0] and "IVE ±4.0 % (good)" in line[0]
     assert not [x for x in discharge_lines({"discharge_m3s": 2.0}) if x.startswith("standard")]
@@ -170,8 +185,10 @@ def test_history_migrates_a_schema_1_database(tmp_path):
     db = tmp_path / "old.sqlite"
     c = sqlite3.connect(db)
     c.executescript(hmod._SCHEMA_V1)
-    c.execute("INSERT INTO measurements (site, recorded_at, parameters_json, discharge_m3s) "
-              "VALUES ('A', '2024-01-01T00:00:00Z', '{}', 3.5)")
+    c.execute(
+        "INSERT INTO measurements (site, recorded_at, parameters_json, discharge_m3s) "
+        "VALUES ('A', '2024-01-01T00:00:00Z', '{}', 3.5)"
+    )
     c.execute("PRAGMA user_version = 1")
     c.commit()
     c.close()
@@ -180,8 +197,15 @@ def test_history_migrates_a_schema_1_database(tmp_path):
         old = h.query(site="A")[0]
         assert old.discharge_m3s == 3.5 and old.grade is None and old.uncertainty_standard == {}
         std = {"iso748": {"u95_rel": 0.07}, "ive": {"u95_rel": 0.05}}
-        mid = h.record_summary({"discharge_m3s": 2.0, "discharge_ci95_m3s": [1.8, 2.3],
-                                "quality": {"grade": "good"}, "uncertainty_standard": std}, site="A")
+        mid = h.record_summary(
+            {
+                "discharge_m3s": 2.0,
+                "discharge_ci95_m3s": [1.8, 2.3],
+                "quality": {"grade": "good"},
+                "uncertainty_standard": std,
+            },
+            site="A",
+        )
         m = h.get(mid)
         assert (m.grade, m.discharge_ci95_lo_m3s, m.discharge_ci95_hi_m3s) == ("good", 1.8, 2.3)
         assert m.uncertainty_standard == std
@@ -198,8 +222,10 @@ def test_read_only_schema_1_history_still_lists(tmp_path, monkeypatch):
     db = tmp_path / "old.sqlite"
     c = sqlite3.connect(db)
     c.executescript(hmod._SCHEMA_V1)
-    c.execute("INSERT INTO measurements (site, recorded_at, parameters_json, discharge_m3s) "
-              "VALUES ('A', '2024-01-01T00:00:00Z', '{}', 3.5)")
+    c.execute(
+        "INSERT INTO measurements (site, recorded_at, parameters_json, discharge_m3s) "
+        "VALUES ('A', '2024-01-01T00:00:00Z', '{}', 3.5)"
+    )
     c.execute("PRAGMA user_version = 1")
     c.commit()
     c.close()

@@ -45,8 +45,24 @@ def _env():
 
 
 def _args(s, incoming: Path, db: Path, *extra) -> list[str]:
-    return [PY, "-m", "fieldtool.cli", "station", "cam1", "--incoming", str(incoming), "--sites", str(s["sites"]),
-            "--db", str(db), "--gauge", str(s["level"]), "--poll-s", "0.2", *extra]
+    return [
+        PY,
+        "-m",
+        "fieldtool.cli",
+        "station",
+        "cam1",
+        "--incoming",
+        str(incoming),
+        "--sites",
+        str(s["sites"]),
+        "--db",
+        str(db),
+        "--gauge",
+        str(s["level"]),
+        "--poll-s",
+        "0.2",
+        *extra,
+    ]
 
 
 def _journal(db: Path, incoming: Path, state: str | None = None) -> list[st.JournalRow]:
@@ -145,14 +161,24 @@ def test_second_station_refused_and_a_killed_ones_lock_is_free(station_site, tmp
     inc = tmp_path / "in"
     inc.mkdir()
     with st.StationLock(inc):
-        r = subprocess.run(_args(station_site, inc, tmp_path / "h.sqlite"), capture_output=True, text=True,
-                           env=_env(), timeout=60)
+        r = subprocess.run(
+            _args(station_site, inc, tmp_path / "h.sqlite"), capture_output=True, text=True, env=_env(), timeout=60
+        )
         assert r.returncode == 2 and "another fieldtool station" in r.stderr and str(os.getpid()) in r.stderr
         assert st.StationLock(inc).held_by_other() == str(os.getpid())
     # a process killed while holding the lock leaves none behind
-    holder = subprocess.Popen([PY, "-c", "import sys, time; from fieldtool.records.station import StationLock; "
-                               f"StationLock(__import__('pathlib').Path({str(inc)!r})).acquire(); print('held', "
-                               "flush=True); time.sleep(60)"], stdout=subprocess.PIPE, text=True, env=_env())
+    holder = subprocess.Popen(
+        [
+            PY,
+            "-c",
+            "import sys, time; from fieldtool.records.station import StationLock; "
+            f"StationLock(__import__('pathlib').Path({str(inc)!r})).acquire(); print('held', "
+            "flush=True); time.sleep(60)",
+        ],
+        stdout=subprocess.PIPE,
+        text=True,
+        env=_env(),
+    )
     assert holder.stdout.readline().strip() == "held"
     assert st.StationLock(inc).held_by_other() == str(holder.pid)
     holder.send_signal(signal.SIGKILL)
@@ -169,14 +195,19 @@ def test_second_station_refused_and_a_killed_ones_lock_is_free(station_site, tmp
 def test_slow_copy_is_measured_once_after_it_is_complete(station_site, tmp_path):
     inc, db = tmp_path / "in", tmp_path / "h.sqlite"
     inc.mkdir()
-    proc = subprocess.Popen(_args(station_site, inc, db, "--stable-s", "1.5"), stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT, text=True, env=_env())
+    proc = subprocess.Popen(
+        _args(station_site, inc, db, "--stable-s", "1.5"),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        env=_env(),
+    )
     try:
         blob = station_site["clip"].read_bytes()
         n = 8
         with open(inc / "slow.mp4", "wb") as fh:  # written in chunks over about 3 s
             for k in range(n):
-                fh.write(blob[k * len(blob) // n:(k + 1) * len(blob) // n])
+                fh.write(blob[k * len(blob) // n : (k + 1) * len(blob) // n])
                 fh.flush()
                 time.sleep(0.4)
                 assert not _journal(db, inc), "the clip was read while it was still being written"
@@ -200,18 +231,28 @@ def test_killed_station_resumes_without_redoing_or_losing_a_clip(station_site, t
     for nm in names:
         shutil.copy(station_site["clip"], inc / nm)
         (inc / (nm + ".done")).write_text("")
-    proc = subprocess.Popen(_args(station_site, inc, db), stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                            text=True, env=_env())
+    proc = subprocess.Popen(
+        _args(station_site, inc, db), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=_env()
+    )
     try:
-        _wait(lambda: len(_journal(db, inc, "done")) >= 1 and _journal(db, inc, "running"), RUN_S,
-              "one clip done and the next in flight", proc)
+        _wait(
+            lambda: len(_journal(db, inc, "done")) >= 1 and _journal(db, inc, "running"),
+            RUN_S,
+            "one clip done and the next in flight",
+            proc,
+        )
     finally:
         proc.send_signal(signal.SIGKILL)
         proc.wait(30)
     before = {r.path: r for r in _journal(db, inc, "done")}
     assert 1 <= len(before) < 3
-    r = subprocess.run(_args(station_site, inc, db, "--exit-when-idle", "1.5"), capture_output=True, text=True,
-                       env=_env(), timeout=RUN_S)
+    r = subprocess.run(
+        _args(station_site, inc, db, "--exit-when-idle", "1.5"),
+        capture_output=True,
+        text=True,
+        env=_env(),
+        timeout=RUN_S,
+    )
     assert r.returncode == 0, r.stderr + r.stdout
     assert "left in flight by a stopped station: measured again" in r.stdout
     done = _journal(db, inc, "done")
@@ -222,9 +263,23 @@ def test_killed_station_resumes_without_redoing_or_losing_a_clip(station_site, t
     with History(db, create=False) as h:
         rows = h.query(site="cam1")
     assert sorted(Path(m.video_path).name for m in rows) == names  # one row per clip: none twice, none lost
-    s = subprocess.run([*_args(station_site, inc, db)[:4], "status", "cam1", "--incoming", str(inc), "--sites",
-                        str(station_site["sites"]), "--db", str(db)], capture_output=True, text=True, env=_env(),
-                       timeout=60)
+    s = subprocess.run(
+        [
+            *_args(station_site, inc, db)[:4],
+            "status",
+            "cam1",
+            "--incoming",
+            str(inc),
+            "--sites",
+            str(station_site["sites"]),
+            "--db",
+            str(db),
+        ],
+        capture_output=True,
+        text=True,
+        env=_env(),
+        timeout=60,
+    )
     assert s.returncode == 0 and "done     3" in s.stdout and "pending  0" in s.stdout and "failed   0" in s.stdout
     assert "not running" in s.stdout
 
@@ -250,8 +305,10 @@ def _check_outputs(db: Path, inc: Path, out_root: Path, names: list[str]) -> Non
     for j in done:
         m = rows[j.measurement_id]
         assert Path(m.video_path).resolve() == Path(j.path)
-        assert m.grade in ("good", "doubtful", "unusable") and m.discharge_ci95_lo_m3s < m.discharge_m3s \
-            < m.discharge_ci95_hi_m3s
+        assert (
+            m.grade in ("good", "doubtful", "unusable")
+            and m.discharge_ci95_lo_m3s < m.discharge_m3s < m.discharge_ci95_hi_m3s
+        )
         assert set(m.uncertainty_standard) >= {"iso748", "ive"}
     pts = list(csv.DictReader((out_root / "timeseries.csv").open()))
     assert sorted(int(p["id"]) for p in pts) == sorted(rows)
@@ -270,8 +327,9 @@ def test_clips_dropped_at_once_in_process_with_a_broken_one(station_site, tmp_pa
     lines: list[str] = []
     with History(db) as h:
         cfg = st.station_config(site, gauge_m=station_site["level"], stable_s=0.3, poll_s=0.2)
-        station = st.Station(site, station_site["sites"], inc, h, cfg, rerun=str(tmp_path / "series.rrd"),
-                             log=lines.append)
+        station = st.Station(
+            site, station_site["sites"], inc, h, cfg, rerun=str(tmp_path / "series.rrd"), log=lines.append
+        )
         assert station.run(max_idle_s=1.0) == 0
     _check_outputs(db, inc, inc / "fieldtool_station", names)
     assert any(ln.startswith("broken.mp4: failed:") for ln in lines)
@@ -291,11 +349,26 @@ def test_clips_dropped_at_once_on_a_local_dask_cluster(station_site, tmp_path):
     inc, db = tmp_path / "in", tmp_path / "h.sqlite"
     inc.mkdir()
     names = _drop(inc, station_site["clip"], 4)
-    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
-                                  protocol="tcp", dashboard_address=None) as cluster:
-        r = subprocess.run(_args(station_site, inc, db, "--dask", cluster.scheduler_address, "--stable-s", "0.3",
-                                 "--exit-when-idle", "1.5"), capture_output=True, text=True, env=_env(),
-                           timeout=RUN_S)
+    with distributed.LocalCluster(
+        n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1", protocol="tcp", dashboard_address=None
+    ) as cluster:
+        r = subprocess.run(
+            _args(
+                station_site,
+                inc,
+                db,
+                "--dask",
+                cluster.scheduler_address,
+                "--stable-s",
+                "0.3",
+                "--exit-when-idle",
+                "1.5",
+            ),
+            capture_output=True,
+            text=True,
+            env=_env(),
+            timeout=RUN_S,
+        )
     assert r.returncode == 0, r.stderr + r.stdout
     assert f"Dask {cluster.scheduler_address}" in r.stdout
     _check_outputs(db, inc, inc / "fieldtool_station", names)
@@ -306,8 +379,9 @@ def test_level_file_read_again_when_the_logger_appends(station_site, tmp_path):
     f.write_text("2024-05-01T10:00:00Z,10.0\n")
     site = load_site("cam1", station_site["sites"])
     with History(tmp_path / "h.sqlite") as h:
-        s = st.Station(site, station_site["sites"], tmp_path, h, st.station_config(site, level_file=str(f)),
-                       log=lambda _l: None)
+        s = st.Station(
+            site, station_site["sites"], tmp_path, h, st.station_config(site, level_file=str(f)), log=lambda _l: None
+        )
         assert len(s._levels()) == 1
         with open(f, "a") as fh:
             fh.write("2024-05-01T10:10:00Z,10.1\n")

@@ -10,8 +10,9 @@ import pytest
 from fieldtool.processing import ortho, stiv
 
 
-def synthetic_sti(p: float, T: int = 120, S: int = 240, density: float = 0.2, diameter: float = 3.0,
-                  noise: float = 2.0, seed: int = 0) -> np.ndarray:
+def synthetic_sti(
+    p: float, T: int = 120, S: int = 240, density: float = 0.2, diameter: float = 3.0, noise: float = 2.0, seed: int = 0
+) -> np.ndarray:
     """Particles drifting ``p`` samples per row (Gaussian blobs, random brightness) plus noise."""
     rng = np.random.default_rng(seed)
     s, t = np.arange(S)[None, :], np.arange(T)[:, None]
@@ -104,8 +105,9 @@ def _run_lines(frames, angles=(0.0,), n_sub=5, flow_dir=None):
     pw = mapping.image_to_world(sec_px)
     t = (pw[1] - pw[0]) / np.hypot(*(pw[1] - pw[0]))
     normal = np.array([-t[1], t[0]])
-    lines = stiv.build_lines(pw, normal, mapping, n_sub, length_m=1.6, lines_per_sub=2, angles_deg=angles,
-                             image_shape=(H, W))
+    lines = stiv.build_lines(
+        pw, normal, mapping, n_sub, length_m=1.6, lines_per_sub=2, angles_deg=angles, image_shape=(H, W)
+    )
     acc = stiv.StiAccumulator(lines)
     for t_s, img in frames:
         acc.add(t_s, img)

@@ -42,7 +42,9 @@ def test_survey_matches_analytic_section():
     assert cs.water_edges(r.level_m) == pytest.approx((r.s_left, r.s_right), abs=1e-9)
 
 
-@pytest.mark.parametrize("name,kw", [("oblique", {}), ("oblique", {"distortion": True}), ("far_bank", {}), ("nadir", {})])
+@pytest.mark.parametrize(
+    "name,kw", [("oblique", {}), ("oblique", {"distortion": True}), ("far_bank", {}), ("nadir", {})]
+)
 def test_gcp_projection_round_trip(name, kw):
     spec = presets.get(name, **kw)
     cam = spec.camera
@@ -53,7 +55,9 @@ def test_gcp_projection_round_trip(name, kw):
     back = cv2.perspectiveTransform(ideal.reshape(-1, 1, 2), np.linalg.inv(cam.plane_homography(spec.river.level_m)))
     np.testing.assert_allclose(back.reshape(-1, 2), gw[:, :2], atol=1e-6)
     # the homography and cv2.projectPoints agree on the undistorted image
-    via_h = cv2.perspectiveTransform(gw[:, :2].reshape(-1, 1, 2), cam.plane_homography(spec.river.level_m)).reshape(-1, 2)
+    via_h = cv2.perspectiveTransform(gw[:, :2].reshape(-1, 1, 2), cam.plane_homography(spec.river.level_m)).reshape(
+        -1, 2
+    )
     np.testing.assert_allclose(via_h, cam.project(gw, distort=False), atol=1e-6)
     # taped distances: opposite sides of the rectangle of targets are equal, diagonals too
     L = gcp_distances(gw)
@@ -95,7 +99,9 @@ def test_nadir_particles_move_by_expected_pixels(nadir_scene):
         ok, f = cap.read()
         if not ok:
             break
-        frames.append(cv2.cvtColor(f, cv2.COLOR_BGR2GRAY).astype(np.float64)[cy - half : cy + half, cx - half : cx + half])
+        frames.append(
+            cv2.cvtColor(f, cv2.COLOR_BGR2GRAY).astype(np.float64)[cy - half : cy + half, cx - half : cx + half]
+        )
     assert len(frames) == spec.n_frames
     assert cap.get(cv2.CAP_PROP_FPS) == pytest.approx(spec.fps)
     win = cv2.createHanningWindow((2 * half, 2 * half), cv2.CV_64F)

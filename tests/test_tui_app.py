@@ -73,7 +73,7 @@ def test_walkthrough_by_keys_gives_the_pipeline_discharge(project_path, tmp_path
         async with app.run_test(size=SIZE) as pilot:
             t0 = time.monotonic()
             await pilot.pause()
-            for step in STEP_IDS[:STEP_IDS.index("piv")]:
+            for step in STEP_IDS[: STEP_IDS.index("piv")]:
                 assert app.screen.STEP == step
                 await pilot.press("ctrl+n")
                 await pilot.pause()
@@ -85,7 +85,9 @@ def test_walkthrough_by_keys_gives_the_pipeline_discharge(project_path, tmp_path
                 assert app.screen.query_one("#status").display
             else:
                 assert "discharge_m3s" in app.last_job.get("piv", {}), (
-                    app.last_job, str(app.screen.query_one("#step-errors").render()))
+                    app.last_job,
+                    str(app.screen.query_one("#step-errors").render()),
+                )
             await wait_job(app, pilot)
             await pilot.press("ctrl+n")
             await pilot.pause()
@@ -268,8 +270,9 @@ def test_kill_mid_piv_leaves_a_valid_project_file(project_path, tmp_path):
     script = tmp_path / "crash.py"
     script.write_text(CRASH_SCRIPT)
     marker = tmp_path / "running"
-    proc = subprocess.Popen([sys.executable, str(script), str(project_path), str(marker)],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    proc = subprocess.Popen(
+        [sys.executable, str(script), str(project_path), str(marker)], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE
+    )
     try:
         t0 = time.monotonic()
         while not marker.exists():
@@ -326,8 +329,9 @@ def test_piv_progress_line_is_on_screen_at_80x24(project_path, monkeypatch):
             lines = screen_lines(app)
             assert len(lines) == SIZE[1]
             status = lines[-2]  # the line above the footer
-            assert re.search(r"▶ PIV and discharge: .* \d+/\d+ · \d+:\d\d elapsed · (\d+:\d\d|--:--) left · esc cancels",
-                             status), status
+            assert re.search(
+                r"▶ PIV and discharge: .* \d+/\d+ · \d+:\d\d elapsed · (\d+:\d\d|--:--) left · esc cancels", status
+            ), status
             await pilot.press("ctrl+b")  # another step: the run is still shown
             await pilot.pause(0.3)
             assert "▶ PIV and discharge" in screen_lines(app)[-2]

@@ -5,13 +5,13 @@ import io
 import json
 import re
 
+from test_tui_layout import screen_lines
+from test_tui_snapshots import SIZE, fake_result, make_project
+
 from fieldtool.project.model import load_project
 from fieldtool.tui.app import FieldToolApp
 from fieldtool.tui.fields import Field
 from fieldtool.tui.widgets.field_row import FieldRow
-
-from test_tui_layout import screen_lines
-from test_tui_snapshots import SIZE, fake_result, make_project
 
 
 def run(coro):
@@ -36,8 +36,12 @@ def test_discharge_step_has_the_measurement_fields_and_a_report_action(tmp_path)
         app = FieldToolApp(tmp_path / "m" / "project.toml")
         async with app.run_test(size=SIZE) as pilot:
             await pilot.pause(0.3)
-            for key, value in (("name", "Meuse at Lixhe 2026-12-01"), ("site", "lixhe"), ("station", "L-7396"),
-                               ("operator", "A. Hydro")):
+            for key, value in (
+                ("name", "Meuse at Lixhe 2026-12-01"),
+                ("site", "lixhe"),
+                ("station", "L-7396"),
+                ("operator", "A. Hydro"),
+            ):
                 _row(app, key).control.value = value
                 await pilot.pause()
             assert app.session.result_state()[0] == "current"  # typing them does not make the result stale
@@ -49,7 +53,7 @@ def test_discharge_step_has_the_measurement_fields_and_a_report_action(tmp_path)
     saved = load_project(tmp_path / "m" / "project.toml")
     assert (saved.site, saved.station, saved.operator) == ("lixhe", "L-7396", "A. Hydro")
     html = (tmp_path / "m" / "out" / "report.html").read_text()
-    head = html[html.index("id='header'"):html.index("id='discharge'")]
+    head = html[html.index("id='header'") : html.index("id='discharge'")]
     assert "Meuse at Lixhe 2026-12-01" in html and "lixhe" in head and "L-7396" in head and "A. Hydro" in head
     assert (tmp_path / "m" / "out" / "report.pdf").read_bytes().startswith(b"%PDF")
 
@@ -222,8 +226,8 @@ def _field_with_banks(ny=12, nx=30):
     x, y = np.meshgrid(np.arange(nx) * 8.0, np.arange(ny) * 8.0)
     u = np.full((ny, nx), 0.002)
     v = np.zeros((ny, nx))
-    u[:, 8:nx - 8] = 4.0
-    v[:, 8:nx - 8] = 0.5
+    u[:, 8 : nx - 8] = 4.0
+    v[:, 8 : nx - 8] = 0.5
     return x, y, u, v
 
 
@@ -268,7 +272,7 @@ def test_piv_summary_is_measured_on_the_water_and_banks_draw_no_arrow(tmp_path):
             grid = app.screen.query_one(VectorGrid)
             region = grid.region
             assert region.height > 0 and app.screen.region.contains_region(region)
-            rows = screen_lines(app)[region.y:region.y + region.height]
+            rows = screen_lines(app)[region.y : region.y + region.height]
             assert any("↘" in r or "→" in r for r in rows), rows  # the water's arrows are on screen
 
     run(go())

@@ -50,23 +50,26 @@ def find(key, mode="skip"):
     raise KeyError(key)
 
 
-@pytest.mark.parametrize("key,text,expect", [
-    ("video.start_s", "abc", "video.start_s: 'abc' is not a number"),
-    ("video.start_s", "-1", "must be 0 or more"),
-    ("video.end_s", "0", "must be after the start"),
-    ("video.step", "1.5", "not a whole number"),
-    ("video.step", "0", "too small"),
-    ("ortho.gcp_px[0]", "12", "give 2 numbers: x, y"),
-    ("ortho.distances_m[0]", "-3", "must be greater than 0"),
-    ("piv.overlap_px", "32", "less than the window (32 px)"),
-    ("piv.window_px", "4", "too small"),
-    ("piv.min_valid_fraction", "1.5", "out of range"),
-    ("roi.rect_px", "10, 10, 5, 50", "x1 > x0"),
-    ("roi.masks_px", "1, 2; 3, 4", "at least 3 points"),
-    ("section.alpha", "2", "out of range"),
-    ("cross_section.top_width_m", "0", "greater than 0"),
-    ("water_level.dem_x_m", "5, 1", "must exceed the first"),
-])
+@pytest.mark.parametrize(
+    "key,text,expect",
+    [
+        ("video.start_s", "abc", "video.start_s: 'abc' is not a number"),
+        ("video.start_s", "-1", "must be 0 or more"),
+        ("video.end_s", "0", "must be after the start"),
+        ("video.step", "1.5", "not a whole number"),
+        ("video.step", "0", "too small"),
+        ("ortho.gcp_px[0]", "12", "give 2 numbers: x, y"),
+        ("ortho.distances_m[0]", "-3", "must be greater than 0"),
+        ("piv.overlap_px", "32", "less than the window (32 px)"),
+        ("piv.window_px", "4", "too small"),
+        ("piv.min_valid_fraction", "1.5", "out of range"),
+        ("roi.rect_px", "10, 10, 5, 50", "x1 > x0"),
+        ("roi.masks_px", "1, 2; 3, 4", "at least 3 points"),
+        ("section.alpha", "2", "out of range"),
+        ("cross_section.top_width_m", "0", "greater than 0"),
+        ("water_level.dem_x_m", "5, 1", "must exceed the first"),
+    ],
+)
 def test_invalid_entries_have_messages_naming_the_key(key, text, expect):
     f = find(key)
     p = Project()

@@ -58,10 +58,10 @@ def test_help_wraps_never_cuts(step, tmp_path):
                 help_w = app.screen.query_one(HelpLine)
                 region = help_w.content_region
                 assert region.bottom <= SIZE[1] - 2  # above the status line and the footer
-                lines = screen_lines(app)[region.y:region.bottom]
-                shown = [ln[region.x:region.right].strip() for ln in lines]
+                lines = screen_lines(app)[region.y : region.bottom]
+                shown = [ln[region.x : region.right].strip() for ln in lines]
                 expected = row.field.help_line(app.session.project)
-                assert words(" ".join(shown))[-len(words(expected)):] == words(expected), (row.field.key, shown)
+                assert words(" ".join(shown))[-len(words(expected)) :] == words(expected), (row.field.key, shown)
                 inp = row.control
                 if isinstance(inp, Input) and not inp.value:  # the placeholder shows whole in the input
                     assert len(inp.placeholder) <= inp.content_region.width, (row.field.key, inp.placeholder)
@@ -137,7 +137,7 @@ def test_empty_ortho_fields_keep_every_distance_on_screen(tmp_path):
             row = app.screen.query_one("#f-ortho-distances_m-0", FieldRow)
             box = row.query_one(".field-error")
             assert box.display and box.region.height == 1
-            assert "must be greater than 0" in " ".join(screen_lines(app)[app.screen.query_one(HelpLine).region.y:])
+            assert "must be greater than 0" in " ".join(screen_lines(app)[app.screen.query_one(HelpLine).region.y :])
             text = "\n".join(screen_lines(app))
             for i in range(1, 7):
                 assert f"L{i} = |" in text, text
@@ -164,11 +164,14 @@ def test_typing_into_a_field_replaces_its_value(tmp_path):
     run(go())
 
 
-@pytest.mark.parametrize("change, step, reason", [
-    ({"video__start_s": 10.0, "video__end_s": None}, "video", "video.start_s"),  # 10 s past a 1 s clip
-    ({"water_level__value_m": 0.1}, "water_level", "below the lowest bed point"),  # bed at 0.4 m
-    ({"video__path": "bed.csv"}, "video", "cannot be read as a video"),  # a CSV given as the video
-])
+@pytest.mark.parametrize(
+    "change, step, reason",
+    [
+        ({"video__start_s": 10.0, "video__end_s": None}, "video", "video.start_s"),  # 10 s past a 1 s clip
+        ({"water_level__value_m": 0.1}, "water_level", "below the lowest bed point"),  # bed at 0.4 m
+        ({"video__path": "bed.csv"}, "video", "cannot be read as a video"),  # a CSV given as the video
+    ],
+)
 def test_sidebar_marks_wrong_entries(tmp_path, change, step, reason):
     """Defect: the sidebar showed ✓ on steps whose entries were wrong. Now ✗, with the reason in the
     sidebar (shortened) and in full in the help line when the step is highlighted."""
@@ -192,7 +195,7 @@ def test_sidebar_marks_wrong_entries(tmp_path, change, step, reason):
             steps.focus()
             steps.highlighted = STEP_IDS.index(step)
             await pilot.pause()
-            help_text = " ".join(ln.strip() for ln in screen_lines(app)[app.screen.query_one(HelpLine).region.y:])
+            help_text = " ".join(ln.strip() for ln in screen_lines(app)[app.screen.query_one(HelpLine).region.y :])
             assert reason.split()[0] in help_text
 
     run(go())
@@ -213,6 +216,7 @@ def test_decimal_comma_is_read_or_answered():
         pair.parse("1,5, 2,5")
     assert pair.parse("1.5, 2.5") == [1.5, 2.5]
     from fieldtool.errors import ParameterError
+
     with pytest.raises(ParameterError, match="decimal point"):
         parse_params("clip_limit=2,5", "clahe")
 

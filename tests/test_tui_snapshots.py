@@ -34,7 +34,7 @@ def make_project(root, step: str, **changes) -> FieldToolApp:
     w = cv2.VideoWriter(str(root / "clip.avi"), cv2.VideoWriter_fourcc(*"MJPG"), 10.0, (160, 120))
     base = cv2.GaussianBlur(rng.uniform(0, 255, (120, 200)).astype(np.float32), (0, 0), 1.5)
     for i in range(10):
-        frame = np.clip(base[:, 2 * i:2 * i + 160] * 1.5 - 60, 0, 255).astype(np.uint8)
+        frame = np.clip(base[:, 2 * i : 2 * i + 160] * 1.5 - 60, 0, 255).astype(np.uint8)
         w.write(cv2.cvtColor(frame, cv2.COLOR_GRAY2BGR))
     w.release()
     (root / "bed.csv").write_text("station,elevation\n0,2\n1,0.5\n4,0.4\n5,2\n")
@@ -58,20 +58,42 @@ def fake_result(root, p: Project, n: int = 5, quality: bool = False) -> None:
     ``quality``: with the 95 % interval and the quality verdict."""
     out = root / "out"
     out.mkdir()
-    summary = {"discharge_m3s": 1.2345, "discharge_p05_m3s": 1.1, "discharge_p95_m3s": 1.35,
-               "water_level_m": 1.5, "water_level_method": "value", "water_level_uncertainty_m": 0.01,
-               "wetted_area_m2": 4.2, "wetted_width_m": 4.4, "mean_velocity_ms": 0.294, "alpha": 0.8,
-               "alpha_default": True, "n_pairs": 7, "valid_fraction_mean": 0.9, "warnings": [],
-               "files": {"result": "result.json", "subsections": "subsections.csv", "section_png": "section.png"},
-               "inputs": project_to_dict(p)}
+    summary = {
+        "discharge_m3s": 1.2345,
+        "discharge_p05_m3s": 1.1,
+        "discharge_p95_m3s": 1.35,
+        "water_level_m": 1.5,
+        "water_level_method": "value",
+        "water_level_uncertainty_m": 0.01,
+        "wetted_area_m2": 4.2,
+        "wetted_width_m": 4.4,
+        "mean_velocity_ms": 0.294,
+        "alpha": 0.8,
+        "alpha_default": True,
+        "n_pairs": 7,
+        "valid_fraction_mean": 0.9,
+        "warnings": [],
+        "files": {"result": "result.json", "subsections": "subsections.csv", "section_png": "section.png"},
+        "inputs": project_to_dict(p),
+    }
     if quality:
         summary["discharge_ci95_m3s"] = [1.069, 1.4]
-        summary["quality"] = {"grade": "doubtful", "reasons": [
-            {"code": "valid_fraction", "severity": "doubtful", "message": "few valid vectors (38 % < 50 %)",
-             "value": 0.38, "threshold": 0.5}]}
+        summary["quality"] = {
+            "grade": "doubtful",
+            "reasons": [
+                {
+                    "code": "valid_fraction",
+                    "severity": "doubtful",
+                    "message": "few valid vectors (38 % < 50 %)",
+                    "value": 0.38,
+                    "threshold": 0.5,
+                }
+            ],
+        }
     (out / "result.json").write_text(json.dumps(summary))
-    rows = ["subsection,station_from_m,station_to_m,area_m2,mean_depth_m,surface_velocity_ms,velocity_filled,"
-            "discharge_m3s"]
+    rows = [
+        "subsection,station_from_m,station_to_m,area_m2,mean_depth_m,surface_velocity_ms,velocity_filled,discharge_m3s"
+    ]
     w = 4.4 / n
     for i in range(n):
         rows.append(f"{i + 1},{0.3 + w * i:.4f},{0.3 + w * (i + 1):.4f},0.84,0.95,0.37,{int(i == n - 1)},0.25")
@@ -115,8 +137,15 @@ def test_sidebar_with_a_wrong_step(tmp_path, snap_compare):
 
 
 def test_cross_section_from_a_shape(tmp_path, snap_compare):
-    make_project(tmp_path / "m", "cross_section", cross_section__shape="trapezoidal", cross_section__top_width_m=6.0,
-                 cross_section__bottom_width_m=2.0, cross_section__depth_m=1.2, cross_section__bank_elevation_m=2.0)
+    make_project(
+        tmp_path / "m",
+        "cross_section",
+        cross_section__shape="trapezoidal",
+        cross_section__top_width_m=6.0,
+        cross_section__bottom_width_m=2.0,
+        cross_section__depth_m=1.2,
+        cross_section__bank_elevation_m=2.0,
+    )
     assert snap_compare(FieldToolApp(tmp_path / "m" / "project.toml"), terminal_size=SIZE)
 
 

@@ -64,8 +64,9 @@ def _project(tmp_path, w=320, h=240):
 class Child:
     def __init__(self, path):
         env = dict(os.environ)
-        self.proc = subprocess.Popen([sys.executable, "-c", CHILD, str(path)], stdin=subprocess.PIPE,
-                                     stdout=subprocess.PIPE, text=True, env=env)
+        self.proc = subprocess.Popen(
+            [sys.executable, "-c", CHILD, str(path)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=env
+        )
         self.info = self.read()
 
     def read(self):
@@ -145,8 +146,13 @@ def test_fifty_interleaved_edits_of_the_tui_and_a_viewer_process_lose_none(tmp_p
         asyncio.run(run())
 
         # `fieldtool view` on the same project attaches instead of starting a second viewer
-        out = subprocess.run([sys.executable, "-m", "fieldtool.cli", "view", str(path)], capture_output=True,
-                             text=True, timeout=60, check=False)
+        out = subprocess.run(
+            [sys.executable, "-m", "fieldtool.cli", "view", str(path)],
+            capture_output=True,
+            text=True,
+            timeout=60,
+            check=False,
+        )
         assert out.returncode == 0, out.stderr
         assert "already runs" in out.stdout and child.info["url"] in out.stdout
     finally:
@@ -158,8 +164,9 @@ def test_fifty_interleaved_edits_of_the_tui_and_a_viewer_process_lose_none(tmp_p
 def test_a_dead_viewers_info_file_is_ignored(tmp_path):
     path = tmp_path / "project.toml"
     path.write_text("")
-    info_path(path).write_text(json.dumps({"pid": 2**22 + 12345, "host": "127.0.0.1", "port": 1,
-                                           "token": "x", "url": "http://127.0.0.1:1/x/"}))
+    info_path(path).write_text(
+        json.dumps({"pid": 2**22 + 12345, "host": "127.0.0.1", "port": 1, "token": "x", "url": "http://127.0.0.1:1/x/"})
+    )
     assert running_viewer(path) is None
 
 
@@ -180,7 +187,11 @@ def test_tui_refuses_to_write_over_a_file_saved_invalid_elsewhere(tmp_path, bad)
             text = bad + path.read_text()
             path.write_text(text)  # another program's save, with one bad key / a TOML error
             await pilot.pause(0.8)
-            assert "another program" in app.status[0] and "nothing was saved" in app.status[0] and ("not_a_key" in app.status[0] or "TOML" in app.status[0])
+            assert (
+                "another program" in app.status[0]
+                and "nothing was saved" in app.status[0]
+                and ("not_a_key" in app.status[0] or "TOML" in app.status[0])
+            )
             _row(app, 0).control.value = "1, 2"  # the next edit here
             await pilot.pause()
             assert path.read_text() == text
@@ -196,6 +207,7 @@ def test_tui_refuses_a_read_only_file_and_keeps_its_mode(tmp_path):
     os.chmod(path, 0o444)
     before = path.read_bytes()
     try:
+
         async def run():
             app = FieldToolApp(path)
             async with app.run_test(size=(80, 24)) as pilot:

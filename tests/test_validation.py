@@ -32,26 +32,29 @@ def test_every_key_is_declared_or_generic():
     assert set(undeclared) <= {"stabilize.enabled"}, undeclared
 
 
-@pytest.mark.parametrize("path,value,key", [
-    ("video.start_s", math.nan, "video.start_s"),
-    ("video.end_s", math.inf, "video.end_s"),
-    ("section.station_offset_m", math.nan, "section.station_offset_m"),
-    ("section.station_offset_m", 1e308, "section.station_offset_m"),
-    ("section.n_sub", 10_000_000, "section.n_sub"),
-    ("piv.search_px", 2**62, "piv.search_px"),
-    ("piv.max_velocity_ms", 0.0, "piv.max_velocity_ms"),
-    ("water_level.pixel_uncertainty_px", 1e308, "water_level.pixel_uncertainty_px"),
-    ("water_level.dh_m", math.inf, "water_level.dh_m"),
-    ("ortho.distances_m", [1e308] * 6, "ortho.distances_m[0]"),
-    ("ortho.gcp_px", [[1.0], [2.0, 3.0, 4.0]], "ortho.gcp_px"),
-    ("cross_section.points", [[1.0], [2.0, 3.0, 4.0]], "cross_section.points"),
-    ("roi.rect_px", [1.0, 2.0], "roi.rect_px"),
-    ("stabilize.regions_px", [[1.0, 2.0]], "stabilize.regions_px"),
-    ("video.path", "x" * 5000, "video.path"),
-    ("name", "a\nb", "name"),
-    ("rerun.path", ".", "rerun.path"),
-    ("cross_section.depth_m", 1e308, "cross_section.depth_m"),
-])
+@pytest.mark.parametrize(
+    "path,value,key",
+    [
+        ("video.start_s", math.nan, "video.start_s"),
+        ("video.end_s", math.inf, "video.end_s"),
+        ("section.station_offset_m", math.nan, "section.station_offset_m"),
+        ("section.station_offset_m", 1e308, "section.station_offset_m"),
+        ("section.n_sub", 10_000_000, "section.n_sub"),
+        ("piv.search_px", 2**62, "piv.search_px"),
+        ("piv.max_velocity_ms", 0.0, "piv.max_velocity_ms"),
+        ("water_level.pixel_uncertainty_px", 1e308, "water_level.pixel_uncertainty_px"),
+        ("water_level.dh_m", math.inf, "water_level.dh_m"),
+        ("ortho.distances_m", [1e308] * 6, "ortho.distances_m[0]"),
+        ("ortho.gcp_px", [[1.0], [2.0, 3.0, 4.0]], "ortho.gcp_px"),
+        ("cross_section.points", [[1.0], [2.0, 3.0, 4.0]], "cross_section.points"),
+        ("roi.rect_px", [1.0, 2.0], "roi.rect_px"),
+        ("stabilize.regions_px", [[1.0, 2.0]], "stabilize.regions_px"),
+        ("video.path", "x" * 5000, "video.path"),
+        ("name", "a\nb", "name"),
+        ("rerun.path", ".", "rerun.path"),
+        ("cross_section.depth_m", 1e308, "cross_section.depth_m"),
+    ],
+)
 def test_bad_values_name_their_key(proj, path, value, key):
     table, _, name = path.rpartition(".")
     setattr(getattr(proj, table) if table else proj, name, value)
@@ -122,11 +125,26 @@ def test_dem_header_bounded_before_reading(proj, tmp_path):
 
     path = tmp_path / "huge.tif"
     # a hand-made TIFF header that claims 100000 x 100000 float32 pixels in one deflated strip of 16 bytes
-    tags = [(256, 4, 100000), (257, 4, 100000), (258, 3, 32), (259, 3, 8), (262, 3, 1), (273, 4, 8),
-            (277, 3, 1), (278, 4, 100000), (279, 4, 16), (339, 3, 3)]
-    ifd = struct.pack("<H", len(tags)) + b"".join(
-        struct.pack("<HHI", t, typ, 1) + (struct.pack("<HH", v, 0) if typ == 3 else struct.pack("<I", v))
-        for t, typ, v in tags) + struct.pack("<I", 0)
+    tags = [
+        (256, 4, 100000),
+        (257, 4, 100000),
+        (258, 3, 32),
+        (259, 3, 8),
+        (262, 3, 1),
+        (273, 4, 8),
+        (277, 3, 1),
+        (278, 4, 100000),
+        (279, 4, 16),
+        (339, 3, 3),
+    ]
+    ifd = (
+        struct.pack("<H", len(tags))
+        + b"".join(
+            struct.pack("<HHI", t, typ, 1) + (struct.pack("<HH", v, 0) if typ == 3 else struct.pack("<I", v))
+            for t, typ, v in tags
+        )
+        + struct.pack("<I", 0)
+    )
     path.write_bytes(b"II*\x00" + struct.pack("<I", 24) + bytes(16) + ifd)
     proj.water_level.method = "dem"
     proj.water_level.dem_path = str(path)

@@ -38,8 +38,9 @@ def served(tmp_path):
     project = _tiny_project(tmp_path)
     script = tmp_path / "serve.py"
     script.write_text(SERVE)
-    proc = subprocess.Popen([sys.executable, str(script), str(project)], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(
+        [sys.executable, str(script), str(project)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )
     line = proc.stdout.readline().split()
     assert len(line) == 2, proc.stderr.read()
     yield proc, int(line[0]), line[1], project
@@ -78,17 +79,24 @@ def test_duplicate_or_malformed_headers_are_refused_without_a_traceback(served):
     host = f"127.0.0.1:{port}"
     cases = {
         "two hosts": f"GET /{token}/ HTTP/1.1\r\nHost: {host}\r\nHost: evil.example.com\r\n\r\n",
-        "two origins": (f"GET /{token}/ HTTP/1.1\r\nHost: {host}\r\nOrigin: http://{host}\r\n"
-                        "Origin: http://evil.example.com\r\n\r\n"),
-        "two hosts, websocket": (f"GET /{token} HTTP/1.1\r\nHost: {host}\r\nHost: {host}\r\nOrigin: http://{host}\r\n"
-                                 "Upgrade: websocket\r\nConnection: Upgrade\r\nSec-WebSocket-Version: 13\r\n"
-                                 "Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\n\r\n"),
+        "two origins": (
+            f"GET /{token}/ HTTP/1.1\r\nHost: {host}\r\nOrigin: http://{host}\r\n"
+            "Origin: http://evil.example.com\r\n\r\n"
+        ),
+        "two hosts, websocket": (
+            f"GET /{token} HTTP/1.1\r\nHost: {host}\r\nHost: {host}\r\nOrigin: http://{host}\r\n"
+            "Upgrade: websocket\r\nConnection: Upgrade\r\nSec-WebSocket-Version: 13\r\n"
+            "Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\n\r\n"
+        ),
     }
     for name, req in cases.items():
         status = _status(_raw(port, req.encode()))
         assert status in (400, 403), (name, status)
-    broken = {"no colon": f"GET /{token}/ HTTP/1.1\r\nHost: {host}\r\nNo colon here\r\n\r\n",
-              "bad request line": "GARBAGE\r\n\r\n", "binary": "\x00\xff\xfe\r\n\r\n"}
+    broken = {
+        "no colon": f"GET /{token}/ HTTP/1.1\r\nHost: {host}\r\nNo colon here\r\n\r\n",
+        "bad request line": "GARBAGE\r\n\r\n",
+        "binary": "\x00\xff\xfe\r\n\r\n",
+    }
     for name, req in broken.items():
         status = _status(_raw(port, req.encode("latin-1")))
         assert status in (0, 400), (name, status)  # refused, or the connection closed
@@ -104,8 +112,15 @@ def test_oversized_and_malformed_messages_are_refused_without_a_traceback(served
     origin = f"http://127.0.0.1:{port}"
 
     def ws():
-        return connect(f"ws://127.0.0.1:{port}/{token}", origin=origin, subprotocols=PROTOCOL, open_timeout=20,
-                       proxy=None, max_size=None, close_timeout=5)
+        return connect(
+            f"ws://127.0.0.1:{port}/{token}",
+            origin=origin,
+            subprotocols=PROTOCOL,
+            open_timeout=20,
+            proxy=None,
+            max_size=None,
+            close_timeout=5,
+        )
 
     with ws() as c:  # 50 MB in one message
         try:
@@ -114,12 +129,23 @@ def test_oversized_and_malformed_messages_are_refused_without_a_traceback(served
         except Exception:  # noqa: BLE001 - the server closes the connection: what is wanted
             pass
     rng = random.Random(25)
-    bad = [b"\x00\x01garbage", msgspec.msgpack.encode({"type": "NoSuchMessage"}),
-           msgspec.msgpack.encode({"type": "ViewerCameraMessage", "wxyz": "not numbers"}),
-           msgspec.msgpack.encode({"type": "ScenePointerMessage", "event_type": "click", "ray_origin": [1, 2],
-                                   "ray_direction": None, "screen_pos": [], "modifier": None}),
-           msgspec.msgpack.encode({"type": "GuiUpdateMessage", "uuid": "no-such-uuid", "updates": {"value": [1]}}),
-           "text, not bytes"]
+    bad = [
+        b"\x00\x01garbage",
+        msgspec.msgpack.encode({"type": "NoSuchMessage"}),
+        msgspec.msgpack.encode({"type": "ViewerCameraMessage", "wxyz": "not numbers"}),
+        msgspec.msgpack.encode(
+            {
+                "type": "ScenePointerMessage",
+                "event_type": "click",
+                "ray_origin": [1, 2],
+                "ray_direction": None,
+                "screen_pos": [],
+                "modifier": None,
+            }
+        ),
+        msgspec.msgpack.encode({"type": "GuiUpdateMessage", "uuid": "no-such-uuid", "updates": {"value": [1]}}),
+        "text, not bytes",
+    ]
     sent = 0
     for _ in range(20):  # 20 connections of 20 messages: 400 in all (benchmarks: more)
         try:

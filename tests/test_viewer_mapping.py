@@ -30,8 +30,14 @@ def test_corners_and_centre_of_the_drawn_rectangle(rot, pos):
     centre the middle of the pixel grid; y grows towards the rectangle's local +y."""
     plane = _plane(rot, pos)
     origin = _local_to_scene(plane, [0.7, -0.3, -9.0])  # a viewer on the local -z side, off axis
-    cases = {(-3.2, -2.4): (-0.5, -0.5), (3.2, -2.4): (639.5, -0.5), (3.2, 2.4): (639.5, 479.5),
-             (0.0, 0.0): (319.5, 239.5), (-3.2, 2.4): (-0.5, 479.5), (0.01, 0.0): (320.5, 239.5)}
+    cases = {
+        (-3.2, -2.4): (-0.5, -0.5),
+        (3.2, -2.4): (639.5, -0.5),
+        (3.2, 2.4): (639.5, 479.5),
+        (0.0, 0.0): (319.5, 239.5),
+        (-3.2, 2.4): (-0.5, 479.5),
+        (0.01, 0.0): (320.5, 239.5),
+    }
     for (lx, ly), expected in cases.items():
         target = _local_to_scene(plane, [lx, ly, 0.0])
         px = ray_to_pixel(origin, target - origin, plane)
@@ -116,8 +122,8 @@ def test_rendered_plot_axes_locate_the_drawn_line():
     line = Curve("level", x, np.full_like(x, 99.25), (255, 0, 0))
     img, ax = render_plot([bed, line], size=(800, 500), vlines=[(6.5, (0, 0, 255), "v")])
     red = (img[..., 0] > 200) & (img[..., 1] < 60) & (img[..., 2] < 60)
-    rows = np.nonzero(red[:, int(ax.left_px) + 50: int(ax.right_px) - 250].any(axis=1))[0]
+    rows = np.nonzero(red[:, int(ax.left_px) + 50 : int(ax.right_px) - 250].any(axis=1))[0]
     assert ax.px_to_data([[ax.left_px, rows.mean()]])[0, 1] == pytest.approx(99.25, abs=(ax.y_max - ax.y_min) / 480)
     blue = (img[..., 2] > 200) & (img[..., 0] < 60) & (img[..., 1] < 60)
-    cols = np.nonzero(blue[int(ax.top_px) + 30: int(ax.bottom_px)].any(axis=0))[0]
+    cols = np.nonzero(blue[int(ax.top_px) + 30 : int(ax.bottom_px)].any(axis=0))[0]
     assert ax.px_to_data([[cols.mean(), ax.top_px]])[0, 0] == pytest.approx(6.5, abs=(ax.x_max - ax.x_min) / 700)

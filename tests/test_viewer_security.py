@@ -28,8 +28,7 @@ def viewer(tmp_path):
 
 
 def _ws(h, path, origin, host="127.0.0.1"):
-    return connect(f"ws://{host}:{h.port}{path}", origin=origin, subprotocols=PROTOCOL, open_timeout=10,
-                   proxy=None)
+    return connect(f"ws://{host}:{h.port}{path}", origin=origin, subprotocols=PROTOCOL, open_timeout=10, proxy=None)
 
 
 def _get(h, path, headers=None):
@@ -189,8 +188,13 @@ def test_fieldtool_view_prints_the_tunnel_line_and_the_keyed_url(tmp_path):
 
     path = _tiny_project(tmp_path)
     env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]))
-    proc = subprocess.Popen([sys.executable, "-m", "fieldtool.cli.main", "view", str(path), "--port", "0"],
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "fieldtool.cli.main", "view", str(path), "--port", "0"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        env=env,
+    )
     try:
         lines, t0 = [], time.time()
         while time.time() - t0 < 60 and not any("then open" in ln for ln in lines):

@@ -43,7 +43,7 @@ def viewer(tmp_path):
 def test_serves_the_bundled_page_on_loopback_with_a_free_port(viewer):
     assert viewer.url.startswith("http://127.0.0.1:") and viewer.port > 0 and viewer.warning is None
     html = urllib.request.urlopen(viewer.url, timeout=10).read().decode()
-    assert "<div id=\"root\">" in html
+    assert '<div id="root">' in html
 
 
 def test_clicks_as_rays_save_gcps_to_the_project_and_call_on_pick(viewer):
@@ -140,7 +140,9 @@ def test_dem_plot_click_gives_the_station_under_it(tmp_path):
     path = _tiny_project(tmp_path)
     st = np.linspace(0.0, 10.0, 41)
     bed = 100.0 - 2.0 * np.sin(np.pi * st / 10.0)
-    (tmp_path / "xs.csv").write_text("station_m,elevation_m\n" + "".join(f"{s},{z}\n" for s, z in zip(st, bed, strict=True)))
+    (tmp_path / "xs.csv").write_text(
+        "station_m,elevation_m\n" + "".join(f"{s},{z}\n" for s, z in zip(st, bed, strict=True))
+    )
     x = np.linspace(0.0, 4.0, 80, endpoint=False) + 0.025
     dem = np.tile(np.interp(x, st, bed) + np.where(x < 2.0, 0.0, 0.3), (5, 1))  # diverges beyond 2 m
     tifffile.imwrite(tmp_path / "dem.tif", dem.astype(np.float32))

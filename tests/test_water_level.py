@@ -58,8 +58,9 @@ def dem_scene(tmp: Path, bank: str = "left", seed: int = 0) -> tuple[WaterLevelC
     dem += bump[None, :] * rng.uniform(0.7, 1.3, (rows, 1))
     path = tmp / f"dem_{bank}.tif"
     tifffile.imwrite(path, dem.astype(np.float32))
-    cfg = WaterLevelCfg(method="dem", dem_path=path.name, dem_x_m=[x0, x1], dem_y_m=[0.0, 0.8],
-                        dem_precision_mm=10.0, dem_compare_m=2.5)
+    cfg = WaterLevelCfg(
+        method="dem", dem_path=path.name, dem_x_m=[x0, x1], dem_y_m=[0.0, 0.8], dem_precision_mm=10.0, dem_compare_m=2.5
+    )
     return cfg, cs, level
 
 
@@ -95,8 +96,15 @@ def _project(K, R, C, pts_world):
     return p[:, :2] / p[:, 2:3]
 
 
-def nadir_scene(tmp: Path, yaw_deg: float = 15.0, seed: int = 1, noise_px: float = 0.5,
-                shift_m: float = 0.7, h_low: float = 7.0, dh: float = 4.0):
+def nadir_scene(
+    tmp: Path,
+    yaw_deg: float = 15.0,
+    seed: int = 1,
+    noise_px: float = 0.5,
+    shift_m: float = 0.7,
+    h_low: float = 7.0,
+    dh: float = 4.0,
+):
     """Two nadir images (1280x960, FOV_x 70 deg, pinhole) of the SECTION river at LEVEL from heights
     h_low and h_low + dh, the camera ``shift_m`` off the river centre across and 0.4 m along it,
     turned by ``yaw_deg`` so that the section runs at that angle in the image. Edges picked = the
@@ -118,9 +126,17 @@ def nadir_scene(tmp: Path, yaw_deg: float = 15.0, seed: int = 1, noise_px: float
         names.append(name)
         px = _project(K, R, C, [[EDGES[0], 0.0, LEVEL], [EDGES[1], 0.0, LEVEL]])
         edges.append((px + rng.normal(0, noise_px, px.shape)).tolist())
-    cfg = WaterLevelCfg(method="angle_height", image1=names[0], image2=names[1], dh_m=dh, edges1_px=edges[0],
-                        edges2_px=edges[1], pixel_uncertainty_px=noise_px, dh_uncertainty_m=0.02,
-                        fov_uncertainty_deg=0.1)
+    cfg = WaterLevelCfg(
+        method="angle_height",
+        image1=names[0],
+        image2=names[1],
+        dh_m=dh,
+        edges1_px=edges[0],
+        edges2_px=edges[1],
+        pixel_uncertainty_px=noise_px,
+        dh_uncertainty_m=0.02,
+        fov_uncertainty_deg=0.1,
+    )
     return cfg, fov, EDGES[1] - EDGES[0]
 
 
@@ -143,7 +159,9 @@ def oblique_scene(tmp: Path, seed: int = 2, noise_px: float = 0.5, raw_offset_px
     gcp_px = _project(K, R, C, np.c_[gcp_world, np.full(len(gcp_world), LEVEL)]) + rng.normal(0, 0.3, (6, 2))
     mapping = from_world_points(gcp_px, gcp_world, (h, w))
     px = _project(K, R, C, [[EDGES[0], 3.0, LEVEL], [EDGES[1], 3.0, LEVEL]]) + rng.normal(0, noise_px, (2, 2))
-    cfg = WaterLevelCfg(method="image", edges_px=(px + np.asarray(raw_offset_px)).tolist(), pixel_uncertainty_px=noise_px)
+    cfg = WaterLevelCfg(
+        method="image", edges_px=(px + np.asarray(raw_offset_px)).tolist(), pixel_uncertainty_px=noise_px
+    )
     return cfg, mapping, img, px
 
 
@@ -206,8 +224,9 @@ def test_typed_value_checked_and_default_uncertainty(tmp_path):
 
 
 def test_width_method(tmp_path):
-    r = compute_level(WaterLevelCfg(method="width", width_m=EDGES[1] - EDGES[0], width_uncertainty_m=0.1),
-                      SECTION, root=tmp_path)
+    r = compute_level(
+        WaterLevelCfg(method="width", width_m=EDGES[1] - EDGES[0], width_uncertainty_m=0.1), SECTION, root=tmp_path
+    )
     assert r.level_m == pytest.approx(LEVEL)
     assert r.uncertainty_m == pytest.approx(0.1 / (2 * 1.5 / 0.9))  # each edge moves 1.5/0.9 m per m of level
 
@@ -237,7 +256,17 @@ def test_dem_override_and_bad_precision(tmp_path):
 
 
 def test_fov_axis_thresholds():
-    assert [fov_axis(a) for a in (0, 29, -20, 170, 31, 59, 61, 90, -100)] == ["x", "x", "x", "x", "diag", "diag", "y", "y", "y"]
+    assert [fov_axis(a) for a in (0, 29, -20, 170, 31, 59, 61, 90, -100)] == [
+        "x",
+        "x",
+        "x",
+        "x",
+        "diag",
+        "diag",
+        "y",
+        "y",
+        "y",
+    ]
 
 
 @pytest.mark.parametrize("yaw", [15.0, 45.0, 75.0])
@@ -366,8 +395,14 @@ def test_angle_height_undistorts_edges_with_a_calibration(tmp_path):
             e1 = px.reshape(2, 2)
         else:
             e2 = px.reshape(2, 2)
-    cfg = WaterLevelCfg(method="angle_height", image1="img1.png", image2="img2.png", dh_m=dh,
-                        edges1_px=e1.tolist(), edges2_px=e2.tolist())
+    cfg = WaterLevelCfg(
+        method="angle_height",
+        image1="img1.png",
+        image2="img2.png",
+        dh_m=dh,
+        edges1_px=e1.tolist(),
+        edges2_px=e2.tolist(),
+    )
     fov = lens.fov_deg()
     raw = compute_level(cfg, cs, root=tmp_path, fov_deg=fov)
     und = compute_level(cfg, cs, root=tmp_path, fov_deg=fov, image_undistort=lens.undistort_points_in)
@@ -394,14 +429,25 @@ def test_dem_from_any_gdal_raster(tmp_path):
     z = np.arange(12, dtype=np.float32).reshape(3, 4) + 10
     z[1, 2] = -9999
     tif = tmp_path / "dem.tif"
-    with rasterio.open(tif, "w", driver="GTiff", width=4, height=3, count=1, dtype="float32", nodata=-9999,
-                       transform=Affine(1, 0, 0, 0, -1, 3)) as ds:
+    with rasterio.open(
+        tif,
+        "w",
+        driver="GTiff",
+        width=4,
+        height=3,
+        count=1,
+        dtype="float32",
+        nodata=-9999,
+        transform=Affine(1, 0, 0, 0, -1, 3),
+    ) as ds:
         ds.write(z, 1)
     a = read_dem(tif)
     assert np.isnan(a[1, 2]) and a[0, 0] == 10 and a.shape == (3, 4)
     asc = tmp_path / "dem.asc"
-    asc.write_text("ncols 4\nnrows 3\nxllcorner 0\nyllcorner 0\ncellsize 1\nNODATA_value -1\n"
-                   "10 11 12 13\n14 15 -1 17\n18 19 20 21\n")
+    asc.write_text(
+        "ncols 4\nnrows 3\nxllcorner 0\nyllcorner 0\ncellsize 1\nNODATA_value -1\n"
+        "10 11 12 13\n14 15 -1 17\n18 19 20 21\n"
+    )
     b = read_dem(asc)
     assert np.isnan(b[1, 2]) and b[2, 3] == 21
     huge = tmp_path / "huge.asc"

@@ -64,9 +64,16 @@ def _lines(levels_width_m, scale=0.01, contrast=20.0):
     out = []
     for k, w in enumerate(levels_width_m):
         x0 = 100.0
-        out.append({"offset_m": 0.4 * k, "line_px": np.array([[50.0, 100 + k], [1500.0, 100 + k]]),
-                    "edges_px": np.array([[x0, 100 + k], [x0 + w / scale, 100 + k]]), "sigma_px": np.array([1.5, 1.5]),
-                    "contrast": contrast, "still_water_px": [0.0, 0.0]})
+        out.append(
+            {
+                "offset_m": 0.4 * k,
+                "line_px": np.array([[50.0, 100 + k], [1500.0, 100 + k]]),
+                "edges_px": np.array([[x0, 100 + k], [x0 + w / scale, 100 + k]]),
+                "sigma_px": np.array([1.5, 1.5]),
+                "contrast": contrast,
+                "still_water_px": [0.0, 0.0],
+            }
+        )
     return {"lines": out, "n_frames": 30}
 
 
@@ -80,8 +87,11 @@ def test_parallel_lines_that_agree_give_the_level():
 
 
 def test_parallel_lines_that_disagree_are_refused_naming_the_method_and_the_fix():
-    with pytest.raises(GeometryError, match=r"water_level.method = waterline: could not find the water line reliably.*"
-                                            r"type the level"):
+    with pytest.raises(
+        GeometryError,
+        match=r"water_level.method = waterline: could not find the water line reliably.*"
+        r"type the level",
+    ):
         waterline_level(V, from_scale(0.01), _lines([8.0, 10.0, 6.0, 8.0, 9.5]))  # levels 10.3..10.5: sd 8 cm
 
 
@@ -151,6 +161,8 @@ def test_a_search_line_on_the_water_only_is_refused(short_scene):
 def test_nadir_scene_with_glints_level_within_2_cm(tmp_path):
     from fieldtool.synthetic import presets, render_scene
 
-    truth = render_scene(presets.get("nadir", glints=True, duration_s=2.0), tmp_path / "s")  # slow edge water needs ~2 s
+    truth = render_scene(
+        presets.get("nadir", glints=True, duration_s=2.0), tmp_path / "s"
+    )  # slow edge water needs ~2 s
     err, _ = _level_error(truth.project_path, truth.water_level_m)
     assert abs(err) < 0.02, f"{100 * err:+.2f} cm"

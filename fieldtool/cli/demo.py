@@ -31,8 +31,14 @@ def demo(args: argparse.Namespace) -> int:
     t2 = time.perf_counter()
     q, q_true = result.discharge.discharge_m3s, truth.discharge_m3s
     err = 100.0 * (q - q_true) / q_true
-    report = {"scene": args.scene, "discharge_m3s": q, "true_discharge_m3s": q_true, "error_percent": err,
-              "render_s": round(t1 - t0, 2), "pipeline_s": round(t2 - t1, 2)}
+    report = {
+        "scene": args.scene,
+        "discharge_m3s": q,
+        "true_discharge_m3s": q_true,
+        "error_percent": err,
+        "render_s": round(t1 - t0, 2),
+        "pipeline_s": round(t2 - t1, 2),
+    }
     (out / "demo.json").write_text(json.dumps(report, indent=2))
     print(f"computed discharge {q:.4f} m3/s")
     print(f"true discharge     {q_true:.4f} m3/s  (integrated from the generator's velocity profile)")

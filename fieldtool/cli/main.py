@@ -31,6 +31,8 @@ EXTENSIONS = (
 
 
 BUG_REPORT = "please report it with the command line and the output of the same command with --debug"
+
+
 def _measure():
     """cli.measure, lazy: the one import of the core by the command line. The pipeline (numpy, OpenCV, SciPy,
     about 0.5 s) loads only for a command that measures, and `fieldtool run` forks its figure process first."""
@@ -69,8 +71,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--rerun", choices=["save", "connect", "serve"], help="stream to rerun (see README)")
     p.add_argument("--rerun-path", help="rerun: .rrd file for --rerun save")
     p.add_argument("--rerun-url", help="rerun: rerun+http://HOST:PORT/proxy for --rerun connect")
-    p.add_argument("--overlay", action="store_true",
-                   help="also write overlay.mp4: the clip with the vectors, the section and Q drawn on it ([overlay])")
+    p.add_argument(
+        "--overlay",
+        action="store_true",
+        help="also write overlay.mp4: the clip with the vectors, the section and Q drawn on it ([overlay])",
+    )
     p.add_argument("--record", action="store_true", help="record the result in the measurement history")
     p.add_argument("--site", help="site name for --record (default: the project's site)")
     p.add_argument("--db", help="history database for --record (default: $FIELDTOOL_DB or the user data folder)")
@@ -83,9 +88,13 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("demo", help="render a synthetic river with a known discharge and measure it")
     p.add_argument("--out", default="demo_out", help="output folder (default demo_out)")
-    p.add_argument("--scene", default="oblique", help="scene preset: oblique, nadir, far_bank, a hard one (glints_section, ripples, "
-                        "sparse_patchy, fast_1080p, grazing, compressed, skewed, dropped_frames) or an unseen one (low_light, "
-                        "glare_column, rain, shadows, exposure, debris, standing_waves, drone_4k)")
+    p.add_argument(
+        "--scene",
+        default="oblique",
+        help="scene preset: oblique, nadir, far_bank, a hard one (glints_section, ripples, "
+        "sparse_patchy, fast_1080p, grazing, compressed, skewed, dropped_frames) or an unseen one (low_light, "
+        "glare_column, rain, shadows, exposure, debris, standing_waves, drone_4k)",
+    )
     p.set_defaults(func=cmd_demo)
 
     for name in EXTENSIONS:
@@ -105,15 +114,17 @@ def _os_error_message(e: OSError) -> str:
     if e.filename2 is not None:
         name = f"{name} -> {e.filename2}"
     what = e.strerror or type(e).__name__
-    fix = {errno.ENOSPC: "free some space or write elsewhere (--out)",
-           errno.EDQUOT: "free some space or write elsewhere (--out)",
-           errno.EACCES: "check the permissions, or write elsewhere (--out)",
-           errno.EPERM: "check the permissions, or write elsewhere (--out)",
-           errno.EROFS: "the file system is read-only; write elsewhere (--out)",
-           errno.ENOTDIR: "a part of this path is a file, not a folder; give another path",
-           errno.EISDIR: "this is a folder; give a file name",
-           errno.EEXIST: "a file of this name is in the way; give another path",
-           errno.ENAMETOOLONG: "give a shorter path"}.get(e.errno or 0, "check the path")
+    fix = {
+        errno.ENOSPC: "free some space or write elsewhere (--out)",
+        errno.EDQUOT: "free some space or write elsewhere (--out)",
+        errno.EACCES: "check the permissions, or write elsewhere (--out)",
+        errno.EPERM: "check the permissions, or write elsewhere (--out)",
+        errno.EROFS: "the file system is read-only; write elsewhere (--out)",
+        errno.ENOTDIR: "a part of this path is a file, not a folder; give another path",
+        errno.EISDIR: "this is a folder; give a file name",
+        errno.EEXIST: "a file of this name is in the way; give another path",
+        errno.ENAMETOOLONG: "give a shorter path",
+    }.get(e.errno or 0, "check the path")
     return f"{name}: {what}; {fix}" if name else f"{what}; {fix}"
 
 
@@ -186,15 +197,18 @@ def _main(argv: list[str], debug: bool) -> int:
         end_progress_line()
         if debug:
             raise
-        print("fieldtool: error: out of memory; use a shorter clip (video.end_s), a larger video.step or a "
-              "smaller ROI", file=sys.stderr)
+        print(
+            "fieldtool: error: out of memory; use a shorter clip (video.end_s), a larger video.step or a smaller ROI",
+            file=sys.stderr,
+        )
         return 1
     except Exception as e:  # noqa: BLE001 - the top-level guard: never a traceback by default
         end_progress_line()
         if debug:
             raise
-        print(f"fieldtool: internal error: {type(e).__name__}: {_one_line(str(e))[:300]}; {BUG_REPORT}",
-              file=sys.stderr)
+        print(
+            f"fieldtool: internal error: {type(e).__name__}: {_one_line(str(e))[:300]}; {BUG_REPORT}", file=sys.stderr
+        )
         return 1
 
 

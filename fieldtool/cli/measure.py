@@ -66,10 +66,14 @@ def run(args: argparse.Namespace) -> int:
     else:
         print(f"discharge     {s['discharge_m3s']:.4f} m3/s")
     if s.get("discharge_p05_m3s") is not None:
-        print(f"single pairs  {s['discharge_p05_m3s']:.4f} - {s['discharge_p95_m3s']:.4f} m3/s  (5-95 % of the "
-              f"{s['n_pairs_with_vectors']} sampled pairs' own discharges; not an interval of Q)")
-    print(f"water level   {s['water_level_m']:.3f} m  ({s['water_level_method']}, "
-          f"+/- {s['water_level_uncertainty_m']:.3f} m)")
+        print(
+            f"single pairs  {s['discharge_p05_m3s']:.4f} - {s['discharge_p95_m3s']:.4f} m3/s  (5-95 % of the "
+            f"{s['n_pairs_with_vectors']} sampled pairs' own discharges; not an interval of Q)"
+        )
+    print(
+        f"water level   {s['water_level_m']:.3f} m  ({s['water_level_method']}, "
+        f"+/- {s['water_level_uncertainty_m']:.3f} m)"
+    )
     print(f"wetted area   {s['wetted_area_m2']:.3f} m2   width {s['wetted_width_m']:.3f} m")
     print(f"mean velocity {s['mean_velocity_ms']:.4f} m/s  (alpha {s['alpha']:.2f})")
     for w in s["warnings"]:
@@ -78,8 +82,10 @@ def run(args: argparse.Namespace) -> int:
         print("PIV field     reused from the output folder (same clip, corrections and PIV parameters)")
     ov = s.get("overlay")
     if ov and "overlay" in s["files"]:
-        print(f"overlay video {out / s['files']['overlay']}  ({ov['frames']} frames + {ov['card_frames']} of the closing "
-              f"card, {ov['width_px']}x{ov['height_px']} at {ov['fps']:.3g} fps, {ov['codec']})")
+        print(
+            f"overlay video {out / s['files']['overlay']}  ({ov['frames']} frames + {ov['card_frames']} of the closing "
+            f"card, {ov['width_px']}x{ov['height_px']} at {ov['fps']:.3g} fps, {ov['codec']})"
+        )
     print(f"results in    {out}  ({time.perf_counter() - t0:.1f} s)")
     if args.record:
         mid = record_run(project, s, out, site=args.site or project.site, db=args.db)
@@ -101,20 +107,23 @@ def run(args: argparse.Namespace) -> int:
 
 def calibrate(args: argparse.Namespace) -> int:
     """`fieldtool calibrate VIDEO`: the lens from a checkerboard video."""
+
     def progress(done: int, total: int) -> None:
         progress_line(f"frames searched: {done}/{total}")
 
     if not (math.isfinite(args.square_mm) and 0 < args.square_mm <= 10000):
-        raise ParameterError(f"--square-mm: {args.square_mm:g} is not a square size; give the side of one square "
-                             "in mm (e.g. 25)")
+        raise ParameterError(
+            f"--square-mm: {args.square_mm:g} is not a square size; give the side of one square in mm (e.g. 25)"
+        )
     if not 1 <= args.frames <= 1000:
         raise ParameterError(f"--frames: {args.frames} is out of range; give 1 to 1000 (e.g. 20)")
     msg = path_problem(Path(args.video), "video", kind="video")
     if msg:
         raise InputFileError(msg)
     _check_out_file(args.out, "--out")
-    model = calibrate_video(args.video, corners=args.corners, square_mm=args.square_mm, n_frames=args.frames,
-                            progress=progress)
+    model = calibrate_video(
+        args.video, corners=args.corners, square_mm=args.square_mm, n_frames=args.frames, progress=progress
+    )
     end_progress_line()
     save_calibration(model, args.out)
     fx, fy = model.camera_matrix[0, 0], model.camera_matrix[1, 1]

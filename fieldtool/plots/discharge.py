@@ -60,8 +60,17 @@ def plot_vectors(path: Path, first_bgr: np.ndarray, result, inputs) -> Path:
     ok = p.valid & np.isfinite(p.u)
     step = max(1, int(np.ceil(max(p.x.shape) / 60)))
     sl = (slice(None, None, step), slice(None, None, step))
-    q = ax.quiver(p.x[sl][ok[sl]], p.y[sl][ok[sl]], p.u[sl][ok[sl]], p.v[sl][ok[sl]], speed[sl][ok[sl]],
-                  cmap="viridis", angles="xy", scale_units="xy", scale=None)
+    q = ax.quiver(
+        p.x[sl][ok[sl]],
+        p.y[sl][ok[sl]],
+        p.u[sl][ok[sl]],
+        p.v[sl][ok[sl]],
+        speed[sl][ok[sl]],
+        cmap="viridis",
+        angles="xy",
+        scale_units="xy",
+        scale=None,
+    )
     fig.colorbar(q, ax=ax, shrink=0.7, label="surface speed (m/s)")
     sp = result.section.p_img
     ax.plot(sp[:, 0], sp[:, 1], "r-", lw=2)

@@ -198,17 +198,27 @@ def _serve(jobs_fd: int, answers_fd: int, folder: Path) -> None:
             if kind == "inputs":
                 project, inputs, level, mapping = args
                 result = SimpleNamespace(mapping=mapping, level=level)
-                draws = (("gcp.png", partial(report_figures.write_gcp, out, project, result, inputs)),
-                         ("water_level.png", partial(water_level.plot_level, out / "water_level.png",
-                                                     inputs.cross_section, level)))
+                draws = (
+                    ("gcp.png", partial(report_figures.write_gcp, out, project, result, inputs)),
+                    (
+                        "water_level.png",
+                        partial(water_level.plot_level, out / "water_level.png", inputs.cross_section, level),
+                    ),
+                )
             else:
                 inputs, result, cross_section = args
-                draws = (("vectors.png", partial(discharge.plot_vectors, out / "vectors.png", inputs.first_color, result,
-                                                 inputs)),
-                         ("rectified.png", partial(discharge.plot_rectified, out / "rectified.png", inputs.first_color,
-                                                   result, inputs)),
-                         ("section.png", partial(discharge.plot_section, out / "section.png", cross_section, result)),
-                         ("profile.png", partial(report_figures.write_profile, out, result)))
+                draws = (
+                    (
+                        "vectors.png",
+                        partial(discharge.plot_vectors, out / "vectors.png", inputs.first_color, result, inputs),
+                    ),
+                    (
+                        "rectified.png",
+                        partial(discharge.plot_rectified, out / "rectified.png", inputs.first_color, result, inputs),
+                    ),
+                    ("section.png", partial(discharge.plot_section, out / "section.png", cross_section, result)),
+                    ("profile.png", partial(report_figures.write_profile, out, result)),
+                )
             status = _draw_in_two(draws, out)
             if "profile.png" in status:
                 status["section_profile.csv"] = status["profile.png"]
@@ -277,8 +287,9 @@ class Prerender:
         """Start drawing :data:`RESULT_FILES` (they depend on the field and the discharge, not on the Monte
         Carlo that the parent runs meanwhile)."""
         if self.active:
-            result = SimpleNamespace(discharge=discharge, piv=piv, world_u=world_u, world_v=world_v,
-                                     section=section, mapping=mapping)
+            result = SimpleNamespace(
+                discharge=discharge, piv=piv, world_u=world_u, world_v=world_v, section=section, mapping=mapping
+            )
             self._submit("results", (inputs, result, cross_section), RESULT_FILES)
 
     def file(self, name: str) -> bytes | None:

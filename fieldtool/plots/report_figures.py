@@ -23,9 +23,14 @@ def write_profile(out: Path, result) -> tuple[str, str]:
     b = dq.profile_band(result.discharge, result.piv, result.section, result.mapping)
     rows = ["station_m,surface_velocity_ms,velocity_filled,pairs_p025_ms,pairs_p975_ms,n_pairs"]
     for i in range(len(b["station_m"])):
-        f = [f"{b['station_m'][i]:.4f}", f"{b['velocity_ms'][i]:.5f}", str(int(b["filled"][i])),
-             "" if not np.isfinite(b["p025_ms"][i]) else f"{b['p025_ms'][i]:.5f}",
-             "" if not np.isfinite(b["p975_ms"][i]) else f"{b['p975_ms'][i]:.5f}", str(int(b["n_pairs"][i]))]
+        f = [
+            f"{b['station_m'][i]:.4f}",
+            f"{b['velocity_ms'][i]:.5f}",
+            str(int(b["filled"][i])),
+            "" if not np.isfinite(b["p025_ms"][i]) else f"{b['p025_ms'][i]:.5f}",
+            "" if not np.isfinite(b["p975_ms"][i]) else f"{b['p975_ms'][i]:.5f}",
+            str(int(b["n_pairs"][i])),
+        ]
         rows.append(",".join(f))
     atomic_write_bytes(out / "section_profile.csv", ("\n".join(rows) + "\n").encode())
 
@@ -34,8 +39,15 @@ def write_profile(out: Path, result) -> tuple[str, str]:
     s, v = b["station_m"], b["velocity_ms"]
     band = np.isfinite(b["p025_ms"]) & np.isfinite(b["p975_ms"])
     if band.any():
-        ax.fill_between(s[band], b["p025_ms"][band], b["p975_ms"][band], color="tab:blue", alpha=0.2, lw=0,
-                        label="2.5–97.5 % of the frame-pair fields")
+        ax.fill_between(
+            s[band],
+            b["p025_ms"][band],
+            b["p975_ms"][band],
+            color="tab:blue",
+            alpha=0.2,
+            lw=0,
+            label="2.5–97.5 % of the frame-pair fields",
+        )
     ax.plot(s, v, "-", color="tab:blue", lw=1.5, label="mean field")
     meas = ~b["filled"]
     ax.plot(s[meas], v[meas], "o", color="tab:blue", ms=5, label="measured subsection")
@@ -69,8 +81,14 @@ def gcp_table(project, result, to_working=None) -> list[dict]:
             got = m.image_to_world(px if to_working is None else to_working(px))
             res = np.hypot(*(got - world).T)
         for k, (w, r) in enumerate(zip(world, res, strict=True)):
-            rows.append({"name": f"P{k + 1} ({w[0]:.3f}, {w[1]:.3f})", "measured_m": None, "fitted_m": None,
-                         "residual_m": float(r)})
+            rows.append(
+                {
+                    "name": f"P{k + 1} ({w[0]:.3f}, {w[1]:.3f})",
+                    "measured_m": None,
+                    "fitted_m": None,
+                    "residual_m": float(r),
+                }
+            )
     return rows
 
 
@@ -90,20 +108,33 @@ def write_gcp(out: Path, project, result, inputs) -> str | None:
         for (i, j), row in zip(PAIRS, rows, strict=False):  # no rows when the distances are not 6
             ax.plot(px[[i, j], 0], px[[i, j], 1], "-", color="yellow", lw=1.2, alpha=0.9)
             mid = px[[i, j]].mean(axis=0)
-            ax.annotate(f"{row['name'].split('=')[0]} {row['measured_m']:.3f} m\nres {1000 * row['residual_m']:+.1f} mm",
-                        mid, color="black", fontsize=8, ha="center", va="center",
-                        bbox={"boxstyle": "round,pad=0.2", "fc": "yellow", "alpha": 0.8, "lw": 0})
+            ax.annotate(
+                f"{row['name'].split('=')[0]} {row['measured_m']:.3f} m\nres {1000 * row['residual_m']:+.1f} mm",
+                mid,
+                color="black",
+                fontsize=8,
+                ha="center",
+                va="center",
+                bbox={"boxstyle": "round,pad=0.2", "fc": "yellow", "alpha": 0.8, "lw": 0},
+            )
     for k, (x, y) in enumerate(px):
         ax.plot(x, y, "o", mfc="none", mec="red", ms=14, mew=2)
         label = f"P{k + 1}"
         if o.method in ("world", "pose") and k < len(rows):
             label += f"  res {1000 * rows[k]['residual_m']:.1f} mm"
-        ax.annotate(label, (x, y), xytext=(10, -10), textcoords="offset points", color="white", fontsize=10,
-                    fontweight="bold", bbox={"boxstyle": "round,pad=0.2", "fc": "red", "alpha": 0.8, "lw": 0})
+        ax.annotate(
+            label,
+            (x, y),
+            xytext=(10, -10),
+            textcoords="offset points",
+            color="white",
+            fontsize=10,
+            fontweight="bold",
+            bbox={"boxstyle": "round,pad=0.2", "fc": "red", "alpha": 0.8, "lw": 0},
+        )
     ax.set_xlim(-0.5, w - 0.5)
     ax.set_ylim(h - 0.5, -0.5)
     ax.set_title(f"Ground control points ({o.method}); RMS residual {1000 * result.mapping.residual_m:.1f} mm")
     ax.set_xlabel("x (px)")
     ax.set_ylabel("y (px)")
     return _save(fig, out / "gcp.png").name
-

@@ -35,8 +35,16 @@ def plot_timeseries(path: Path | str, rows: list[dict], *, site: str = "") -> Pa
         ax_q.plot(t, q, color="0.7", lw=1, zorder=1)
         ok = np.isfinite(lo) & np.isfinite(hi)
         if ok.any():
-            ti = [x for x, k in zip(t, ok) if k]
-            ax_q.vlines(ti, lo[ok], hi[ok], color=[c for c, k in zip(colours, ok) if k], lw=1.5, alpha=0.6, zorder=2)
+            ti = [x for x, k in zip(t, ok, strict=False) if k]
+            ax_q.vlines(
+                ti,
+                lo[ok],
+                hi[ok],
+                color=[c for c, k in zip(colours, ok, strict=False) if k],
+                lw=1.5,
+                alpha=0.6,
+                zorder=2,
+            )
         ax_q.scatter(t, q, c=colours, s=28, zorder=3, edgecolors="white", linewidths=0.5)
         ax_h.plot(t, h, color="#0969da", lw=1, marker="o", ms=3)
         if (max(t) - min(t)).total_seconds() < 60:  # one time only: an hour around it, not years

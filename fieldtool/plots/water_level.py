@@ -38,8 +38,13 @@ def plot_level(path, cs: CrossSection, result: LevelResult, dem_profile: dict | 
     path = Path(path)
     prof = dem_profile if dem_profile is not None else result.details.get("dem_profile")
     fig = _figure(figsize=(8, 7.5 if prof else 4.5), dpi=110)
-    title = {"value": "typed value", "width": "measured width", "dem": "adapted Hellebaut (DEM)",
-             "angle_height": "angle and height", "image": "image method"}.get(result.method, result.method)
+    title = {
+        "value": "typed value",
+        "width": "measured width",
+        "dem": "adapted Hellebaut (DEM)",
+        "angle_height": "angle and height",
+        "image": "image method",
+    }.get(result.method, result.method)
     if prof:
         ax0, ax1, ax2 = fig.subplots(3, 1, gridspec_kw={"height_ratios": [1.2, 1, 1]})
     else:

@@ -109,9 +109,11 @@ class LensModel:
         W, H = self.image_size
         sx, sy = w / W, h / H
         if abs(sx / sy - 1.0) > 0.01:
-            raise ParameterError(f"image of {w}x{h} px has not the aspect ratio of the calibrated {W}x{H} frames: "
-                                 "another crop of the sensor; calibrate it, or give water_level.fov_deg without a "
-                                 "calibration")
+            raise ParameterError(
+                f"image of {w}x{h} px has not the aspect ratio of the calibrated {W}x{H} frames: "
+                "another crop of the sensor; calibrate it, or give water_level.fov_deg without a "
+                "calibration"
+            )
         p = np.asarray(pts, dtype=np.float64).reshape(-1, 2) / [sx, sy]
         return self.undistort_points(p) * [sx, sy]
 
@@ -121,8 +123,9 @@ class LensModel:
         if len(pts) == 0:
             return pts.copy()
         crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-10)
-        out = cv2.undistortPoints(pts.reshape(-1, 1, 2), self.camera_matrix, self.dist_coeffs,
-                                  P=self.camera_matrix, criteria=crit)
+        out = cv2.undistortPoints(
+            pts.reshape(-1, 1, 2), self.camera_matrix, self.dist_coeffs, P=self.camera_matrix, criteria=crit
+        )
         return out.reshape(-1, 2)
 
     def distort_points(self, pts: np.ndarray) -> np.ndarray:
@@ -132,8 +135,9 @@ class LensModel:
             return pts.copy()
         kinv = np.linalg.inv(self.camera_matrix)
         rays = np.c_[pts, np.ones(len(pts))] @ kinv.T
-        out, _ = cv2.projectPoints(rays.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), self.camera_matrix,
-                                   self.dist_coeffs)
+        out, _ = cv2.projectPoints(
+            rays.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), self.camera_matrix, self.dist_coeffs
+        )
         return out.reshape(-1, 2)
 
     def to_dict(self) -> dict:
@@ -191,14 +195,18 @@ def _find_board(gray: np.ndarray, corners: tuple[int, int]) -> np.ndarray | None
     """Inner-corner positions (N, 1, 2) float32 refined to sub-pixel, or None."""
     h, w = gray.shape
     scale = min(1.0, _DETECT_MAX_WIDTH / w)
-    small = gray if scale == 1.0 else cv2.resize(gray, (round(w * scale), round(h * scale)), interpolation=cv2.INTER_AREA)
+    small = (
+        gray if scale == 1.0 else cv2.resize(gray, (round(w * scale), round(h * scale)), interpolation=cv2.INTER_AREA)
+    )
     ok, pts = cv2.findChessboardCorners(small, corners, flags=_FIND_FLAGS)
     if not ok:
         return None
     pts = (pts / scale).astype(np.float32)
     # refinement window: about a third of the smallest corner spacing, at most 11 px half-size
     grid = pts.reshape(corners[1], corners[0], 2)
-    spacing = min(np.linalg.norm(np.diff(grid, axis=0), axis=2).min(), np.linalg.norm(np.diff(grid, axis=1), axis=2).min())
+    spacing = min(
+        np.linalg.norm(np.diff(grid, axis=0), axis=2).min(), np.linalg.norm(np.diff(grid, axis=1), axis=2).min()
+    )
     half = int(np.clip(spacing / 3, 2, 11))
     crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 40, 0.001)
     return cv2.cornerSubPix(gray, pts, (half, half), (-1, -1), crit)
@@ -246,7 +254,9 @@ def calibrate_video(
     if not (square_mm is not None and square_mm > 0):
         raise ParameterError(f"calibration.square_mm: {square_mm!r} mm; give the side of one square, > 0")
     if int(n_frames) < MIN_VIEWS:
-        raise ParameterError(f"calibration.n_frames: {n_frames} is too few; use at least {MIN_VIEWS} (10 to 20 is good)")
+        raise ParameterError(
+            f"calibration.n_frames: {n_frames} is too few; use at least {MIN_VIEWS} (10 to 20 is good)"
+        )
     n_frames = int(n_frames)
 
     total = _count_frames(path, cancel)

@@ -71,7 +71,8 @@ class ClipStats:
 
 
 def temporal_noise(stack: np.ndarray) -> np.ndarray:
-    """Per-pixel temporal noise sd (grey levels) of ``stack`` (n >= 3, h, w): 1.4826 MAD of the differences / sqrt(2)."""
+    """Per-pixel temporal noise sd (grey levels) of ``stack`` (n >= 3, h, w): 1.4826 MAD of the differences
+    / sqrt(2)."""
     d = np.diff(stack.astype(np.float32), axis=0)
     med = np.median(d, axis=0)
     return 1.4826 * np.median(np.abs(d - med), axis=0) / np.sqrt(2.0)
@@ -84,8 +85,11 @@ def estimate(frames, box: tuple[int, int, int, int] | None = None, *, win: int =
     if len(fr) < 3:
         raise ValueError("clip_stats.estimate needs at least 3 frames")
     h, w = fr[0].shape[:2]
-    x0, y0, x1, y1 = (0, 0, w, h) if box is None else (max(int(box[0]), 0), max(int(box[1]), 0),
-                                                       min(int(box[2]), w), min(int(box[3]), h))
+    x0, y0, x1, y1 = (
+        (0, 0, w, h)
+        if box is None
+        else (max(int(box[0]), 0), max(int(box[1]), 0), min(int(box[2]), w), min(int(box[3]), h))
+    )
     st = np.stack([f[y0:y1, x0:x1] for f in fr]).astype(np.float32)
     n = st.shape[0]
     sig = temporal_noise(st[:, ::step, ::step])
@@ -105,12 +109,15 @@ def estimate(frames, box: tuple[int, int, int, int] | None = None, *, win: int =
     cons, texs, fl = [], [], []
     for r0 in range(0, max(hh - win // 2, 1), win):
         for c0 in range(0, max(ww - win // 2, 1), win):
-            blk = sm[:, r0:r0 + win, c0:c0 + win]
+            blk = sm[:, r0 : r0 + win, c0 : c0 + win]
             if blk.size == 0:
                 continue
             cons.append(max(float(np.percentile(blk, 99.0)) - 2.33 * sig_s, 0.0))
             texs.append(float(np.sqrt(np.mean(blk * blk))))
-            fl.append(float(n_iso[r0:r0 + win, c0:c0 + win].sum()) / max(float(n_all[r0:r0 + win, c0:c0 + win].sum()), 1.0))
+            fl.append(
+                float(n_iso[r0 : r0 + win, c0 : c0 + win].sum())
+                / max(float(n_all[r0 : r0 + win, c0 : c0 + win].sum()), 1.0)
+            )
     cons_a = np.asarray(cons) if cons else np.zeros(1)
     fl_a = np.asarray(fl) if fl else np.zeros(1)
     clean = fl_a <= GLARE_ISOLATED
@@ -118,10 +125,19 @@ def estimate(frames, box: tuple[int, int, int, int] | None = None, *, win: int =
     bright = resid > np.maximum(GLARE_K * noise, 2.0 * contrast)
     share = bright.mean(axis=0)
     glare = float(np.mean((share > 0) & (share <= GLARE_DUTY)))
-    return ClipStats(frames=n, noise=noise, contrast=contrast, cnr=contrast / noise, texture=float(np.median(texs or [0.0])),
-                     level=float(np.median(med)), glare_fraction=glare, windows=len(cons),
-                     contrast_spread=(float(np.percentile(cons_a, 10)), float(np.percentile(cons_a, 90))),
-                     median=med, box=(x0, y0, x1, y1))
+    return ClipStats(
+        frames=n,
+        noise=noise,
+        contrast=contrast,
+        cnr=contrast / noise,
+        texture=float(np.median(texs or [0.0])),
+        level=float(np.median(med)),
+        glare_fraction=glare,
+        windows=len(cons),
+        contrast_spread=(float(np.percentile(cons_a, 10)), float(np.percentile(cons_a, 90))),
+        median=med,
+        box=(x0, y0, x1, y1),
+    )
 
 
 def soft_threshold_residual(k: float) -> float:
@@ -145,9 +161,16 @@ class Gates:
     variants: list | None = None  # self-check scores of the variants tried (processing/selfcheck.py), if any
 
     def to_dict(self) -> dict:
-        return {"plan": self.plan, "shrink": round(self.shrink, 4), "min_texture": round(self.min_texture, 5),
-                "min_pairs": self.min_pairs, "denoise_frames": 2 * self.denoise_half + 1 if self.denoise_half else 1,
-                "mask_glints": self.mask_glints, "variants": self.variants, "reasons": list(self.reasons)}
+        return {
+            "plan": self.plan,
+            "shrink": round(self.shrink, 4),
+            "min_texture": round(self.min_texture, 5),
+            "min_pairs": self.min_pairs,
+            "denoise_frames": 2 * self.denoise_half + 1 if self.denoise_half else 1,
+            "mask_glints": self.mask_glints,
+            "variants": self.variants,
+            "reasons": list(self.reasons),
+        }
 
 
 def ambiguous(stats: ClipStats) -> bool:
@@ -155,8 +178,15 @@ def ambiguous(stats: ClipStats) -> bool:
     return CNR_WEAK / 2.0 <= stats.cnr < 2.0 * CNR_WEAK
 
 
-def gates(stats: ClipStats, *, shrink_default: float, min_texture_default: float, min_pairs: int,
-          n_frames: int, force: str | None = None) -> Gates:
+def gates(
+    stats: ClipStats,
+    *,
+    shrink_default: float,
+    min_texture_default: float,
+    min_pairs: int,
+    n_frames: int,
+    force: str | None = None,
+) -> Gates:
     """The soft threshold, texture gate and pair count for a clip.
 
     Where the tracers stand well above the noise (cnr >= :data:`CNR_WEAK`) the defaults stand: they were set
@@ -168,9 +198,16 @@ def gates(stats: ClipStats, *, shrink_default: float, min_texture_default: float
     "low_light" whatever the ratio (the self-check's variants).
     """
     if force == "standard" or (force is None and stats.cnr >= CNR_WEAK):
-        return Gates("standard", shrink_default, min_texture_default, None,
-                     [f"tracer contrast {stats.contrast:.1f} grey levels is {stats.cnr:.1f} x the noise "
-                      f"({stats.noise:.2f}): default gates"])
+        return Gates(
+            "standard",
+            shrink_default,
+            min_texture_default,
+            None,
+            [
+                f"tracer contrast {stats.contrast:.1f} grey levels is {stats.cnr:.1f} x the noise "
+                f"({stats.noise:.2f}): default gates"
+            ],
+        )
     k = max(0.5 * stats.cnr, 0.0)
     k = min(k, shrink_default)
     # the default gate is min_texture_default at a residual of soft_threshold_residual(shrink_default) noise
@@ -180,10 +217,26 @@ def gates(stats: ClipStats, *, shrink_default: float, min_texture_default: float
     std_noise = 0.5  # standardised noise sd where noise dominates: sd / (sd + std_ref), std_ref ~ sd
     mt = min(min_texture_default, 0.5 * resid * std_noise)
     glare = stats.glare_fraction > GLARE_ON
-    why = [f"{100 * stats.glare_fraction:.1f} % of the pixels flicker brighter than {stats.glint_threshold:.0f} grey "
-           "levels above their median in a few frames only: masked per frame"] if glare else []
-    return Gates("low_light" + ("+glare" if glare else ""), k, mt, max(min_pairs, n_frames - 1),
-                 why + [f"temporal mean over 3 frames (noise / sqrt(3))", f"tracer contrast {stats.contrast:.1f} grey levels is only {stats.cnr:.1f} x the noise "
-                  f"({stats.noise:.2f}, below {CNR_WEAK:g}): soft threshold {k:.2f} sd (default {shrink_default:g}), "
-                  f"texture gate {mt:.4f} (default {min_texture_default:g}), ensemble over every pair"],
-                 denoise_half=1, mask_glints=glare)
+    why = (
+        [
+            f"{100 * stats.glare_fraction:.1f} % of the pixels flicker brighter than {stats.glint_threshold:.0f} grey "
+            "levels above their median in a few frames only: masked per frame"
+        ]
+        if glare
+        else []
+    )
+    return Gates(
+        "low_light" + ("+glare" if glare else ""),
+        k,
+        mt,
+        max(min_pairs, n_frames - 1),
+        why
+        + [
+            "temporal mean over 3 frames (noise / sqrt(3))",
+            f"tracer contrast {stats.contrast:.1f} grey levels is only {stats.cnr:.1f} x the noise "
+            f"({stats.noise:.2f}, below {CNR_WEAK:g}): soft threshold {k:.2f} sd (default {shrink_default:g}), "
+            f"texture gate {mt:.4f} (default {min_texture_default:g}), ensemble over every pair",
+        ],
+        denoise_half=1,
+        mask_glints=glare,
+    )

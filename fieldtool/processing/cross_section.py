@@ -64,13 +64,19 @@ class CrossSection:
             )
         left, right = self.elevation[0], self.elevation[-1]
         if level > left or level > right:
-            side = "both banks" if (level > left and level > right) else ("the left bank" if level > left else "the right bank")
+            side = (
+                "both banks"
+                if (level > left and level > right)
+                else ("the left bank" if level > left else "the right bank")
+            )
             raise GeometryError(
                 f"water level {level:.3f} m is above {side} (left top {left:.3f} m, right top {right:.3f} m): "
                 "the water would spill beyond the surveyed section; check the level or extend the survey"
             )
 
-    def wet_polyline(self, level: float, s_from: float | None = None, s_to: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def wet_polyline(
+        self, level: float, s_from: float | None = None, s_to: float | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Stations (m) and water depths (m, >= 0) between ``s_from`` and ``s_to``, with every
         water-edge crossing and both limits inserted, so depth is linear between nodes."""
         s, z = self.station, self.elevation
@@ -174,8 +180,17 @@ def from_shape(
 # files
 
 # Units a header may name for a column, with their factor to metres.
-_UNITS = {"m": 1.0, "metre": 1.0, "meter": 1.0, "metres": 1.0, "meters": 1.0, "cm": 0.01, "mm": 0.001,
-          "ft": 0.3048, "feet": 0.3048}
+_UNITS = {
+    "m": 1.0,
+    "metre": 1.0,
+    "meter": 1.0,
+    "metres": 1.0,
+    "meters": 1.0,
+    "cm": 0.01,
+    "mm": 0.001,
+    "ft": 0.3048,
+    "feet": 0.3048,
+}
 _STATION_NAMES = ("station", "distance", "dist", "chainage", "abscissa", "offset", "x", "s", "afstand", "abscisse")
 _ELEVATION_NAMES = ("elevation", "elev", "z", "height", "altitude", "level", "bed", "cote", "hoogte", "niveau")
 _DECIMAL_COMMA = re.compile(r"^[+-]?\d+,\d+(?:[eE][+-]?\d+)?$")
@@ -198,8 +213,9 @@ def _split_fields(lines: list[str]) -> tuple[str, bool]:
         sep = ","
     else:
         sep = " "
-    comma_decimal = sep in (";", "\t", " ") and any(_DECIMAL_COMMA.match(f.strip()) for ln in sample
-                                                      for f in _fields(ln, sep))
+    comma_decimal = sep in (";", "\t", " ") and any(
+        _DECIMAL_COMMA.match(f.strip()) for ln in sample for f in _fields(ln, sep)
+    )
     return sep, comma_decimal
 
 
@@ -237,9 +253,13 @@ def _header_columns(cells: list[str], source: str, lineno: int) -> tuple[int, in
             raise InputFileError(f"{source}, line {lineno}: unit {u!r} in the header is not one of m, cm, mm, ft")
         unit.append(_UNITS.get(u, 1.0) if u else 1.0)
     words = [re.split(r"[\s_\(\[]+", n)[0] for n in names]
-    if any(w.startswith("depth") or w in ("diepte", "profondeur") for w in words) and not any(w in _ELEVATION_NAMES for w in words):
-        raise InputFileError(f"{source}, line {lineno}: the header names a depth column; give bed elevations "
-                             "(m, in the datum of the water level), not depths")
+    if any(w.startswith("depth") or w in ("diepte", "profondeur") for w in words) and not any(
+        w in _ELEVATION_NAMES for w in words
+    ):
+        raise InputFileError(
+            f"{source}, line {lineno}: the header names a depth column; give bed elevations "
+            "(m, in the datum of the water level), not depths"
+        )
     si = next((i for i, w in enumerate(words) if w in _STATION_NAMES), 0)
     zi = next((i for i, w in enumerate(words) if w in _ELEVATION_NAMES and i != si), 1 if si == 0 else 0)
     return si, zi, unit[si] if si < len(unit) else 1.0, unit[zi] if zi < len(unit) else 1.0
@@ -264,26 +284,33 @@ def parse_rows(rows: list[tuple[int, list[str]]], source: str, comma_decimal: bo
                 continue
             bad = next(c for c, v in zip(cells, vals, strict=True) if v is None)
             hint = " (use a decimal point, or ';' between fields when the decimals are commas)" if "," in bad else ""
-            raise InputFileError(f"{source}, line {lineno}: {bad!r} is not a number; expected 'station, elevation' "
-                                 f"in metres{hint}")
+            raise InputFileError(
+                f"{source}, line {lineno}: {bad!r} is not a number; expected 'station, elevation' in metres{hint}"
+            )
         if len(vals) < 2 or max(si, zi) >= len(vals):
-            raise InputFileError(f"{source}, line {lineno}: expected two numbers 'station, elevation', got "
-                                 f"{' '.join(cells)!r}")
+            raise InputFileError(
+                f"{source}, line {lineno}: expected two numbers 'station, elevation', got {' '.join(cells)!r}"
+            )
         if width is None:
             width = len(vals)
         elif len(vals) != width:
-            raise InputFileError(f"{source}, line {lineno}: {len(vals)} fields where the rows above have {width}; "
-                                 "check the separators (a decimal comma in a comma-separated file splits a number)")
+            raise InputFileError(
+                f"{source}, line {lineno}: {len(vals)} fields where the rows above have {width}; "
+                "check the separators (a decimal comma in a comma-separated file splits a number)"
+            )
         st_m, z_m = vals[si] * fs, vals[zi] * fz
         for what, v in (("station", st_m), ("elevation", z_m)):
             if not abs(v) <= MAX_ABS_M:
-                raise InputFileError(f"{source}, line {lineno}: {what} {v:g} m is beyond ±10 km ({MAX_ABS_M:g} m); "
-                                     "give the survey in metres (a local datum if the numbers are large)")
+                raise InputFileError(
+                    f"{source}, line {lineno}: {what} {v:g} m is beyond ±10 km ({MAX_ABS_M:g} m); "
+                    "give the survey in metres (a local datum if the numbers are large)"
+                )
         pts.append((st_m, z_m))
         lines.append(lineno)
     if len(pts) < 2:
-        raise InputFileError(f"{source}: {len(pts)} data row(s); a cross-section needs at least 2 rows of "
-                             "'station, elevation' in metres")
+        raise InputFileError(
+            f"{source}: {len(pts)} data row(s); a cross-section needs at least 2 rows of 'station, elevation' in metres"
+        )
     arr = np.asarray(pts)
     _check_relief(arr, lines, source)
     try:
@@ -304,9 +331,11 @@ def _check_relief(arr: np.ndarray, lines: list[int], source: str) -> None:
         return  # one station: refused below with its own message
     k = int(np.argmax(np.abs(z - np.median(z))))
     ratio = f"{relief / width:.0f} times" if width > 0 else "infinitely"
-    raise InputFileError(f"{source}, line {lines[k]}: elevation {z[k]:g} m makes the bed {relief:g} m high over a "
-                         f"{width:g} m wide section ({ratio} its width; at most {MAX_RELIEF_PER_WIDTH:g}); "
-                         "check this row's number and unit")
+    raise InputFileError(
+        f"{source}, line {lines[k]}: elevation {z[k]:g} m makes the bed {relief:g} m high over a "
+        f"{width:g} m wide section ({ratio} its width; at most {MAX_RELIEF_PER_WIDTH:g}); "
+        "check this row's number and unit"
+    )
 
 
 def file_size_problem(path: Path | str) -> str | None:
@@ -317,8 +346,10 @@ def file_size_problem(path: Path | str) -> str | None:
         return None
     if size <= MAX_FILE_BYTES:
         return None
-    return (f"{path}: {size / 1e6:.1f} MB; a cross-section file is at most {MAX_FILE_BYTES / 1e6:g} MB "
-            "(about 400 000 rows); give the surveyed points of the section only")
+    return (
+        f"{path}: {size / 1e6:.1f} MB; a cross-section file is at most {MAX_FILE_BYTES / 1e6:g} MB "
+        "(about 400 000 rows); give the surveyed points of the section only"
+    )
 
 
 def parse_xy_text(text: str, source: str = "cross-section") -> CrossSection:

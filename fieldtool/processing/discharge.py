@@ -60,9 +60,16 @@ def window_reach_px(window_px: int) -> float:
     return 0.5 * window_px
 
 
-def section_geometry(points_px, mapping: OrthoMapping, cs: CrossSection, level: float, n_sub: int,
-                     station_offset_m: float | None = None, image_shape: tuple[int, int] | None = None,
-                     footprint_px: float = 0.0) -> SectionGeometry:
+def section_geometry(
+    points_px,
+    mapping: OrthoMapping,
+    cs: CrossSection,
+    level: float,
+    n_sub: int,
+    station_offset_m: float | None = None,
+    image_shape: tuple[int, int] | None = None,
+    footprint_px: float = 0.0,
+) -> SectionGeometry:
     """Build the section of interest (see module docstring).
 
     ``footprint_px``: how far (px, image axes) from a sample point the window centred on it reaches
@@ -95,8 +102,9 @@ def section_geometry(points_px, mapping: OrthoMapping, cs: CrossSection, level: 
     return geom
 
 
-def _on_water(geom: SectionGeometry, frac: np.ndarray, mapping: OrthoMapping, cs: CrossSection, level: float,
-              footprint_px: float) -> tuple[np.ndarray, str]:
+def _on_water(
+    geom: SectionGeometry, frac: np.ndarray, mapping: OrthoMapping, cs: CrossSection, level: float, footprint_px: float
+) -> tuple[np.ndarray, str]:
     """(n, k) bool: the stations within the windows' reach of each sample point are all wet.
 
     The reach (m along the section) is the largest projection on the section of the square of half-side
@@ -120,8 +128,10 @@ def _on_water(geom: SectionGeometry, frac: np.ndarray, mapping: OrthoMapping, cs
     ok = ok.reshape(n, k)
     kept = ok.any(axis=1)
     if not kept.all() and kept.mean() < 0.5:
-        return np.ones((n, k), bool), (f"the interrogation windows reach over a water edge in {int((~kept).sum())} of "
-                                       f"{n} subsections; all samples kept (smaller piv.window_px would avoid it)")
+        return np.ones((n, k), bool), (
+            f"the interrogation windows reach over a water edge in {int((~kept).sum())} of "
+            f"{n} subsections; all samples kept (smaller piv.window_px would avoid it)"
+        )
     return ok, ""
 
 
@@ -133,7 +143,9 @@ def section_samples(geom: SectionGeometry, x, y, U, V) -> np.ndarray:
     return vn if geom.trusted is None else np.where(geom.trusted, vn, np.nan)
 
 
-def sample_field(x: np.ndarray, y: np.ndarray, U: np.ndarray, V: np.ndarray, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def sample_field(
+    x: np.ndarray, y: np.ndarray, U: np.ndarray, V: np.ndarray, pts: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Bilinear interpolation of a world-velocity field given on a regular pixel grid.
 
     ``x``, ``y`` (ny, nx) node centres (px), ``U``, ``V`` (ny, nx) m/s with NaN for invalid nodes;
@@ -247,12 +259,22 @@ def resolve_alpha(alpha: float | None, cs: CrossSection, level: float) -> float:
         width = cs.wetted_width(level)
         alpha = default_alpha(cs.wetted_area(level) / width if width > 0 else 0.0)
     if not (0.0 < alpha <= 1.2):
-        raise ParameterError(f"section.alpha: {alpha:g} is not a plausible velocity index; use 0.5 to 1.0 (0.85 typical)")
+        raise ParameterError(
+            f"section.alpha: {alpha:g} is not a plausible velocity index; use 0.5 to 1.0 (0.85 typical)"
+        )
     return float(alpha)
 
 
-def pair_discharge(geom: SectionGeometry, area: np.ndarray, law: tuple[np.ndarray, np.ndarray], alpha: float,
-                   x: np.ndarray, y: np.ndarray, U: np.ndarray, V: np.ndarray) -> float:
+def pair_discharge(
+    geom: SectionGeometry,
+    area: np.ndarray,
+    law: tuple[np.ndarray, np.ndarray],
+    alpha: float,
+    x: np.ndarray,
+    y: np.ndarray,
+    U: np.ndarray,
+    V: np.ndarray,
+) -> float:
     """Discharge (m³/s) of one velocity field (m/s on the pixel grid); NaN when nothing is valid.
     ``law``: :func:`manning_factors` of the section, for the fill."""
     v = subsection_velocity(geom, x, y, U, V)
@@ -262,8 +284,9 @@ def pair_discharge(geom: SectionGeometry, area: np.ndarray, law: tuple[np.ndarra
     return float(np.sum(alpha * area * v))
 
 
-def compute_discharge(geom: SectionGeometry, cs: CrossSection, level: float, surface_v: np.ndarray,
-                      alpha: float | None = None) -> DischargeResult:
+def compute_discharge(
+    geom: SectionGeometry, cs: CrossSection, level: float, surface_v: np.ndarray, alpha: float | None = None
+) -> DischargeResult:
     """Q = Σ alpha · A_i · v_i over the subsections (trapezoidal areas on the cross-section)."""
     edges = geom.station_edges
     n = len(edges) - 1
@@ -277,12 +300,15 @@ def compute_discharge(geom: SectionGeometry, cs: CrossSection, level: float, sur
     v, filled = fill_velocity(surface_v, manning_factors(cs, level, edges))
     edge = filled & (~geom.trusted.any(axis=1) if geom.trusted is not None else False)
     if edge.any():
-        warnings.append(f"{int(edge.sum())} of {n} subsections lie within the interrogation windows' reach of a water "
-                        "edge (the windows would read the faster water beside the bank): their velocity is the "
-                        "neighbour's carried along the local Manning law (v ∝ depth^(2/3))")
+        warnings.append(
+            f"{int(edge.sum())} of {n} subsections lie within the interrogation windows' reach of a water "
+            "edge (the windows would read the faster water beside the bank): their velocity is the "
+            "neighbour's carried along the local Manning law (v ∝ depth^(2/3))"
+        )
     if (filled & ~edge).any():
-        warnings.append(f"{int((filled & ~edge).sum())} of {n} subsections had no valid vector and were filled from "
-                        "a neighbour")
+        warnings.append(
+            f"{int((filled & ~edge).sum())} of {n} subsections had no valid vector and were filled from a neighbour"
+        )
     if geom.edge_note:
         warnings.append(geom.edge_note)
     total_area = float(area.sum())
@@ -292,17 +318,32 @@ def compute_discharge(geom: SectionGeometry, cs: CrossSection, level: float, sur
     q_sub = alpha * area * v
     Q = float(q_sub.sum())
     return DischargeResult(
-        discharge_m3s=Q, alpha=float(alpha), alpha_default=alpha_default, water_level_m=float(level),
-        wetted_area_m2=total_area, wetted_width_m=float(width),
+        discharge_m3s=Q,
+        alpha=float(alpha),
+        alpha_default=alpha_default,
+        water_level_m=float(level),
+        wetted_area_m2=total_area,
+        wetted_width_m=float(width),
         mean_velocity_ms=Q / total_area if total_area > 0 else float("nan"),
-        section_length_m=geom.length_m, station_from=edges[:-1], station_to=edges[1:], area_m2=area,
-        mean_depth_m=mean_depth, surface_velocity_ms=v, velocity_filled=filled, sub_discharge_m3s=q_sub,
+        section_length_m=geom.length_m,
+        station_from=edges[:-1],
+        station_to=edges[1:],
+        area_m2=area,
+        mean_depth_m=mean_depth,
+        surface_velocity_ms=v,
+        velocity_filled=filled,
+        sub_discharge_m3s=q_sub,
         warnings=warnings,
     )
 
 
-def check_section(geom: SectionGeometry, cs: CrossSection, level: float, min_length_fraction: float = 0.5,
-                  edge_tolerance_m: float | None = None) -> None:
+def check_section(
+    geom: SectionGeometry,
+    cs: CrossSection,
+    level: float,
+    min_length_fraction: float = 0.5,
+    edge_tolerance_m: float | None = None,
+) -> None:
     """GeometryError, with the measured numbers, unless the section spans the water at ``level``.
 
     The section's length on the water plane (from the ortho mapping) is compared with the wetted width of
@@ -318,17 +359,19 @@ def check_section(geom: SectionGeometry, cs: CrossSection, level: float, min_len
         raise GeometryError(
             f"section.points_px: the section is {L:.2f} m long on the water but the river is {width:.2f} m wide at "
             f"level {level:.3f} m ({100 * L / width:.0f} %, less than section.min_length_fraction = "
-            f"{min_length_fraction:g}); pick P1 on the left water edge and P2 on the right one")
+            f"{min_length_fraction:g}); pick P1 on the left water edge and P2 on the right one"
+        )
     tol = max(0.3, 0.1 * width) if edge_tolerance_m is None else float(edge_tolerance_m)
     s0, s1 = float(geom.station_edges[0]), float(geom.station_edges[-1])
     if abs(s1 - s0 - L) > 1e-6:  # stations run from edge to edge: compare the length with the width
         off = L - width
         if abs(off) > tol:
-            where = ("reaches beyond the water edges over a bank" if off > 0 else "stops short of the water edges")
+            where = "reaches beyond the water edges over a bank" if off > 0 else "stops short of the water edges"
             raise GeometryError(
                 f"section.points_px: the section is {L:.2f} m long but the water is {width:.2f} m wide at level "
                 f"{level:.3f} m: it {where} by {abs(off):.2f} m (tolerance {tol:.2f} m, section.edge_tolerance_m); "
-                "put P1 and P2 on the water edges")
+                "put P1 and P2 on the water edges"
+            )
         return
     bad = [(name, s, e) for name, s, e in (("P1", s0, left), ("P2", s1, right)) if abs(s - e) > tol]
     over = s0 < left - tol or s1 > right + tol
@@ -337,7 +380,8 @@ def check_section(geom: SectionGeometry, cs: CrossSection, level: float, min_len
         raise GeometryError(
             f"section: {txt} (tolerance {tol:.2f} m, section.edge_tolerance_m)"
             f"{' — the section crosses a bank' if over else ''}; "
-            "check section.points_px and section.station_offset_m")
+            "check section.points_px and section.station_offset_m"
+        )
 
 
 def profile_band(d, piv, section, mapping) -> dict[str, np.ndarray]:
@@ -353,9 +397,17 @@ def profile_band(d, piv, section, mapping) -> dict[str, np.ndarray]:
     vp = np.array(per_pair) if per_pair else np.full((0, len(d.area_m2)), np.nan)
     with np.errstate(all="ignore"):
         n = np.sum(np.isfinite(vp), axis=0)
-        lo = np.where(n >= 3, np.nanpercentile(np.where(np.isfinite(vp), vp, np.nan), 2.5, axis=0)
-                      if len(vp) else np.nan, np.nan)
-        hi = np.where(n >= 3, np.nanpercentile(np.where(np.isfinite(vp), vp, np.nan), 97.5, axis=0)
-                      if len(vp) else np.nan, np.nan)
-    return {"station_m": 0.5 * (d.station_from + d.station_to), "velocity_ms": np.asarray(d.surface_velocity_ms),
-            "filled": np.asarray(d.velocity_filled, bool), "p025_ms": lo, "p975_ms": hi, "n_pairs": n}
+        lo = np.where(
+            n >= 3, np.nanpercentile(np.where(np.isfinite(vp), vp, np.nan), 2.5, axis=0) if len(vp) else np.nan, np.nan
+        )
+        hi = np.where(
+            n >= 3, np.nanpercentile(np.where(np.isfinite(vp), vp, np.nan), 97.5, axis=0) if len(vp) else np.nan, np.nan
+        )
+    return {
+        "station_m": 0.5 * (d.station_from + d.station_to),
+        "velocity_ms": np.asarray(d.surface_velocity_ms),
+        "filled": np.asarray(d.velocity_filled, bool),
+        "p025_ms": lo,
+        "p975_ms": hi,
+        "n_pairs": n,
+    }

@@ -323,8 +323,9 @@ class FilterStack:
         return x[y0:y1, x0:x1]
 
     @classmethod
-    def from_config(cls, items: list[dict], key: str = "filters",
-                    roi: tuple[int, int, int, int] | None = None) -> FilterStack:
+    def from_config(
+        cls, items: list[dict], key: str = "filters", roi: tuple[int, int, int, int] | None = None
+    ) -> FilterStack:
         """Stack from the project's ``filters`` list; ParameterError names e.g. ``filters[2].gamma``."""
         if items is None:
             items = []
@@ -335,13 +336,15 @@ class FilterStack:
         for i, item in enumerate(items):
             k = f"{key}[{i}]"
             if not isinstance(item, dict):
-                raise ParameterError(f"{k}: expected a table like {{name = \"clahe\"}}, got {item!r}")
+                raise ParameterError(f'{k}: expected a table like {{name = "clahe"}}, got {item!r}')
             name = item.get("name")
             if name not in FILTERS:
                 raise ParameterError(f"{k}.name: unknown filter {name!r}; use one of {', '.join(FILTERS)}")
             if name == "background":
                 if bg_at is not None:
-                    raise ParameterError(f"{k}: background subtraction is already in the stack at {key}[{bg_at}]; keep one")
+                    raise ParameterError(
+                        f"{k}: background subtraction is already in the stack at {key}[{bg_at}]; keep one"
+                    )
                 bg_at = i
             filters.append(FILTERS[name](item, k))
         return cls(filters, roi)
@@ -409,8 +412,12 @@ class FilterStack:
         return out
 
 
-def preview(items: list[dict], gray: np.ndarray, frames: Iterable[np.ndarray] | None = None,
-            roi: tuple[int, int, int, int] | None = None) -> np.ndarray:
+def preview(
+    items: list[dict],
+    gray: np.ndarray,
+    frames: Iterable[np.ndarray] | None = None,
+    roi: tuple[int, int, int, int] | None = None,
+) -> np.ndarray:
     """One frame through the stack ``items`` (filtered inside ``roi`` only, as the pipeline does), as
     uint8 for a PNG.
 
@@ -419,6 +426,8 @@ def preview(items: list[dict], gray: np.ndarray, frames: Iterable[np.ndarray] | 
     stack = FilterStack.from_config(items, roi=roi)
     if stack.needs_prepass:
         if frames is None:
-            raise ParameterError("filters: the preview of background subtraction needs the clip (it averages all frames)")
+            raise ParameterError(
+                "filters: the preview of background subtraction needs the clip (it averages all frames)"
+            )
         stack.prepass(frames)
     return _u8(stack.apply(gray))

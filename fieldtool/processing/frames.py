@@ -23,8 +23,9 @@ from fieldtool.processing.paths import is_pattern, literal_glob
 IMAGE_EXTS = {".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp"}
 
 #: decoder threads (OpenCV's CAP_PROP_N_THREADS): 1 on two cores or fewer, else FFmpeg's choice (0)
-_DECODER_THREADS = 1 if (len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity")
-                         else (os.cpu_count() or 1)) <= 2 else 0
+_DECODER_THREADS = (
+    1 if (len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)) <= 2 else 0
+)
 
 
 class Frame(NamedTuple):
@@ -61,8 +62,11 @@ def sequence_files(path: Path) -> list[Path] | None:
     return sorted(files, key=_natural_key)
 
 
-_END_MARKERS = {".jpg": (b"\xff\xd9", "JPEG end marker"), ".jpeg": (b"\xff\xd9", "JPEG end marker"),
-                ".png": (b"IEND", "PNG end chunk")}
+_END_MARKERS = {
+    ".jpg": (b"\xff\xd9", "JPEG end marker"),
+    ".jpeg": (b"\xff\xd9", "JPEG end marker"),
+    ".png": (b"IEND", "PNG end chunk"),
+}
 _TAIL_BYTES = 1024  # an end marker is searched in the last KiB (cameras may pad after it)
 
 
@@ -81,8 +85,10 @@ def cut_short(path: Path) -> str | None:
         return f"{path}: cannot be read ({e.strerror})"
     if marker[0] in tail:
         return None
-    return (f"{path}: the image is cut short (no {marker[1]}; a copy that stopped midway); copy it again or "
-            "remove it from the sequence")
+    return (
+        f"{path}: the image is cut short (no {marker[1]}; a copy that stopped midway); copy it again or "
+        "remove it from the sequence"
+    )
 
 
 class FrameSource:
@@ -96,8 +102,14 @@ class FrameSource:
     frame_interval_s : image sequences only, time between two images (s).
     """
 
-    def __init__(self, path: Path | str, start_s: float = 0.0, end_s: float | None = None, step: int = 1,
-                 frame_interval_s: float | None = None) -> None:
+    def __init__(
+        self,
+        path: Path | str,
+        start_s: float = 0.0,
+        end_s: float | None = None,
+        step: int = 1,
+        frame_interval_s: float | None = None,
+    ) -> None:
         self.path = Path(path)
         self.files = sequence_files(self.path)
         if step < 1:
@@ -120,8 +132,9 @@ class FrameSource:
             if first is None:
                 raise InputFileError(f"{self.files[0]}: cannot be read as an image")
             n = len(self.files)
-            self.info = ClipInfo(str(self.path), first.shape[1], first.shape[0], 1.0 / frame_interval_s, n,
-                                 n * frame_interval_s, True)
+            self.info = ClipInfo(
+                str(self.path), first.shape[1], first.shape[0], 1.0 / frame_interval_s, n, n * frame_interval_s, True
+            )
         self.frame_interval_s = frame_interval_s
         dur = self.info.duration_s
         if start_s < 0 or (dur > 0 and start_s >= dur):

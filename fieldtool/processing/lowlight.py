@@ -11,13 +11,14 @@ clip's ends average the frames there are. Streaming: memory ``2 * half + 1`` fra
 from __future__ import annotations
 
 from collections import deque
-from typing import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 
 import numpy as np
 
 
-def temporal_mean(frames: Iterable[tuple[float, np.ndarray | None]], half: int = 1,
-                  want: Callable[[int], bool] | None = None) -> Iterator[tuple[float, np.ndarray | None]]:
+def temporal_mean(
+    frames: Iterable[tuple[float, np.ndarray | None]], half: int = 1, want: Callable[[int], bool] | None = None
+) -> Iterator[tuple[float, np.ndarray | None]]:
     """(t_s, frame) -> (t_s, mean of the frames within ``half`` positions, float32). Every input frame must be
     built (no None); ``want(k)``: positions k that fail it come out as (t_s, None) (nothing computed)."""
     return _run(iter(frames), half, want)
@@ -55,8 +56,12 @@ def _run(it, half: int, want) -> Iterator[tuple[float, np.ndarray | None]]:
         k += 1
 
 
-def mask_glints(frames: Iterable[tuple[float, np.ndarray | None]], median: np.ndarray, box: tuple[int, int, int, int],
-                threshold: float) -> Iterator[tuple[float, np.ndarray | None]]:
+def mask_glints(
+    frames: Iterable[tuple[float, np.ndarray | None]],
+    median: np.ndarray,
+    box: tuple[int, int, int, int],
+    threshold: float,
+) -> Iterator[tuple[float, np.ndarray | None]]:
     """Per frame, pixels of ``box`` (x0, y0, x1, y1 px) brighter than their temporal ``median`` (grey levels, the
     box's shape) by more than ``threshold`` grey levels are set to that median: short-lived specular glints are
     removed where and when they shine, the tracers between them stay."""

@@ -66,7 +66,9 @@ class OrthoMapping:
         J[..., 1, 1] = (H[1, 1] - Y * H[2, 1]) / w
         return J
 
-    def rectify_velocity(self, x: np.ndarray, y: np.ndarray, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def rectify_velocity(
+        self, x: np.ndarray, y: np.ndarray, u: np.ndarray, v: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Pixel velocities (px/s) at pixel positions -> world velocities (m/s), same shapes."""
         J = self.jacobian(np.asarray(x, float), np.asarray(y, float))
         U = J[..., 0, 0] * u + J[..., 0, 1] * v
@@ -78,8 +80,13 @@ class OrthoMapping:
         J = self.jacobian(np.asarray(x, float), np.asarray(y, float))
         return np.sqrt(np.abs(np.linalg.det(J)))
 
-    def rectified_image(self, image: np.ndarray, bounds_m: tuple[float, float, float, float] | None = None,
-                        resolution_m: float | None = None, max_side_px: int = 2000) -> tuple[np.ndarray, np.ndarray]:
+    def rectified_image(
+        self,
+        image: np.ndarray,
+        bounds_m: tuple[float, float, float, float] | None = None,
+        resolution_m: float | None = None,
+        max_side_px: int = 2000,
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Warp ``image`` to a north-up map of the water plane.
 
         Returns the map image and the 3x3 affine ``A`` taking world metres to map pixels
@@ -132,8 +139,9 @@ def _circle_point(c: np.ndarray, rc: float, d: np.ndarray, rd: float, names: str
     return base + h * perp, base - h * perp
 
 
-def levenberg_marquardt(resid: Callable[[np.ndarray], np.ndarray], x0: np.ndarray, max_iter: int = 100,
-                        xtol: float = 1e-12) -> np.ndarray:
+def levenberg_marquardt(
+    resid: Callable[[np.ndarray], np.ndarray], x0: np.ndarray, max_iter: int = 100, xtol: float = 1e-12
+) -> np.ndarray:
     """Unbounded least squares of ``resid`` (m) from ``x0`` (m): Levenberg-Marquardt with a forward-difference
     Jacobian, for the five unknowns of a GCP quadrilateral solved from its distances.
 
@@ -196,7 +204,9 @@ def gcp_world_from_distances(gcp_px: np.ndarray, distances: np.ndarray) -> tuple
             if best is None or err < best[0]:
                 best = (err, quad)
     if best is None:
-        raise GeometryError("ortho.gcp_px: the GCPs do not form a quadrilateral going round P1, P2, P3, P4; check their order")
+        raise GeometryError(
+            "ortho.gcp_px: the GCPs do not form a quadrilateral going round P1, P2, P3, P4; check their order"
+        )
     quad = best[1]
 
     def resid(params: np.ndarray) -> np.ndarray:
@@ -206,8 +216,10 @@ def gcp_world_from_distances(gcp_px: np.ndarray, distances: np.ndarray) -> tuple
     x = levenberg_marquardt(resid, np.r_[quad[0, 1], quad[1], quad[2]])
     q = np.array([[0.0, x[0]], x[1:3], x[3:5], [0.0, 0.0]])
     if np.sign(_signed_area(q)) != np.sign(img_area):
-        raise GeometryError("ortho.distances_m: the distances are inconsistent with the picked GCP order (the fit "
-                            "flips the quadrilateral)")
+        raise GeometryError(
+            "ortho.distances_m: the distances are inconsistent with the picked GCP order (the fit "
+            "flips the quadrilateral)"
+        )
     r = resid(x)
     return q, float(np.sqrt(np.mean(r**2))), float(np.max(np.abs(r)))
 
@@ -223,9 +235,15 @@ def check_in_frame(pts: np.ndarray, shape: tuple[int, int] | None, key: str) -> 
         raise GeometryError(f"{key}[{i}] = ({pts[i][0]:g}, {pts[i][1]:g}) px is outside the {w}x{h} frame")
 
 
-def from_distances(gcp_px, distances, image_shape: tuple[int, int] | None = None, *,
-                   max_residual_m: float | None = None, accept_residual: bool = False,
-                   frame_shape: tuple[int, int] | None = None) -> OrthoMapping:
+def from_distances(
+    gcp_px,
+    distances,
+    image_shape: tuple[int, int] | None = None,
+    *,
+    max_residual_m: float | None = None,
+    accept_residual: bool = False,
+    frame_shape: tuple[int, int] | None = None,
+) -> OrthoMapping:
     """Mapping from 4 GCP pixels and the six distances L1..L6 (m).
 
     Checked before anything else (see :func:`check_gcp_order`, :func:`check_distance_scale`): the picked
@@ -302,7 +320,8 @@ def check_gcp_order(gcp_px, distances=None) -> None:
         raise GeometryError(
             f"ortho.gcp_px: P{bad + 1} = ({p[bad][0]:.0f}, {p[bad][1]:.0f}) px lies inside the triangle of the other "
             "three GCPs; four points on the water plane seen by a camera always form a convex quadrilateral: "
-            f"re-pick P{bad + 1}")
+            f"re-pick P{bad + 1}"
+        )
     fits = []
     for i, j in cands:
         q = p.copy()
@@ -314,17 +333,20 @@ def check_gcp_order(gcp_px, distances=None) -> None:
         swap = f"P{i + 1} and P{j + 1} look swapped"
     else:
         swap = f"P{a1 + 1} and P{b1 + 1} look swapped (or P{a2 + 1} and P{b2 + 1})"
-    raise GeometryError(f"ortho.gcp_px: the picked points P1..P4 do not go round the quadrilateral ({what}, a "
-                        f"bow-tie): {swap}{order}")
+    raise GeometryError(
+        f"ortho.gcp_px: the picked points P1..P4 do not go round the quadrilateral ({what}, a bow-tie): {swap}{order}"
+    )
 
 
 def check_distance_scale(distances, max_m: float = 1000.0) -> None:
     """GeometryError when the distances look typed in millimetres (or centimetres) rather than metres."""
     L = np.asarray(distances, float).ravel()
     if len(L) and np.all(np.isfinite(L)) and float(np.max(L)) > max_m:
-        raise GeometryError(f"ortho.distances_m: the longest distance is {np.max(L):g} m; GCPs around a river "
-                            f"section are less than {max_m:g} m apart. Were they typed in millimetres? Give metres "
-                            f"(e.g. {np.max(L) / 1000:g})")
+        raise GeometryError(
+            f"ortho.distances_m: the longest distance is {np.max(L):g} m; GCPs around a river "
+            f"section are less than {max_m:g} m apart. Were they typed in millimetres? Give metres "
+            f"(e.g. {np.max(L) / 1000:g})"
+        )
 
 
 def _camera_misfit(H: np.ndarray, pp: np.ndarray, scale: float) -> float:
@@ -333,17 +355,16 @@ def _camera_misfit(H: np.ndarray, pp: np.ndarray, scale: float) -> float:
     G = np.linalg.inv(H)
     G = np.array([[1, 0, -pp[0]], [0, 1, -pp[1]], [0, 0, 1.0]]) @ G
     f = scale * np.logspace(-1, 1, 400)[:, None]
-    g1 = np.c_[np.broadcast_to(G[0, 0], f.shape) / f, np.broadcast_to(G[1, 0], f.shape) / f,
-               np.full(f.shape, G[2, 0])]
-    g2 = np.c_[np.broadcast_to(G[0, 1], f.shape) / f, np.broadcast_to(G[1, 1], f.shape) / f,
-               np.full(f.shape, G[2, 1])]
+    g1 = np.c_[np.broadcast_to(G[0, 0], f.shape) / f, np.broadcast_to(G[1, 0], f.shape) / f, np.full(f.shape, G[2, 0])]
+    g2 = np.c_[np.broadcast_to(G[0, 1], f.shape) / f, np.broadcast_to(G[1, 1], f.shape) / f, np.full(f.shape, G[2, 1])]
     n1, n2 = np.linalg.norm(g1, axis=1), np.linalg.norm(g2, axis=1)
     mis = np.abs(np.sum(g1 * g2, axis=1)) / (n1 * n2) + np.abs(n1 - n2) / (n1 + n2)
     return float(mis.min())
 
 
-def suspect_distances(gcp_px, distances, world: np.ndarray | None = None,
-                      frame_shape: tuple[int, int] | None = None) -> list[dict]:
+def suspect_distances(
+    gcp_px, distances, world: np.ndarray | None = None, frame_shape: tuple[int, int] | None = None
+) -> list[dict]:
     """Which distance(s) most likely disagree, best suspect first.
 
     Six distances fix four plane points with one to spare, so the distances alone cannot tell which one is
@@ -380,8 +401,15 @@ def suspect_distances(gcp_px, distances, world: np.ndarray | None = None,
         implied = float(np.hypot(*(q[j] - q[i])))
         H, _ = cv2.findHomography(px, q, 0)
         mis = _camera_misfit(H, pp, scale) if H is not None else float("inf")
-        out.append({"name": NAMES[k], "index": k, "typed_m": float(L[k]), "implied_m": implied,
-                    "camera_misfit": mis + float(np.sqrt(np.mean(resid(xs) ** 2)))})
+        out.append(
+            {
+                "name": NAMES[k],
+                "index": k,
+                "typed_m": float(L[k]),
+                "implied_m": implied,
+                "camera_misfit": mis + float(np.sqrt(np.mean(resid(xs) ** 2))),
+            }
+        )
     out.sort(key=lambda d: d["camera_misfit"])
     return out
 
@@ -390,11 +418,15 @@ def _residual_message(distances, worst: float, limit: float, sus: list[dict]) ->
     best = sus[0]
     clear = len(sus) > 1 and best["camera_misfit"] < 0.5 * sus[1]["camera_misfit"]
     named = [best] if clear else sus[:2]
-    parts = [f"{d['name']} (typed {d['typed_m']:g} m, the other five and the picture give {d['implied_m']:.3f} m)"
-             for d in named]
+    parts = [
+        f"{d['name']} (typed {d['typed_m']:g} m, the other five and the picture give {d['implied_m']:.3f} m)"
+        for d in named
+    ]
     lead = "the suspect is " + parts[0] if clear else "the suspects are " + " or ".join(parts)
-    return (f"ortho.distances_m: the six distances disagree by up to {worst:.3f} m (limit ortho.max_residual_m = "
-            f"{limit:g} m); {lead}. Check the tape and the order L1..L6, or set ortho.accept_residual = true to go on")
+    return (
+        f"ortho.distances_m: the six distances disagree by up to {worst:.3f} m (limit ortho.max_residual_m = "
+        f"{limit:g} m); {lead}. Check the tape and the order L1..L6, or set ortho.accept_residual = true to go on"
+    )
 
 
 def from_world_points(gcp_px, gcp_world, image_shape: tuple[int, int] | None = None) -> OrthoMapping:
@@ -427,8 +459,10 @@ def from_two_points(gcp_px, distance_m: float | None = None, gcp_world=None) -> 
         raise ParameterError("ortho.gcp_px: give exactly two [x, y] pixel points P1, P2 for method = two_points")
     z1, z2 = complex(px[0, 0], -px[0, 1]), complex(px[1, 0], -px[1, 1])
     if abs(z2 - z1) < 10.0:
-        raise GeometryError(f"ortho.gcp_px: P1 and P2 are {abs(z2 - z1):.1f} px apart; pick two points at least 10 px "
-                            "apart (far apart is better: the scale error is the pick error over this distance)")
+        raise GeometryError(
+            f"ortho.gcp_px: P1 and P2 are {abs(z2 - z1):.1f} px apart; pick two points at least 10 px "
+            "apart (far apart is better: the scale error is the pick error over this distance)"
+        )
     if gcp_world is not None and len(gcp_world):
         wd = np.asarray(gcp_world, float)
         if wd.ndim != 2 or wd.shape[0] != 2 or wd.shape[1] < 2:
@@ -445,7 +479,9 @@ def from_two_points(gcp_px, distance_m: float | None = None, gcp_world=None) -> 
     # world = a * (x - i y) + b  ->  X = Re(a) x + Im(a) y + Re(b), Y = Im(a) x - Re(a) y + Im(b)
     H = np.array([[a.real, a.imag, b.real], [a.imag, -a.real, b.imag], [0.0, 0.0, 1.0]])
     world = _apply(H, px)
-    return OrthoMapping(H, "two_points", 0.0, world, {"m_per_px": abs(a), "rotation_deg": float(np.degrees(np.angle(a)))})
+    return OrthoMapping(
+        H, "two_points", 0.0, world, {"m_per_px": abs(a), "rotation_deg": float(np.degrees(np.angle(a)))}
+    )
 
 
 def from_scale(m_per_px: float) -> OrthoMapping:
@@ -461,8 +497,9 @@ def from_homography(H: np.ndarray, method: str, residual_m: float = 0.0, gcp_wor
     return OrthoMapping(np.asarray(H, float), method, residual_m, gcp_world, details or {})
 
 
-def check_gcp_residuals(mapping: OrthoMapping, gcp_px, max_residual_m: float | None,
-                        accept_residual: bool = False) -> None:
+def check_gcp_residuals(
+    mapping: OrthoMapping, gcp_px, max_residual_m: float | None, accept_residual: bool = False
+) -> None:
     """World / pose methods: each GCP's miss on the water plane (m) and in the image (px), the worst named.
 
     Raises GeometryError when the worst miss exceeds ``max_residual_m`` (m) unless ``accept_residual``
@@ -474,8 +511,10 @@ def check_gcp_residuals(mapping: OrthoMapping, gcp_px, max_residual_m: float | N
     q = np.c_[px, np.ones(len(px))] @ mapping.H.T
     if not (np.all(q[:, 2] > 0) or np.all(q[:, 2] < 0)):
         i = int(np.argmin(np.abs(q[:, 2])))
-        raise GeometryError(f"ortho.gcp_px: GCP {i + 1} falls beyond the horizon of the others; check the order of "
-                            "ortho.gcp_px against ortho.gcp_world_m")
+        raise GeometryError(
+            f"ortho.gcp_px: GCP {i + 1} falls beyond the horizon of the others; check the order of "
+            "ortho.gcp_px against ortho.gcp_world_m"
+        )
     miss_m = np.hypot(*(mapping.image_to_world(px) - world).T)
     if "gcp_residual_m" in mapping.details:  # pose: each GCP met on the plane at its own elevation
         miss_m = np.asarray(mapping.details["gcp_residual_m"], float)
@@ -491,4 +530,5 @@ def check_gcp_residuals(mapping: OrthoMapping, gcp_px, max_residual_m: float | N
             f"ortho.gcp_world_m: GCP {i + 1} misses by {miss_m[i]:.3f} m on the water plane "
             f"({miss_px[i]:.1f} px in the "
             f"image; limit ortho.max_residual_m = {max_residual_m:g} m); check its pick ortho.gcp_px[{i}] and its "
-            "coordinates, or set ortho.accept_residual = true to go on")
+            "coordinates, or set ortho.accept_residual = true to go on"
+        )

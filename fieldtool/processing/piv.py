@@ -84,8 +84,19 @@ from fieldtool.processing.piv_engine import (
     set_fft_workers,
 )
 
-__all__ = ["AVERAGING", "ENGINES", "ENSEMBLE_PAIRS", "REVISION", "PivParams", "PivResult", "analyze", "check_params",
-           "grid", "near_nodes", "set_fft_workers"]
+__all__ = [
+    "AVERAGING",
+    "ENGINES",
+    "ENSEMBLE_PAIRS",
+    "REVISION",
+    "PivParams",
+    "PivResult",
+    "analyze",
+    "check_params",
+    "grid",
+    "near_nodes",
+    "set_fft_workers",
+]
 
 #: bumped when the engine gives other vectors for the same inputs (a saved field of another revision is recomputed)
 REVISION = 2
@@ -123,7 +134,6 @@ class PivResult:
     carry: object | None = None  # analyze(select=...): state that a later call continues (``carry=``); not saved
 
 
-
 # --------------------------------------------------------------------------------------------- analyze
 
 
@@ -134,8 +144,10 @@ def _check_frame(i: int, img, shape) -> np.ndarray:
             f"frames: frame {i} has shape {arr.shape}; PIV needs single-channel (gray) frames — convert them first"
         )
     if shape is not None and arr.shape != shape:
-        raise InputFileError(f"frames: frame {i} is {arr.shape[1]} x {arr.shape[0]} px, the first was "
-                             f"{shape[1]} x {shape[0]} px; all frames of a clip must have the same size")
+        raise InputFileError(
+            f"frames: frame {i} is {arr.shape[1]} x {arr.shape[0]} px, the first was "
+            f"{shape[1]} x {shape[0]} px; all frames of a clip must have the same size"
+        )
     return arr
 
 
@@ -208,16 +220,18 @@ def analyze(
     try:
         t_prev, first = next(it)
     except StopIteration:
-        raise ParameterError("video: no frames in the selected time range; PIV needs at least 2 — check "
-                             "video.start_s / video.end_s") from None
+        raise ParameterError(
+            "video: no frames in the selected time range; PIV needs at least 2 — check video.start_s / video.end_s"
+        ) from None
     first = _check_frame(0, first, None)
     shape = first.shape
     levels, box = _levels(shape, params, roi)
     if mask is not None:
         mask = np.asarray(mask, dtype=bool)
         if mask.shape != shape:
-            raise ParameterError(f"mask: {mask.shape[1]} x {mask.shape[0]} px does not match the "
-                                 f"{shape[1]} x {shape[0]} px frames")
+            raise ParameterError(
+                f"mask: {mask.shape[1]} x {mask.shape[0]} px does not match the {shape[1]} x {shape[0]} px frames"
+            )
     if near is not None:
         segs, reach = near
         segs = [np.asarray(sg, float).reshape(2, 2) for sg in segs]
@@ -283,8 +297,19 @@ class _PairLoop:
     frames, each pair correlated (or skipped by ``select``), its vectors validated and collected in
     ``per_pair``; the ensemble sums grow on the way."""
 
-    def __init__(self, engine, params: PivParams, nodes: _Nodes, ens, wanted, subsample: bool, stride: int,
-                 per_pair: dict, total: int, shape):
+    def __init__(
+        self,
+        engine,
+        params: PivParams,
+        nodes: _Nodes,
+        ens,
+        wanted,
+        subsample: bool,
+        stride: int,
+        per_pair: dict,
+        total: int,
+        shape,
+    ):
         self.engine, self.params, self.nodes, self.ens, self.wanted = engine, params, nodes, ens, wanted
         self.subsample, self.stride, self.per_pair, self.total, self.shape = subsample, stride, per_pair, total, shape
         self.gap = max(1, int(params.frame_gap))
@@ -335,11 +360,15 @@ class _PairLoop:
             history.append((cur, t))
         if i == 0:
             if gap > 1:
-                raise ParameterError(f"piv.frame_gap: {gap} frames between the images of a pair, but the selected "
-                                     "time range holds no such pair; lower piv.frame_gap or widen video.start_s / "
-                                     "video.end_s")
-            raise ParameterError("video: only 1 frame in the selected time range; PIV needs at least 2 — widen "
-                                 "video.start_s / video.end_s or lower video.step")
+                raise ParameterError(
+                    f"piv.frame_gap: {gap} frames between the images of a pair, but the selected "
+                    "time range holds no such pair; lower piv.frame_gap or widen video.start_s / "
+                    "video.end_s"
+                )
+            raise ParameterError(
+                "video: only 1 frame in the selected time range; PIV needs at least 2 — widen "
+                "video.start_s / video.end_s or lower video.step"
+            )
         return i
 
     def pair(self, i: int, prev, cur, t_prev: float, t: float, cancel, on_pair) -> None:
@@ -358,10 +387,16 @@ class _PairLoop:
         u = np.where(ok, dx / dt, np.nan).astype(np.float32)
         v = np.where(ok, dy / dt, np.nan).astype(np.float32)
         tm = 0.5 * (t + t_prev)
-        for key, val in (("u", u), ("v", v), ("t", tm), ("dt", dt), ("index", i),
-                         ("snr", np.where(nd.node_mask, np.nan, snr).astype(np.float32)),
-                         ("p2m", pk.p2m.reshape(dx.shape).astype(np.float32)),
-                         ("peak", pk.peak.reshape(dx.shape).astype(np.float32))):
+        for key, val in (
+            ("u", u),
+            ("v", v),
+            ("t", tm),
+            ("dt", dt),
+            ("index", i),
+            ("snr", np.where(nd.node_mask, np.nan, snr).astype(np.float32)),
+            ("p2m", pk.p2m.reshape(dx.shape).astype(np.float32)),
+            ("peak", pk.peak.reshape(dx.shape).astype(np.float32)),
+        ):
             per_pair[key].append(val)
         if self.subsample and not self.total and len(per_pair["u"]) >= 2 * ENSEMBLE_PAIRS:  # keep every other one
             self.per_pair = {key: val[::2] for key, val in per_pair.items()}
@@ -370,8 +405,9 @@ class _PairLoop:
             on_pair(i, tm, nd.X, nd.Y, u, v, ok)
 
 
-def _time_average(per_pair: dict, ens, nodes: _Nodes, params: PivParams, n_pairs: int, wanted,
-                  first_guess) -> PivResult:
+def _time_average(
+    per_pair: dict, ens, nodes: _Nodes, params: PivParams, n_pairs: int, wanted, first_guess
+) -> PivResult:
     """The time-averaged field of the pairs (ensemble, mean or median), validated and filled, as a PivResult."""
     fin = nodes.fin
     u_pairs, v_pairs = np.stack(per_pair["u"]), np.stack(per_pair["v"])
@@ -396,17 +432,41 @@ def _time_average(per_pair: dict, ens, nodes: _Nodes, params: PivParams, n_pairs
             u_avg, v_avg = _nanmedian_t(u_pairs), _nanmedian_t(v_pairs)
         ens_ok = n_valid > 0
     u_avg, v_avg, valid, replaced = _finish_average(
-        u_avg.astype(np.float64), v_avg.astype(np.float64), ens_ok, vf, nodes.node_mask, nodes.max_speed,
-        float(np.median(dts)), params,
+        u_avg.astype(np.float64),
+        v_avg.astype(np.float64),
+        ens_ok,
+        vf,
+        nodes.node_mask,
+        nodes.max_speed,
+        float(np.median(dts)),
+        params,
     )
     return PivResult(
-        x=nodes.X, y=nodes.Y, u=u_avg, v=v_avg, valid=valid, valid_fraction=vf, u_pairs=u_pairs, v_pairs=v_pairs,
-        t_pairs=np.asarray(per_pair["t"]), snr=snr_med, params=params, peak2mean=p2m_med, peak=peak_med,
-        replaced=replaced, ensemble_snr=ens_snr, dt_s=dts, pair_index=np.asarray(per_pair["index"], dtype=np.int64),
-        n_pairs=n_pairs, zero_peak_removed=None if ens is None else ens.zero_removed,
-        first_guess=None if first_guess is None else _guess_at(fin, *first_guess, whole=False).reshape(fin.ny, fin.nx, 2),
+        x=nodes.X,
+        y=nodes.Y,
+        u=u_avg,
+        v=v_avg,
+        valid=valid,
+        valid_fraction=vf,
+        u_pairs=u_pairs,
+        v_pairs=v_pairs,
+        t_pairs=np.asarray(per_pair["t"]),
+        snr=snr_med,
+        params=params,
+        peak2mean=p2m_med,
+        peak=peak_med,
+        replaced=replaced,
+        ensemble_snr=ens_snr,
+        dt_s=dts,
+        pair_index=np.asarray(per_pair["index"], dtype=np.int64),
+        n_pairs=n_pairs,
+        zero_peak_removed=None if ens is None else ens.zero_removed,
+        first_guess=None
+        if first_guess is None
+        else _guess_at(fin, *first_guess, whole=False).reshape(fin.ny, fin.nx, 2),
         carry=_Carry(ens, per_pair, n_pairs) if wanted is not None else None,
     )
+
 
 @dataclass
 class _Carry:
@@ -432,8 +492,9 @@ def _finish_average(u, v, base_ok, vf, node_mask, max_speed, dt_med, params):
     ok &= pv.speed_test(np.where(ok, u, np.nan), np.where(ok, v, np.nan), max_speed)
     du, dv = np.where(ok, u * dt_med, np.nan), np.where(ok, v * dt_med, np.nan)
     ok &= pv.normalized_median_test(du, dv, params.median_threshold)
-    u2, v2, replaced = pv.replace_invalid(np.where(ok, u, np.nan), np.where(ok, v, np.nan),
-                                          keep_invalid=node_mask, min_neighbours=5, max_iter=1)
+    u2, v2, replaced = pv.replace_invalid(
+        np.where(ok, u, np.nan), np.where(ok, v, np.nan), keep_invalid=node_mask, min_neighbours=5, max_iter=1
+    )
     valid = ok | replaced
     return np.where(valid, u2, np.nan), np.where(valid, v2, np.nan), valid, replaced
 
@@ -523,12 +584,16 @@ def _make_engine(backend, shape, params, levels, box, mask, near=None, guess=Non
     if backend not in ("auto", "cpu", "gpu"):
         raise ParameterError(f"piv backend: {backend!r} is not one of auto, cpu, gpu")
     if guess is not None and backend == "gpu":
-        raise ParameterError("piv backend: gpu asked for, but the first pass starts from the first look's field, which "
-                             "only the CPU engine does; set piv.search_px to search a wider area instead")
+        raise ParameterError(
+            "piv backend: gpu asked for, but the first pass starts from the first look's field, which "
+            "only the CPU engine does; set piv.search_px to search a wider area instead"
+        )
     if backend in ("auto", "gpu") and guess is None:
         if piv_gpu.usable_for(params) and piv_gpu.available():
             return piv_gpu.GpuEngine(shape, params, levels, box, mask)
         if backend == "gpu":
-            raise ParameterError("piv backend: gpu asked for, but it needs CuPy with a CUDA device (checked against "
-                                 "the CPU engine) and piv.passes = 1")
+            raise ParameterError(
+                "piv backend: gpu asked for, but it needs CuPy with a CUDA device (checked against "
+                "the CPU engine) and piv.passes = 1"
+            )
     return _Engine(shape, params, levels, box, mask, near, guess)

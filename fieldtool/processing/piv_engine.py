@@ -36,6 +36,7 @@ def set_fft_workers(n: int) -> None:
     global _WORKERS
     _WORKERS = max(1, int(n))
 
+
 _SNR_CAP = 1000.0  # peak ratio reported when the plane has no positive second peak
 #: multi-pass: Gaussian smoothing of the predictor between passes (sigma in node spacings), as OpenPIV's windef
 #: smooths its own; 0.5 was the best of 0 / 0.5 / 0.6 / 0.8 / 1.2 on benchmarks/piv_vs_openpiv.py (worst RMS 0.068 ->
@@ -59,10 +60,13 @@ class PivParams:
     std_threshold: float = 4.0  # global std test (n sigma)
     min_valid_fraction: float = 0.3  # node valid in fewer pairs than this fraction -> invalid in the average
     engine: str = "fieldtool"  # fieldtool | openpiv (OpenPIV extended_search_area_piv / windef, same outputs)
-    min_texture: float = 0.0  # window rms (frame units) below which a window is featureless: no vector, no ensemble weight
+    min_texture: float = (
+        0.0  # window rms (frame units) below which a window is featureless: no vector, no ensemble weight
+    )
     frame_gap: int = 1  # pairs are frames (i, i + frame_gap) of the stream (processing/planning.py chooses it)
-    remove_zero_peak: bool = False  # ensemble, passes > 1: drop a peak at absolute zero where the node moves (piv_peaks)
-
+    remove_zero_peak: bool = (
+        False  # ensemble, passes > 1: drop a peak at absolute zero where the node moves (piv_peaks)
+    )
 
 
 # --------------------------------------------------------------------------------------------- geometry
@@ -207,8 +211,9 @@ def _window_view(img: np.ndarray, oy: int, ox: int, lv: _Level, size: int) -> np
     return view[oy : oy + lv.step * (lv.ny - 1) + 1 : lv.step, ox : ox + lv.step * (lv.nx - 1) + 1 : lv.step]
 
 
-def _window_spectra(img: np.ndarray, oy: int, ox: int, lv: _Level, size: int,
-                    idx: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+def _window_spectra(
+    img: np.ndarray, oy: int, ox: int, lv: _Level, size: int, idx: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """Spectra (n, s, s//2+1) of the windows of side ``size`` at crop offset (oy, ox), zero-mean, zero-padded to the
     level's search side ``lv.s`` when ``size < lv.s``, and the factor (n,) that scales each to unit energy.
     ``idx``: flat node indices (row-major) of the only windows to transform (n = len(idx)); None = all.
@@ -227,8 +232,9 @@ def _window_spectra(img: np.ndarray, oy: int, ox: int, lv: _Level, size: int,
     return _stack_spectra(view, n, lv, size)
 
 
-def _shifted_windows(img: np.ndarray, oy: int, ox: int, lv: _Level, shift: np.ndarray,
-                     idx: np.ndarray | None) -> np.ndarray:
+def _shifted_windows(
+    img: np.ndarray, oy: int, ox: int, lv: _Level, shift: np.ndarray, idx: np.ndarray | None
+) -> np.ndarray:
     """The windows (n, 1, w, w) of side ``lv.w`` at crop offset (oy, ox), each moved by its node's whole-pixel
     ``shift`` (ny * nx, 2: x, y); ``idx`` as in :func:`_window_spectra`."""
     flat = np.arange(lv.ny * lv.nx) if idx is None else idx
@@ -407,8 +413,9 @@ def _scatter_peaks(pk: _Peaks, idx: np.ndarray, n: int) -> _Peaks:
     return _Peaks(ok=ok, **out)
 
 
-def _guess_at(lv: _Level, xc: np.ndarray, yc: np.ndarray, dx: np.ndarray, dy: np.ndarray,
-              whole: bool = True) -> np.ndarray:
+def _guess_at(
+    lv: _Level, xc: np.ndarray, yc: np.ndarray, dx: np.ndarray, dy: np.ndarray, whole: bool = True
+) -> np.ndarray:
     """Offsets (ny * nx, 2: x, y) of the level's nodes from a first guess (dx, dy) (px per pair) on the regular
     grid of centres xc (nx,), yc (ny,): bilinear, edges replicated; NaN guesses count as 0. ``whole``: rounded
     to whole pixels (int64), else float32."""
@@ -451,8 +458,9 @@ class _Frame:
 class _Engine:
     """Correlation of consecutive frames on fixed pass geometry (CPU, scipy.fft)."""
 
-    def __init__(self, shape, params: PivParams, levels: list[_Level], box, mask: np.ndarray | None, near=None,
-                 guess=None):
+    def __init__(
+        self, shape, params: PivParams, levels: list[_Level], box, mask: np.ndarray | None, near=None, guess=None
+    ):
         """``near``: per level, bool (ny, nx) of the nodes near the section (:func:`near_nodes`), or None."""
         self.p = params
         self.levels = levels
@@ -489,8 +497,13 @@ class _Engine:
         if (xa, ya, xb, yb) == (x0, y0, x0 + self.cw, y0 + self.ch):
             return sub
         return cv2.copyMakeBorder(
-            np.ascontiguousarray(sub), ya - y0, y0 + self.ch - yb, xa - x0, x0 + self.cw - xb,
-            cv2.BORDER_CONSTANT, value=fill,
+            np.ascontiguousarray(sub),
+            ya - y0,
+            y0 + self.ch - yb,
+            xa - x0,
+            x0 + self.cw - xb,
+            cv2.BORDER_CONSTANT,
+            value=fill,
         )
 
     def _offsets(self, lv: _Level) -> tuple[int, int]:
@@ -539,8 +552,13 @@ class _Engine:
         else:
             oy, ox = self._offsets(lv0)
             spec_b0, scale_b0 = _window_spectra(img, oy - lv0.margin, ox - lv0.margin, lv0, lv0.s, self.act[0])
-        return _Frame(img=img if len(self.levels) > 1 else None, spec_a=spec_a, spec_b0=spec_b0, scale_a=scale_a,
-                      scale_b0=scale_b0)
+        return _Frame(
+            img=img if len(self.levels) > 1 else None,
+            spec_a=spec_a,
+            spec_b0=spec_b0,
+            scale_a=scale_a,
+            scale_b0=scale_b0,
+        )
 
     def _deform(self, k: int, img: np.ndarray, du: np.ndarray, dv: np.ndarray) -> np.ndarray:
         """Frame B's crop deformed by the level k-1 displacement field (du, dv): the region covered by level k's
@@ -562,8 +580,9 @@ class _Engine:
         big = cv2.resize(field2, (field2.shape[1] * st, field2.shape[0] * st), interpolation=cv2.INTER_CUBIC)
         dense = big[dy + pad * st : dy + pad * st + hh, dx + pad * st : dx + pad * st + ww]
         if k not in self._maps:
-            self._maps[k] = np.meshgrid(np.arange(ox, ox + ww, dtype=np.float32),
-                                        np.arange(oy, oy + hh, dtype=np.float32))
+            self._maps[k] = np.meshgrid(
+                np.arange(ox, ox + ww, dtype=np.float32), np.arange(oy, oy + hh, dtype=np.float32)
+            )
         px, py = self._maps[k]
         return cv2.remap(img, px + dense[..., 0], py + dense[..., 1], _DEFORM_INTERP, borderMode=cv2.BORDER_REPLICATE)
 
@@ -610,14 +629,18 @@ class _Engine:
                 spec_b, scale_b = _window_spectra(bdef, 0, 0, lv, lv.w, self.act[k])
             cross = self._buffer(("cross", k), a.spec_a[k])
             np.conjugate(a.spec_a[k], out=cross)
-            assert a.scale_a is not None and spec_b is not None and scale_b is not None  # this engine's frames have them
+            assert (
+                a.scale_a is not None and spec_b is not None and scale_b is not None
+            )  # this engine's frames have them
             cross *= spec_b
             scale = a.scale_a[k] * scale_b
             if self.p.min_texture > 0:  # texture gate (processing/surface.py): too little texture -> featureless
                 smax = 1.0 / (self.p.min_texture * lv.w)
                 scale = np.where((a.scale_a[k] <= smax) & (scale_b <= smax), scale, np.float32(0.0))
             act = self.act[k]
-            if act is not None and ensemble is not None and k == last:  # the ensemble sums every node: masked ones stay 0
+            if (
+                act is not None and ensemble is not None and k == last
+            ):  # the ensemble sums every node: masked ones stay 0
                 full = self._buffer(("full", k), np.empty((lv.ny * lv.nx,) + cross.shape[1:], cross.dtype))
                 full[:] = 0
                 full[act] = cross

@@ -69,8 +69,13 @@ def node_reach_px(window_px: int, overlap_px: int, passes: int) -> list[float]:
     return reach
 
 
-def section_band(shape: tuple[int, int], segments: Iterable, margin_px: int,
-                 roi: tuple[int, int, int, int] | None = None, min_side_px: int = 0) -> tuple[int, int, int, int]:
+def section_band(
+    shape: tuple[int, int],
+    segments: Iterable,
+    margin_px: int,
+    roi: tuple[int, int, int, int] | None = None,
+    min_side_px: int = 0,
+) -> tuple[int, int, int, int]:
     """Box (x0, y0, x1, y1) in pixels (x1, y1 exclusive) around the section segments, within the frame and ROI.
 
     Parameters
@@ -119,7 +124,7 @@ def pair_order(n_pairs: int) -> np.ndarray:
     if n <= 0:
         return np.zeros(0, np.int64)
     bits = max(1, math.ceil(math.log2(n)))
-    k = np.arange(2 ** bits, dtype=np.int64)
+    k = np.arange(2**bits, dtype=np.int64)
     rev = np.zeros_like(k)
     for b in range(bits):  # bit reversal: the van der Corput sequence times 2**bits
         rev |= ((k >> b) & 1) << (bits - 1 - b)
@@ -159,8 +164,16 @@ class Convergence:
     min_pairs: int
 
 
-def converge(make_frames: Callable[..., Iterator], n_pairs_total: int, run: Callable, pair_q: Callable,
-             rel_ci: float = 0.005, min_pairs: int = 30, seed: int = 0, frame_gap: int = 1):
+def converge(
+    make_frames: Callable[..., Iterator],
+    n_pairs_total: int,
+    run: Callable,
+    pair_q: Callable,
+    rel_ci: float = 0.005,
+    min_pairs: int = 30,
+    seed: int = 0,
+    frame_gap: int = 1,
+):
     """Add pairs in rounds until the discharge's sampling uncertainty is small enough (module docstring).
 
     Parameters
@@ -208,9 +221,15 @@ def converge(make_frames: Callable[..., Iterator], n_pairs_total: int, run: Call
     for name in ("u_pairs", "v_pairs", "t_pairs", "dt_s", "pair_index"):
         setattr(res, name, getattr(res, name)[order_t])
     q = list(np.asarray(q, float)[order_t])
-    info = Convergence(pairs_used=int(res.n_pairs or done), pairs_total=n_total, converged=bool(converged),
-                       rel_ci=None if rel is None else float(rel), rounds=rounds, threshold=float(rel_ci),
-                       min_pairs=int(min_pairs))
+    info = Convergence(
+        pairs_used=int(res.n_pairs or done),
+        pairs_total=n_total,
+        converged=bool(converged),
+        rel_ci=None if rel is None else float(rel),
+        rounds=rounds,
+        threshold=float(rel_ci),
+        min_pairs=int(min_pairs),
+    )
     return res, info, np.asarray(q, float)
 
 

@@ -71,8 +71,8 @@ class GpuEngine:
         s = lv.s
         st = img.strides
         view = cp.lib.stride_tricks.as_strided(
-            img[oy:, ox:], shape=(lv.ny, lv.nx, size, size),
-            strides=(st[0] * lv.step, st[1] * lv.step, st[0], st[1]))
+            img[oy:, ox:], shape=(lv.ny, lv.nx, size, size), strides=(st[0] * lv.step, st[1] * lv.step, st[0], st[1])
+        )
         win = cp.ascontiguousarray(view).reshape(lv.ny * lv.nx, size, size)
         win -= win.mean(axis=(1, 2), keepdims=True)
         energy = (win * win).sum(axis=(1, 2))

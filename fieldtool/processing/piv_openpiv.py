@@ -55,8 +55,14 @@ class _OpenPivEngine(_Engine):
             snr = pyprocess.sig2noise_ratio(corr, sig2noise_method="peak2peak", width=2).ravel()
             peak = corr.reshape(n, -1).max(axis=1)
             if ensemble is not None:
-                ensemble(corr, None, None, None if snr is None else _Peaks(
-                    dx=u.ravel(), dy=v.ravel(), peak=peak, snr=snr, p2m=snr, ok=np.isfinite(snr)))
+                ensemble(
+                    corr,
+                    None,
+                    None,
+                    None
+                    if snr is None
+                    else _Peaks(dx=u.ravel(), dy=v.ravel(), peak=peak, snr=snr, p2m=snr, ok=np.isfinite(snr)),
+                )
         else:
             st = PIVSettings()
             st.windowsizes = tuple(L.w for L in self.levels)
@@ -68,8 +74,10 @@ class _OpenPivEngine(_Engine):
             v = -v  # simple_multipass negates v (tools.transform_coordinates; rows stay in image order)
             snr = np.where(np.asarray(flags).ravel() > 0, 0.0, np.nan)
             peak = np.full(n, np.nan)
-        dx, dy = np.asarray(u, dtype=np.float64).reshape(lv.ny, lv.nx), np.asarray(v, dtype=np.float64).reshape(
-            lv.ny, lv.nx)
+        dx, dy = (
+            np.asarray(u, dtype=np.float64).reshape(lv.ny, lv.nx),
+            np.asarray(v, dtype=np.float64).reshape(lv.ny, lv.nx),
+        )
         ok = np.isfinite(dx.ravel()) & np.isfinite(dy.ravel()) & (np.nan_to_num(snr, nan=np.inf) > 0)
         return dx, dy, _Peaks(dx=dx.ravel(), dy=dy.ravel(), peak=peak, snr=snr, p2m=np.full(n, np.nan), ok=ok)
 
@@ -91,5 +99,11 @@ class _OpenPivEngine(_Engine):
         u, v = pyprocess.correlation_to_displacement(acc, lv.ny, lv.nx, subpixel_method="gaussian")
         snr = pyprocess.sig2noise_ratio(acc, sig2noise_method="peak2peak", width=2).ravel()
         ok = np.isfinite(u.ravel()) & np.isfinite(v.ravel())
-        return _Peaks(dx=u.ravel(), dy=v.ravel(), peak=acc.reshape(len(snr), -1).max(axis=1), snr=snr,
-                      p2m=np.full(len(snr), np.nan), ok=ok)
+        return _Peaks(
+            dx=u.ravel(),
+            dy=v.ravel(),
+            peak=acc.reshape(len(snr), -1).max(axis=1),
+            snr=snr,
+            p2m=np.full(len(snr), np.nan),
+            ok=ok,
+        )

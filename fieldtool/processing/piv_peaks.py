@@ -20,8 +20,15 @@ MIN_SHIFT_PX = 3.0  # predictor length (px) from which a peak at absolute zero i
 RADIUS_PX = 1  # cells blanked around absolute zero (a (2r+1) x (2r+1) block)
 
 
-def blank_zero(corr: np.ndarray, margin: int, pred_x: np.ndarray, pred_y: np.ndarray,
-               min_shift: float = MIN_SHIFT_PX, radius: int = RADIUS_PX, fill: str = "median") -> np.ndarray:
+def blank_zero(
+    corr: np.ndarray,
+    margin: int,
+    pred_x: np.ndarray,
+    pred_y: np.ndarray,
+    min_shift: float = MIN_SHIFT_PX,
+    radius: int = RADIUS_PX,
+    fill: str = "median",
+) -> np.ndarray:
     """Blank the block around absolute zero displacement in the planes of moving nodes (in place).
 
     Parameters

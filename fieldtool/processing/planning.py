@@ -53,9 +53,15 @@ class Plan:
         def f(x):
             return None if not math.isfinite(x) else round(float(x), 3)
 
-        return {"frame_gap": self.frame_gap, "search_px": self.search_px, "chosen": self.chosen,
-                "slow_px_per_frame": f(self.slow_px_per_frame), "fast_px_per_frame": f(self.fast_px_per_frame),
-                "pairs_looked": self.pairs_looked, "first_guess": self.guess is not None}
+        return {
+            "frame_gap": self.frame_gap,
+            "search_px": self.search_px,
+            "chosen": self.chosen,
+            "slow_px_per_frame": f(self.slow_px_per_frame),
+            "fast_px_per_frame": f(self.fast_px_per_frame),
+            "pairs_looked": self.pairs_looked,
+            "first_guess": self.guess is not None,
+        }
 
 
 def choose(slow_px: float, fast_px: float, first_window_px: int) -> tuple[int, int | None]:
@@ -84,8 +90,9 @@ def fft_side(n: int) -> int:
     return int(best)
 
 
-def first_look(frames: Iterable[tuple[float, np.ndarray]], params: piv.PivParams, roi=None,
-               mask: np.ndarray | None = None) -> tuple[Plan, Iterator[tuple[float, np.ndarray]]]:
+def first_look(
+    frames: Iterable[tuple[float, np.ndarray]], params: piv.PivParams, roi=None, mask: np.ndarray | None = None
+) -> tuple[Plan, Iterator[tuple[float, np.ndarray]]]:
     """Look at the first :data:`LOOK_PAIRS` pairs and plan the frame gap and search area.
 
     Parameters
@@ -106,14 +113,19 @@ def first_look(frames: Iterable[tuple[float, np.ndarray]], params: piv.PivParams
     plan = Plan(frame_gap=1, search_px=None, chosen="auto", pairs_looked=max(len(head) - 1, 0))
     if len(head) < 3:
         return plan, replay
-    look = replace(params, passes=1, window_px=w0, overlap_px=w0 // 2, search_px=None, averaging="ensemble",
-                   frame_gap=1)
+    look = replace(
+        params, passes=1, window_px=w0, overlap_px=w0 // 2, search_px=None, averaging="ensemble", frame_gap=1
+    )
     try:
         res = piv.analyze(head, look, roi=roi, mask=mask)
     except Exception:  # noqa: BLE001 (a first look that fails leaves the defaults; the run reports its own error)
         return plan, replay
     dt = float(np.median(res.dt_s)) if res.dt_s is not None and len(res.dt_s) else 0.0
-    d = np.hypot(res.u, res.v)[res.valid & ~res.replaced] * dt if res.replaced is not None else np.hypot(res.u, res.v)[res.valid] * dt
+    d = (
+        np.hypot(res.u, res.v)[res.valid & ~res.replaced] * dt
+        if res.replaced is not None
+        else np.hypot(res.u, res.v)[res.valid] * dt
+    )
     d = d[np.isfinite(d)]
     if d.size < 4:
         return plan, replay
@@ -122,8 +134,12 @@ def first_look(frames: Iterable[tuple[float, np.ndarray]], params: piv.PivParams
     plan.fast_px_per_frame = float(np.percentile(d, 95))
     plan.frame_gap, plan.search_px = choose(plan.slow_px_per_frame, plan.fast_px_per_frame, w0)
     ok = res.valid & np.isfinite(res.u) & np.isfinite(res.v)
-    if (plan.search_px is not None and plan.frame_gap == 1 and ok.mean() >= GUESS_MIN_VALID
-            and plan.fast_px_per_frame <= GUESS_MAX_FRACTION * w0):
+    if (
+        plan.search_px is not None
+        and plan.frame_gap == 1
+        and ok.mean() >= GUESS_MIN_VALID
+        and plan.fast_px_per_frame <= GUESS_MAX_FRACTION * w0
+    ):
         du, dv = fill_all(np.where(ok, res.u * dt, np.nan), np.where(ok, res.v * dt, np.nan))
         plan.guess = (res.x[0].copy(), res.y[:, 0].copy(), du, dv)  # search_px stays the fallback
     return plan, replay

@@ -74,8 +74,9 @@ def _as_points(a, cols: int, key: str) -> np.ndarray:
     return arr
 
 
-def solve_pose(gcp_px: np.ndarray, gcp_world: np.ndarray, camera_matrix: np.ndarray,
-               dist_coeffs: np.ndarray | None = None) -> Pose:
+def solve_pose(
+    gcp_px: np.ndarray, gcp_world: np.ndarray, camera_matrix: np.ndarray, dist_coeffs: np.ndarray | None = None
+) -> Pose:
     """Solve the camera pose from 6+ GCPs.
 
     Parameters
@@ -97,7 +98,9 @@ def solve_pose(gcp_px: np.ndarray, gcp_world: np.ndarray, camera_matrix: np.ndar
     px = _as_points(gcp_px, 2, "ortho.gcp_px")
     world = _as_points(gcp_world, 3, "ortho.gcp_world_m")
     if len(px) != len(world):
-        raise ParameterError(f"ortho.gcp_px has {len(px)} points but ortho.gcp_world_m has {len(world)}; give one X, Y, Z per pixel")
+        raise ParameterError(
+            f"ortho.gcp_px has {len(px)} points but ortho.gcp_world_m has {len(world)}; give one X, Y, Z per pixel"
+        )
     if len(px) < MIN_GCPS:
         raise ParameterError(
             f"ortho.gcp_world_m: the camera pose needs at least {MIN_GCPS} GCPs with X, Y, Z, got {len(px)}; "
@@ -174,8 +177,15 @@ def plane_homography(pose: Pose, level_z: float) -> np.ndarray:
 MIN_GCPS_LENS = 8
 
 
-def fit_lens(gcp_px: np.ndarray, gcp_world: np.ndarray, image_size: tuple[int, int], *,
-             pixel_sigma_px: float = 1.0, max_rel_sigma_f: float = 0.03, max_sigma_shift_px: float = 3.0) -> tuple[np.ndarray, np.ndarray, Pose, dict]:
+def fit_lens(
+    gcp_px: np.ndarray,
+    gcp_world: np.ndarray,
+    image_size: tuple[int, int],
+    *,
+    pixel_sigma_px: float = 1.0,
+    max_rel_sigma_f: float = 0.03,
+    max_sigma_shift_px: float = 3.0,
+) -> tuple[np.ndarray, np.ndarray, Pose, dict]:
     """Focal length and first radial distortion from 8+ GCPs, with the pose (as pyorc's
     ``optimize_intrinsic``), for a camera that has no checkerboard calibration.
 
@@ -207,10 +217,14 @@ def fit_lens(gcp_px: np.ndarray, gcp_world: np.ndarray, image_size: tuple[int, i
     px = _as_points(gcp_px, 2, "ortho.gcp_px")
     world = _as_points(gcp_world, 3, "ortho.gcp_world_m")
     if len(px) != len(world):
-        raise ParameterError(f"ortho.gcp_px has {len(px)} points but ortho.gcp_world_m has {len(world)}; give one X, Y, Z per pixel")
+        raise ParameterError(
+            f"ortho.gcp_px has {len(px)} points but ortho.gcp_world_m has {len(world)}; give one X, Y, Z per pixel"
+        )
     if len(px) < MIN_GCPS_LENS:
-        raise ParameterError(f"ortho.fit_lens: fitting the lens needs at least {MIN_GCPS_LENS} GCPs with X, Y, Z, got "
-                             f"{len(px)}; calibrate with a checkerboard video instead (calibration.path)")
+        raise ParameterError(
+            f"ortho.fit_lens: fitting the lens needs at least {MIN_GCPS_LENS} GCPs with X, Y, Z, got "
+            f"{len(px)}; calibrate with a checkerboard video instead (calibration.path)"
+        )
     w, h = int(image_size[0]), int(image_size[1])
     cx, cy = (w - 1) / 2.0, (h - 1) / 2.0
     origin = world.mean(axis=0)
@@ -233,7 +247,9 @@ def fit_lens(gcp_px: np.ndarray, gcp_world: np.ndarray, image_size: tuple[int, i
         if best is None or rms < best[0]:
             best = (rms, np.r_[f0, 0.0, rvec.ravel(), tvec.ravel()])
     if best is None:
-        raise GeometryError("ortho.fit_lens: no camera pose fits these GCPs; check that each pixel is paired with its X, Y, Z")
+        raise GeometryError(
+            "ortho.fit_lens: no camera pose fits these GCPs; check that each pixel is paired with its X, Y, Z"
+        )
 
     with_k2 = len(px) >= 10
 
@@ -269,14 +285,24 @@ def fit_lens(gcp_px: np.ndarray, gcp_world: np.ndarray, image_size: tuple[int, i
         s_edge = float(np.sqrt(g @ cov[np.ix_(k_idx, k_idx)] @ g))
     except np.linalg.LinAlgError:
         sf, s_edge = float("inf"), float("inf")
-    report = {"f_px": f, "k1": k1, "k2": float(dist[1]), "sigma_f_px": sf, "sigma_shift_px": s_edge, "gcp_radius_px": float(rc * f),
-              "rms_px": rms, "reprojection_px": [float(e) for e in err], "n_gcps": int(len(px))}
+    report = {
+        "f_px": f,
+        "k1": k1,
+        "k2": float(dist[1]),
+        "sigma_f_px": sf,
+        "sigma_shift_px": s_edge,
+        "gcp_radius_px": float(rc * f),
+        "rms_px": rms,
+        "reprojection_px": [float(e) for e in err],
+        "n_gcps": int(len(px)),
+    }
     if not (f > 0) or not np.isfinite(sf) or sf / f > max_rel_sigma_f or s_edge > max_sigma_shift_px:
         raise GeometryError(
             f"ortho.fit_lens: these {len(px)} GCPs cannot constrain the lens (focal length {f:.0f} ± {sf:.0f} px, "
             f"distortion at the outermost GCP known to ± {s_edge:.1f} px; needed: ± {100 * max_rel_sigma_f:.0f} % and "
             f"± {max_sigma_shift_px:g} px); add GCPs near the image corners and at several distances, or calibrate "
-            "with a checkerboard video")
+            "with a checkerboard video"
+        )
     depth = (cv2.Rodrigues(rv)[0] @ obj.reshape(-1, 3).T + tv.reshape(3, 1))[2]
     if np.any(depth <= 0):
         raise GeometryError("ortho.fit_lens: the fitted camera has GCPs behind it; check the GCP pairing")

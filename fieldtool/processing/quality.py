@@ -34,8 +34,13 @@ class Reason:
         def f(x):
             return float(x) if x is not None and np.isfinite(x) else None
 
-        return {"code": self.code, "severity": self.severity, "message": self.message, "value": f(self.value),
-                "threshold": f(self.threshold)}
+        return {
+            "code": self.code,
+            "severity": self.severity,
+            "message": self.message,
+            "value": f(self.value),
+            "threshold": f(self.threshold),
+        }
 
 
 @dataclass
@@ -120,9 +125,16 @@ def check_measured_width(ev: Evidence, th: Thresholds) -> list[Reason]:
     if sev is None:
         return []
     limit = th.measured_width_unusable if sev == "unusable" else th.measured_width_doubtful
-    return [Reason("measured_width", sev,
-                   f"only {100 * frac:.0f} % of the section width has a measured velocity (limit {100 * limit:.0f} %); "
-                   f"{int((~meas).sum())} of {len(w)} subsections were filled from neighbours", frac, limit)]
+    return [
+        Reason(
+            "measured_width",
+            sev,
+            f"only {100 * frac:.0f} % of the section width has a measured velocity (limit {100 * limit:.0f} %); "
+            f"{int((~meas).sum())} of {len(w)} subsections were filled from neighbours",
+            frac,
+            limit,
+        )
+    ]
 
 
 def check_valid_fraction(ev: Evidence, th: Thresholds) -> list[Reason]:
@@ -133,9 +145,16 @@ def check_valid_fraction(ev: Evidence, th: Thresholds) -> list[Reason]:
     if sev is None:
         return []
     limit = th.valid_fraction_unusable if sev == "unusable" else th.valid_fraction_doubtful
-    return [Reason("valid_fraction", sev,
-                   f"along the section only {100 * vf:.0f} % of the frame pairs gave a valid vector (limit "
-                   f"{100 * limit:.0f} %): poor seeding, glare or too strong filters", vf, limit)]
+    return [
+        Reason(
+            "valid_fraction",
+            sev,
+            f"along the section only {100 * vf:.0f} % of the frame pairs gave a valid vector (limit "
+            f"{100 * limit:.0f} %): poor seeding, glare or too strong filters",
+            vf,
+            limit,
+        )
+    ]
 
 
 def stalled_subsections(v: np.ndarray, ratio: float = 0.3) -> np.ndarray:
@@ -152,7 +171,7 @@ def stalled_subsections(v: np.ndarray, ratio: float = 0.3) -> np.ndarray:
     typical = float(np.median(v[meas]))
     out = []
     for i in np.nonzero(meas)[0]:
-        left, right = v[:i][meas[:i]], v[i + 1:][meas[i + 1:]]
+        left, right = v[:i][meas[:i]], v[i + 1 :][meas[i + 1 :]]
         ref = min(left.max(), right.max()) if len(left) and len(right) else 0.0
         if (ref > 0 and v[i] < ratio * ref) or (typical > 0 and v[i] < -0.05 * typical):
             out.append(int(i))
@@ -200,11 +219,18 @@ def check_deficit(ev: Evidence, th: Thresholds) -> list[Reason]:
     sev = "unusable" if missing > th.deficit_q_unusable else "doubtful"
     limit = th.deficit_q_unusable if sev == "unusable" else th.deficit_q_doubtful
     lst = ", ".join(f"{i + 1} ({v[i]:.2f} of {env[i]:.2f} m/s)" for i in idx[:6]) + (" ..." if len(idx) > 6 else "")
-    return [Reason("velocity_deficit", sev,
-                   f"subsection(s) {lst} measure less than {100 * th.deficit_ratio:.0f} % of the velocity their depth "
-                   f"suggests (v ~ depth^(2/3), anchored on the best-measured part): Q may miss up to "
-                   f"{100 * missing:.0f} % there (limit {100 * limit:.0f} %); the PIV likely under-reads (glints, "
-                   "ripples, too few tracers, a grazing view)", missing, limit)]
+    return [
+        Reason(
+            "velocity_deficit",
+            sev,
+            f"subsection(s) {lst} measure less than {100 * th.deficit_ratio:.0f} % of the velocity their depth "
+            f"suggests (v ~ depth^(2/3), anchored on the best-measured part): Q may miss up to "
+            f"{100 * missing:.0f} % there (limit {100 * limit:.0f} %); the PIV likely under-reads (glints, "
+            "ripples, too few tracers, a grazing view)",
+            missing,
+            limit,
+        )
+    ]
 
 
 def check_stalled(ev: Evidence, th: Thresholds) -> list[Reason]:
@@ -217,10 +243,17 @@ def check_stalled(ev: Evidence, th: Thresholds) -> list[Reason]:
     share = float(w[stalled].sum() / w.sum()) if w.sum() > 0 else 0.0
     sev = "unusable" if share > th.stalled_width_unusable else "doubtful"
     lst = ", ".join(f"{i + 1} ({v[i]:+.2f} m/s)" for i in stalled[:6]) + (" ..." if len(stalled) > 6 else "")
-    return [Reason("stalled_subsections", sev,
-                   f"subsection(s) {lst} are near zero or upstream while their neighbours move downstream "
-                   f"({100 * share:.0f} % of the width): a stationary pattern (sun glints, standing waves) or "
-                   "wind ripples; try a background filter or mask them", share, th.stalled_width_unusable)]
+    return [
+        Reason(
+            "stalled_subsections",
+            sev,
+            f"subsection(s) {lst} are near zero or upstream while their neighbours move downstream "
+            f"({100 * share:.0f} % of the width): a stationary pattern (sun glints, standing waves) or "
+            "wind ripples; try a background filter or mask them",
+            share,
+            th.stalled_width_unusable,
+        )
+    ]
 
 
 def check_displacement(ev: Evidence, th: Thresholds) -> list[Reason]:
@@ -238,17 +271,31 @@ def check_displacement(ev: Evidence, th: Thresholds) -> list[Reason]:
     if sev is None:
         return []
     if ev.residual_px is not None:
-        return [Reason("displacement_limit", sev,
-                       f"displacements along the section differ from the first look's field by up to "
-                       f"{d:.1f} px per frame, {100 * ratio:.0f} % of the first-pass window {reach:.0f} px "
-                       f"(limit {100 * th.displacement_doubtful:.0f} %): the flow changed during the clip or the look "
-                       "was wrong; set piv.frame_gap and piv.search_px yourself", ratio, th.displacement_doubtful)]
+        return [
+            Reason(
+                "displacement_limit",
+                sev,
+                f"displacements along the section differ from the first look's field by up to "
+                f"{d:.1f} px per frame, {100 * ratio:.0f} % of the first-pass window {reach:.0f} px "
+                f"(limit {100 * th.displacement_doubtful:.0f} %): the flow changed during the clip or the look "
+                "was wrong; set piv.frame_gap and piv.search_px yourself",
+                ratio,
+                th.displacement_doubtful,
+            )
+        ]
     need = int(np.ceil(ev.displacement_px / th.displacement_doubtful / 8.0) * 8)
-    return [Reason("displacement_limit", sev,
-                   f"displacements along the section reach {ev.displacement_px:.1f} px per frame, "
-                   f"{100 * ratio:.0f} % of the first-pass search side {reach:.0f} px (limit "
-                   f"{100 * th.displacement_doubtful:.0f} %): too fast for the settings; set piv.search_px to at "
-                   f"least {need} (or raise piv.window_px / piv.passes)", ratio, th.displacement_doubtful)]
+    return [
+        Reason(
+            "displacement_limit",
+            sev,
+            f"displacements along the section reach {ev.displacement_px:.1f} px per frame, "
+            f"{100 * ratio:.0f} % of the first-pass search side {reach:.0f} px (limit "
+            f"{100 * th.displacement_doubtful:.0f} %): too fast for the settings; set piv.search_px to at "
+            f"least {need} (or raise piv.window_px / piv.passes)",
+            ratio,
+            th.displacement_doubtful,
+        )
+    ]
 
 
 def check_peak(ev: Evidence, th: Thresholds) -> list[Reason]:
@@ -256,10 +303,16 @@ def check_peak(ev: Evidence, th: Thresholds) -> list[Reason]:
         return []
     if ev.peak_median >= th.peak_min:
         return []
-    return [Reason("low_correlation", "doubtful",
-                   f"the median correlation peak along the section is {ev.peak_median:.2f} (limit {th.peak_min:.2f}): "
-                   "the pattern barely matches between frames (sparse tracers, noise, glare)",
-                   ev.peak_median, th.peak_min)]
+    return [
+        Reason(
+            "low_correlation",
+            "doubtful",
+            f"the median correlation peak along the section is {ev.peak_median:.2f} (limit {th.peak_min:.2f}): "
+            "the pattern barely matches between frames (sparse tracers, noise, glare)",
+            ev.peak_median,
+            th.peak_min,
+        )
+    ]
 
 
 def check_pair_spread(ev: Evidence, th: Thresholds) -> list[Reason]:
@@ -273,10 +326,16 @@ def check_pair_spread(ev: Evidence, th: Thresholds) -> list[Reason]:
     spread = float(0.5 * (p84 - p16) / abs(ev.discharge_m3s))
     if spread <= th.pair_spread_max:
         return []
-    return [Reason("pair_spread", "doubtful",
-                   f"the discharge of single frame pairs spreads by ±{100 * spread:.0f} % (limit "
-                   f"{100 * th.pair_spread_max:.0f} %): unsteady or poorly resolved surface motion", spread,
-                   th.pair_spread_max)]
+    return [
+        Reason(
+            "pair_spread",
+            "doubtful",
+            f"the discharge of single frame pairs spreads by ±{100 * spread:.0f} % (limit "
+            f"{100 * th.pair_spread_max:.0f} %): unsteady or poorly resolved surface motion",
+            spread,
+            th.pair_spread_max,
+        )
+    ]
 
 
 def check_angle(ev: Evidence, th: Thresholds) -> list[Reason]:
@@ -287,9 +346,16 @@ def check_angle(ev: Evidence, th: Thresholds) -> list[Reason]:
     if sev is None:
         return []
     limit = th.angle_unusable_deg if sev == "unusable" else th.angle_doubtful_deg
-    return [Reason("flow_angle", sev,
-                   f"the flow crosses the section {a:.0f}° off its normal (limit {limit:.0f}°): check the GCP order "
-                   "and section.points_px, or pick a section across the flow", a, limit)]
+    return [
+        Reason(
+            "flow_angle",
+            sev,
+            f"the flow crosses the section {a:.0f}° off its normal (limit {limit:.0f}°): check the GCP order "
+            "and section.points_px, or pick a section across the flow",
+            a,
+            limit,
+        )
+    ]
 
 
 def check_motion(ev: Evidence, th: Thresholds) -> list[Reason]:
@@ -298,34 +364,61 @@ def check_motion(ev: Evidence, th: Thresholds) -> list[Reason]:
     if ev.identical_frames is not None and ev.identical_frames > th.identical_frames_doubtful:
         sev = "unusable" if ev.identical_frames > th.identical_frames_unusable else "doubtful"
         n = f" of {ev.n_frame_pairs}" if ev.n_frame_pairs else ""
-        out.append(Reason("identical_frames", sev,
-                          f"{100 * ev.identical_frames:.0f} %{n} consecutive frame pairs are identical (limit "
-                          f"{100 * th.identical_frames_doubtful:.0f} %): duplicated frames or a still image; "
-                          "use the original clip or set video.step", ev.identical_frames, th.identical_frames_doubtful))
+        out.append(
+            Reason(
+                "identical_frames",
+                sev,
+                f"{100 * ev.identical_frames:.0f} %{n} consecutive frame pairs are identical (limit "
+                f"{100 * th.identical_frames_doubtful:.0f} %): duplicated frames or a still image; "
+                "use the original clip or set video.step",
+                ev.identical_frames,
+                th.identical_frames_doubtful,
+            )
+        )
     if ev.median_displacement_px is not None and ev.median_displacement_px < th.min_motion_px:
-        out.append(Reason("no_motion", "unusable",
-                          f"the surface along the section moves {ev.median_displacement_px:.3f} px per frame (limit "
-                          f"{th.min_motion_px:g}): no motion was measured (a still image, duplicated frames, the section "
-                          "not on the water, or a surface too slow for one frame: raise video.step)", ev.median_displacement_px, th.min_motion_px))
+        out.append(
+            Reason(
+                "no_motion",
+                "unusable",
+                f"the surface along the section moves {ev.median_displacement_px:.3f} px per frame (limit "
+                f"{th.min_motion_px:g}): no motion was measured (a still image, duplicated frames, the section "
+                "not on the water, or a surface too slow for one frame: raise video.step)",
+                ev.median_displacement_px,
+                th.min_motion_px,
+            )
+        )
     return out
 
 
 def check_speed(ev: Evidence, th: Thresholds) -> list[Reason]:
     if ev.max_speed_ms is None or not np.isfinite(ev.max_speed_ms) or ev.max_speed_ms <= th.max_surface_speed_ms:
         return []
-    return [Reason("speed_bound", "unusable",
-                   f"a surface velocity of {ev.max_speed_ms:.1f} m/s along the section exceeds "
-                   f"quality.max_surface_speed_ms = {th.max_surface_speed_ms:g} m/s: check the GCP distances (m, not mm), "
-                   "the frame timing and the section", ev.max_speed_ms, th.max_surface_speed_ms)]
+    return [
+        Reason(
+            "speed_bound",
+            "unusable",
+            f"a surface velocity of {ev.max_speed_ms:.1f} m/s along the section exceeds "
+            f"quality.max_surface_speed_ms = {th.max_surface_speed_ms:g} m/s: check the GCP distances (m, not mm), "
+            "the frame timing and the section",
+            ev.max_speed_ms,
+            th.max_surface_speed_ms,
+        )
+    ]
 
 
 def check_interval(ev: Evidence, th: Thresholds) -> list[Reason]:
     if ev.relative_u95 is None or not np.isfinite(ev.relative_u95) or ev.relative_u95 <= th.relative_u95_doubtful:
         return []
-    return [Reason("wide_interval", "doubtful",
-                   f"the 95 % interval of Q is ±{100 * ev.relative_u95:.0f} % (limit "
-                   f"{100 * th.relative_u95_doubtful:.0f} %); see the uncertainty budget for its main source",
-                   ev.relative_u95, th.relative_u95_doubtful)]
+    return [
+        Reason(
+            "wide_interval",
+            "doubtful",
+            f"the 95 % interval of Q is ±{100 * ev.relative_u95:.0f} % (limit "
+            f"{100 * th.relative_u95_doubtful:.0f} %); see the uncertainty budget for its main source",
+            ev.relative_u95,
+            th.relative_u95_doubtful,
+        )
+    ]
 
 
 #: fewer frame pairs than this cannot show the flow is steady nor average out the noise of one pair: doubtful
@@ -337,8 +430,9 @@ def check_discharge(ev: Evidence, th: Thresholds) -> list[Reason]:
     q = ev.discharge_m3s
     if q is not None and np.isfinite(q):
         return []
-    return [Reason("no_discharge", "unusable", f"the discharge is not a number ({q}); nothing can be reported",
-                   None, None)]
+    return [
+        Reason("no_discharge", "unusable", f"the discharge is not a number ({q}); nothing can be reported", None, None)
+    ]
 
 
 def check_pairs(ev: Evidence, th: Thresholds) -> list[Reason]:
@@ -346,20 +440,52 @@ def check_pairs(ev: Evidence, th: Thresholds) -> list[Reason]:
     n = ev.n_frame_pairs
     if n is None or n >= MIN_PAIRS_GOOD:
         return []
-    return [Reason("few_pairs", "doubtful", f"only {n} frame pair(s) (at least {MIN_PAIRS_GOOD} for a good grade): one "
-                   "pair's noise is not averaged out; use a longer clip", float(n), float(MIN_PAIRS_GOOD))]
+    return [
+        Reason(
+            "few_pairs",
+            "doubtful",
+            f"only {n} frame pair(s) (at least {MIN_PAIRS_GOOD} for a good grade): one "
+            "pair's noise is not averaged out; use a longer clip",
+            float(n),
+            float(MIN_PAIRS_GOOD),
+        )
+    ]
 
 
 #: reasons that doubt the measured velocities themselves (the interval then allows an under-read)
-VELOCITY_DOUBTS = frozenset({"stalled_subsections", "velocity_deficit", "valid_fraction", "pair_spread",
-                             "low_correlation", "displacement_limit", "no_motion", "identical_frames"})
+VELOCITY_DOUBTS = frozenset(
+    {
+        "stalled_subsections",
+        "velocity_deficit",
+        "valid_fraction",
+        "pair_spread",
+        "low_correlation",
+        "displacement_limit",
+        "no_motion",
+        "identical_frames",
+    }
+)
 
-CHECKS: list[Check] = [check_discharge, check_pairs, check_motion, check_speed, check_measured_width, check_valid_fraction, check_stalled, check_deficit,
-                       check_displacement, check_peak, check_pair_spread, check_angle, check_interval]
+CHECKS: list[Check] = [
+    check_discharge,
+    check_pairs,
+    check_motion,
+    check_speed,
+    check_measured_width,
+    check_valid_fraction,
+    check_stalled,
+    check_deficit,
+    check_displacement,
+    check_peak,
+    check_pair_spread,
+    check_angle,
+    check_interval,
+]
 
 
-def assess(ev: Evidence, th: Thresholds | None = None, extra: Iterable[Reason] = (),
-           checks: Iterable[Check] | None = None) -> Quality:
+def assess(
+    ev: Evidence, th: Thresholds | None = None, extra: Iterable[Reason] = (), checks: Iterable[Check] | None = None
+) -> Quality:
     """Run every check; the grade is the worst severity among the reasons (good when none).
 
     Parameters
@@ -371,7 +497,7 @@ def assess(ev: Evidence, th: Thresholds | None = None, extra: Iterable[Reason] =
     """
     th = th or Thresholds()
     reasons = list(extra)
-    for chk in (CHECKS if checks is None else checks):
+    for chk in CHECKS if checks is None else checks:
         reasons.extend(chk(ev, th))
     grade = "good"
     if any(r.severity == "unusable" for r in reasons):
@@ -383,10 +509,20 @@ def assess(ev: Evidence, th: Thresholds | None = None, extra: Iterable[Reason] =
     return Quality(grade, reasons)
 
 
-def section_evidence(sample_px: np.ndarray, normal: np.ndarray, x: np.ndarray, y: np.ndarray, u_px_s: np.ndarray,
-                     v_px_s: np.ndarray, U_ms: np.ndarray, V_ms: np.ndarray, dt_s: float,
-                     valid_fraction: np.ndarray | None = None, peak: np.ndarray | None = None,
-                     first_guess: np.ndarray | None = None) -> dict:
+def section_evidence(
+    sample_px: np.ndarray,
+    normal: np.ndarray,
+    x: np.ndarray,
+    y: np.ndarray,
+    u_px_s: np.ndarray,
+    v_px_s: np.ndarray,
+    U_ms: np.ndarray,
+    V_ms: np.ndarray,
+    dt_s: float,
+    valid_fraction: np.ndarray | None = None,
+    peak: np.ndarray | None = None,
+    first_guess: np.ndarray | None = None,
+) -> dict:
     """Field statistics along the section's sample points, as keyword arguments of :class:`Evidence`.
 
     Parameters

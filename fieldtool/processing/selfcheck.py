@@ -17,8 +17,8 @@ score = valid * max(0, 1 - fb) / (1 + spread), in [0, 1]. Pure numpy + processin
 from __future__ import annotations
 
 import warnings
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
-from typing import Callable, Sequence
 
 import numpy as np
 
@@ -34,17 +34,31 @@ class VariantScore:
     score: float
 
     def to_dict(self) -> dict:
-        f = (lambda v: round(float(v), 4) if np.isfinite(v) else None)
-        return {"name": self.name, "fb": f(self.fb), "valid": f(self.valid), "spread": f(self.spread),
-                "score": f(self.score)}
+        def f(v):
+            return round(float(v), 4) if np.isfinite(v) else None
+
+        return {
+            "name": self.name,
+            "fb": f(self.fb),
+            "valid": f(self.valid),
+            "spread": f(self.spread),
+            "score": f(self.score),
+        }
 
 
 def _field(frames: Sequence[np.ndarray], dt: float, params: piv.PivParams, roi, mask) -> piv.PivResult:
     return piv.analyze([(i * dt, f) for i, f in enumerate(frames)], params, roi=roi, mask=mask)
 
 
-def score(name: str, frames: Sequence[np.ndarray], dt: float, params: piv.PivParams, roi=None,
-          mask: np.ndarray | None = None, gap: int = 1) -> VariantScore:
+def score(
+    name: str,
+    frames: Sequence[np.ndarray],
+    dt: float,
+    params: piv.PivParams,
+    roi=None,
+    mask: np.ndarray | None = None,
+    gap: int = 1,
+) -> VariantScore:
     """Consistency of the field of ``frames`` (pre-processed, >= 4, ``dt`` s apart) under ``params``
     (averaging forced to ``mean``: per-pair fields; frame gaps ``gap`` and ``2 * gap``: with a temporal filter,
     give at least its window so that no pair shares an input frame)."""
@@ -68,8 +82,13 @@ def score(name: str, frames: Sequence[np.ndarray], dt: float, params: piv.PivPar
     return VariantScore(name, fb, valid, spread, float(s))
 
 
-def choose(variants: dict[str, Callable[[], tuple[Sequence[np.ndarray], piv.PivParams]]], dt: float, roi=None,
-           mask: np.ndarray | None = None, gap: int = 1) -> tuple[str, list[VariantScore]]:
+def choose(
+    variants: dict[str, Callable[[], tuple[Sequence[np.ndarray], piv.PivParams]]],
+    dt: float,
+    roi=None,
+    mask: np.ndarray | None = None,
+    gap: int = 1,
+) -> tuple[str, list[VariantScore]]:
     """Score each variant (name -> () -> (pre-processed frames, params)); the name of the best and every score.
     Ties keep the first variant given (list the default first)."""
     scores = []

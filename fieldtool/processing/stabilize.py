@@ -62,10 +62,17 @@ class Stabilizer:
     GeometryError : the stable area has too few trackable corners.
     """
 
-    def __init__(self, reference: np.ndarray, regions_px: list[list[float]] | None = None,
-                 water_polygon_px: list[list[float]] | None = None, model: str = "homography",
-                 max_features: int = 200, ransac_px: float = 2.0, min_inliers: int = 12,
-                 max_drift_px: float | None = None) -> None:
+    def __init__(
+        self,
+        reference: np.ndarray,
+        regions_px: list[list[float]] | None = None,
+        water_polygon_px: list[list[float]] | None = None,
+        model: str = "homography",
+        max_features: int = 200,
+        ransac_px: float = 2.0,
+        min_inliers: int = 12,
+        max_drift_px: float | None = None,
+    ) -> None:
         if reference.ndim != 2:
             raise ParameterError(f"stabilize: expected a gray frame (H x W), got shape {reference.shape}")
         if model not in ("homography", "affine"):
@@ -105,8 +112,14 @@ class Stabilizer:
         found, owner = [], []
         for r in range(self.n_regions):
             sub = np.where(labels == r + 1, area, 0).astype(np.uint8)
-            p = cv2.goodFeaturesToTrack(ref, maxCorners=max(1, int(max_features) // self.n_regions),
-                                        qualityLevel=0.01, minDistance=7, mask=sub, blockSize=7)
+            p = cv2.goodFeaturesToTrack(
+                ref,
+                maxCorners=max(1, int(max_features) // self.n_regions),
+                qualityLevel=0.01,
+                minDistance=7,
+                mask=sub,
+                blockSize=7,
+            )
             if p is not None:
                 found.append(p.reshape(-1, 2))
                 owner.append(np.full(len(p), r))
@@ -122,7 +135,9 @@ class Stabilizer:
         self.pt_region = np.concatenate(owner)
         self._ref = ref
         self._H = np.eye(3)
-        self.max_drift_px = (max(20.0, 0.5 * min(sides)) if sides else None) if max_drift_px is None else float(max_drift_px)
+        self.max_drift_px = (
+            (max(20.0, 0.5 * min(sides)) if sides else None) if max_drift_px is None else float(max_drift_px)
+        )
         self._check_drift = bool(regions_px) or max_drift_px is not None
         # low-resolution reference and "outside the regions" mask for the drift check: at this scale the
         # shake is a fraction of a pixel while a drift past the limit is several pixels
@@ -152,8 +167,9 @@ class Stabilizer:
         if self.model == "homography":
             H, inl = cv2.findHomography(src, dst, cv2.RANSAC, self.ransac_px, maxIters=2000, confidence=0.995)
         else:
-            A, inl = cv2.estimateAffine2D(src, dst, method=cv2.RANSAC, ransacReprojThreshold=self.ransac_px,
-                                          maxIters=2000, confidence=0.995)
+            A, inl = cv2.estimateAffine2D(
+                src, dst, method=cv2.RANSAC, ransacReprojThreshold=self.ransac_px, maxIters=2000, confidence=0.995
+            )
             H = None if A is None else np.vstack([A, [0.0, 0.0, 1.0]])
         inl = np.zeros(len(src), bool) if inl is None else inl.ravel().astype(bool)
         return H, inl
@@ -174,10 +190,26 @@ class Stabilizer:
         n = len(self.ref_pts)
         guess = cv2.perspectiveTransform(self.ref_pts.astype(np.float64), np.linalg.inv(self._H)).astype(np.float32)
         crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01)
-        nxt, st, _ = cv2.calcOpticalFlowPyrLK(self._ref, img, self.ref_pts, guess, winSize=_WIN,
-                                              maxLevel=_LEVELS, criteria=crit, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
-        back, st2, _ = cv2.calcOpticalFlowPyrLK(img, self._ref, nxt, self.ref_pts.copy(), winSize=_WIN,
-                                                maxLevel=_LEVELS, criteria=crit, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+        nxt, st, _ = cv2.calcOpticalFlowPyrLK(
+            self._ref,
+            img,
+            self.ref_pts,
+            guess,
+            winSize=_WIN,
+            maxLevel=_LEVELS,
+            criteria=crit,
+            flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+        )
+        back, st2, _ = cv2.calcOpticalFlowPyrLK(
+            img,
+            self._ref,
+            nxt,
+            self.ref_pts.copy(),
+            winSize=_WIN,
+            maxLevel=_LEVELS,
+            criteria=crit,
+            flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+        )
         fb = np.linalg.norm((back - self.ref_pts).reshape(-1, 2), axis=1)
         good = (st.ravel() == 1) & (st2.ravel() == 1) & (fb < _FB_MAX_PX)
         frame_no = len(self._res_median)
@@ -199,8 +231,9 @@ class Stabilizer:
         self._check_regions(good, inl, frame_no)
         self._check_drift_of(src[inl] - dst[inl], frame_no, img, H)
         self._H = H
-        return cv2.warpPerspective(gray, H, (self.shape[1], self.shape[0]), flags=cv2.INTER_LINEAR,
-                                   borderMode=cv2.BORDER_REPLICATE)
+        return cv2.warpPerspective(
+            gray, H, (self.shape[1], self.shape[0]), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
+        )
 
     def _lost(self, frame_no: int, kept: int, n: int) -> GeometryError:
         return GeometryError(

@@ -61,8 +61,10 @@ from dataclasses import dataclass
 import numpy as np
 
 #: ISO 748:2007 Table E.6: number of verticals -> u_m (1σ fraction), as IVyTools tabulates it
-ISO_VERTICALS = (np.array([5, 10, 15, 20, 25, 30, 35], float),
-                 np.array([0.075, 0.045, 0.030, 0.025, 0.020, 0.015, 0.010]))
+ISO_VERTICALS = (
+    np.array([5, 10, 15, 20, 25, 30, 35], float),
+    np.array([0.075, 0.045, 0.030, 0.025, 0.020, 0.015, 0.010]),
+)
 #: expanded (2σ) relative uncertainty -> rating (upper bounds, inclusive)
 RATINGS = ((0.02, "excellent"), (0.05, "good"), (0.08, "fair"))
 K = 2.0  # coverage factor of the reported intervals
@@ -106,15 +108,24 @@ def _interval(q: float, u: float) -> dict:
     if not (np.isfinite(u) and np.isfinite(q)):
         return {"u_rel": None, "u95_rel": None, "ci95_m3s": None, "rating": None}
     u95 = K * u
-    return {"u_rel": float(u), "u95_rel": float(u95),
-            "ci95_m3s": [float(q - u95 * abs(q)), float(q + u95 * abs(q))], "rating": rating(u95)}
+    return {
+        "u_rel": float(u),
+        "u95_rel": float(u95),
+        "ci95_m3s": [float(q - u95 * abs(q)), float(q + u95 * abs(q))],
+        "rating": rating(u95),
+    }
 
 
 def _systematic(sig: StandardSigmas, width_m: float, area_m2: float) -> tuple[float, dict]:
     """u_s of equation (8) and its parts."""
     u_level = sig.level_m * width_m / area_m2 if area_m2 > 0 else 0.0
-    parts = {"u_sm": sig.u_sm, "u_so": sig.u_so, "u_alpha": sig.alpha_rel, "u_rect": sig.rect_rel,
-             "u_level": float(u_level)}
+    parts = {
+        "u_sm": sig.u_sm,
+        "u_so": sig.u_so,
+        "u_alpha": sig.alpha_rel,
+        "u_rect": sig.rect_rel,
+        "u_level": float(u_level),
+    }
     return float(np.sqrt(sum(v * v for v in parts.values()))), parts
 
 
@@ -145,8 +156,9 @@ def exposure_u(velocity_pairs, velocity, exposure_s: float, sig: StandardSigmas)
     return np.where(np.isfinite(u), u, sig.u_e_default)
 
 
-def iso748(station_edges, depth, velocity, filled, q, exposure_s: float, sig: StandardSigmas | None = None,
-           velocity_pairs=None) -> dict:
+def iso748(
+    station_edges, depth, velocity, filled, q, exposure_s: float, sig: StandardSigmas | None = None, velocity_pairs=None
+) -> dict:
     """ISO 748:2007 uncertainty of Q (equation (1)); see the module docstring.
 
     Parameters
@@ -168,15 +180,17 @@ def iso748(station_edges, depth, velocity, filled, q, exposure_s: float, sig: St
     u_m = u_verticals(len(d))
     with np.errstate(invalid="ignore", divide="ignore"):
         u_dt = np.where(d > 0.3, 0.005, 0.015)
-        u_d = np.sqrt(u_dt ** 2 + np.where(d > 0, sig.bed_m / np.where(d > 0, d, 1.0), 0.0) ** 2)
+        u_d = np.sqrt(u_dt**2 + np.where(d > 0, sig.bed_m / np.where(d > 0, d, 1.0), 0.0) ** 2)
     u_b = np.full(len(d), sig.u_b)
     u_p = np.full(len(d), sig.u_p)
     u_c = np.where(f, sig.filled_rel, sig.piv_rel)
     u_e = exposure_u(velocity_pairs, v, exposure_s, sig)
     w = (qq / Q) ** 2 if Q != 0 else np.full(len(qq), np.nan)
-    comp = {name: float(np.sqrt(np.sum(w * c ** 2))) for name, c in
-            (("u_b", u_b), ("u_d", u_d), ("u_p", u_p), ("u_c", u_c), ("u_e", u_e))}
-    u2 = u_s ** 2 + u_m ** 2 + sum(c ** 2 for c in comp.values())
+    comp = {
+        name: float(np.sqrt(np.sum(w * c**2)))
+        for name, c in (("u_b", u_b), ("u_d", u_d), ("u_p", u_p), ("u_c", u_c), ("u_e", u_e))
+    }
+    u2 = u_s**2 + u_m**2 + sum(c**2 for c in comp.values())
     out = _interval(Q, float(np.sqrt(u2)))
     out["components"] = {"u_s": u_s, "u_m": u_m, **comp, **sys_parts}
     out["n_verticals"] = len(d)
@@ -201,7 +215,7 @@ def interpolation_sd(stations, x, use=None) -> tuple[float, int]:
             continue
         om = (s[i + 1] - s[i]) / span
         delta = x[i] - (om * x[i - 1] + (1.0 - om) * x[i + 1])
-        terms.append(delta ** 2 / (2.0 * (1.0 - om + om ** 2)))
+        terms.append(delta**2 / (2.0 * (1.0 - om + om**2)))
     if not terms:
         return float("nan"), 0
     return float(np.sqrt(np.mean(terms))), len(terms)
@@ -226,9 +240,12 @@ def ive(station_edges, depth, velocity, filled, q, sig: StandardSigmas | None = 
         rv = np.where(np.abs(v) > 0, s_v / np.where(np.abs(v) > 0, np.abs(v), 1.0), 0.0)
     rv = np.where(f, np.maximum(rv, sig.filled_rel), rv)
     w = (qq / Q) ** 2 if Q != 0 else np.full(len(qq), np.nan)
-    comp = {"u_d": float(np.sqrt(np.sum(w * rd ** 2))), "u_v": float(np.sqrt(np.sum(w * rv ** 2))),
-            "u_b": float(np.sqrt(np.sum(w * sig.u_b ** 2)))}
-    u2 = u_s ** 2 + sum(c ** 2 for c in comp.values())
+    comp = {
+        "u_d": float(np.sqrt(np.sum(w * rd**2))),
+        "u_v": float(np.sqrt(np.sum(w * rv**2))),
+        "u_b": float(np.sqrt(np.sum(w * sig.u_b**2))),
+    }
+    u2 = u_s**2 + sum(c**2 for c in comp.values())
     out = _interval(Q, float(np.sqrt(u2)))
     out["components"] = {"u_s": u_s, **comp, **sys_parts}
     out["s_depth_m"] = float(s_d)
@@ -237,8 +254,12 @@ def ive(station_edges, depth, velocity, filled, q, sig: StandardSigmas | None = 
     return out
 
 
-def standard_uncertainty(station_edges, depth, velocity, filled, q, exposure_s: float,
-                         sig: StandardSigmas | None = None, velocity_pairs=None) -> dict:
+def standard_uncertainty(
+    station_edges, depth, velocity, filled, q, exposure_s: float, sig: StandardSigmas | None = None, velocity_pairs=None
+) -> dict:
     """``{"iso748": ..., "ive": ...}``: the ``uncertainty_standard`` block of result.json."""
-    return {"iso748": iso748(station_edges, depth, velocity, filled, q, exposure_s, sig, velocity_pairs),
-            "ive": ive(station_edges, depth, velocity, filled, q, sig), "k": K}
+    return {
+        "iso748": iso748(station_edges, depth, velocity, filled, q, exposure_s, sig, velocity_pairs),
+        "ive": ive(station_edges, depth, velocity, filled, q, sig),
+        "k": K,
+    }

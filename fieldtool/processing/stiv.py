@@ -69,10 +69,20 @@ def _rot(v: np.ndarray, deg: float) -> np.ndarray:
     return np.array([c * v[0] - s * v[1], s * v[0] + c * v[1]])
 
 
-def build_lines(p_world: np.ndarray, normal: np.ndarray, mapping: OrthoMapping, n_sub: int, *,
-                length_m: float = 3.0, lines_per_sub: int = 3, angles_deg=(0.0,),
-                image_shape: tuple[int, int] | None = None, valid: np.ndarray | None = None,
-                px_per_sample: float = 1.0, width: int = 3) -> list[StivLine]:
+def build_lines(
+    p_world: np.ndarray,
+    normal: np.ndarray,
+    mapping: OrthoMapping,
+    n_sub: int,
+    *,
+    length_m: float = 3.0,
+    lines_per_sub: int = 3,
+    angles_deg=(0.0,),
+    image_shape: tuple[int, int] | None = None,
+    valid: np.ndarray | None = None,
+    px_per_sample: float = 1.0,
+    width: int = 3,
+) -> list[StivLine]:
     """Search lines across the section, ``lines_per_sub`` per subsection and per angle.
 
     Parameters
@@ -118,8 +128,9 @@ def build_lines(p_world: np.ndarray, normal: np.ndarray, mapping: OrthoMapping, 
                 ok = np.all(np.isfinite(px), axis=(0, 2))
                 if image_shape is not None:
                     h, w = image_shape
-                    ok &= np.all((px[..., 0] >= 0) & (px[..., 0] <= w - 1) & (px[..., 1] >= 0) & (px[..., 1] <= h - 1),
-                                 axis=0)
+                    ok &= np.all(
+                        (px[..., 0] >= 0) & (px[..., 0] <= w - 1) & (px[..., 1] >= 0) & (px[..., 1] <= h - 1), axis=0
+                    )
                 if valid is not None and ok.any():
                     ix = np.clip(np.rint(px[..., 0]).astype(int), 0, valid.shape[1] - 1)
                     iy = np.clip(np.rint(px[..., 1]).astype(int), 0, valid.shape[0] - 1)
@@ -127,8 +138,17 @@ def build_lines(p_world: np.ndarray, normal: np.ndarray, mapping: OrthoMapping, 
                 a, b = _longest_run(ok)
                 if b - a < 8:
                     continue
-                lines.append(StivLine(i, c + 0.5 * (s[a] + s[b - 1]) * e, e, float(s[b - 1] - s[a]), ds,
-                                      px[:, a:b].astype(np.float32), float(ang)))
+                lines.append(
+                    StivLine(
+                        i,
+                        c + 0.5 * (s[a] + s[b - 1]) * e,
+                        e,
+                        float(s[b - 1] - s[a]),
+                        ds,
+                        px[:, a:b].astype(np.float32),
+                        float(ang),
+                    )
+                )
     return lines
 
 
@@ -159,9 +179,11 @@ class StiAccumulator:
         rows = -(-len(flat) // 4096) if len(flat) else 1
         padded = np.empty((rows * 4096, 2), np.float32)
         padded[:] = flat[0] if len(flat) else 0.0
-        padded[:len(flat)] = flat
-        self._map = (np.ascontiguousarray(padded[:, 0].reshape(rows, 4096)),
-                     np.ascontiguousarray(padded[:, 1].reshape(rows, 4096)))
+        padded[: len(flat)] = flat
+        self._map = (
+            np.ascontiguousarray(padded[:, 0].reshape(rows, 4096)),
+            np.ascontiguousarray(padded[:, 1].reshape(rows, 4096)),
+        )
         self._crop: tuple | None = None  # (rows slice, cols slice, map_x, map_y, frame shape) of the last frame size
         self.rows: list[np.ndarray] = []
         self.times: list[float] = []
@@ -187,7 +209,7 @@ class StiAccumulator:
         rs, cs, map_x, map_y, _ = self._cropped(frame.shape[:2])
         img = frame[rs, cs].astype(np.float32)
         row = cv2.remap(img, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        row = row.ravel()[:self.width * self.n].reshape(self.width, self.n)
+        row = row.ravel()[: self.width * self.n].reshape(self.width, self.n)
         self.rows.append(row.mean(axis=0).astype(np.float16))
         self.times.append(float(t_s))
 
@@ -259,7 +281,7 @@ def orientation_fft(sti: np.ndarray, max_lag: int | None = None, n_angles: int =
     K = max(1, min(max_lag or T // 2, T // 2))
     half = S // 2
     # lags 0..K rows, shifts -half..half samples; unbiased by the overlap count
-    R = np.concatenate([R[:K + 1, -half:], R[:K + 1, :half + 1]], axis=1).astype(np.float64)
+    R = np.concatenate([R[: K + 1, -half:], R[: K + 1, : half + 1]], axis=1).astype(np.float64)
     overlap = (T - np.arange(K + 1))[:, None] * (S - np.abs(np.arange(-half, half + 1)))[None, :]
     R = R / overlap
     if not R[0, half] > 0:
@@ -287,8 +309,8 @@ def orientation_fft(sti: np.ndarray, max_lag: int | None = None, n_angles: int =
     if not np.isfinite(sc[m]):
         return float("nan"), 0.0
     th = fine[m]
-    if 0 < m < len(fine) - 1 and np.all(np.isfinite(sc[m - 1:m + 2])):
-        y0, y1, y2 = sc[m - 1:m + 2]
+    if 0 < m < len(fine) - 1 and np.all(np.isfinite(sc[m - 1 : m + 2])):
+        y0, y1, y2 = sc[m - 1 : m + 2]
         den = y0 - 2 * y1 + y2
         if den < 0:
             th += 0.5 * (y0 - y2) / den * (fine[1] - fine[0])
@@ -312,8 +334,9 @@ def orientation_tensor(sti: np.ndarray, sigma: float = 1.0) -> tuple[float, floa
     return float(-np.tan(phi)), coh
 
 
-def sti_velocity(sti: np.ndarray, t_s: np.ndarray, ds_m: float, method: str = "fft",
-                 max_lag_s: float | None = None) -> tuple[float, float]:
+def sti_velocity(
+    sti: np.ndarray, t_s: np.ndarray, ds_m: float, method: str = "fft", max_lag_s: float | None = None
+) -> tuple[float, float]:
     """Velocity along a line (m/s, positive in the line's direction) and its confidence (0..1).
 
     Parameters
@@ -364,8 +387,9 @@ class StivResult:
     warnings: list[str] = field(default_factory=list)
 
 
-def select_lines(lines: list[StivLine], n_sub: int, flow_dir: np.ndarray | None = None,
-                 reversed_order: bool = False) -> np.ndarray:
+def select_lines(
+    lines: list[StivLine], n_sub: int, flow_dir: np.ndarray | None = None, reversed_order: bool = False
+) -> np.ndarray:
     """Which lines to analyse (bool per line): in each subsection the angle nearest the flow direction
     ``flow_dir`` ((n_sub, 2) world unit vectors of the geometry's subsections, NaN rows allowed), or
     every angle where the direction is unknown (the most confident is chosen afterwards)."""
@@ -386,8 +410,9 @@ def select_lines(lines: list[StivLine], n_sub: int, flow_dir: np.ndarray | None 
     return use
 
 
-def guide_directions(flow_dir: np.ndarray, normal: np.ndarray, weight: np.ndarray, min_weight: float = 0.5,
-                     max_dev_deg: float = 15.0) -> np.ndarray:
+def guide_directions(
+    flow_dir: np.ndarray, normal: np.ndarray, weight: np.ndarray, min_weight: float = 0.5, max_dev_deg: float = 15.0
+) -> np.ndarray:
     """Flow directions to orient the lines by, per subsection, from a noisy field (e.g. the PIV's).
 
     The section's direction is the median angle (from ``normal``, folded to ±90°: a line has no sign) of
@@ -415,8 +440,9 @@ def guide_directions(flow_dir: np.ndarray, normal: np.ndarray, weight: np.ndarra
     return out
 
 
-def line_velocities(acc: StiAccumulator, method: str = "fft", max_lag_s: float | None = None,
-                    only: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+def line_velocities(
+    acc: StiAccumulator, method: str = "fft", max_lag_s: float | None = None, only: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """Velocity (m/s along each line) and confidence of the lines of ``acc`` (those where ``only`` is
     True; the others get NaN and 0)."""
     v = np.full(len(acc.lines), np.nan)
@@ -431,9 +457,16 @@ def line_velocities(acc: StiAccumulator, method: str = "fft", max_lag_s: float |
     return v, c
 
 
-def subsection_velocity(lines: list[StivLine], v_line: np.ndarray, c_line: np.ndarray, n_sub: int,
-                        normal: np.ndarray, reversed_order: bool = False, flow_dir: np.ndarray | None = None,
-                        min_confidence: float = 0.05) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def subsection_velocity(
+    lines: list[StivLine],
+    v_line: np.ndarray,
+    c_line: np.ndarray,
+    n_sub: int,
+    normal: np.ndarray,
+    reversed_order: bool = False,
+    flow_dir: np.ndarray | None = None,
+    min_confidence: float = 0.05,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Downstream-normal velocity (m/s), confidence and flow angle (deg from the lines' normal) per subsection.
 
     A tracer crossing a line obliquely draws a short streak, so each subsection uses the lines of one
@@ -465,7 +498,7 @@ def subsection_velocity(lines: list[StivLine], v_line: np.ndarray, c_line: np.nd
         else:
             k = int(np.argmax(mc))
             best, phi = cand[k], cand[k]
-            if 0 < k < len(cand) - 1 and np.allclose(np.diff(cand[k - 1:k + 2]), cand[k] - cand[k - 1]):
+            if 0 < k < len(cand) - 1 and np.allclose(np.diff(cand[k - 1 : k + 2]), cand[k] - cand[k - 1]):
                 den = mc[k - 1] - 2 * mc[k] + mc[k + 1]
                 if den < 0:
                     phi += float(np.clip(0.5 * (mc[k - 1] - mc[k + 1]) / den, -0.5, 0.5)) * (cand[k] - cand[k - 1])
@@ -487,7 +520,9 @@ DISAGREE_Q = 0.05  # ... the discharges when they differ by more than this share
 DISAGREE_SHARE = 0.2  # ... or when disagreeing subsections carry more than this share of the discharge
 
 
-def disagreement(v_piv: np.ndarray, v_stiv: np.ndarray, q_weight: np.ndarray, rel_threshold: float = DISAGREE_REL) -> dict:
+def disagreement(
+    v_piv: np.ndarray, v_stiv: np.ndarray, q_weight: np.ndarray, rel_threshold: float = DISAGREE_REL
+) -> dict:
     """Relative PIV/STIV disagreement on the subsections where both measured (NaN-free, JSON-ready).
 
     Parameters
@@ -513,14 +548,19 @@ def disagreement(v_piv: np.ndarray, v_stiv: np.ndarray, q_weight: np.ndarray, re
     qp = float(np.sum(qp_sub))
     qs = float(np.sum(np.where(both, q_weight * v_stiv, 0.0)))
     bad = np.nonzero(np.abs(np.nan_to_num(rel)) > rel_threshold)[0]
-    return {"discharge_relative": (qs - qp) / qp if qp != 0 and both.any() else None,
-            "subsections_relative": [None if not np.isfinite(r) else float(r) for r in rel],
-            "subsections_over_threshold": [int(i) + 1 for i in bad],
-            "share_of_discharge": float(np.sum(np.abs(qp_sub[bad])) / np.sum(np.abs(qp_sub))) if qp != 0 else 0.0,
-            "threshold": rel_threshold, "n_compared": int(both.sum())}
+    return {
+        "discharge_relative": (qs - qp) / qp if qp != 0 and both.any() else None,
+        "subsections_relative": [None if not np.isfinite(r) else float(r) for r in rel],
+        "subsections_over_threshold": [int(i) + 1 for i in bad],
+        "share_of_discharge": float(np.sum(np.abs(qp_sub[bad])) / np.sum(np.abs(qp_sub))) if qp != 0 else 0.0,
+        "threshold": rel_threshold,
+        "n_compared": int(both.sum()),
+    }
 
 
-def disagreement_reason(dis: dict, q_threshold: float = DISAGREE_Q, share_threshold: float = DISAGREE_SHARE) -> dict | None:
+def disagreement_reason(
+    dis: dict, q_threshold: float = DISAGREE_Q, share_threshold: float = DISAGREE_SHARE
+) -> dict | None:
     """A "doubtful" reason of the quality verdict when PIV and STIV disagree (see :func:`disagreement`), as
     the fields of a quality reason (code, severity, message, value, threshold); None when they agree.
     Two estimators that disagree say the velocity is uncertain, not which one is right: never "unusable"."""
@@ -531,12 +571,21 @@ def disagreement_reason(dis: dict, q_threshold: float = DISAGREE_Q, share_thresh
     if not (q_bad or (bad and share > share_threshold)):
         return None
     rel = [abs(dis["subsections_relative"][i - 1]) for i in bad]
-    where = (f" on subsection(s) {', '.join(map(str, bad[:8]))}{' ...' if len(bad) > 8 else ''} (up to "
-             f"{100 * max(rel):.0f} %, {100 * share:.0f} % of the discharge)") if bad else ""
+    where = (
+        (
+            f" on subsection(s) {', '.join(map(str, bad[:8]))}{' ...' if len(bad) > 8 else ''} (up to "
+            f"{100 * max(rel):.0f} %, {100 * share:.0f} % of the discharge)"
+        )
+        if bad
+        else ""
+    )
     qtxt = f"; the discharge by STIV differs by {100 * dq_rel:+.1f} %" if dq_rel is not None else ""
-    return {"code": "piv_stiv_disagree", "severity": "doubtful",
-            "message": f"PIV and STIV disagree by more than {100 * dis['threshold']:.0f} %{where}{qtxt}: sparse or "
-                       "patchy seeding, stationary patterns or ripples mislead one of them; compare the velocities in "
-                       "subsections.csv (stiv_velocity_ms) and consider section.velocity_source",
-            "value": float(abs(dq_rel)) if q_bad and dq_rel is not None else float(share),
-            "threshold": q_threshold if q_bad else share_threshold}
+    return {
+        "code": "piv_stiv_disagree",
+        "severity": "doubtful",
+        "message": f"PIV and STIV disagree by more than {100 * dis['threshold']:.0f} %{where}{qtxt}: sparse or "
+        "patchy seeding, stationary patterns or ripples mislead one of them; compare the velocities in "
+        "subsections.csv (stiv_velocity_ms) and consider section.velocity_source",
+        "value": float(abs(dq_rel)) if q_bad and dq_rel is not None else float(share),
+        "threshold": q_threshold if q_bad else share_threshold,
+    }

@@ -55,12 +55,24 @@ def _box(shape: tuple[int, int], roi, margin: int) -> tuple[int, int, int, int]:
     if roi is None:
         return 0, 0, w, h
     x0, y0, x1, y1 = (int(round(float(c))) for c in roi)
-    return max(min(x0, x1) - margin, 0), max(min(y0, y1) - margin, 0), min(max(x0, x1) + margin, w), min(max(y0, y1) + margin, h)
+    return (
+        max(min(x0, x1) - margin, 0),
+        max(min(y0, y1) - margin, 0),
+        min(max(x0, x1) + margin, w),
+        min(max(y0, y1) + margin, h),
+    )
 
 
-def standardize(frames: Iterable[tuple[float, np.ndarray]], roi=None, *, margin: int = 64, half: int = HALF_WINDOW,
-                shrink: float = SHRINK, stats: SurfaceStats | None = None,
-                want: Callable[[int], bool] | None = None) -> Iterator[tuple[float, np.ndarray | None]]:
+def standardize(
+    frames: Iterable[tuple[float, np.ndarray]],
+    roi=None,
+    *,
+    margin: int = 64,
+    half: int = HALF_WINDOW,
+    shrink: float = SHRINK,
+    stats: SurfaceStats | None = None,
+    want: Callable[[int], bool] | None = None,
+) -> Iterator[tuple[float, np.ndarray | None]]:
     """Stream (t_s, float32 frame) standardised over time inside the ROI box.
 
     Parameters

@@ -17,8 +17,7 @@ from fieldtool.processing.discharge import fill_velocity, manning_factors, secti
 from fieldtool.processing.ortho import OrthoMapping
 
 
-def bootstrap_ci(values, level: float = 0.95, n_boot: int = 1000, seed: int = 0,
-                 stat=np.mean) -> tuple[float, float]:
+def bootstrap_ci(values, level: float = 0.95, n_boot: int = 1000, seed: int = 0, stat=np.mean) -> tuple[float, float]:
     """Percentile-bootstrap interval of ``stat`` (default the mean) of the finite ``values``.
 
     Parameters
@@ -54,8 +53,15 @@ def bootstrap_ci(values, level: float = 0.95, n_boot: int = 1000, seed: int = 0,
 # ---------------------------------------------------------------------------------------------
 # Monte Carlo propagation of the discharge (ISO 748 / ISO 25377 style budget)
 
-SOURCES = ("water_level", "gcp_pixels", "gcp_distances", "velocity_index", "velocity_sampling",
-           "filled_subsections", "cross_section")
+SOURCES = (
+    "water_level",
+    "gcp_pixels",
+    "gcp_distances",
+    "velocity_index",
+    "velocity_sampling",
+    "filled_subsections",
+    "cross_section",
+)
 #: the rule-of-thumb velocity index (0.8 / 0.9 from the mean depth) is uncertain by this 1-sigma; measured
 #: indices on natural rivers span about 0.75 to 0.95 (Le Coz et al. 2010; Hauet et al. 2018)
 ALPHA_SIGMA_DEFAULT = 0.05
@@ -126,10 +132,15 @@ class McResult:
 
     def to_dict(self) -> dict:
         """The ``uncertainty`` key of result.json."""
-        return {"method": "monte_carlo", "n_draws": int(self.n_draws),
-                "ci95_m3s": ([float(self.ci95_m3s[0]), float(self.ci95_m3s[1])]
-                             if np.all(np.isfinite(self.ci95_m3s)) else None),
-                "relative_u95": _finite_or_none(self.relative_u95), "budget": self.budget}
+        return {
+            "method": "monte_carlo",
+            "n_draws": int(self.n_draws),
+            "ci95_m3s": (
+                [float(self.ci95_m3s[0]), float(self.ci95_m3s[1])] if np.all(np.isfinite(self.ci95_m3s)) else None
+            ),
+            "relative_u95": _finite_or_none(self.relative_u95),
+            "budget": self.budget,
+        }
 
 
 def _finite_or_none(x: float) -> float | None:
@@ -154,7 +165,7 @@ class _Draw:
             t = self.theta0.copy()
             t[k] += h
             try:
-                Hk = _norm_h(m.mapping_fn(t[:self.n_px].reshape(-1, 2), t[self.n_px:self.n_px + self.n_ref], t[-1]))
+                Hk = _norm_h(m.mapping_fn(t[: self.n_px].reshape(-1, 2), t[self.n_px : self.n_px + self.n_ref], t[-1]))
             except Exception:  # noqa: BLE001 - a degenerate neighbour: that parameter does not move H
                 continue
             J[:, k] = (Hk - H0).ravel() / h
@@ -290,16 +301,21 @@ def _norm_h(H: np.ndarray) -> np.ndarray:
 
 
 def _active_sources(sig: McSigmas, model: McModel, drawer: _Draw) -> list[str]:
-    on = {"water_level": sig.level_m > 0, "gcp_pixels": sig.gcp_px > 0 and drawer.n_px > 0,
-          "gcp_distances": sig.gcp_ref_m > 0 and drawer.n_ref > 0, "velocity_index": sig.alpha > 0,
-          "velocity_sampling": bool(sig.sampling) or sig.piv_rel > 0 or model.underread_max > 0,
-          "filled_subsections": sig.filled_rel > 0 or (model.suspect is not None and bool(np.any(model.suspect))),
-          "cross_section": sig.bed_m > 0}
+    on = {
+        "water_level": sig.level_m > 0,
+        "gcp_pixels": sig.gcp_px > 0 and drawer.n_px > 0,
+        "gcp_distances": sig.gcp_ref_m > 0 and drawer.n_ref > 0,
+        "velocity_index": sig.alpha > 0,
+        "velocity_sampling": bool(sig.sampling) or sig.piv_rel > 0 or model.underread_max > 0,
+        "filled_subsections": sig.filled_rel > 0 or (model.suspect is not None and bool(np.any(model.suspect))),
+        "cross_section": sig.bed_m > 0,
+    }
     return [s for s in SOURCES if on[s]]
 
 
-def monte_carlo_discharge(model: McModel, sigmas: McSigmas, discharge_m3s: float, n_draws: int = 400,
-                          n_draws_source: int = 100, seed: int = 0) -> McResult:
+def monte_carlo_discharge(
+    model: McModel, sigmas: McSigmas, discharge_m3s: float, n_draws: int = 400, n_draws_source: int = 100, seed: int = 0
+) -> McResult:
     """95 % interval of the discharge and each source's share, by Monte Carlo.
 
     Every draw perturbs the run's inputs with their 1-sigma (``sigmas``) and recomputes the section

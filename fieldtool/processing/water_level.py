@@ -159,14 +159,27 @@ def width_solutions(cs: CrossSection, width_m: float) -> tuple[list[dict], list[
                 outer = i == 0 and j == n - 1
                 if abs(b) < FLAT_SLOPE:
                     zm = 0.5 * (p.z_lo + p.z_hi)
-                    flats.append({"from_m": p.z_lo, "to_m": p.z_hi, "outer": outer,
-                                  "left_m": p.left[i][0] + p.left[i][1] * zm, "right_m": p.right[j][0] + p.right[j][1] * zm})
+                    flats.append(
+                        {
+                            "from_m": p.z_lo,
+                            "to_m": p.z_hi,
+                            "outer": outer,
+                            "left_m": p.left[i][0] + p.left[i][1] * zm,
+                            "right_m": p.right[j][0] + p.right[j][1] * zm,
+                        }
+                    )
                     continue
                 zs = float(np.clip((width_m - a) / b, p.z_lo, p.z_hi))
                 if zs <= cs.bed_min:
                     continue
-                sols.append({"level_m": zs, "left_m": float(p.left[i][0] + p.left[i][1] * zs),
-                             "right_m": float(p.right[j][0] + p.right[j][1] * zs), "outer": outer})
+                sols.append(
+                    {
+                        "level_m": zs,
+                        "left_m": float(p.left[i][0] + p.left[i][1] * zs),
+                        "right_m": float(p.right[j][0] + p.right[j][1] * zs),
+                        "outer": outer,
+                    }
+                )
     # the same solution found at the shared end of two pieces counts once
     sols.sort(key=lambda d: (d["level_m"], d["left_m"]))
     merged: list[dict] = []
@@ -203,41 +216,55 @@ def level_from_width(cs: CrossSection, width_m: float) -> float:
     pieces = _pieces(cs)
     top = _top_level(cs)
     w_min, w_max = _width_range(cs)
-    walls = (" This section has vertical walls (rectangular): the width does not tell the level there; "
-             "type the level (water_level.method = value) or use the DEM method.") if _section_has_flat_walls(pieces) else ""
+    walls = (
+        (
+            " This section has vertical walls (rectangular): the width does not tell the level there; "
+            "type the level (water_level.method = value) or use the DEM method."
+        )
+        if _section_has_flat_walls(pieces)
+        else ""
+    )
     if width_m > w_max + 1e-9:
         raise GeometryError(
             f"water width {width_m:.3f} m is wider than the banks: at the lower bank top ({top:.3f} m) the "
             f"water is only {w_max:.3f} m wide. Check the width (edges picked on the banks?) or extend the "
-            f"cross-section survey.{walls}")
+            f"cross-section survey.{walls}"
+        )
     sols, flats = width_solutions(cs, width_m)
     if flats:
         lo, hi = min(f["from_m"] for f in flats), max(f["to_m"] for f in flats)
         raise GeometryError(
             f"water width {width_m:.3f} m: every level from {lo:.3f} m to {hi:.3f} m gives this width "
             "(flat-bottomed or vertical-walled, rectangular part of the section), so the width cannot give "
-            "the level. Type the level (water_level.method = value) or use the DEM method.")
+            "the level. Type the level (water_level.method = value) or use the DEM method."
+        )
     if not sols:
         if width_m < w_min:
             raise GeometryError(
                 f"water width {width_m:.3f} m is narrower than the narrowest water surface of this section "
-                f"({w_min:.3f} m, just above the lowest bed point {cs.bed_min:.3f} m). Check the width.{walls}")
+                f"({w_min:.3f} m, just above the lowest bed point {cs.bed_min:.3f} m). Check the width.{walls}"
+            )
         raise GeometryError(
             f"water width {width_m:.3f} m: no level gives exactly this width (the water surface jumps past it "
-            "when a separate hollow of the section fills). Check the width or type the level.")
+            "when a separate hollow of the section fills). Check the width or type the level."
+        )
     if len(sols) > 1:
         listed = "; ".join(
             f"{d['level_m']:.3f} m (edges at stations {d['left_m']:.2f} and {d['right_m']:.2f} m"
-            f"{'' if d['outer'] else ', one channel only'})" for d in sols)
+            f"{'' if d['outer'] else ', one channel only'})"
+            for d in sols
+        )
         raise GeometryError(
             f"water width {width_m:.3f} m matches {len(sols)} levels: {listed}. "
-            "Type the right one as water_level.value_m with method = value.")
+            "Type the right one as water_level.value_m with method = value."
+        )
     if not sols[0]["outer"]:
         d = sols[0]
         raise GeometryError(
             f"water width {width_m:.3f} m matches only the width of one channel, at level {d['level_m']:.3f} m "
             f"(edges at stations {d['left_m']:.2f} and {d['right_m']:.2f} m), not the whole water surface. "
-            "If those are the edges you picked, type that level (method = value).")
+            "If those are the edges you picked, type that level (method = value)."
+        )
     return sols[0]["level_m"]
 
 
@@ -255,7 +282,9 @@ def width_slope(cs: CrossSection, level_m: float) -> float:
         if p.z_lo - 1e-9 <= level_m <= p.z_hi + 1e-9:
             slopes.append(_span_slope(p))
     if not slopes:
-        raise GeometryError(f"water level {level_m:.3f} m is outside the section ({cs.bed_min:.3f} to {_top_level(cs):.3f} m)")
+        raise GeometryError(
+            f"water level {level_m:.3f} m is outside the section ({cs.bed_min:.3f} to {_top_level(cs):.3f} m)"
+        )
     return float(np.mean(slopes))
 
 
@@ -265,7 +294,8 @@ def level_uncertainty_from_width(cs: CrossSection, level_m: float, width_sigma_m
     if k < FLAT_SLOPE:
         raise GeometryError(
             f"at level {level_m:.3f} m the width hardly changes with the level (vertical walls): "
-            "the width cannot give the level; type it (method = value)")
+            "the width cannot give the level; type it (method = value)"
+        )
     return float(width_sigma_m / k)
 
 
@@ -273,8 +303,13 @@ def _from_width(cs: CrossSection, width_m: float, width_sigma_m: float, method: 
     level = level_from_width(cs, width_m)
     sigma = level_uncertainty_from_width(cs, level, width_sigma_m)
     left, right = cs.water_edges(level)
-    details = {**details, "measured_width_m": float(width_m), "width_uncertainty_m": float(width_sigma_m),
-               "water_edges_m": [left, right], "dwidth_dlevel": width_slope(cs, level)}
+    details = {
+        **details,
+        "measured_width_m": float(width_m),
+        "width_uncertainty_m": float(width_sigma_m),
+        "water_edges_m": [left, right],
+        "dwidth_dlevel": width_slope(cs, level),
+    }
     return LevelResult(float(level), float(right - left), sigma, method, details)
 
 
@@ -309,23 +344,35 @@ def read_dem(path: Path) -> np.ndarray:
     rasterio = _rasterio()
     NotGeoreferencedWarning, RasterioIOError = rasterio.errors.NotGeoreferencedWarning, rasterio.errors.RasterioIOError
     if not path.is_file():
-        raise InputFileError(f"{path}: DEM file not found (water_level.dem_path); give a raster of elevations in metres")
+        raise InputFileError(
+            f"{path}: DEM file not found (water_level.dem_path); give a raster of elevations in metres"
+        )
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", NotGeoreferencedWarning)
             with rasterio.open(path) as ds:
                 if ds.width * ds.height > MAX_DEM_CELLS:
-                    raise InputFileError(f"{path}: the DEM header says {ds.width}x{ds.height} cells, more than "
-                                         f"{MAX_DEM_CELLS:,}; crop it to the bank near the section")
+                    raise InputFileError(
+                        f"{path}: the DEM header says {ds.width}x{ds.height} cells, more than "
+                        f"{MAX_DEM_CELLS:,}; crop it to the bank near the section"
+                    )
                 arr = ds.read(1, masked=True).astype(float).filled(np.nan)
     except RasterioIOError as e:
-        raise InputFileError(f"{path}: cannot read this DEM as a raster ({e}); export it as a GeoTIFF of elevations") from e
+        raise InputFileError(
+            f"{path}: cannot read this DEM as a raster ({e}); export it as a GeoTIFF of elevations"
+        ) from e
     arr[~np.isfinite(arr)] = np.nan
     return arr
 
 
-def dem_profile(dem: np.ndarray, x_m: list[float], y_m: list[float], precision_mm: float | None,
-                cs: CrossSection, section_y_m: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+def dem_profile(
+    dem: np.ndarray,
+    x_m: list[float],
+    y_m: list[float],
+    precision_mm: float | None,
+    cs: CrossSection,
+    section_y_m: float | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
     """DEM elevations (m) along the cross-section, at the DEM pixel centres inside the section.
 
     Columns run from ``x_m[0]`` to ``x_m[1]`` (x across the river, the station axis), rows from
@@ -333,8 +380,10 @@ def dem_profile(dem: np.ndarray, x_m: list[float], y_m: list[float], precision_m
     median of all rows (vegetation and noise along the shore average out). Returns ``(station, dem)``.
     """
     if len(x_m) != 2 or len(y_m) != 2 or not x_m[1] > x_m[0] or not y_m[1] > y_m[0]:
-        raise ParameterError("water_level.dem_x_m / dem_y_m: give [min, max] in metres for x (across the river, "
-                             "the cross-section's station) and y (along the shore), min < max")
+        raise ParameterError(
+            "water_level.dem_x_m / dem_y_m: give [min, max] in metres for x (across the river, "
+            "the cross-section's station) and y (along the shore), min < max"
+        )
     rows, cols = dem.shape
     dx = (x_m[1] - x_m[0]) / cols
     if precision_mm is not None:
@@ -344,7 +393,8 @@ def dem_profile(dem: np.ndarray, x_m: list[float], y_m: list[float], precision_m
             raise ParameterError(
                 f"water_level.dem_precision_mm = {precision_mm:g} mm/pixel does not match the DEM: its x domain "
                 f"{x_m[1] - x_m[0]:g} m over {cols} columns is {dx * 1000:.3g} mm/pixel. "
-                "Check the domain or the precision.")
+                "Check the domain or the precision."
+            )
     xs = x_m[0] + (np.arange(cols) + 0.5) * dx
     if section_y_m is not None:
         dy = (y_m[1] - y_m[0]) / rows
@@ -359,7 +409,8 @@ def dem_profile(dem: np.ndarray, x_m: list[float], y_m: list[float], precision_m
     if keep.sum() < 5:
         raise GeometryError(
             f"the DEM x domain {x_m} m hardly overlaps the cross-section (stations {cs.station[0]:g} to "
-            f"{cs.station[-1]:g} m) or has no data there; x must be in the section's station axis")
+            f"{cs.station[-1]:g} m) or has no data there; x must be in the section's station axis"
+        )
     return xs[keep], prof[keep]
 
 
@@ -382,13 +433,23 @@ def hellebaut_divergence(station: np.ndarray, dem: np.ndarray, bed: np.ndarray, 
         station, dem, bed, d = station[keep], dem[keep], bed[keep], d[keep]
     minima = _argrelextrema(d, np.less)[0]
     if len(minima) == 0:
-        raise GeometryError("DEM method: D(x) = |DEM - bed| has no local minimum over the compared stretch; "
-                            "give the divergence point as water_level.divergence_station_m")
+        raise GeometryError(
+            "DEM method: D(x) = |DEM - bed| has no local minimum over the compared stretch; "
+            "give the divergence point as water_level.divergence_station_m"
+        )
     threshold = float(np.mean(d[minima]))
     walk = minima[::-1] if bank == "left" else minima  # from the river towards the bank
     chosen = int(next(i for i in walk if d[i] <= threshold))
-    return {"station_m": station, "d_m": d, "dem_m": dem, "bed_m": bed, "bank": bank, "minima_idx": minima,
-            "threshold_m": threshold, "index": chosen}
+    return {
+        "station_m": station,
+        "d_m": d,
+        "dem_m": dem,
+        "bed_m": bed,
+        "bank": bank,
+        "minima_idx": minima,
+        "threshold_m": threshold,
+        "index": chosen,
+    }
 
 
 def _dem_level(cfg: WaterLevelCfg, cs: CrossSection, root: Path) -> LevelResult:
@@ -402,8 +463,10 @@ def _dem_level(cfg: WaterLevelCfg, cs: CrossSection, root: Path) -> LevelResult:
     s_auto = float(auto["station_m"][auto["index"]])
     s_div = s_auto if cfg.divergence_station_m is None else float(cfg.divergence_station_m)
     if not cs.station[0] <= s_div <= cs.station[-1]:
-        raise ParameterError(f"water_level.divergence_station_m = {s_div:g} m is outside the cross-section "
-                             f"({cs.station[0]:g} to {cs.station[-1]:g} m)")
+        raise ParameterError(
+            f"water_level.divergence_station_m = {s_div:g} m is outside the cross-section "
+            f"({cs.station[0]:g} to {cs.station[-1]:g} m)"
+        )
     level = float(np.interp(s_div, cs.station, cs.elevation))
     cs.check_level(level)
     # resolution of the method: water shallower than the threshold is not told apart from bank; and
@@ -417,23 +480,38 @@ def _dem_level(cfg: WaterLevelCfg, cs: CrossSection, root: Path) -> LevelResult:
     span = (float(np.max(np.abs(mins_st[bank_like] - s_div))) if bank_like.any() else 0.0) + spacing
     sigma_station = max(pixel, span / np.sqrt(3))
     h = max(pixel, 1e-3)
-    slope = abs(np.interp(s_div + h, cs.station, cs.elevation) - np.interp(s_div - h, cs.station, cs.elevation)) / (2 * h)
+    slope = abs(np.interp(s_div + h, cs.station, cs.elevation) - np.interp(s_div - h, cs.station, cs.elevation)) / (
+        2 * h
+    )
     sigma = float(np.hypot(auto["threshold_m"], slope * sigma_station))
     left, right = cs.water_edges(level)
     k = abs(width_slope(cs, level))
     mins = auto["minima_idx"]
     profile = {
-        "station_m": np.round(auto["station_m"], 4).tolist(), "dem_m": np.round(auto["dem_m"], 4).tolist(),
-        "bed_m": np.round(auto["bed_m"], 4).tolist(), "d_m": np.round(auto["d_m"], 4).tolist(),
+        "station_m": np.round(auto["station_m"], 4).tolist(),
+        "dem_m": np.round(auto["dem_m"], 4).tolist(),
+        "bed_m": np.round(auto["bed_m"], 4).tolist(),
+        "d_m": np.round(auto["d_m"], 4).tolist(),
         "minima_station_m": np.round(auto["station_m"][mins], 4).tolist(),
         "minima_d_m": np.round(auto["d_m"][mins], 4).tolist(),
-        "threshold_m": auto["threshold_m"], "auto_station_m": s_auto, "divergence_station_m": s_div,
+        "threshold_m": auto["threshold_m"],
+        "auto_station_m": s_auto,
+        "divergence_station_m": s_div,
     }
-    details = {"bank": auto["bank"], "divergence_station_m": s_div, "auto_divergence_station_m": s_auto,
-               "overridden": cfg.divergence_station_m is not None, "threshold_m": auto["threshold_m"],
-               "n_minima": int(len(mins)), "dem_pixel_m": pixel, "station_uncertainty_m": sigma_station,
-               "dem_at_divergence_m": float(np.interp(s_div, auto["station_m"], auto["dem_m"])),
-               "water_edges_m": [left, right], "width_uncertainty_m": float(sigma * k), "dem_profile": profile}
+    details = {
+        "bank": auto["bank"],
+        "divergence_station_m": s_div,
+        "auto_divergence_station_m": s_auto,
+        "overridden": cfg.divergence_station_m is not None,
+        "threshold_m": auto["threshold_m"],
+        "n_minima": int(len(mins)),
+        "dem_pixel_m": pixel,
+        "station_uncertainty_m": sigma_station,
+        "dem_at_divergence_m": float(np.interp(s_div, auto["station_m"], auto["dem_m"])),
+        "water_edges_m": [left, right],
+        "width_uncertainty_m": float(sigma * k),
+        "dem_profile": profile,
+    }
     return LevelResult(level, float(right - left), sigma, "dem", details)
 
 
@@ -480,8 +558,14 @@ def _image_angles(edges: np.ndarray, shape: tuple[int, int], fov_rad: np.ndarray
     f = (n_px / 2) / np.tan(fov / 2)
     u = (edges - c) @ d
     theta = np.arctan(u / f)
-    return {"alpha": float(theta[1] - theta[0]), "shift": float((c - edges.mean(axis=0)) @ d / lpx),
-            "axis": axis, "angle_deg": angle, "length_px": lpx, "f_px": float(f)}
+    return {
+        "alpha": float(theta[1] - theta[0]),
+        "shift": float((c - edges.mean(axis=0)) @ d / lpx),
+        "axis": axis,
+        "angle_deg": angle,
+        "length_px": lpx,
+        "f_px": float(f),
+    }
 
 
 def centred_solution(alpha_low: float, alpha_high: float, dh_m: float) -> tuple[float, float]:
@@ -492,7 +576,8 @@ def centred_solution(alpha_low: float, alpha_high: float, dh_m: float) -> tuple[
         raise GeometryError(
             "angle and height: the water must look narrower in the higher image (image2) than in the lower one "
             f"(image1); got {np.degrees(alpha_low):.2f} deg low vs {np.degrees(alpha_high):.2f} deg high. "
-            "Check that image1 is the lower one and the edges are picked on both.")
+            "Check that image1 is the lower one and the edges are picked on both."
+        )
     H = dh_m * t_high / (t_low - t_high)
     return float(2 * H * t_low), float(H)
 
@@ -503,7 +588,9 @@ def _subtended(h: float, L: float, shift: float) -> float:
     return float(np.pi - np.arctan2(h, L / 2 - dx) - np.arctan2(h, L / 2 + dx))
 
 
-def offcentre_solution(alpha_low: float, alpha_high: float, dh_m: float, shift: float, guess: tuple[float, float]) -> tuple[float, float]:
+def offcentre_solution(
+    alpha_low: float, alpha_high: float, dh_m: float, shift: float, guess: tuple[float, float]
+) -> tuple[float, float]:
     """Width L and lower height H (m) for a camera shifted by ``shift * L`` from the river centre
     (thesis figure 5.6), solved numerically from ``guess``. Raises GeometryError if it fails."""
 
@@ -512,14 +599,27 @@ def offcentre_solution(alpha_low: float, alpha_high: float, dh_m: float, shift: 
         return np.array([_subtended(H, L, shift) - alpha_low, _subtended(H + dh_m, L, shift) - alpha_high])
 
     from scipy.optimize import least_squares  # lazy: scipy.optimize costs 0.2-0.5 s; only angle_height
-    sol = least_squares(res, np.asarray(guess, float), bounds=([1e-6, 1e-6], [np.inf, np.inf]), xtol=1e-14, ftol=1e-14, gtol=1e-14)
+
+    sol = least_squares(
+        res, np.asarray(guess, float), bounds=([1e-6, 1e-6], [np.inf, np.inf]), xtol=1e-14, ftol=1e-14, gtol=1e-14
+    )
     if not sol.success or np.max(np.abs(sol.fun)) > 1e-9:
         raise GeometryError(f"off-centre solution did not converge (residual {np.max(np.abs(sol.fun)):.2e} rad)")
     return float(sol.x[0]), float(sol.x[1])
 
 
-def angle_height_width(edges1_px, edges2_px, shape1: tuple[int, int], shape2: tuple[int, int], dh_m: float | None,
-                       fov_deg, *, dh_sigma_m: float = 0.05, pixel_sigma_px: float = 2.0, fov_sigma_deg: float = 0.5) -> dict:
+def angle_height_width(
+    edges1_px,
+    edges2_px,
+    shape1: tuple[int, int],
+    shape2: tuple[int, int],
+    dh_m: float | None,
+    fov_deg,
+    *,
+    dh_sigma_m: float = 0.05,
+    pixel_sigma_px: float = 2.0,
+    fov_sigma_deg: float = 0.5,
+) -> dict:
     """Wetted width (m) from two nadir images at heights H (image 1) and H + dh (image 2), thesis 5.2.1.
 
     Returns ``width_m, width_sigma_m, H_m, solution ("off-centre" | "centred"), ...``. The 1-sigma of
@@ -576,12 +676,20 @@ def angle_height_width(edges1_px, edges2_px, shape1: tuple[int, int], shape2: tu
     dLdH, dLda = 2 * np.tan(alpha / 2), H / np.cos(alpha / 2) ** 2
     thesis = np.sqrt(max(dLdH**2 * sH**2 + dLda**2 * sa**2 + 2 * dLdH * dLda * covHa, 0.0))
     return {
-        "width_m": L, "width_sigma_m": float(sL), "H_m": H, "solution": mode,
-        "centred_width_m": Lc, "centred_H_m": Hc, "relative_shift": 0.5 * (abs(a1["shift"]) + abs(a2["shift"])),
-        "alpha1_deg": float(np.degrees(abs(a1["alpha"]))), "alpha2_deg": float(np.degrees(abs(a2["alpha"]))),
-        "fov_axis": [a1["axis"], a2["axis"]], "section_angle_deg": [a1["angle_deg"], a2["angle_deg"]],
+        "width_m": L,
+        "width_sigma_m": float(sL),
+        "H_m": H,
+        "solution": mode,
+        "centred_width_m": Lc,
+        "centred_H_m": Hc,
+        "relative_shift": 0.5 * (abs(a1["shift"]) + abs(a2["shift"])),
+        "alpha1_deg": float(np.degrees(abs(a1["alpha"]))),
+        "alpha2_deg": float(np.degrees(abs(a2["alpha"]))),
+        "fov_axis": [a1["axis"], a2["axis"]],
+        "section_angle_deg": [a1["angle_deg"], a2["angle_deg"]],
         "length_px": [a1["length_px"], a2["length_px"]],
-        "sigma_H_m": float(sH), "sigma_alpha_deg": float(np.degrees(sa)),
+        "sigma_H_m": float(sH),
+        "sigma_alpha_deg": float(np.degrees(sa)),
         "corr_H_alpha": float(covHa / (sH * sa)) if sH > 0 and sa > 0 else 0.0,
         "thesis_width_sigma_m": float(thesis),
     }
@@ -605,8 +713,12 @@ def _resolve(root: Path, rel: str) -> Path:
 # image method
 
 
-def image_width(edges_px, mapping: OrthoMapping, pixel_sigma_px: float,
-                points_transform: Callable[[np.ndarray], np.ndarray] | None = None) -> tuple[float, float, np.ndarray]:
+def image_width(
+    edges_px,
+    mapping: OrthoMapping,
+    pixel_sigma_px: float,
+    points_transform: Callable[[np.ndarray], np.ndarray] | None = None,
+) -> tuple[float, float, np.ndarray]:
     """Width (m) between two water edges picked on the raw frame, its 1-sigma (m), and the edges on
     the water plane (2, 2) m. The sigma combines ``pixel_sigma_px`` on each edge (through the
     mapping's Jacobian) and the mapping's own RMS residual (m)."""
@@ -631,12 +743,18 @@ def image_width(edges_px, mapping: OrthoMapping, pixel_sigma_px: float,
 # dispatch
 
 
-def compute_level(cfg: WaterLevelCfg, cs: CrossSection, *, root: Path, mapping: OrthoMapping | None = None,
-                  fov_deg: tuple[float, float, float] | None = None,
-                  points_transform: Callable[[np.ndarray], np.ndarray] | None = None,
-                  image_undistort: Callable[[np.ndarray, tuple[int, int]], np.ndarray] | None = None,
-                  detected: dict | None = None,
-                  station_of: Callable[[np.ndarray], np.ndarray] | None = None) -> LevelResult:
+def compute_level(
+    cfg: WaterLevelCfg,
+    cs: CrossSection,
+    *,
+    root: Path,
+    mapping: OrthoMapping | None = None,
+    fov_deg: tuple[float, float, float] | None = None,
+    points_transform: Callable[[np.ndarray], np.ndarray] | None = None,
+    image_undistort: Callable[[np.ndarray, tuple[int, int]], np.ndarray] | None = None,
+    detected: dict | None = None,
+    station_of: Callable[[np.ndarray], np.ndarray] | None = None,
+) -> LevelResult:
     """Water level by ``cfg.method`` (see module docstring).
 
     Parameters
@@ -667,35 +785,55 @@ def compute_level(cfg: WaterLevelCfg, cs: CrossSection, *, root: Path, mapping: 
             raise ParameterError("water_level.uncertainty_m: must be zero or a positive number of metres")
         left, right = cs.water_edges(cfg.value_m)
         k = abs(width_slope(cs, cfg.value_m))
-        details = {"uncertainty_source": "default 0.01 m (water_level.uncertainty_m not given)" if cfg.uncertainty_m is None
-                   else "water_level.uncertainty_m", "water_edges_m": [left, right], "width_uncertainty_m": sigma * k}
+        details = {
+            "uncertainty_source": "default 0.01 m (water_level.uncertainty_m not given)"
+            if cfg.uncertainty_m is None
+            else "water_level.uncertainty_m",
+            "water_edges_m": [left, right],
+            "width_uncertainty_m": sigma * k,
+        }
         return LevelResult(float(cfg.value_m), float(right - left), sigma, "value", details)
     if m == "width":
         if cfg.width_m is None:
             raise ParameterError("water_level.width_m: give the measured wetted width (m) for method = width")
         sw = DEFAULT_WIDTH_SIGMA_M if cfg.width_uncertainty_m is None else float(cfg.width_uncertainty_m)
-        src = ("default 0.02 m (water_level.width_uncertainty_m not given)" if cfg.width_uncertainty_m is None
-               else "water_level.width_uncertainty_m")
+        src = (
+            "default 0.02 m (water_level.width_uncertainty_m not given)"
+            if cfg.width_uncertainty_m is None
+            else "water_level.width_uncertainty_m"
+        )
         return _from_width(cs, float(cfg.width_m), sw, "width", {"uncertainty_source": src})
     if m == "dem":
         return _dem_level(cfg, cs, root)
     if m == "angle_height":
         if not cfg.image1 or not cfg.image2:
-            raise ParameterError("water_level.image1 / image2: give the nadir images taken at the lower (image1) "
-                                 "and the higher (image2) height")
+            raise ParameterError(
+                "water_level.image1 / image2: give the nadir images taken at the lower (image1) "
+                "and the higher (image2) height"
+            )
         fov = fov_deg if fov_deg is not None else (cfg.fov_deg or None)
         if fov is None:
-            raise ParameterError("angle and height needs the camera's field of view: run the lens calibration "
-                                 "(calibration.path) or give water_level.fov_deg = [x, y, diagonal] in degrees")
+            raise ParameterError(
+                "angle and height needs the camera's field of view: run the lens calibration "
+                "(calibration.path) or give water_level.fov_deg = [x, y, diagonal] in degrees"
+            )
         shape1 = _read_shape(_resolve(root, cfg.image1), "water_level.image1")
         shape2 = _read_shape(_resolve(root, cfg.image2), "water_level.image2")
         e1: list | np.ndarray = cfg.edges1_px  # picked points, undistorted into an array when the lens is known
         e2: list | np.ndarray = cfg.edges2_px
         if image_undistort is not None and np.shape(e1) == (2, 2) and np.shape(e2) == (2, 2):
             e1, e2 = image_undistort(np.asarray(e1, float), shape1), image_undistort(np.asarray(e2, float), shape2)
-        r = angle_height_width(e1, e2, shape1, shape2, cfg.dh_m, fov,
-                               dh_sigma_m=cfg.dh_uncertainty_m, pixel_sigma_px=cfg.pixel_uncertainty_px,
-                               fov_sigma_deg=cfg.fov_uncertainty_deg)
+        r = angle_height_width(
+            e1,
+            e2,
+            shape1,
+            shape2,
+            cfg.dh_m,
+            fov,
+            dh_sigma_m=cfg.dh_uncertainty_m,
+            pixel_sigma_px=cfg.pixel_uncertainty_px,
+            fov_sigma_deg=cfg.fov_uncertainty_deg,
+        )
         r["fov_source"] = "calibration" if fov_deg is not None else "water_level.fov_deg"
         r["edges_undistorted"] = image_undistort is not None
         return _from_width(cs, r["width_m"], r["width_sigma_m"], "angle_height", r)
@@ -703,7 +841,9 @@ def compute_level(cfg: WaterLevelCfg, cs: CrossSection, *, root: Path, mapping: 
         if mapping is None:
             raise ParameterError("water_level.method = image needs the orthorectification (ortho.* GCPs) first")
         w, sw, world = image_width(cfg.edges_px, mapping, cfg.pixel_uncertainty_px, points_transform)
-        return _from_width(cs, w, sw, "image", {"edges_world_m": world.tolist(), "mapping_residual_m": float(mapping.residual_m)})
+        return _from_width(
+            cs, w, sw, "image", {"edges_world_m": world.tolist(), "mapping_residual_m": float(mapping.residual_m)}
+        )
     if m == "waterline":
         if mapping is None or detected is None:
             raise ParameterError("water_level.method = waterline needs the orthorectification and the clip")
@@ -721,16 +861,24 @@ WATERLINE_WEAK_CONTRAST = 6.0  # water less than this many times as active as th
 # synthetic scenes give 17-35; wind-blown grass on the Geul clip gives 3.6-4.8 and puts edges in the grass)
 WATERLINE_EDGES_K = 3.0  # with section.station_offset_m: the two edges' bank levels differ by more than this times
 WATERLINE_EDGES_MIN_M = 0.03  # their combined 1-sigma and this (m): doubtful
-REFUSE_FIX = ("type the level (water_level.method = value, water_level.value_m) or pick the two water edges on the "
-              "frame (water_level.method = image)")
+REFUSE_FIX = (
+    "type the level (water_level.method = value, water_level.value_m) or pick the two water edges on the "
+    "frame (water_level.method = image)"
+)
 
 
 def _refuse(why: str) -> GeometryError:
-    return GeometryError(f"water_level.method = waterline: could not find the water line reliably ({why}); {REFUSE_FIX}")
+    return GeometryError(
+        f"water_level.method = waterline: could not find the water line reliably ({why}); {REFUSE_FIX}"
+    )
 
 
-def waterline_level(cs: CrossSection, mapping: OrthoMapping, detected: dict,
-                    station_of: Callable[[np.ndarray], np.ndarray] | None = None) -> LevelResult:
+def waterline_level(
+    cs: CrossSection,
+    mapping: OrthoMapping,
+    detected: dict,
+    station_of: Callable[[np.ndarray], np.ndarray] | None = None,
+) -> LevelResult:
     """Level from the water edges found along several parallel search lines
     (:func:`processing.waterline.detect_water_edges`).
 
@@ -767,9 +915,17 @@ def waterline_level(cs: CrossSection, mapping: OrthoMapping, detected: dict,
             item["error"] = str(e)
             per.append(item)
             continue
-        item.update(level_m=r.level_m, uncertainty_m=r.uncertainty_m, width_m=w, width_sigma_m=sw,
-                    edges_px=np.asarray(ln["edges_px"]).tolist(), edge_sigma_px=np.asarray(ln["sigma_px"]).tolist(),
-                    edges_world_m=world.tolist(), contrast=ln["contrast"], still_water_px=ln["still_water_px"])
+        item.update(
+            level_m=r.level_m,
+            uncertainty_m=r.uncertainty_m,
+            width_m=w,
+            width_sigma_m=sw,
+            edges_px=np.asarray(ln["edges_px"]).tolist(),
+            edge_sigma_px=np.asarray(ln["sigma_px"]).tolist(),
+            edges_world_m=world.tolist(),
+            contrast=ln["contrast"],
+            still_water_px=ln["still_water_px"],
+        )
         per.append(item)
     ok = [p for p in per if "level_m" in p]
     centre = per[0]
@@ -782,23 +938,43 @@ def waterline_level(cs: CrossSection, mapping: OrthoMapping, detected: dict,
     zm = float(np.median(z))
     spread = float(np.std(z, ddof=1)) if len(z) > 1 else 0.0
     if spread > WATERLINE_REFUSE_M:
-        raise _refuse(f"the levels of {len(ok)} parallel search lines scatter by {100 * spread:.1f} cm (sd), more "
-                      f"than {100 * WATERLINE_REFUSE_M:g} cm: the edges are not where the water ends on some of them")
+        raise _refuse(
+            f"the levels of {len(ok)} parallel search lines scatter by {100 * spread:.1f} cm (sd), more "
+            f"than {100 * WATERLINE_REFUSE_M:g} cm: the edges are not where the water ends on some of them"
+        )
     doubts = []
     if spread > WATERLINE_DOUBT_M:
-        doubts.append({"code": "waterline_scatter", "value": spread, "threshold": WATERLINE_DOUBT_M,
-                       "message": f"the water line's parallel search lines give levels {100 * spread:.1f} cm apart "
-                                  f"(sd, over {100 * WATERLINE_DOUBT_M:g} cm); its uncertainty includes that scatter"})
+        doubts.append(
+            {
+                "code": "waterline_scatter",
+                "value": spread,
+                "threshold": WATERLINE_DOUBT_M,
+                "message": f"the water line's parallel search lines give levels {100 * spread:.1f} cm apart "
+                f"(sd, over {100 * WATERLINE_DOUBT_M:g} cm); its uncertainty includes that scatter",
+            }
+        )
     contrast = float(np.median([p["contrast"] for p in ok]))
     if contrast < WATERLINE_WEAK_CONTRAST:
-        doubts.append({"code": "waterline_weak_contrast", "value": contrast, "threshold": WATERLINE_WEAK_CONTRAST,
-                       "message": f"along the water line's search lines the water is only {contrast:.1f} times as active "
-                                  f"as the banks (under {WATERLINE_WEAK_CONTRAST:g}): moving grass or slow water may put an "
-                                  "edge on the wrong side"})
+        doubts.append(
+            {
+                "code": "waterline_weak_contrast",
+                "value": contrast,
+                "threshold": WATERLINE_WEAK_CONTRAST,
+                "message": f"along the water line's search lines the water is only {contrast:.1f} times as active "
+                f"as the banks (under {WATERLINE_WEAK_CONTRAST:g}): moving grass or slow water may put an "
+                "edge on the wrong side",
+            }
+        )
     if len(per) == 1:
-        doubts.append({"code": "waterline_unchecked", "value": None, "threshold": None,
-                       "message": "the water line was searched on one line only (water_level.search_spacing_m = 0): "
-                                  "nothing checks it"})
+        doubts.append(
+            {
+                "code": "waterline_unchecked",
+                "value": None,
+                "threshold": None,
+                "message": "the water line was searched on one line only (water_level.search_spacing_m = 0): "
+                "nothing checks it",
+            }
+        )
     k = int(np.argmin(np.abs(z - zm)))
     edge_levels = None
     if station_of is not None:
@@ -809,18 +985,39 @@ def waterline_level(cs: CrossSection, mapping: OrthoMapping, detected: dict,
         gap, tol = float(ez[1] - ez[0]), float(max(WATERLINE_EDGES_K * np.hypot(*ss), WATERLINE_EDGES_MIN_M))
         edge_levels = {"stations_m": st.tolist(), "levels_m": ez.tolist(), "difference_m": gap, "tolerance_m": tol}
         if abs(gap) > tol:
-            doubts.append({"code": "waterline_edges_disagree", "value": abs(gap), "threshold": tol,
-                           "message": "the water line's left and right edges lie on the banks at levels "
-                                      f"{100 * abs(gap):.1f} cm "
-                                      f"apart (over {100 * tol:.1f} cm): an edge is off, or section.station_offset_m is"})
+            doubts.append(
+                {
+                    "code": "waterline_edges_disagree",
+                    "value": abs(gap),
+                    "threshold": tol,
+                    "message": "the water line's left and right edges lie on the banks at levels "
+                    f"{100 * abs(gap):.1f} cm "
+                    f"apart (over {100 * tol:.1f} cm): an edge is off, or section.station_offset_m is",
+                }
+            )
     sigma = float(np.hypot(s[k], spread))
     if sigma > WATERLINE_REFUSE_M:
-        raise _refuse(f"the level it gives is uncertain by {100 * sigma:.1f} cm (1-sigma), more than "
-                      f"{100 * WATERLINE_REFUSE_M:g} cm: the edges are seen too obliquely or too blurred to give the level")
-    res = _from_width(cs, ok[k]["width_m"], ok[k]["width_sigma_m"], "waterline",
-                      {"lines": per, "n_frames": detected["n_frames"], "mapping_residual_m": float(mapping.residual_m)})
-    res.details.update(lines_found=len(ok), lines_spread_m=spread, centre_level_m=centre["level_m"],
-                       edges_px=ok[k]["edges_px"], edge_sigma_px=ok[k]["edge_sigma_px"],
-                       edges_world_m=ok[k]["edges_world_m"], search_line_px=centre["search_line_px"],
-                       contrast=ok[k]["contrast"], edge_levels=edge_levels, doubtful=doubts)
+        raise _refuse(
+            f"the level it gives is uncertain by {100 * sigma:.1f} cm (1-sigma), more than "
+            f"{100 * WATERLINE_REFUSE_M:g} cm: the edges are seen too obliquely or too blurred to give the level"
+        )
+    res = _from_width(
+        cs,
+        ok[k]["width_m"],
+        ok[k]["width_sigma_m"],
+        "waterline",
+        {"lines": per, "n_frames": detected["n_frames"], "mapping_residual_m": float(mapping.residual_m)},
+    )
+    res.details.update(
+        lines_found=len(ok),
+        lines_spread_m=spread,
+        centre_level_m=centre["level_m"],
+        edges_px=ok[k]["edges_px"],
+        edge_sigma_px=ok[k]["edge_sigma_px"],
+        edges_world_m=ok[k]["edges_world_m"],
+        search_line_px=centre["search_line_px"],
+        contrast=ok[k]["contrast"],
+        edge_levels=edge_levels,
+        doubtful=doubts,
+    )
     return LevelResult(zm, res.width_m, sigma, "waterline", res.details)

@@ -85,8 +85,9 @@ class LineActivity:
 
     def add(self, gray: np.ndarray) -> None:
         """One gray frame (H x W, 0-255)."""
-        v = cv2.remap(np.asarray(gray, np.float32), self.map_x, self.map_y, cv2.INTER_LINEAR,
-                      borderMode=cv2.BORDER_REPLICATE).astype(np.float64)
+        v = cv2.remap(
+            np.asarray(gray, np.float32), self.map_x, self.map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
+        ).astype(np.float64)
         self.n += 1
         delta = v - self.mean
         self.mean += delta / self.n
@@ -119,14 +120,15 @@ def find_edges(activity: np.ndarray, *, smooth: float = 1.0, min_contrast: float
         raise GeometryError("water line: the search line is too short")
     k = max(n // 10, 2)
     bank = np.array([np.median(a[:k]), np.median(a[-k:])])
-    water = float(np.median(a[int(0.3 * n): int(0.7 * n)]))
+    water = float(np.median(a[int(0.3 * n) : int(0.7 * n)]))
     quiet = max(float(bank.min()), 1e-6)  # the quieter end: a line whose other end is still on water says so below
     contrast = water / quiet
     if contrast < min_contrast:
         raise GeometryError(
             f"water line: could not find it; along the search line the water changes only {contrast:.1f}x more "
             f"than the banks over the clip (needed {min_contrast:g}x). Draw the line from bank to bank across "
-            "moving water, or pick the water edges by hand (water_level.method = image)")
+            "moving water, or pick the water edges by hand (water_level.method = image)"
+        )
     la = np.log(np.maximum(a, 1e-6))
     th = 0.5 * (np.log(quiet) + np.log(water))
     w = np.where(la > th, 1.0, -1.0)
@@ -141,8 +143,10 @@ def find_edges(activity: np.ndarray, *, smooth: float = 1.0, min_contrast: float
             best, i0, i1 = cur, start, i
     if i0 == 0 or i1 == n - 1:
         name = "left" if i0 == 0 else "right"
-        raise GeometryError(f"water line: the search line does not reach the {name} bank (the water is still "
-                            "moving at its end); lengthen it onto the bank")
+        raise GeometryError(
+            f"water line: the search line does not reach the {name} bank (the water is still "
+            "moving at its end); lengthen it onto the bank"
+        )
     if i1 - i0 < 0.1 * n:
         raise GeometryError("water line: the water found is a short stretch; the line may not cross the river")
     edges, sig = [], []
@@ -151,11 +155,17 @@ def find_edges(activity: np.ndarray, *, smooth: float = 1.0, min_contrast: float
         ya, yb = la[inn], la[out]
         frac = (ya - th) / (ya - yb) if ya != yb else 0.5
         edges.append(inn + float(np.clip(frac, 0.0, 1.0)) * (out - inn))
-        seg = la[max(min(inn, out) - 15, 0): max(inn, out) + 16]
+        seg = la[max(min(inn, out) - 15, 0) : max(inn, out) + 16]
         width = float(np.count_nonzero((seg > lo_q) & (seg < hi_q))) or 1.0
         sig.append(max(width / 1.35, 0.5))
-    return {"edges": np.array(edges), "sigma": np.array(sig), "contrast": float(contrast), "threshold": float(np.exp(th)),
-            "bank_activity": bank.tolist(), "water_activity": water}
+    return {
+        "edges": np.array(edges),
+        "sigma": np.array(sig),
+        "contrast": float(contrast),
+        "threshold": float(np.exp(th)),
+        "bank_activity": bank.tolist(),
+        "water_activity": water,
+    }
 
 
 def _robust(x: np.ndarray, floor: float) -> tuple[float, float]:
@@ -173,8 +183,17 @@ def _step(c: np.ndarray, b: int, w: int) -> float:
     return abs((c[b + w] - c[b]) / w - (c[b] - c[b - w]) / w)
 
 
-def settle_on_bank(mean: np.ndarray, texture: np.ndarray, activity: np.ndarray, threshold: float, edges: np.ndarray,
-                   *, run: int = 3, snap: int = 3, w: int = 3) -> dict:
+def settle_on_bank(
+    mean: np.ndarray,
+    texture: np.ndarray,
+    activity: np.ndarray,
+    threshold: float,
+    edges: np.ndarray,
+    *,
+    run: int = 3,
+    snap: int = 3,
+    w: int = 3,
+) -> dict:
     """Move each activity edge outwards over still water onto the bank, then onto the step of the mean image.
 
     Still water at a bank (the flow slows to nothing at the edge, no tracer passes) is not active, so the
@@ -196,7 +215,7 @@ def settle_on_bank(mean: np.ndarray, texture: np.ndarray, activity: np.ndarray, 
     n = len(m)
     k = max(n // 10, 2)
     i0, i1 = int(np.ceil(edges[0])), int(np.floor(edges[1]))
-    wm, ws = _robust(m[i0 + 3: max(i1 - 2, i0 + 4)], 2.0)
+    wm, ws = _robust(m[i0 + 3 : max(i1 - 2, i0 + 4)], 2.0)
     c = np.concatenate([[0.0], np.cumsum(raw)])
     out, still = np.array(edges, float), [0, 0]
     for side in (0, 1):
@@ -209,7 +228,9 @@ def settle_on_bank(mean: np.ndarray, texture: np.ndarray, activity: np.ndarray, 
             j += step
         if not 0 <= j < n:
             name = "left" if side == 0 else "right"
-            raise GeometryError(f"water line: still water reaches the {name} end of the search line; lengthen it onto the bank")
+            raise GeometryError(
+                f"water line: still water reaches the {name} end of the search line; lengthen it onto the bank"
+            )
         still[side] = abs(j - start)
         pos = j - 0.5 * step  # between the last water sample and the first bank sample
         cand = [b for b in range(int(np.floor(pos - snap)), int(np.ceil(pos + snap)) + 1) if b - w >= 0 and b + w <= n]
@@ -285,7 +306,13 @@ def detect_water_edges(frames, lines, *, half_width_px: float = 4.0, max_frames:
         p0, p1 = acc.line_px
         step = acc.length_px / (len(acc.t) - 1)
         pts = p0[None] + (s["edges"][:, None] / (len(acc.t) - 1)) * (p1 - p0)[None]
-        item.update(edges_px=pts, sigma_px=s["sigma"] * step, contrast=r["contrast"],
-                    still_water_px=[float(v * step) for v in s["still_water"]], bank_activity=r["bank_activity"], water_activity=r["water_activity"])
+        item.update(
+            edges_px=pts,
+            sigma_px=s["sigma"] * step,
+            contrast=r["contrast"],
+            still_water_px=[float(v * step) for v in s["still_water"]],
+            bank_activity=r["bank_activity"],
+            water_activity=r["water_activity"],
+        )
         out.append(item)
     return {"lines": out, "n_frames": accs[0].n}

@@ -40,7 +40,7 @@ def parse(project) -> list[SectionSpec]:
     for i, item in enumerate(project.sections or []):
         k = f"sections[{i}]"
         if not isinstance(item, dict):
-            raise ParameterError(f"{k}: expected a table like {{name = \"upstream\", points_px = [[x, y], [x, y]]}}")
+            raise ParameterError(f'{k}: expected a table like {{name = "upstream", points_px = [[x, y], [x, y]]}}')
         for name, v in item.items():
             if name not in SECTION_KEYS:
                 raise ParameterError(f"{k}.{name}: unknown key (known: {', '.join(SECTION_KEYS)})")
@@ -56,8 +56,15 @@ def parse(project) -> list[SectionSpec]:
         off = item.get("station_offset_m")
         if off is not None and (not np.isfinite(off) or abs(off) > 1e6):
             raise ParameterError(f"{k}.station_offset_m: {off} is not a plausible station offset (m)")
-        out.append(SectionSpec(i, str(item.get("name") or f"section {i + 2}"), arr.tolist(),
-                               str(item.get("cross_section", "")), None if off is None else float(off)))
+        out.append(
+            SectionSpec(
+                i,
+                str(item.get("name") or f"section {i + 2}"),
+                arr.tolist(),
+                str(item.get("cross_section", "")),
+                None if off is None else float(off),
+            )
+        )
     return out
 
 
@@ -68,5 +75,11 @@ def summarize(entries: list[dict]) -> dict | None:
     if len(q) < 2:
         return None
     mean, std = float(q.mean()), float(q.std(ddof=1))
-    return {"n": int(len(q)), "mean_m3s": mean, "std_m3s": std, "cv": std / mean if mean else None,
-            "min_m3s": float(q.min()), "max_m3s": float(q.max())}
+    return {
+        "n": int(len(q)),
+        "mean_m3s": mean,
+        "std_m3s": std,
+        "cv": std / mean if mean else None,
+        "min_m3s": float(q.min()),
+        "max_m3s": float(q.max()),
+    }

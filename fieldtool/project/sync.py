@@ -69,6 +69,7 @@ class Conflict:
     def text(self) -> str:
         def show(v):
             return "(removed)" if v is MISSING or v is None else _short(v)
+
         return f"{self.key}: another program saved {show(self.theirs)} (kept); yours was {show(self.mine)}"
 
 
@@ -125,8 +126,10 @@ def merge3(base: Any, theirs: Any, mine: Any, where: str = "") -> tuple[Any, lis
         n = max(len(b), len(t), len(m))
         items, conflicts = [], []
         for i in range(n):
+
             def at(lst, i=i):
                 return lst[i] if i < len(lst) else MISSING
+
             v, c = merge3(at(b), at(t), at(m), f"{where}[{i}]")
             conflicts += c
             items.append(v)
@@ -150,8 +153,9 @@ def changed_keys(old: Any, new: Any, where: str = "") -> list[str]:
     if _is_seq(old) and _is_seq(new):
         out = []
         for i in range(max(len(old), len(new))):
-            out += changed_keys(old[i] if i < len(old) else MISSING, new[i] if i < len(new) else MISSING,
-                                f"{where}[{i}]")
+            out += changed_keys(
+                old[i] if i < len(old) else MISSING, new[i] if i < len(new) else MISSING, f"{where}[{i}]"
+            )
         return out
     return [where]
 
@@ -241,8 +245,10 @@ def check_writable(path: Path) -> None:
     except FileNotFoundError:
         return
     if not st.st_mode & 0o222 or not os.access(path, os.W_OK):
-        raise ProjectRefused(f"{path}: the project file is read-only (mode {statmod.S_IMODE(st.st_mode):04o}); "
-                             "nothing was saved. Make it writable (chmod u+w) to save the entries")
+        raise ProjectRefused(
+            f"{path}: the project file is read-only (mode {statmod.S_IMODE(st.st_mode):04o}); "
+            "nothing was saved. Make it writable (chmod u+w) to save the entries"
+        )
     if not os.access(path.parent, os.W_OK):
         raise ProjectRefused(f"{path.parent}: the project's folder is read-only; nothing was saved")
 
@@ -276,15 +282,19 @@ def _read(path: Path) -> tuple[str | None, dict | None, Stamp | None]:
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
-        raise ProjectRefused(f"{path}: not valid TOML now ({e}; saved so by another program or by hand); "
-                             "nothing was saved here. Fix the line named (your entries are kept in this window)") from None
+        raise ProjectRefused(
+            f"{path}: not valid TOML now ({e}; saved so by another program or by hand); "
+            "nothing was saved here. Fix the line named (your entries are kept in this window)"
+        ) from None
     except RecursionError:
         raise ProjectRefused(f"{path}: values nested too deeply; nothing was saved") from None
     try:
         project_from_dict(data, path.parent)
     except ParameterError as e:
-        raise ProjectRefused(f"{path}: {e} (saved so by another program or by hand); nothing was saved "
-                             "here. Fix that key (your entries are kept in this window)") from None
+        raise ProjectRefused(
+            f"{path}: {e} (saved so by another program or by hand); nothing was saved "
+            "here. Fix that key (your entries are kept in this window)"
+        ) from None
     return text, data, (st.st_mtime_ns, st.st_size, st.st_ino)
 
 
@@ -298,7 +308,9 @@ def _uncomment(text: str, added: list[tuple[str, str]]) -> str:
     for table, k in added:
         start, end = 0, len(lines)
         if table:
-            start = next((i + 1 for i, ln in enumerate(lines) if (m := _HEADER.match(ln)) and m.group(1) == table), None)
+            start = next(
+                (i + 1 for i, ln in enumerate(lines) if (m := _HEADER.match(ln)) and m.group(1) == table), None
+            )
             if start is None:
                 continue
         end = next((i for i in range(start, len(lines)) if _HEADER.match(lines[i])), len(lines))

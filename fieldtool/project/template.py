@@ -39,8 +39,11 @@ def _value(v) -> str:
 def top_keys() -> list[tuple[str, object]]:
     """(key, default) of the project file's top-level keys (those outside any table)."""
     proj = pj.Project()
-    return [(f.name, getattr(proj, f.name)) for f in dataclasses.fields(pj.Project)
-            if f.metadata.get("saved", True) and not dataclasses.is_dataclass(getattr(proj, f.name))]
+    return [
+        (f.name, getattr(proj, f.name))
+        for f in dataclasses.fields(pj.Project)
+        if f.metadata.get("saved", True) and not dataclasses.is_dataclass(getattr(proj, f.name))
+    ]
 
 
 def sections() -> list[tuple[str, type, object]]:

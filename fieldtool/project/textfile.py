@@ -16,8 +16,13 @@ from fieldtool.errors import FieldToolWarning, InputFileError
 
 MAX_TEXT_BYTES = 64 * 1024 * 1024  # a project file or a table larger than this is not one
 
-_BOMS = ((codecs.BOM_UTF32_LE, "utf-32"), (codecs.BOM_UTF32_BE, "utf-32"), (codecs.BOM_UTF8, "utf-8-sig"),
-         (codecs.BOM_UTF16_LE, "utf-16"), (codecs.BOM_UTF16_BE, "utf-16"))
+_BOMS = (
+    (codecs.BOM_UTF32_LE, "utf-32"),
+    (codecs.BOM_UTF32_BE, "utf-32"),
+    (codecs.BOM_UTF8, "utf-8-sig"),
+    (codecs.BOM_UTF16_LE, "utf-16"),
+    (codecs.BOM_UTF16_BE, "utf-16"),
+)
 _BINARY = set(range(0x00, 0x09)) | {0x0B, 0x0E, 0x0F} | set(range(0x10, 0x1A)) | set(range(0x1C, 0x20)) | {0x7F}
 
 
@@ -49,8 +54,10 @@ def decode_text(data: bytes, path: Path | str, what: str) -> tuple[str, str]:
             try:
                 return data.decode(enc), enc
             except UnicodeDecodeError:
-                raise InputFileError(f"{path}: the {what} starts with a {enc.upper()} mark but is not valid "
-                                     f"{enc.upper()}; save it again as UTF-8") from None
+                raise InputFileError(
+                    f"{path}: the {what} starts with a {enc.upper()} mark but is not valid "
+                    f"{enc.upper()}; save it again as UTF-8"
+                ) from None
     try:
         return data.decode("utf-8"), "utf-8"
     except UnicodeDecodeError:
@@ -62,8 +69,12 @@ def decode_text(data: bytes, path: Path | str, what: str) -> tuple[str, str]:
     except UnicodeDecodeError:
         text, enc = data.decode("latin-1"), "latin-1"
     name = "Windows Western" if enc == "cp1252" else "ISO 8859-1"
-    warnings.warn(FieldToolWarning(f"{path}: the {what} is not UTF-8; read as {enc} ({name}); "
-                                   "save it as UTF-8 to be sure of accented letters"), stacklevel=3)
+    warnings.warn(
+        FieldToolWarning(
+            f"{path}: the {what} is not UTF-8; read as {enc} ({name}); save it as UTF-8 to be sure of accented letters"
+        ),
+        stacklevel=3,
+    )
     return text, enc
 
 

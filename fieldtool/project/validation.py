@@ -32,11 +32,11 @@ from pathlib import Path
 from typing import Any
 
 from fieldtool.errors import FieldToolError, ParameterError
+from fieldtool.processing.cross_section import MAX_ABS_M, file_size_problem
 from fieldtool.processing.filters import FILTERS, FilterStack
 from fieldtool.processing.frames import FrameSource
-from fieldtool.processing.water_level import MAX_DEM_CELLS, dem_size
-from fieldtool.processing.cross_section import MAX_ABS_M, file_size_problem
 from fieldtool.processing.paths import is_pattern, literal_glob
+from fieldtool.processing.water_level import MAX_DEM_CELLS, dem_size
 from fieldtool.project.keyspec import KeySpec, spec_of
 from fieldtool.project.model import Project
 from fieldtool.project.sections import parse as parse_sections
@@ -385,16 +385,27 @@ class _Validator:
                     self.guarded(k, self.value, k, getattr(val, sf.name, None), sub_hints[sf.name], spec_of(sf))
             else:
                 self.guarded(f.name, self.value, f.name, val, hints[f.name], spec_of(f))
-        for name, fn in (("video", self.video), ("cross_section", self.cross_section), ("filters", self.filters),
-                         ("stabilize", self.stabilize), ("ortho", self.ortho), ("water_level", self.water_level),
-                         ("roi", self.roi), ("piv", self.piv), ("section", self.section),
-                         ("calibration", self.calibration), ("sections", self.sections), ("overlay", self.overlay)):
+        for name, fn in (
+            ("video", self.video),
+            ("cross_section", self.cross_section),
+            ("filters", self.filters),
+            ("stabilize", self.stabilize),
+            ("ortho", self.ortho),
+            ("water_level", self.water_level),
+            ("roi", self.roi),
+            ("piv", self.piv),
+            ("section", self.section),
+            ("calibration", self.calibration),
+            ("sections", self.sections),
+            ("overlay", self.overlay),
+        ):
             self.guarded(name, fn)
         if self.files:
             self.guarded("paths", self.unused_paths)
         order = {k: i for i, k in enumerate(_key_order())}
-        self.problems.sort(key=lambda pr: (order.get(pr.key.split("[")[0], len(order)),
-                                           order.get(pr.key.split(".")[0], len(order))))
+        self.problems.sort(
+            key=lambda pr: (order.get(pr.key.split("[")[0], len(order)), order.get(pr.key.split(".")[0], len(order)))
+        )
 
     # -- one value, from its declaration and annotation ------------------------------------------
     def value(self, k: str, v: Any, tp: Any, spec: KeySpec | None) -> None:
@@ -437,8 +448,16 @@ class _Validator:
         lo = spec.gt if spec.gt is not None else spec.ge
         hi = spec.lt if spec.lt is not None else spec.le
         rng = _range_text(spec)
-        if spec.gt is not None and not v > spec.gt or spec.ge is not None and not v >= spec.ge or \
-                spec.lt is not None and not v < spec.lt or spec.le is not None and not v <= spec.le:
+        if (
+            spec.gt is not None
+            and not v > spec.gt
+            or spec.ge is not None
+            and not v >= spec.ge
+            or spec.lt is not None
+            and not v < spec.lt
+            or spec.le is not None
+            and not v <= spec.le
+        ):
             self.err(k, f"{_fmt(v)}{unit} is out of range; give a value {rng}{unit}")
             return False
         limit = INT_LIMIT if tp is int else NUMBER_LIMIT
@@ -460,7 +479,7 @@ class _Validator:
             if msg:
                 self.err(k, msg)
             elif spec.path == "out" and (not v.strip() or v.endswith(("/", os.sep)) or Path(v).name in ("", ".", "..")):
-                self.err(k, f"{v!r} is not a file name; give one like \"run.rrd\"")
+                self.err(k, f'{v!r} is not a file name; give one like "run.rrd"')
             elif spec.path == "out" and os.path.isabs(v) and os.path.exists(v) and not os.path.isfile(v):
                 self.err(k, f"{v}: exists and is not a regular file (a folder, pipe or device); give a file name")
             return
@@ -511,15 +530,21 @@ class _Validator:
             lengths.add(len(pt))
             if dims is not None and len(pt) not in dims:
                 want = " or ".join(str(d) for d in dims)
-                self.err(k, f"item {i + 1} has {len(pt)} numbers; every item needs {want} (e.g. "
-                            f"{'[x, y]' if dims == (2,) else '[x0, y0, x1, y1]' if dims == (4,) else '[X, Y] or [X, Y, Z]'})")
+                self.err(
+                    k,
+                    f"item {i + 1} has {len(pt)} numbers; every item needs {want} (e.g. "
+                    f"{'[x, y]' if dims == (2,) else '[x0, y0, x1, y1]' if dims == (4,) else '[X, Y] or [X, Y, Z]'})",
+                )
                 return
             for j, x in enumerate(pt):
                 if not self.number(f"{k}[{i}][{j}]", x, leaf_tp if leaf_tp in (int, float) else float, item_spec):
                     return
         if len(lengths) > 1:
-            self.err(k, f"the items have different lengths ({', '.join(map(str, sorted(lengths)))}); give the same "
-                        "number of coordinates in every item")
+            self.err(
+                k,
+                f"the items have different lengths ({', '.join(map(str, sorted(lengths)))}); give the same "
+                "number of coordinates in every item",
+            )
 
     # -- cross-key and geometry checks ------------------------------------------------------------
     def file(self, k: str, rel: str, kind: str = "file", *, required: bool = True) -> bool:
@@ -554,8 +579,9 @@ class _Validator:
         v = self.p.video
         if self.ok("video.start_s", "video.end_s") and v.end_s is not None and v.end_s <= v.start_s:
             self.err("video.end_s", f"{v.end_s:g} s must be after video.start_s ({v.start_s:g} s)")
-        if self.file("video.path", v.path, "video") and self.ok("video.start_s", "video.end_s", "video.step",
-                                                              "video.frame_interval_s"):
+        if self.file("video.path", v.path, "video") and self.ok(
+            "video.start_s", "video.end_s", "video.step", "video.frame_interval_s"
+        ):
             msg = clip_problem(self.p.resolve(v.path), v.start_s, v.end_s, v.step, v.frame_interval_s)
             if msg:
                 self.from_error(ParameterError(msg), "video.path")
@@ -574,10 +600,17 @@ class _Validator:
             for name in ("top_width_m", "depth_m"):
                 if getattr(c, name) is None:
                     self.err(f"cross_section.{name}", f"a positive number is needed for a {c.shape} section")
-            if c.shape == "trapezoidal" and self.ok("cross_section.bottom_width_m", "cross_section.top_width_m") \
-                    and c.bottom_width_m is not None and c.top_width_m is not None and c.bottom_width_m >= c.top_width_m:
-                self.err("cross_section.bottom_width_m", f"{c.bottom_width_m:g} m must be less than top_width_m "
-                                                         f"({c.top_width_m:g} m)")
+            if (
+                c.shape == "trapezoidal"
+                and self.ok("cross_section.bottom_width_m", "cross_section.top_width_m")
+                and c.bottom_width_m is not None
+                and c.top_width_m is not None
+                and c.bottom_width_m >= c.top_width_m
+            ):
+                self.err(
+                    "cross_section.bottom_width_m",
+                    f"{c.bottom_width_m:g} m must be less than top_width_m ({c.top_width_m:g} m)",
+                )
         if c.shape == "free" and self.ok("cross_section.points") and len(c.points) < 3:
             self.err("cross_section.points", "a free shape needs at least 3 [station_m, elevation_m] points")
         if c.shape == "free" and self.ok("cross_section.points"):
@@ -635,8 +668,11 @@ class _Validator:
         need = 3 * (int(samples) + 1) * w * h * 4
         if need > BACKGROUND_MEMORY_LIMIT:
             most = max(3, BACKGROUND_MEMORY_LIMIT // (3 * w * h * 4) - 1)
-            self.err(f"filters[{i}].samples", f"{samples} samples of {w}x{h} frames need {need / 2**30:.1f} GiB for "
-                                              f"the median; use at most {most} (or method = \"mean\")")
+            self.err(
+                f"filters[{i}].samples",
+                f"{samples} samples of {w}x{h} frames need {need / 2**30:.1f} GiB for "
+                f'the median; use at most {most} (or method = "mean")',
+            )
 
     def stabilize(self) -> None:
         s = self.p.stabilize
@@ -644,7 +680,9 @@ class _Validator:
             return
         for i, r in enumerate(s.regions_px):
             if abs(r[2] - r[0]) < 8 or abs(r[3] - r[1]) < 8:
-                self.err(f"stabilize.regions_px[{i}]", f"{r} is not a rectangle of at least 8x8 px; give [x0, y0, x1, y1]")
+                self.err(
+                    f"stabilize.regions_px[{i}]", f"{r} is not a rectangle of at least 8x8 px; give [x0, y0, x1, y1]"
+                )
         if not s.enabled:
             return
         if self.ok("stabilize.water_polygon_px") and s.water_polygon_px and len(s.water_polygon_px) < 3:
@@ -653,8 +691,11 @@ class _Validator:
         if self.ok("section.points_px") and len(sec) == 2:
             for i, r in enumerate(s.regions_px):
                 if _rects_intersect_segment(r, sec[0], sec[1]):
-                    self.err(f"stabilize.regions_px[{i}]", "this rectangle lies across the section of interest, on "
-                                                          "the water; stable regions must cover fixed ground (banks)")
+                    self.err(
+                        f"stabilize.regions_px[{i}]",
+                        "this rectangle lies across the section of interest, on "
+                        "the water; stable regions must cover fixed ground (banks)",
+                    )
 
     def ortho(self) -> None:
         o = self.p.ortho
@@ -665,25 +706,34 @@ class _Validator:
             return
         if o.method == "two_points":
             if len(px) != 2:
-                self.err("ortho.gcp_px", f"has {len(px)} points; method = two_points needs exactly 2 [x, y] points P1, P2")
+                self.err(
+                    "ortho.gcp_px", f"has {len(px)} points; method = two_points needs exactly 2 [x, y] points P1, P2"
+                )
             if len(o.distances_m) != 1:
-                self.err("ortho.distances_m", f"has {len(o.distances_m)} values; method = two_points needs [|P1P2|] in "
-                                              "metres")
+                self.err(
+                    "ortho.distances_m",
+                    f"has {len(o.distances_m)} values; method = two_points needs [|P1P2|] in metres",
+                )
             if self.ok("ortho.gcp_px") and len(px) == 2 and coincident_pairs(px, GCP_MIN_SEPARATION_PX):
                 self.err("ortho.gcp_px", "P1 and P2 are the same point; pick two GCPs far apart")
             return
         need = {"distances": 4, "world": 4, "pose": 6}.get(o.method, 4)
         if o.method == "distances":
             if len(px) != 4:
-                self.err("ortho.gcp_px", f"has {len(px)} points; method = distances needs exactly 4 [x, y] points P1..P4")
+                self.err(
+                    "ortho.gcp_px", f"has {len(px)} points; method = distances needs exactly 4 [x, y] points P1..P4"
+                )
             if len(o.distances_m) != 6:
                 self.err("ortho.distances_m", f"has {len(o.distances_m)} values; give the 6 distances L1..L6 in metres")
         else:
             if len(px) < need:
                 self.err("ortho.gcp_px", f"has {len(px)} points; method = {o.method} needs at least {need}")
             if len(o.gcp_world_m) != len(px):
-                self.err("ortho.gcp_world_m", f"has {len(o.gcp_world_m)} points but ortho.gcp_px has {len(px)}; give one "
-                                              "world point per pixel point")
+                self.err(
+                    "ortho.gcp_world_m",
+                    f"has {len(o.gcp_world_m)} points but ortho.gcp_px has {len(px)}; give one "
+                    "world point per pixel point",
+                )
             elif o.method == "pose" and any(len(w) != 3 for w in o.gcp_world_m):
                 self.err("ortho.gcp_world_m", "method = pose needs [X, Y, Z] for every GCP")
         if not self.ok("ortho.gcp_px"):
@@ -691,15 +741,21 @@ class _Validator:
         pairs = coincident_pairs(px, GCP_MIN_SEPARATION_PX)
         if pairs:
             i, j = pairs[0]
-            self.err("ortho.gcp_px", f"P{i + 1} and P{j + 1} are the same point ({_fmt(px[i])}, {_fmt(px[j])}); "
-                                     "pick each GCP on its own target")
+            self.err(
+                "ortho.gcp_px",
+                f"P{i + 1} and P{j + 1} are the same point ({_fmt(px[i])}, {_fmt(px[j])}); "
+                "pick each GCP on its own target",
+            )
             return
         if len(px) == 4 or (o.method == "world" and len(px) >= 3):
             tri = collinear_triples(px, COLLINEAR_RELATIVE, COLLINEAR_MIN_PX)
             if len(px) == 4 and tri or len(px) > 4 and len(tri) == math.comb(len(px), 3):
                 i, j, k = tri[0]
-                self.err("ortho.gcp_px", f"P{i + 1}, P{j + 1} and P{k + 1} lie on one line in the image; the mapping "
-                                         "needs the GCPs spread over both banks (re-pick them)")
+                self.err(
+                    "ortho.gcp_px",
+                    f"P{i + 1}, P{j + 1} and P{k + 1} lie on one line in the image; the mapping "
+                    "needs the GCPs spread over both banks (re-pick them)",
+                )
                 return
         if o.method in ("world", "pose") and self.ok("ortho.gcp_world_m") and len(o.gcp_world_m) >= 3:
             w = o.gcp_world_m
@@ -707,22 +763,30 @@ class _Validator:
             pairs = coincident_pairs(w, 1e-3 * extent if extent else 1e-6)
             if pairs:
                 i, j = pairs[0]
-                self.err("ortho.gcp_world_m", f"P{i + 1} and P{j + 1} have the same X, Y; give each GCP its own "
-                                              "coordinates")
+                self.err(
+                    "ortho.gcp_world_m", f"P{i + 1} and P{j + 1} have the same X, Y; give each GCP its own coordinates"
+                )
                 return
             tri = collinear_triples(w, COLLINEAR_RELATIVE)
             if (len(w) == 4 and tri and o.method == "world") or len(tri) == math.comb(len(w), 3):
                 i, j, k = tri[0]
-                self.err("ortho.gcp_world_m", f"P{i + 1}, P{j + 1} and P{k + 1} lie on one line; the GCPs must span "
-                                              "an area on both banks")
+                self.err(
+                    "ortho.gcp_world_m",
+                    f"P{i + 1}, P{j + 1} and P{k + 1} lie on one line; the GCPs must span an area on both banks",
+                )
 
     def water_level(self) -> None:
         w = self.p.water_level
         m = w.method
         if not self.ok("water_level.method"):
             return
-        req = {"value": ("value_m",), "width": ("width_m",), "dem": ("dem_precision_mm",),
-               "angle_height": ("dh_m",), "image": ()}.get(m, ())
+        req = {
+            "value": ("value_m",),
+            "width": ("width_m",),
+            "dem": ("dem_precision_mm",),
+            "angle_height": ("dh_m",),
+            "image": (),
+        }.get(m, ())
         for name in req:
             if getattr(w, name) is None:
                 self.err(f"water_level.{name}", f"is needed for water_level.method = {m}; give it")
@@ -731,10 +795,17 @@ class _Validator:
                 val = getattr(w, name)
                 if self.ok(f"water_level.{name}") and (len(val) != 2 or not val[0] < val[1]):
                     self.err(f"water_level.{name}", f"{_fmt(val)}: give [min, max] with min < max, in metres")
-            if self.ok("water_level.dem_y_m", "water_level.dem_section_y_m") and w.dem_section_y_m is not None \
-                    and len(w.dem_y_m) == 2 and not w.dem_y_m[0] <= w.dem_section_y_m <= w.dem_y_m[1]:
-                self.err("water_level.dem_section_y_m", f"{w.dem_section_y_m:g} m is outside the DEM's y range "
-                                                        f"{w.dem_y_m}; give a y inside it (or leave it out)")
+            if (
+                self.ok("water_level.dem_y_m", "water_level.dem_section_y_m")
+                and w.dem_section_y_m is not None
+                and len(w.dem_y_m) == 2
+                and not w.dem_y_m[0] <= w.dem_section_y_m <= w.dem_y_m[1]
+            ):
+                self.err(
+                    "water_level.dem_section_y_m",
+                    f"{w.dem_section_y_m:g} m is outside the DEM's y range "
+                    f"{w.dem_y_m}; give a y inside it (or leave it out)",
+                )
             if self.file("water_level.dem_path", w.dem_path):
                 self.dem_header()
         if m == "angle_height":
@@ -747,13 +818,16 @@ class _Validator:
             if self.ok("water_level.edges_px") and len(w.edges_px) != 2:
                 self.err("water_level.edges_px", "give the left and right water edges [[x, y], [x, y]]")
             if self.p.ortho.method == "none":
-                self.err("water_level.method", "the image method measures the level on the ortho mapping; "
-                                               "ortho.method = none has none")
+                self.err(
+                    "water_level.method",
+                    "the image method measures the level on the ortho mapping; ortho.method = none has none",
+                )
         for name in ("edges_px", "edges1_px", "edges2_px"):
             pts = getattr(w, name)
             if self.ok(f"water_level.{name}") and len(pts) == 2 and coincident_pairs(pts, 1.0):
-                self.err(f"water_level.{name}", "the two water edges are the same point; pick the left and the "
-                                                "right edge")
+                self.err(
+                    f"water_level.{name}", "the two water edges are the same point; pick the left and the right edge"
+                )
 
     def dem_header(self) -> None:
         """The DEM's size from its header (GDAL), before anything reads its cells."""
@@ -761,18 +835,26 @@ class _Validator:
         try:
             w, h = dem_size(path)
         except Exception as e:  # noqa: BLE001 - any failure: not a readable raster
-            self.err("water_level.dem_path", f"{path}: cannot read this DEM as a raster ({type(e).__name__}); export "
-                                             "it as a GeoTIFF of elevations")
+            self.err(
+                "water_level.dem_path",
+                f"{path}: cannot read this DEM as a raster ({type(e).__name__}); export it as a GeoTIFF of elevations",
+            )
             return
         if w * h > MAX_DEM_CELLS:
-            self.err("water_level.dem_path", f"{path}: the DEM header says {w}x{h} cells (more than "
-                                             f"{MAX_DEM_CELLS:,}); crop it to the bank near the section")
+            self.err(
+                "water_level.dem_path",
+                f"{path}: the DEM header says {w}x{h} cells (more than "
+                f"{MAX_DEM_CELLS:,}); crop it to the bank near the section",
+            )
 
     def roi(self) -> None:
         r = self.p.roi.rect_px
         if self.ok("roi.rect_px") and len(r) == 4 and (abs(r[2] - r[0]) < 8 or abs(r[3] - r[1]) < 8):
-            self.err("roi.rect_px", f"{[_fmt(x) for x in r]} encloses no usable area; give two opposite corners "
-                                    "[x0, y0, x1, y1] at least 8 px apart")
+            self.err(
+                "roi.rect_px",
+                f"{[_fmt(x) for x in r]} encloses no usable area; give two opposite corners "
+                "[x0, y0, x1, y1] at least 8 px apart",
+            )
         if self.ok("roi.masks_px"):
             for i, poly in enumerate(self.p.roi.masks_px):
                 if len(poly) < 3:
@@ -781,20 +863,29 @@ class _Validator:
     def piv(self) -> None:
         v = self.p.piv
         if self.ok("piv.window_px", "piv.overlap_px") and v.overlap_px >= v.window_px:
-            self.err("piv.overlap_px", f"{v.overlap_px} px must be less than piv.window_px ({v.window_px} px); "
-                                       f"half the window ({v.window_px // 2}) is usual")
+            self.err(
+                "piv.overlap_px",
+                f"{v.overlap_px} px must be less than piv.window_px ({v.window_px} px); "
+                f"half the window ({v.window_px // 2}) is usual",
+            )
         if self.ok("piv.window_px", "piv.search_px") and v.search_px is not None:
             if v.search_px < v.window_px:
                 self.err("piv.search_px", f"{v.search_px} px must be at least piv.window_px ({v.window_px} px)")
             elif v.search_px > 8 * v.window_px:
-                self.err("piv.search_px", f"{v.search_px} px is more than 8 windows ({8 * v.window_px} px); use a "
-                                          "larger window_px or a smaller search area")
+                self.err(
+                    "piv.search_px",
+                    f"{v.search_px} px is more than 8 windows ({8 * v.window_px} px); use a "
+                    "larger window_px or a smaller search area",
+                )
 
     def overlay(self) -> None:
         o = self.p.overlay
         if self.ok("overlay.width_px") and 0 < o.width_px < 160:
-            self.err("overlay.width_px", f"{o.width_px} px leaves no room for the legend and the text; give 160 px "
-                                         "or more (960 is usual), or 0 for the clip's own width")
+            self.err(
+                "overlay.width_px",
+                f"{o.width_px} px leaves no room for the legend and the text; give 160 px "
+                "or more (960 is usual), or 0 for the clip's own width",
+            )
 
     def section(self) -> None:
         s = self.p.section

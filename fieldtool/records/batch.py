@@ -108,8 +108,10 @@ def read_levels(path: Path | str) -> dict[str, float]:
     try:
         dialect = csv.Sniffer().sniff(head or ",", delimiters=",;\t")
     except csv.Error:
-        raise InputFileError(f"{path}: the header {head[:60]!r} has no ',' ';' or tab between columns; write "
-                             "'video,water_level_m' and one line per video") from None
+        raise InputFileError(
+            f"{path}: the header {head[:60]!r} has no ',' ';' or tab between columns; write "
+            "'video,water_level_m' and one line per video"
+        ) from None
     rows = list(csv.DictReader(text.splitlines(), dialect=dialect))
     if not rows:
         raise InputFileError(f"{path}: no rows; write a header 'video,water_level_m' and one line per video")
@@ -126,7 +128,9 @@ def read_levels(path: Path | str) -> dict[str, float]:
         try:
             level = float((r.get(lcol) or "").strip().replace(",", "."))
         except ValueError:
-            raise InputFileError(f"{path}, line {i}: water level {r.get(lcol)!r} of {name} is not a number (m)") from None
+            raise InputFileError(
+                f"{path}, line {i}: water level {r.get(lcol)!r} of {name} is not a number (m)"
+            ) from None
         if not math.isfinite(level) or abs(level) > 1e5:
             raise InputFileError(f"{path}, line {i}: water level {r.get(lcol)!r} of {name} is not a level in metres")
         out[name] = level
@@ -134,8 +138,15 @@ def read_levels(path: Path | str) -> dict[str, float]:
     return out
 
 
-def plan_site_folder(site: Site, folder: Path | str, out_root: Path | str, *, levels: dict[str, float] | None = None,
-                     level_m: float | None = None, level_uncertainty_m: float | None = None) -> list[BatchItem]:
+def plan_site_folder(
+    site: Site,
+    folder: Path | str,
+    out_root: Path | str,
+    *,
+    levels: dict[str, float] | None = None,
+    level_m: float | None = None,
+    level_uncertainty_m: float | None = None,
+) -> list[BatchItem]:
     """One item per video in ``folder``: writes ``out_root/<video stem>/project.toml`` from the site.
 
     A video without a level (not in ``levels`` and no ``level_m``) becomes an item that fails with
@@ -150,8 +161,9 @@ def plan_site_folder(site: Site, folder: Path | str, out_root: Path | str, *, le
     items = []
     for v in videos:
         out_dir = out_root / v.stem
-        item = BatchItem(label=v.name, project_path=str(out_dir / "project.toml"), out_dir=str(out_dir / "results"),
-                         site=site.name)
+        item = BatchItem(
+            label=v.name, project_path=str(out_dir / "project.toml"), out_dir=str(out_dir / "results"), site=site.name
+        )
         lv = level_m
         if levels is not None:
             lv = levels.get(v.name, levels.get(v.stem, level_m))
@@ -166,8 +178,15 @@ def plan_site_folder(site: Site, folder: Path | str, out_root: Path | str, *, le
     if levels is not None:
         have = {v.name for v in videos} | {v.stem for v in videos}
         for name in sorted(k for k in levels if k not in have and Path(k).stem not in have and "." in k):
-            items.append(BatchItem(label=name, project_path="", out_dir="", site=site.name,
-                                   error=f"{name} is in the levels file but not in {folder}"))
+            items.append(
+                BatchItem(
+                    label=name,
+                    project_path="",
+                    out_dir="",
+                    site=site.name,
+                    error=f"{name} is in the levels file but not in {folder}",
+                )
+            )
     return items
 
 
@@ -255,7 +274,12 @@ OnDone = Callable[[ItemResult, int, int], None]
 
 
 # imported once by the fork server, so that each worker process starts with them loaded
-_PRELOAD = ["fieldtool.run.pipeline", "fieldtool.processing.piv", "fieldtool.plots.discharge", "fieldtool.records.batch"]
+_PRELOAD = [
+    "fieldtool.run.pipeline",
+    "fieldtool.processing.piv",
+    "fieldtool.plots.discharge",
+    "fieldtool.records.batch",
+]
 
 
 def _mp_context():
@@ -278,8 +302,9 @@ def _run_local(items: list[BatchItem], workers: int, emit: Callable[[ItemResult]
         if not pending:
             return
         lost: list[BatchItem] = []
-        with ProcessPoolExecutor(max_workers=min(workers, len(pending)), mp_context=_mp_context(),
-                                 initializer=_init_worker) as pool:
+        with ProcessPoolExecutor(
+            max_workers=min(workers, len(pending)), mp_context=_mp_context(), initializer=_init_worker
+        ) as pool:
             futs: dict[Future, BatchItem] = {pool.submit(run_item, it): it for it in pending}
             todo = set(futs)
             while todo:
@@ -296,8 +321,14 @@ def _run_local(items: list[BatchItem], workers: int, emit: Callable[[ItemResult]
                     emit(r)
         if lost and attempt == 2:
             for it in lost:
-                emit(ItemResult(item=it, ok=False, error="the worker process died while running it (out of memory "
-                                                         "or a crash in a native library); it failed twice"))
+                emit(
+                    ItemResult(
+                        item=it,
+                        ok=False,
+                        error="the worker process died while running it (out of memory "
+                        "or a crash in a native library); it failed twice",
+                    )
+                )
         pending = lost
 
 
@@ -305,16 +336,22 @@ def _run_dask(items: list[BatchItem], scheduler: str, emit: Callable[[ItemResult
     try:
         from distributed import Client, as_completed  # lazy: Dask (optional, 0.2-0.4 s) only for --scheduler
     except ImportError as e:
-        raise ParameterError("--scheduler needs Dask distributed on this machine: pip install 'dask[distributed]' "
-                             "(the workers need it and fieldtool too)") from e
+        raise ParameterError(
+            "--scheduler needs Dask distributed on this machine: pip install 'dask[distributed]' "
+            "(the workers need it and fieldtool too)"
+        ) from e
     try:
         client = Client(scheduler, timeout="20s", set_as_default=False)
     except (OSError, TimeoutError) as e:
-        raise ParameterError(f"--scheduler {scheduler}: cannot reach the Dask scheduler ({e}); start it with "
-                             "`dask scheduler` and workers with `dask worker ADDRESS --nthreads 1`") from e
+        raise ParameterError(
+            f"--scheduler {scheduler}: cannot reach the Dask scheduler ({e}); start it with "
+            "`dask scheduler` and workers with `dask worker ADDRESS --nthreads 1`"
+        ) from e
     try:
-        futs = {client.submit(run_item, it, True, key=f"fieldtool-batch-{i}-{os.getpid()}-{time.time_ns()}", pure=False): it
-                for i, it in enumerate(items)}
+        futs = {
+            client.submit(run_item, it, True, key=f"fieldtool-batch-{i}-{os.getpid()}-{time.time_ns()}", pure=False): it
+            for i, it in enumerate(items)
+        }
         for f in as_completed(list(futs), loop=client.loop):
             try:
                 r = f.result()
@@ -335,14 +372,23 @@ def check_distinct_outputs(items: list[BatchItem]) -> None:
             continue
         k = str(Path(it.out_dir).resolve())
         if k in seen:
-            raise ParameterError(f"{seen[k].label} and {it.label} both write into {k}; give each project its own "
-                                 "output folder (or use --out ROOT, which makes one per project)")
+            raise ParameterError(
+                f"{seen[k].label} and {it.label} both write into {k}; give each project its own "
+                "output folder (or use --out ROOT, which makes one per project)"
+            )
         seen[k] = it
 
 
-def run_batch(items: list[BatchItem], *, history: History | None = None, workers: int | None = None,
-              scheduler: str | None = None, skip_existing: bool = False, reports: bool = False,
-              on_done: OnDone | None = None) -> BatchResult:
+def run_batch(
+    items: list[BatchItem],
+    *,
+    history: History | None = None,
+    workers: int | None = None,
+    scheduler: str | None = None,
+    skip_existing: bool = False,
+    reports: bool = False,
+    on_done: OnDone | None = None,
+) -> BatchResult:
     """Run ``items``; record every success in ``history`` (when given) as it arrives.
 
     Parameters
@@ -368,10 +414,14 @@ def run_batch(items: list[BatchItem], *, history: History | None = None, workers
     def emit(r: ItemResult) -> None:
         if r.ok and history is not None and not r.skipped and r.summary is not None:
             try:
-                r.history_id = history.record_summary(r.summary, site=r.item.site,
-                                                      output_dir=Path(r.item.out_dir).resolve(),
-                                                      video_path=r.video_path, video_time=r.video_time,
-                                                      input_hash=r.input_hash)
+                r.history_id = history.record_summary(
+                    r.summary,
+                    site=r.item.site,
+                    output_dir=Path(r.item.out_dir).resolve(),
+                    video_path=r.video_path,
+                    video_time=r.video_time,
+                    input_hash=r.input_hash,
+                )
             except FieldToolError as e:
                 r.ok, r.error = False, f"ran, but could not be recorded in the history: {e}"
         if r.ok and reports and not r.skipped:
@@ -398,8 +448,16 @@ def run_batch(items: list[BatchItem], *, history: History | None = None, workers
                 continue
             old = history.query(input_hash=h, limit=1)
             if old:
-                emit(ItemResult(item=it, ok=True, skipped=True, input_hash=h, history_id=old[0].id,
-                                summary={"discharge_m3s": old[0].discharge_m3s, "water_level_m": old[0].water_level_m}))
+                emit(
+                    ItemResult(
+                        item=it,
+                        ok=True,
+                        skipped=True,
+                        input_hash=h,
+                        history_id=old[0].id,
+                        summary={"discharge_m3s": old[0].discharge_m3s, "water_level_m": old[0].water_level_m},
+                    )
+                )
                 continue
         runnable.append(it)
 

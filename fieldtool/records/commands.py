@@ -30,8 +30,9 @@ from fieldtool.records.sites import (
 def _add_db(p: argparse.ArgumentParser, under_history: bool = False) -> None:
     # under `history`, a subcommand's --db must not reset one given before it (`history --db X list`)
     kw = {"default": argparse.SUPPRESS} if under_history else {}
-    p.add_argument("--db", help="history database (default: $FIELDTOOL_DB, else history.sqlite in the user data "
-                                "folder)", **kw)
+    p.add_argument(
+        "--db", help="history database (default: $FIELDTOOL_DB, else history.sqlite in the user data folder)", **kw
+    )
 
 
 def _add_sites(p: argparse.ArgumentParser) -> None:
@@ -48,8 +49,11 @@ def _filters(args) -> dict:
     until = args.until
     if until and len(until.strip()) == 10:  # a bare date: the whole day
         until = until.strip() + "T23:59:59"
-    return {"site": args.site, "since": parse_time(args.since, "--since") if args.since else None,
-            "until": parse_time(until, "--until") if until else None}
+    return {
+        "site": args.site,
+        "since": parse_time(args.since, "--since") if args.since else None,
+        "until": parse_time(until, "--until") if until else None,
+    }
 
 
 def _open_history(args, create: bool):
@@ -60,8 +64,11 @@ def _history_or_none(args):
     """The history for reading, or None when there is none yet (nothing recorded)."""
     path = resolve_db_path(args.db)
     if not path.exists():
-        print(f"no history yet ({path} does not exist); runs are recorded by `fieldtool batch`, "
-              "`fieldtool site new-measurement --run` and `fieldtool history add`", file=sys.stderr)
+        print(
+            f"no history yet ({path} does not exist); runs are recorded by `fieldtool batch`, "
+            "`fieldtool site new-measurement --run` and `fieldtool history add`",
+            file=sys.stderr,
+        )
         return None
     return _open_history(args, create=False)
 
@@ -84,8 +91,14 @@ def _fmt(v, spec=".4f") -> str:
 
 def cmd_site_create(args) -> int:
     project = load_site_project(args.from_project)
-    site = create_site(args.name, project, sites_dir(args.sites), description=args.description or "",
-                       force=args.force, source=str(Path(args.from_project).resolve()))
+    site = create_site(
+        args.name,
+        project,
+        sites_dir(args.sites),
+        description=args.description or "",
+        force=args.force,
+        source=str(Path(args.from_project).resolve()),
+    )
     print(f"site {site.name!r} written to {site.folder}")
     print(f"next visit: fieldtool site new-measurement {site.name} --video VIDEO --level LEVEL_M --run")
     return 0
@@ -119,8 +132,7 @@ def cmd_site_new_measurement(args) -> int:
     site = load_site(args.name, sites_dir(args.sites))
     video = Path(args.video)
     out = Path(args.out) if args.out else Path.cwd() / f"{site.name}_{video.stem}"
-    proj = new_measurement(site, video, args.level, out, level_uncertainty_m=args.level_uncertainty,
-                           force=args.force)
+    proj = new_measurement(site, video, args.level, out, level_uncertainty_m=args.level_uncertainty, force=args.force)
     print(f"wrote {proj}")
     if not args.run:
         print(f"run it with: fieldtool run {proj}   (or add --run to compute and record it now)")
@@ -132,8 +144,10 @@ def cmd_site_new_measurement(args) -> int:
     if not res.ok:
         raise ParameterError(f"{video.name}: {res.error}")
     s = res.summary
-    print(f"discharge     {s['discharge_m3s']:.4f} m3/s  (pairs 5-95 %: {_fmt(s.get('discharge_p05_m3s'))} - "
-          f"{_fmt(s.get('discharge_p95_m3s'))})")
+    print(
+        f"discharge     {s['discharge_m3s']:.4f} m3/s  (pairs 5-95 %: {_fmt(s.get('discharge_p05_m3s'))} - "
+        f"{_fmt(s.get('discharge_p95_m3s'))})"
+    )
     print(f"water level   {s['water_level_m']:.3f} m   mean velocity {s['mean_velocity_ms']:.4f} m/s")
     for w in s.get("warnings", []):
         print(f"warning: {w}")
@@ -148,10 +162,14 @@ def cmd_site_new_measurement(args) -> int:
 def _relative_widths(m) -> str:
     """'MC/ISO/IVE' relative half-widths of the 95 % intervals in percent ('-' where a row has none)."""
     std = m.uncertainty_standard
-    mc = (None if m.discharge_ci95_lo_m3s is None or m.discharge_ci95_hi_m3s is None or not m.discharge_m3s
-          else 50 * (m.discharge_ci95_hi_m3s - m.discharge_ci95_lo_m3s) / abs(m.discharge_m3s))
-    vals = [mc] + [None if (std.get(k) or {}).get("u95_rel") is None else 100 * std[k]["u95_rel"]
-                   for k in ("iso748", "ive")]
+    mc = (
+        None
+        if m.discharge_ci95_lo_m3s is None or m.discharge_ci95_hi_m3s is None or not m.discharge_m3s
+        else 50 * (m.discharge_ci95_hi_m3s - m.discharge_ci95_lo_m3s) / abs(m.discharge_m3s)
+    )
+    vals = [mc] + [
+        None if (std.get(k) or {}).get("u95_rel") is None else 100 * std[k]["u95_rel"] for k in ("iso748", "ive")
+    ]
     return "/".join("-" if v is None else f"{v:.1f}" for v in vals)
 
 
@@ -167,14 +185,18 @@ def cmd_history_list(args) -> int:
     if not rows:
         print("no measurements match")
         return 0
-    print(f"{'id':>5}  {'site':<14} {'video time (UTC)':<20} {'level m':>8} {'Q m3/s':>9} {'5-95 % m3/s':>17} "
-          f"{'v m/s':>7} {'alpha':>5} {'grade':<9} {'MC/ISO/IVE ±%':>15} {'refs':>4}  output")
+    print(
+        f"{'id':>5}  {'site':<14} {'video time (UTC)':<20} {'level m':>8} {'Q m3/s':>9} {'5-95 % m3/s':>17} "
+        f"{'v m/s':>7} {'alpha':>5} {'grade':<9} {'MC/ISO/IVE ±%':>15} {'refs':>4}  output"
+    )
     for m in rows:
         spread = f"{_fmt(m.discharge_p05_m3s)}-{_fmt(m.discharge_p95_m3s)}"
-        print(f"{m.id:>5}  {(m.site or '-')[:14]:<14} {(m.video_time or '-'):<20} {_fmt(m.water_level_m, '.3f'):>8} "
-              f"{_fmt(m.discharge_m3s):>9} {spread:>17} {_fmt(m.mean_velocity_ms, '.3f'):>7} "
-              f"{_fmt(m.alpha, '.2f'):>5} {(m.grade or '-'):<9} {_relative_widths(m):>15} {nref.get(m.id, 0):>4}  "
-              f"{m.output_dir}")
+        print(
+            f"{m.id:>5}  {(m.site or '-')[:14]:<14} {(m.video_time or '-'):<20} {_fmt(m.water_level_m, '.3f'):>8} "
+            f"{_fmt(m.discharge_m3s):>9} {spread:>17} {_fmt(m.mean_velocity_ms, '.3f'):>7} "
+            f"{_fmt(m.alpha, '.2f'):>5} {(m.grade or '-'):<9} {_relative_widths(m):>15} {nref.get(m.id, 0):>4}  "
+            f"{m.output_dir}"
+        )
     return 0
 
 
@@ -186,8 +208,11 @@ def cmd_history_show(args) -> int:
         if k != "parameters_json":
             print(f"{k:<20} {v}")
     for r in refs:
-        print(f"reference {r.id:<10} {r.discharge_m3s:.4f} m3/s by {r.method}"
-              + (f" ± {r.uncertainty_m3s}" if r.uncertainty_m3s is not None else "") + (f"  {r.note}" if r.note else ""))
+        print(
+            f"reference {r.id:<10} {r.discharge_m3s:.4f} m3/s by {r.method}"
+            + (f" ± {r.uncertainty_m3s}" if r.uncertainty_m3s is not None else "")
+            + (f"  {r.note}" if r.note else "")
+        )
     if args.parameters:
         print(m.parameters_json)
     return 0
@@ -213,12 +238,20 @@ def cmd_history_add(args) -> int:
     video = (root / vrel) if vrel and not Path(vrel).is_absolute() else Path(vrel) if vrel else None
     vt = video_datetime(video) if video is not None else (None, None)
     if video is not None and vt[0] is None:
-        print(f"warning: video {video} not found beside {root}; no video time or input hash (give --project)",
-              file=sys.stderr)
+        print(
+            f"warning: video {video} not found beside {root}; no video time or input hash (give --project)",
+            file=sys.stderr,
+        )
     h = input_hash(json.loads(json.dumps(inputs)), root) if vt[0] is not None else ""
     with _open_history(args, create=True) as hist:
-        mid = hist.record_summary(summary, site=args.site or "", output_dir=result_dir.resolve(),
-                                  video_path=str(video or ""), video_time=vt, input_hash=h)
+        mid = hist.record_summary(
+            summary,
+            site=args.site or "",
+            output_dir=result_dir.resolve(),
+            video_path=str(video or ""),
+            video_time=vt,
+            input_hash=h,
+        )
     print(f"recorded as history id {mid}")
     return 0
 
@@ -228,8 +261,10 @@ def cmd_history_reference(args) -> int:
         rid = hist.add_reference(args.id, args.discharge, args.method, args.uncertainty, args.note or "")
         m = hist.get(args.id)
     err = 100.0 * (m.discharge_m3s - args.discharge) / args.discharge if m.discharge_m3s is not None else None
-    print(f"reference {rid} attached to measurement {args.id}"
-          + (f": LSPIV {m.discharge_m3s:.4f} m3/s is {err:+.2f} % from it" if err is not None else ""))
+    print(
+        f"reference {rid} attached to measurement {args.id}"
+        + (f": LSPIV {m.discharge_m3s:.4f} m3/s is {err:+.2f} % from it" if err is not None else "")
+    )
     return 0
 
 
@@ -247,15 +282,21 @@ def cmd_history_stats(args) -> int:
     with hist:
         stats = hist.error_stats(args.site)
     if not stats:
-        print("no measurement has a reference discharge yet; attach one with "
-              "`fieldtool history reference ID Q --method adcp`")
+        print(
+            "no measurement has a reference discharge yet; attach one with "
+            "`fieldtool history reference ID Q --method adcp`"
+        )
         return 0
     print("LSPIV against reference discharges, error = (Q_lspiv - Q_ref) / Q_ref")
-    print(f"{'site':<14} {'reference':<13} {'n':>3} {'bias %':>8} {'mean |e| %':>10} {'rmse %':>8} {'max |e| %':>9} "
-          f"{'rmse m3/s':>10}")
+    print(
+        f"{'site':<14} {'reference':<13} {'n':>3} {'bias %':>8} {'mean |e| %':>10} {'rmse %':>8} {'max |e| %':>9} "
+        f"{'rmse m3/s':>10}"
+    )
     for s in stats:
-        print(f"{(s.site or '-')[:14]:<14} {s.method:<13} {s.n:>3} {s.bias_percent:>+8.2f} {s.mean_abs_percent:>10.2f} "
-              f"{s.rmse_percent:>8.2f} {s.max_abs_percent:>9.2f} {s.rmse_m3s:>10.4f}")
+        print(
+            f"{(s.site or '-')[:14]:<14} {s.method:<13} {s.n:>3} {s.bias_percent:>+8.2f} {s.mean_abs_percent:>10.2f} "
+            f"{s.rmse_percent:>8.2f} {s.max_abs_percent:>9.2f} {s.rmse_m3s:>10.4f}"
+        )
     return 0
 
 
@@ -274,9 +315,17 @@ def cmd_history_rating(args) -> int:
     fh, fq = (rh, rq) if args.fit_to == "reference" else (h, q)
     curve = rating.fit_rating(fh, fq, h0=args.h0)
     out = Path(args.out) if args.out else Path.cwd() / f"rating_{args.site}.png"
-    rating.plot_rating(out, curve, h, q, ref_h=rh, ref_q=rq, site=args.site,
-                q_low=[m.discharge_p05_m3s if m.discharge_p05_m3s is not None else float("nan") for m in rows],
-                q_high=[m.discharge_p95_m3s if m.discharge_p95_m3s is not None else float("nan") for m in rows])
+    rating.plot_rating(
+        out,
+        curve,
+        h,
+        q,
+        ref_h=rh,
+        ref_q=rq,
+        site=args.site,
+        q_low=[m.discharge_p05_m3s if m.discharge_p05_m3s is not None else float("nan") for m in rows],
+        q_high=[m.discharge_p95_m3s if m.discharge_p95_m3s is not None else float("nan") for m in rows],
+    )
     print(f"fitted to the {'reference' if args.fit_to == 'reference' else 'LSPIV'} discharges: {curve.describe()}")
     print(f"plot: {out}")
     return 0
@@ -314,8 +363,9 @@ def cmd_batch(args) -> int:
     batch = _batch()
     if args.videos:
         if not args.site:
-            raise ParameterError("--videos needs --site NAME: the site whose cross-section, GCPs and parameters "
-                                 "the videos share")
+            raise ParameterError(
+                "--videos needs --site NAME: the site whose cross-section, GCPs and parameters the videos share"
+            )
         if args.projects or args.list:
             raise ParameterError("give either --videos (a folder of videos of one site) or project files, not both")
         if args.levels is None and args.level is None:
@@ -323,8 +373,14 @@ def cmd_batch(args) -> int:
 
         site = load_site(args.site, sites_dir(args.sites))
         out = Path(args.out) if args.out else Path(args.videos) / "fieldtool_out"
-        items = batch.plan_site_folder(site, args.videos, out, levels=batch.read_levels(args.levels) if args.levels else None,
-                                 level_m=args.level, level_uncertainty_m=args.level_uncertainty)
+        items = batch.plan_site_folder(
+            site,
+            args.videos,
+            out,
+            levels=batch.read_levels(args.levels) if args.levels else None,
+            level_m=args.level,
+            level_uncertainty_m=args.level_uncertainty,
+        )
     else:
         paths = list(args.projects or [])
         if args.list:
@@ -336,15 +392,25 @@ def cmd_batch(args) -> int:
     def on_done(r, done, total):
         if r.ok:
             what = "already in the history" if r.skipped else f"{r.seconds:.1f} s"
-            print(f"[{done}/{total}] ok      {r.item.label}: Q = {_fmt(r.summary.get('discharge_m3s'))} m3/s "
-                  f"({what})", file=sys.stderr, flush=True)
+            print(
+                f"[{done}/{total}] ok      {r.item.label}: Q = {_fmt(r.summary.get('discharge_m3s'))} m3/s ({what})",
+                file=sys.stderr,
+                flush=True,
+            )
         else:
             print(f"[{done}/{total}] FAILED  {r.item.label}: {r.error}", file=sys.stderr, flush=True)
 
     hist = None if args.no_history else _open_history(args, create=True)
     try:
-        res = batch.run_batch(items, history=hist, workers=args.workers, scheduler=args.scheduler,
-                        skip_existing=args.skip_existing, reports=args.report, on_done=on_done)
+        res = batch.run_batch(
+            items,
+            history=hist,
+            workers=args.workers,
+            scheduler=args.scheduler,
+            skip_existing=args.skip_existing,
+            reports=args.report,
+            on_done=on_done,
+        )
     finally:
         if hist is not None:
             hist.close()
@@ -352,8 +418,10 @@ def cmd_batch(args) -> int:
     for r in res.results:
         if r.ok:
             hid = f"history {r.history_id}" if r.history_id else "not recorded"
-            print(f"  ok      {r.item.label}: Q = {_fmt(r.summary.get('discharge_m3s'))} m3/s, level "
-                  f"{_fmt(r.summary.get('water_level_m'), '.3f')} m, {hid}, {r.item.out_dir}")
+            print(
+                f"  ok      {r.item.label}: Q = {_fmt(r.summary.get('discharge_m3s'))} m3/s, level "
+                f"{_fmt(r.summary.get('water_level_m'), '.3f')} m, {hid}, {r.item.out_dir}"
+            )
     for r in res.failed:
         print(f"  FAILED  {r.item.label}: {r.error}")
     return 1 if res.failed else 0
@@ -378,8 +446,13 @@ def _register_site(sub: argparse._SubParsersAction) -> None:
 
     q = ss.add_parser("create", help="make a site from a project (cross-section, GCPs, lens, ROI, parameters)")
     q.add_argument("name", help="site name (letters, digits, '.', '_', '-')")
-    q.add_argument("--from", dest="from_project", required=True, metavar="PROJECT",
-                   help="project file (or a run's result.json) whose fixed inputs the site keeps")
+    q.add_argument(
+        "--from",
+        dest="from_project",
+        required=True,
+        metavar="PROJECT",
+        help="project file (or a run's result.json) whose fixed inputs the site keeps",
+    )
     q.add_argument("--description", help="free text (where, who, datum)")
     q.add_argument("--force", action="store_true", help="replace an existing site of that name")
     _add_sites(q)
@@ -463,8 +536,12 @@ def _register_history(sub: argparse._SubParsersAction) -> None:
     q.add_argument("site")
     q.add_argument("--out", help="plot file (.png, .pdf or .svg; default ./rating_SITE.png)")
     q.add_argument("--h0", type=float, help="level of zero flow (m) when known; default: fitted below the lowest level")
-    q.add_argument("--fit-to", choices=["measured", "reference"], default="measured",
-                   help="fit the LSPIV discharges (default) or the reference discharges")
+    q.add_argument(
+        "--fit-to",
+        choices=["measured", "reference"],
+        default="measured",
+        help="fit the LSPIV discharges (default) or the reference discharges",
+    )
     _add_db(q, under_history=True)
     q.set_defaults(func=cmd_history_rating)
 

@@ -36,8 +36,8 @@ from pathlib import Path
 from typing import Any
 
 from fieldtool.errors import InputFileError, ParameterError
-from fieldtool.project.model import project_to_dict
 from fieldtool.processing.paths import is_pattern, literal_glob
+from fieldtool.project.model import project_to_dict
 from fieldtool.records import user_data_dir
 
 SCHEMA_VERSION = 3
@@ -252,8 +252,10 @@ class History:
         self.path = Path(path)
         exists = self.path.exists()
         if not exists and not create:
-            raise InputFileError(f"{self.path}: no history database yet; it is created by the first recorded run "
-                                 "(or give another one with --db / FIELDTOOL_DB)")
+            raise InputFileError(
+                f"{self.path}: no history database yet; it is created by the first recorded run "
+                "(or give another one with --db / FIELDTOOL_DB)"
+            )
         self._key = str(self.path.resolve())
         #: True when the file (or its folder) cannot be written: reading works, writing raises
         self.readonly = exists and not _writable(self.path)
@@ -267,8 +269,10 @@ class History:
             try:
                 self.path.parent.mkdir(parents=True, exist_ok=True)
             except OSError as e:
-                raise InputFileError(f"{self.path.parent}: cannot create the history's folder ({e.strerror}); "
-                                     "give another path with --db or FIELDTOOL_DB") from e
+                raise InputFileError(
+                    f"{self.path.parent}: cannot create the history's folder ({e.strerror}); "
+                    "give another path with --db or FIELDTOOL_DB"
+                ) from e
         if self.readonly:
             self.conn = _connect_readonly(self.path)
             self.conn.row_factory = sqlite3.Row
@@ -287,8 +291,10 @@ class History:
         except sqlite3.OperationalError as e:
             self.conn.close()
             if "readonly" in str(e) or "read-only" in str(e):
-                raise InputFileError(f"{self.path}: the history database is read-only ({e}); it cannot be "
-                                     "created here. Give a writable path with --db or FIELDTOOL_DB") from e
+                raise InputFileError(
+                    f"{self.path}: the history database is read-only ({e}); it cannot be "
+                    "created here. Give a writable path with --db or FIELDTOOL_DB"
+                ) from e
             raise InputFileError(f"{self.path}: cannot open the history database ({e})") from e
         except BaseException:
             self.conn.close()
@@ -329,14 +335,18 @@ class History:
         writer), committed on success and rolled back on any error. A read-only database raises
         InputFileError saying so."""
         if self.readonly:
-            raise InputFileError(f"{self.path}: the history database is read-only (no write permission on the file "
-                                 "or its folder, or a read-only disk): it can be listed and exported, not changed. "
-                                 "Copy it somewhere writable and give that path with --db or FIELDTOOL_DB")
+            raise InputFileError(
+                f"{self.path}: the history database is read-only (no write permission on the file "
+                "or its folder, or a read-only disk): it can be listed and exported, not changed. "
+                "Copy it somewhere writable and give that path with --db or FIELDTOOL_DB"
+            )
         try:
             self.conn.execute("BEGIN IMMEDIATE")
         except sqlite3.OperationalError as e:
-            raise InputFileError(f"{self.path}: the history is locked by another program for more than "
-                                 f"{BUSY_TIMEOUT_S:.0f} s ({e}); try again when it has finished") from e
+            raise InputFileError(
+                f"{self.path}: the history is locked by another program for more than "
+                f"{BUSY_TIMEOUT_S:.0f} s ({e}); try again when it has finished"
+            ) from e
         try:
             yield self.conn
         except BaseException:
@@ -350,11 +360,15 @@ class History:
         with self.write() as c:  # checked again under the lock: another process may be migrating
             version = c.execute("PRAGMA user_version").fetchone()[0]
             if version > SCHEMA_VERSION:
-                raise InputFileError(f"{self.path}: history written by a newer fieldtool (schema {version}, this one "
-                                     f"knows up to {SCHEMA_VERSION}); update fieldtool or use another --db")
+                raise InputFileError(
+                    f"{self.path}: history written by a newer fieldtool (schema {version}, this one "
+                    f"knows up to {SCHEMA_VERSION}); update fieldtool or use another --db"
+                )
             if version == 0 and c.execute("SELECT count(*) FROM sqlite_master").fetchone()[0]:
-                raise InputFileError(f"{self.path}: this SQLite file holds other tables, not a fieldtool history; "
-                                     "give another path with --db or FIELDTOOL_DB")
+                raise InputFileError(
+                    f"{self.path}: this SQLite file holds other tables, not a fieldtool history; "
+                    "give another path with --db or FIELDTOOL_DB"
+                )
             while version < SCHEMA_VERSION:
                 for stmt in _split_sql(_MIGRATIONS[version]):
                     c.execute(stmt)
@@ -368,14 +382,36 @@ class History:
         with self.write() as c:
             return insert_measurement(c, values)
 
-    def record_summary(self, summary: dict, *, site: str = "", output_dir: str | Path = "", video_path: str = "",
-                       video_time: tuple[str | None, str | None] = (None, None), input_hash: str = "") -> int:
+    def record_summary(
+        self,
+        summary: dict,
+        *,
+        site: str = "",
+        output_dir: str | Path = "",
+        video_path: str = "",
+        video_time: tuple[str | None, str | None] = (None, None),
+        input_hash: str = "",
+    ) -> int:
         """Record a run from its ``RunResult.summary()`` dict (``result.json``). Returns the id."""
-        return self.add_measurement(**summary_values(summary, site=site, output_dir=output_dir, video_path=video_path,
-                                                     video_time=video_time, input_hash=input_hash))
+        return self.add_measurement(
+            **summary_values(
+                summary,
+                site=site,
+                output_dir=output_dir,
+                video_path=video_path,
+                video_time=video_time,
+                input_hash=input_hash,
+            )
+        )
 
-    def add_reference(self, measurement_id: int, discharge_m3s: float, method: str,
-                      uncertainty_m3s: float | None = None, note: str = "") -> int:
+    def add_reference(
+        self,
+        measurement_id: int,
+        discharge_m3s: float,
+        method: str,
+        uncertainty_m3s: float | None = None,
+        note: str = "",
+    ) -> int:
         """Attach a reference discharge (m³/s) measured by ``method`` to a measurement."""
         if method not in REFERENCE_METHODS:
             raise ParameterError(f"reference method {method!r}: use one of {', '.join(REFERENCE_METHODS)}")
@@ -385,11 +421,15 @@ class History:
             raise ParameterError(f"reference uncertainty {uncertainty_m3s!r} m3/s: give zero or a positive number")
         with self.write() as c:
             if c.execute("SELECT 1 FROM measurements WHERE id = ?", (measurement_id,)).fetchone() is None:
-                raise ParameterError(f"measurement {measurement_id}: not in the history {self.path}; "
-                                     "see `fieldtool history list` for the ids")
-            cur = c.execute("INSERT INTO reference_discharges (measurement_id, discharge_m3s, method, uncertainty_m3s, "
-                            "note, added_at) VALUES (?, ?, ?, ?, ?, ?)",
-                            (measurement_id, float(discharge_m3s), method, uncertainty_m3s, note, utc_now()))
+                raise ParameterError(
+                    f"measurement {measurement_id}: not in the history {self.path}; "
+                    "see `fieldtool history list` for the ids"
+                )
+            cur = c.execute(
+                "INSERT INTO reference_discharges (measurement_id, discharge_m3s, method, uncertainty_m3s, "
+                "note, added_at) VALUES (?, ?, ?, ?, ?, ?)",
+                (measurement_id, float(discharge_m3s), method, uncertainty_m3s, note, utc_now()),
+            )
             assert cur.lastrowid is not None  # an INSERT sets it
             return int(cur.lastrowid)
 
@@ -402,21 +442,36 @@ class History:
 
     # -- reading --------------------------------------------------------------------------
     def get(self, measurement_id: int) -> Measurement:
-        row = self.conn.execute(f"SELECT {self._m_select()} FROM measurements WHERE id = ?",
-                                (measurement_id,)).fetchone()
+        row = self.conn.execute(
+            f"SELECT {self._m_select()} FROM measurements WHERE id = ?", (measurement_id,)
+        ).fetchone()
         if row is None:
-            raise ParameterError(f"measurement {measurement_id}: not in the history {self.path}; "
-                                 "see `fieldtool history list` for the ids")
+            raise ParameterError(
+                f"measurement {measurement_id}: not in the history {self.path}; "
+                "see `fieldtool history list` for the ids"
+            )
         return Measurement(*row)
 
-    def query(self, site: str | None = None, since: str | None = None, until: str | None = None,
-              input_hash: str | None = None, output_dir: str | None = None, limit: int | None = None,
-              newest_first: bool = False) -> list[Measurement]:
+    def query(
+        self,
+        site: str | None = None,
+        since: str | None = None,
+        until: str | None = None,
+        input_hash: str | None = None,
+        output_dir: str | None = None,
+        limit: int | None = None,
+        newest_first: bool = False,
+    ) -> list[Measurement]:
         """Measurements filtered by site, video time range [since, until] (stored ISO UTC text,
         see :func:`parse_time`), input hash or output folder, in video-time order."""
         where, args = [], []
-        for col, val, op in (("site", site, "="), ("video_time", since, ">="), ("video_time", until, "<="),
-                             ("input_hash", input_hash, "="), ("output_dir", output_dir, "=")):
+        for col, val, op in (
+            ("site", site, "="),
+            ("video_time", since, ">="),
+            ("video_time", until, "<="),
+            ("input_hash", input_hash, "="),
+            ("output_dir", output_dir, "="),
+        ):
             if val is not None:
                 where.append(f"{col} {op} ?")
                 args.append(val)
@@ -434,8 +489,9 @@ class History:
         be written) lacks the newer columns, read as NULL (and '{}' for the standard uncertainty)."""
         if getattr(self, "_m_cols", None) is None:
             have = {r[1] for r in self._select("PRAGMA table_info(measurements)")}
-            self._m_cols = ", ".join(c if c in have else ("'{}'" if c.endswith("_json") else "NULL") + f" AS {c}"
-                                     for c in _M_COLS)
+            self._m_cols = ", ".join(
+                c if c in have else ("'{}'" if c.endswith("_json") else "NULL") + f" AS {c}" for c in _M_COLS
+            )
         return self._m_cols
 
     def _select(self, sql: str, args=()) -> list:
@@ -489,34 +545,57 @@ class History:
             ref = [p[1] for p in pairs]
             err = [100.0 * (a - b) / b for a, b in zip(q, ref, strict=True)]
             n = len(err)
-            out.append(ErrorStats(
-                site=s, method=method, n=n, bias_percent=sum(err) / n,
-                mean_abs_percent=sum(abs(e) for e in err) / n,
-                rmse_percent=math.sqrt(sum(e * e for e in err) / n),
-                max_abs_percent=max(abs(e) for e in err),
-                rmse_m3s=math.sqrt(sum((a - b) ** 2 for a, b in zip(q, ref, strict=True)) / n)))
+            out.append(
+                ErrorStats(
+                    site=s,
+                    method=method,
+                    n=n,
+                    bias_percent=sum(err) / n,
+                    mean_abs_percent=sum(abs(e) for e in err) / n,
+                    rmse_percent=math.sqrt(sum(e * e for e in err) / n),
+                    max_abs_percent=max(abs(e) for e in err),
+                    rmse_m3s=math.sqrt(sum((a - b) ** 2 for a, b in zip(q, ref, strict=True)) / n),
+                )
+            )
         return out
 
     def integrity_ok(self) -> bool:
         return self.conn.execute("PRAGMA integrity_check").fetchone()[0] == "ok"
 
 
-def summary_values(summary: dict, *, site: str = "", output_dir: str | Path = "", video_path: str = "",
-                   video_time: tuple[str | None, str | None] = (None, None), input_hash: str = "") -> dict:
+def summary_values(
+    summary: dict,
+    *,
+    site: str = "",
+    output_dir: str | Path = "",
+    video_path: str = "",
+    video_time: tuple[str | None, str | None] = (None, None),
+    input_hash: str = "",
+) -> dict:
     """The columns of one measurement row from a run's ``RunResult.summary()`` dict (``result.json``)."""
     inputs = summary.get("inputs") or {}
     return dict(
-        site=site, video_time=video_time[0], video_time_source=video_time[1],
-        project_name=str(inputs.get("name", "")), video_path=str(video_path),
-        water_level_m=_num(summary.get("water_level_m")), water_level_method=summary.get("water_level_method"),
+        site=site,
+        video_time=video_time[0],
+        video_time_source=video_time[1],
+        project_name=str(inputs.get("name", "")),
+        video_path=str(video_path),
+        water_level_m=_num(summary.get("water_level_m")),
+        water_level_method=summary.get("water_level_method"),
         discharge_m3s=_num(summary.get("discharge_m3s")),
         discharge_p05_m3s=_num(summary.get("discharge_p05_m3s")),
         discharge_p95_m3s=_num(summary.get("discharge_p95_m3s")),
-        mean_velocity_ms=_num(summary.get("mean_velocity_ms")), alpha=_num(summary.get("alpha")),
-        wetted_area_m2=_num(summary.get("wetted_area_m2")), wetted_width_m=_num(summary.get("wetted_width_m")),
-        parameters_json=json.dumps(inputs, sort_keys=True), tool_version=str(summary.get("fieldtool_version", "")),
-        input_hash=input_hash, output_dir=str(output_dir), warnings_json=json.dumps(summary.get("warnings", [])),
-        **_uncertainty_columns(summary))
+        mean_velocity_ms=_num(summary.get("mean_velocity_ms")),
+        alpha=_num(summary.get("alpha")),
+        wetted_area_m2=_num(summary.get("wetted_area_m2")),
+        wetted_width_m=_num(summary.get("wetted_width_m")),
+        parameters_json=json.dumps(inputs, sort_keys=True),
+        tool_version=str(summary.get("fieldtool_version", "")),
+        input_hash=input_hash,
+        output_dir=str(output_dir),
+        warnings_json=json.dumps(summary.get("warnings", [])),
+        **_uncertainty_columns(summary),
+    )
 
 
 def insert_measurement(c: sqlite3.Connection, values: dict) -> int:
@@ -536,8 +615,12 @@ def _uncertainty_columns(summary: dict) -> dict:
     ci = summary.get("discharge_ci95_m3s") or [None, None]
     quality = summary.get("quality") if isinstance(summary.get("quality"), dict) else {}
     std = summary.get("uncertainty_standard") if isinstance(summary.get("uncertainty_standard"), dict) else {}
-    return {"discharge_ci95_lo_m3s": _num(ci[0]), "discharge_ci95_hi_m3s": _num(ci[1]),
-            "grade": quality.get("grade"), "uncertainty_standard_json": json.dumps(std, sort_keys=True)}
+    return {
+        "discharge_ci95_lo_m3s": _num(ci[0]),
+        "discharge_ci95_hi_m3s": _num(ci[1]),
+        "grade": quality.get("grade"),
+        "uncertainty_standard_json": json.dumps(std, sort_keys=True),
+    }
 
 
 def _split_sql(script: str) -> list[str]:
@@ -593,8 +676,10 @@ def _check_existing(path: Path) -> None:
         raise InputFileError(f"{path}: cannot read the history database ({e.strerror})") from e
     if not head:
         return  # an empty file is an empty database: nothing to lose
-    advice = ("it was left untouched. Move it aside (or restore a backup) and fieldtool starts a new history, "
-              "or give another path with --db / FIELDTOOL_DB; `sqlite3 FILE .recover` may rescue the rows")
+    advice = (
+        "it was left untouched. Move it aside (or restore a backup) and fieldtool starts a new history, "
+        "or give another path with --db / FIELDTOOL_DB; `sqlite3 FILE .recover` may rescue the rows"
+    )
     if head != _SQLITE_MAGIC:
         raise InputFileError(f"{path}: is not a SQLite database (damaged, or another kind of file); {advice}")
     # a read-only look at a WAL database makes SQLite create the -wal/-shm side files: when the file is
@@ -634,14 +719,20 @@ def _schema_problem(path: Path) -> str | None:
     finally:
         conn.close()
     if version > SCHEMA_VERSION:
-        return (f"history written by a newer fieldtool (schema {version}, this one knows up to {SCHEMA_VERSION}); "
-                "it was left untouched: update fieldtool or use another --db")
+        return (
+            f"history written by a newer fieldtool (schema {version}, this one knows up to {SCHEMA_VERSION}); "
+            "it was left untouched: update fieldtool or use another --db"
+        )
     if version == 0 and tables:
-        return ("this SQLite file holds other tables, not a fieldtool history; it was left untouched: give another "
-                "path with --db or FIELDTOOL_DB")
+        return (
+            "this SQLite file holds other tables, not a fieldtool history; it was left untouched: give another "
+            "path with --db or FIELDTOOL_DB"
+        )
     if version >= 1 and not {"measurements", "reference_discharges"} <= tables:
-        return ("this SQLite file says it is a fieldtool history but lacks its tables; it was left untouched: "
-                "give another path with --db or FIELDTOOL_DB")
+        return (
+            "this SQLite file says it is a fieldtool history but lacks its tables; it was left untouched: "
+            "give another path with --db or FIELDTOOL_DB"
+        )
     return None
 
 
@@ -659,7 +750,7 @@ def _quick_check(path: Path) -> str | None:
     last = ""
     for attempt in range(8):
         if attempt:
-            time.sleep(min(0.05 * 2 ** attempt, 1.0))
+            time.sleep(min(0.05 * 2**attempt, 1.0))
         try:
             conn = sqlite3.connect(uri, uri=True, timeout=BUSY_TIMEOUT_S)
             try:
@@ -679,18 +770,44 @@ def _quick_check(path: Path) -> str | None:
             last = " ".join(res.replace("***", "").split())
             continue
         return f"the history database is damaged ({' '.join(res.replace('***', '').split())})"
-    return (f"the history database cannot be read reliably ({last}); if no other fieldtool is writing it, "
-            "it is damaged (truncated?)")
+    return (
+        f"the history database cannot be read reliably ({last}); if no other fieldtool is writing it, "
+        "it is damaged (truncated?)"
+    )
 
 
 # ---------------------------------------------------------------------------------------------
 # CSV export
 
-CSV_COLUMNS = ["id", "site", "video_time", "video_time_source", "water_level_m", "water_level_method", "discharge_m3s",
-               "discharge_p05_m3s", "discharge_p95_m3s", "mean_velocity_ms", "alpha", "wetted_area_m2",
-               "wetted_width_m", "reference_discharge_m3s", "reference_method", "tool_version", "input_hash",
-               "project_name", "video_path", "output_dir", "recorded_at", "parameters_json",
-               "discharge_ci95_lo_m3s", "discharge_ci95_hi_m3s", "grade", "iso748_u95_rel", "ive_u95_rel"]
+CSV_COLUMNS = [
+    "id",
+    "site",
+    "video_time",
+    "video_time_source",
+    "water_level_m",
+    "water_level_method",
+    "discharge_m3s",
+    "discharge_p05_m3s",
+    "discharge_p95_m3s",
+    "mean_velocity_ms",
+    "alpha",
+    "wetted_area_m2",
+    "wetted_width_m",
+    "reference_discharge_m3s",
+    "reference_method",
+    "tool_version",
+    "input_hash",
+    "project_name",
+    "video_path",
+    "output_dir",
+    "recorded_at",
+    "parameters_json",
+    "discharge_ci95_lo_m3s",
+    "discharge_ci95_hi_m3s",
+    "grade",
+    "iso748_u95_rel",
+    "ive_u95_rel",
+]
 
 
 def export_csv(hist: History, rows: list[Measurement]) -> str:
@@ -728,6 +845,7 @@ def _mp4_creation_time(path: Path) -> datetime | None:
     try:
         size_total = path.stat().st_size
         with path.open("rb") as fh:
+
             def boxes(start: int, end: int):
                 pos = start
                 while pos + 8 <= end:
@@ -803,8 +921,14 @@ def hash_file(path: Path, h: hashlib._Hash | None = None) -> str:
 
 
 # project keys that name input files: their content (not their path) enters the hash
-_FILE_KEYS = (("video", "path"), ("cross_section", "path"), ("calibration", "path"), ("water_level", "dem_path"),
-              ("water_level", "image1"), ("water_level", "image2"))
+_FILE_KEYS = (
+    ("video", "path"),
+    ("cross_section", "path"),
+    ("calibration", "path"),
+    ("water_level", "dem_path"),
+    ("water_level", "image1"),
+    ("water_level", "image2"),
+)
 
 
 def input_hash(project_dict: dict, root: Path | str) -> str:
@@ -844,5 +968,11 @@ def record_run(project, summary: dict, out_dir: Path | str, *, site: str = "", d
     vt = video_datetime(video) if video is not None else (None, None)
     h = input_hash(project_to_dict(project), project.root)
     with History(resolve_db_path(db)) as hist:
-        return hist.record_summary(summary, site=site, output_dir=Path(out_dir).resolve(),
-                                   video_path=str(video or ""), video_time=vt, input_hash=h)
+        return hist.record_summary(
+            summary,
+            site=site,
+            output_dir=Path(out_dir).resolve(),
+            video_path=str(video or ""),
+            video_time=vt,
+            input_hash=h,
+        )

@@ -50,7 +50,7 @@ class RatingCurve:
     def __call__(self, h) -> np.ndarray:
         """Q (m³/s) at level(s) h (m); 0 at and below h0."""
         d = np.clip(np.asarray(h, float) - self.h0, 0.0, None)
-        return self.a * d ** self.b
+        return self.a * d**self.b
 
     def level(self, q) -> np.ndarray:
         """The level (m) of discharge(s) q (m³/s): the inverse of the curve."""
@@ -61,8 +61,10 @@ class RatingCurve:
             return f"{v:{fmt}}" + (f" ± {se:{fmt}}" if se is not None else "")
 
         h0 = pm(self.h0, self.h0_se, ".3f") + (" (fixed)" if self.h0_fixed else "")
-        return (f"Q = a (h - h0)^b with a = {pm(self.a, self.a_se, '.4g')} m3/s, b = {pm(self.b, self.b_se, '.3f')}, "
-                f"h0 = {h0} m; rmse {self.rmse_m3s:.4g} m3/s over {self.n} points")
+        return (
+            f"Q = a (h - h0)^b with a = {pm(self.a, self.a_se, '.4g')} m3/s, b = {pm(self.b, self.b_se, '.3f')}, "
+            f"h0 = {h0} m; rmse {self.rmse_m3s:.4g} m3/s over {self.n} points"
+        )
 
 
 def fit_rating(h, q, h0: float | None = None) -> RatingCurve:
@@ -90,8 +92,10 @@ def fit_rating(h, q, h0: float | None = None) -> RatingCurve:
     h, q = h[ok], q[ok]
     n_par = 2 if h0 is not None else 3
     if len(h) < n_par:
-        raise ParameterError(f"rating curve: {len(h)} measurement(s) with a level and a discharge; "
-                             f"at least {n_par} are needed{' (or give --h0)' if h0 is None else ''}")
+        raise ParameterError(
+            f"rating curve: {len(h)} measurement(s) with a level and a discharge; "
+            f"at least {n_par} are needed{' (or give --h0)' if h0 is None else ''}"
+        )
     if np.any(q <= 0):
         raise ParameterError("rating curve: every discharge must be positive; delete or fix the zero/negative ones")
     h_min, h_max = float(h.min()), float(h.max())
@@ -123,8 +127,10 @@ def fit_rating(h, q, h0: float | None = None) -> RatingCurve:
         if best is None or sse < best[0]:
             best = (sse, math.exp(la0), b0, cand)
     if best is None:
-        raise ParameterError("rating curve: no power law with an exponent between "
-                             f"{B_RANGE[0]} and {B_RANGE[1]} fits these points; check the levels and discharges")
+        raise ParameterError(
+            "rating curve: no power law with an exponent between "
+            f"{B_RANGE[0]} and {B_RANGE[1]} fits these points; check the levels and discharges"
+        )
     _, a0, b0, c0 = best
     upper_h0 = h_min - eps
     lower_h0 = h_min - 50 * span
@@ -160,11 +166,21 @@ def _se(pcov: np.ndarray, n: int, k: int) -> list[float | None]:
 
 
 def _rms(r: np.ndarray) -> float:
-    return float(np.sqrt(np.mean(r ** 2))) if len(r) else float("nan")
+    return float(np.sqrt(np.mean(r**2))) if len(r) else float("nan")
 
 
-def plot_rating(path: Path | str, curve: RatingCurve | None, h, q, *, ref_h=None, ref_q=None, site: str = "",
-                q_low=None, q_high=None) -> Path:
+def plot_rating(
+    path: Path | str,
+    curve: RatingCurve | None,
+    h,
+    q,
+    *,
+    ref_h=None,
+    ref_q=None,
+    site: str = "",
+    q_low=None,
+    q_high=None,
+) -> Path:
     """Stage-discharge plot: the measurements (with their 5-95 % spread when ``q_low``/``q_high``
     are given), the references, and the fitted curve. Written as PNG (or PDF/SVG by suffix)."""
     path = Path(path)
@@ -176,17 +192,29 @@ def plot_rating(path: Path | str, curve: RatingCurve | None, h, q, *, ref_h=None
         lo = np.asarray(q_low, float)
         hi = np.asarray(q_high, float)
         good = np.isfinite(lo) & np.isfinite(hi)
-        ax.errorbar(q[good], h[good], xerr=[np.clip(q[good] - lo[good], 0, None), np.clip(hi[good] - q[good], 0, None)],
-                    fmt="none", ecolor="tab:blue", alpha=0.4, capsize=2)
+        ax.errorbar(
+            q[good],
+            h[good],
+            xerr=[np.clip(q[good] - lo[good], 0, None), np.clip(hi[good] - q[good], 0, None)],
+            fmt="none",
+            ecolor="tab:blue",
+            alpha=0.4,
+            capsize=2,
+        )
     ax.plot(q, h, "o", color="tab:blue", label=f"LSPIV ({len(q)})")
     if ref_h is not None and ref_q is not None and len(ref_q):
-        ax.plot(np.asarray(ref_q, float), np.asarray(ref_h, float), "s", mfc="none", color="tab:red",
-                label=f"reference ({len(ref_q)})")
+        ax.plot(
+            np.asarray(ref_q, float),
+            np.asarray(ref_h, float),
+            "s",
+            mfc="none",
+            color="tab:red",
+            label=f"reference ({len(ref_q)})",
+        )
     if curve is not None:
         top = max(float(np.nanmax(h)) if len(h) else curve.h0 + 1.0, curve.h0 + 1e-3)
         hh = np.linspace(curve.h0, top + 0.1 * (top - curve.h0), 200)
-        ax.plot(curve(hh), hh, "-", color="k",
-                label=f"Q = {curve.a:.3g} (h − {curve.h0:.3f})^{curve.b:.2f}")
+        ax.plot(curve(hh), hh, "-", color="k", label=f"Q = {curve.a:.3g} (h − {curve.h0:.3f})^{curve.b:.2f}")
     ax.set_xlabel("discharge Q (m³/s)")
     ax.set_ylabel("water level h (m)")
     ax.set_xlim(left=0)

@@ -28,8 +28,8 @@ from fieldtool.records.report_content import (
     discharge_text,
     header_rows,
     parameter_rows,
-    standard_rows,
     result_rows,
+    standard_rows,
     subsection_cell,
 )
 from fieldtool.records.report_content import fmt_value as _f
@@ -48,8 +48,9 @@ def load_result(result_dir: Path | str) -> tuple[dict, dict[str, bytes], list[di
     except (OSError, ValueError) as e:
         raise InputFileError(f"{path}: cannot be read as a run result ({e}); run the project again") from e
     if not isinstance(summary, dict) or not isinstance(summary.get("files") or {}, dict):
-        raise InputFileError(f"{path}: is not a fieldtool run result (expected a JSON object with 'files'); run "
-                             "the project again")
+        raise InputFileError(
+            f"{path}: is not a fieldtool run result (expected a JSON object with 'files'); run the project again"
+        )
     files = summary.get("files") or {}
     images = {}
     for key, name in files.items():
@@ -117,14 +118,19 @@ def _discharge_html(summary: dict) -> list[str]:
     if t["ci"]:
         out.append(f"<div class='ci' id='interval'>95 % interval {_e(t['ci'])} ({_e(t['rel'])})</div></div>")
     else:
-        out.append("<div class='ci muted' id='interval'>no 95 % interval in this result (computed by newer "
-                   "fieldtool runs)</div></div>")
+        out.append(
+            "<div class='ci muted' id='interval'>no 95 % interval in this result (computed by newer "
+            "fieldtool runs)</div></div>"
+        )
     if t["grade"]:
         colour = GRADE_COLOURS.get(t["grade"], "#57606a")
         out.append(f"<div id='quality'><span class='grade' style='background:{colour}'>{_e(t['grade'])}</span>")
         if t["reasons"]:
-            out.append("<ul class='reasons'>" + "".join(f"<li><b>{_e(sev)}</b>: {_e(msg)}</li>"
-                                                       for sev, msg in t["reasons"]) + "</ul>")
+            out.append(
+                "<ul class='reasons'>"
+                + "".join(f"<li><b>{_e(sev)}</b>: {_e(msg)}</li>" for sev, msg in t["reasons"])
+                + "</ul>"
+            )
         else:
             out.append("<div class='muted'>no reason for doubt found</div>")
         out.append("</div>")
@@ -133,20 +139,27 @@ def _discharge_html(summary: dict) -> list[str]:
     out.append("</div>")
     lo, hi = summary.get("discharge_p05_m3s"), summary.get("discharge_p95_m3s")
     if lo is not None and hi is not None:
-        out.append(f"<p class='muted' id='spread'>Spread of the discharge of single frame pairs (not an interval "
-                   f"of Q): 5–95 % {_f(lo, '.3f')} – {_f(hi, '.3f')} m³/s over {summary.get('n_pairs', '?')} "
-                   "frame pairs.</p>")
+        out.append(
+            f"<p class='muted' id='spread'>Spread of the discharge of single frame pairs (not an interval "
+            f"of Q): 5–95 % {_f(lo, '.3f')} – {_f(hi, '.3f')} m³/s over {summary.get('n_pairs', '?')} "
+            "frame pairs.</p>"
+        )
     std = standard_rows(summary)
     if std:  # the hydrologists' standard uncertainty beside ours (issue 27)
-        out.append("<table id='standard'><tr><th class='k'>method (2σ)</th><th>95 % interval</th><th>relative</th>"
-                   "<th>USGS rating</th></tr>")
-        out += [f"<tr><td class='k'>{_e(a)}</td><td>{_e(b)}</td><td>{_e(c)}</td><td>{_e(d)}</td></tr>"
-                for a, b, c, d in std]
+        out.append(
+            "<table id='standard'><tr><th class='k'>method (2σ)</th><th>95 % interval</th><th>relative</th>"
+            "<th>USGS rating</th></tr>"
+        )
+        out += [
+            f"<tr><td class='k'>{_e(a)}</td><td>{_e(b)}</td><td>{_e(c)}</td><td>{_e(d)}</td></tr>" for a, b, c, d in std
+        ]
         out.append("</table>")
     budget = budget_rows(summary)
     if budget:
-        out.append("<table id='budget'><tr><th class='k'>uncertainty source</th><th>share of variance</th>"
-                   "<th>u (m³/s)</th></tr>")
+        out.append(
+            "<table id='budget'><tr><th class='k'>uncertainty source</th><th>share of variance</th>"
+            "<th>u (m³/s)</th></tr>"
+        )
         out += [f"<tr><td class='k'>{_e(a)}</td><td>{_e(b)}</td><td>{_e(c)}</td></tr>" for a, b, c in budget]
         out.append("</table>")
     return out
@@ -157,25 +170,33 @@ def _sections_html(summary: dict) -> list[str]:
     secs = summary.get("sections") or []
     if not secs:
         return []
-    out = ["<h2>Sections</h2><table id='sections'><tr><th class='k'>section</th><th>Q (m³/s)</th>"
-           "<th>95 % interval (m³/s)</th><th class='k'>grade</th><th>wetted width (m)</th>"
-           "<th>mean velocity (m/s)</th></tr>"]
+    out = [
+        "<h2>Sections</h2><table id='sections'><tr><th class='k'>section</th><th>Q (m³/s)</th>"
+        "<th>95 % interval (m³/s)</th><th class='k'>grade</th><th>wetted width (m)</th>"
+        "<th>mean velocity (m/s)</th></tr>"
+    ]
     for e in secs:
         if "error" in e:
-            out.append(f"<tr><td class='k'>{_e(e.get('name'))}</td><td colspan='5' class='warn'>{_e(e['error'])}</td></tr>")
+            out.append(
+                f"<tr><td class='k'>{_e(e.get('name'))}</td><td colspan='5' class='warn'>{_e(e['error'])}</td></tr>"
+            )
             continue
         ci = e.get("discharge_ci95_m3s")
         ci_txt = f"{_f(ci[0])} – {_f(ci[1])}" if ci else "–"
-        out.append(f"<tr><td class='k'>{_e(e.get('name'))}</td><td>{_f(e.get('discharge_m3s'))}</td><td>{ci_txt}</td>"
-                   f"<td class='k'>{_e(e.get('grade') or '–')}</td><td>{_f(e.get('wetted_width_m'), '.3f')}</td>"
-                   f"<td>{_f(e.get('mean_velocity_ms'), '.3f')}</td></tr>")
+        out.append(
+            f"<tr><td class='k'>{_e(e.get('name'))}</td><td>{_f(e.get('discharge_m3s'))}</td><td>{ci_txt}</td>"
+            f"<td class='k'>{_e(e.get('grade') or '–')}</td><td>{_f(e.get('wetted_width_m'), '.3f')}</td>"
+            f"<td>{_f(e.get('mean_velocity_ms'), '.3f')}</td></tr>"
+        )
     sm = summary.get("sections_summary") or {}
     if sm:
         cv = sm.get("cv")
-        out.append(f"<tr><th class='k'>mean of {sm.get('n')}</th><td>{_f(sm.get('mean_m3s'))}</td>"
-                   f"<td colspan='4'>std {_f(sm.get('std_m3s'))} m³/s, "
-                   f"CV {_f(100 * cv if cv is not None else None, '.1f', '%')}"
-                   "</td></tr>")
+        out.append(
+            f"<tr><th class='k'>mean of {sm.get('n')}</th><td>{_f(sm.get('mean_m3s'))}</td>"
+            f"<td colspan='4'>std {_f(sm.get('std_m3s'))} m³/s, "
+            f"CV {_f(100 * cv if cv is not None else None, '.1f', '%')}"
+            "</td></tr>"
+        )
     out.append("</table>")
     return out
 
@@ -199,29 +220,42 @@ def _video_html(video: bytes | str | None, summary: dict) -> list[str]:
     if video is None:
         return []
     info = summary.get("overlay") or {}
-    src = (f"data:video/mp4;base64,{base64.b64encode(video).decode('ascii')}" if isinstance(video, bytes)
-           else _e(video))
-    cap = (f"The analysed clip with the per-pair vectors, the section's subsections coloured by surface velocity and "
-           f"the running Q; closing card with the final Q, its 95 % interval and the grade "
-           f"({_e(info.get('frames', '?'))} frames + {_e(info.get('card_frames', 0))} of the card, "
-           f"{_e(info.get('width_px', '?'))}x{_e(info.get('height_px', '?'))}, {_e(info.get('view', ''))} view).")
-    return ["<h2>Overlay video</h2>",
-            f"<figure id='overlay'><video id='overlay-video' controls muted playsinline preload='auto' src='{src}'>"
-            f"your browser does not play MP4 video: open overlay.mp4</video><figcaption>{cap}</figcaption></figure>"]
+    src = f"data:video/mp4;base64,{base64.b64encode(video).decode('ascii')}" if isinstance(video, bytes) else _e(video)
+    cap = (
+        f"The analysed clip with the per-pair vectors, the section's subsections coloured by surface velocity and "
+        f"the running Q; closing card with the final Q, its 95 % interval and the grade "
+        f"({_e(info.get('frames', '?'))} frames + {_e(info.get('card_frames', 0))} of the card, "
+        f"{_e(info.get('width_px', '?'))}x{_e(info.get('height_px', '?'))}, {_e(info.get('view', ''))} view)."
+    )
+    return [
+        "<h2>Overlay video</h2>",
+        f"<figure id='overlay'><video id='overlay-video' controls muted playsinline preload='auto' src='{src}'>"
+        f"your browser does not play MP4 video: open overlay.mp4</video><figcaption>{cap}</figcaption></figure>",
+    ]
 
 
-def render_html(summary: dict, images: dict[str, bytes], subsections: list[dict], *,
-                measurement: Measurement | None = None, references: Sequence[Reference] = (),
-                title: str | None = None, video: bytes | str | None = None) -> str:
+def render_html(
+    summary: dict,
+    images: dict[str, bytes],
+    subsections: list[dict],
+    *,
+    measurement: Measurement | None = None,
+    references: Sequence[Reference] = (),
+    title: str | None = None,
+    video: bytes | str | None = None,
+) -> str:
     """The report as one HTML string with every plot embedded (no external file or network); ``video`` is the
     overlay video (:func:`overlay_video`: bytes embedded, or a relative path linked)."""
     inputs = summary.get("inputs") or {}
     name = title or inputs.get("name") or "measurement"
     q = summary.get("discharge_m3s")
-    out = ["<!DOCTYPE html>", "<html lang='en'><head><meta charset='utf-8'>",
-           "<meta name='viewport' content='width=device-width, initial-scale=1'>",
-           f"<title>fieldtool report — {_e(name)}</title><style>{_CSS}</style></head><body>",
-           f"<h1>Discharge measurement — {_e(name)}</h1>"]
+    out = [
+        "<!DOCTYPE html>",
+        "<html lang='en'><head><meta charset='utf-8'>",
+        "<meta name='viewport' content='width=device-width, initial-scale=1'>",
+        f"<title>fieldtool report — {_e(name)}</title><style>{_CSS}</style></head><body>",
+        f"<h1>Discharge measurement — {_e(name)}</h1>",
+    ]
     out += _header_html(summary, measurement)
     out += _discharge_html(summary)
 
@@ -233,12 +267,16 @@ def render_html(summary: dict, images: dict[str, bytes], subsections: list[dict]
     out += _sections_html(summary)
 
     if references:
-        out.append("<h2>Reference discharges</h2><table><tr><th class='k'>method</th><th>Q ref (m³/s)</th>"
-                   "<th>± (m³/s)</th><th>LSPIV − ref (%)</th><th class='k'>note</th></tr>")
+        out.append(
+            "<h2>Reference discharges</h2><table><tr><th class='k'>method</th><th>Q ref (m³/s)</th>"
+            "<th>± (m³/s)</th><th>LSPIV − ref (%)</th><th class='k'>note</th></tr>"
+        )
         for r in references:
             err = 100.0 * (q - r.discharge_m3s) / r.discharge_m3s if q is not None else None
-            out.append(f"<tr><td class='k'>{_e(r.method)}</td><td>{_f(r.discharge_m3s)}</td>"
-                       f"<td>{_f(r.uncertainty_m3s)}</td><td>{_f(err, '+.2f')}</td><td class='k'>{_e(r.note)}</td></tr>")
+            out.append(
+                f"<tr><td class='k'>{_e(r.method)}</td><td>{_f(r.discharge_m3s)}</td>"
+                f"<td>{_f(r.uncertainty_m3s)}</td><td>{_f(err, '+.2f')}</td><td class='k'>{_e(r.note)}</td></tr>"
+            )
         out.append("</table>")
 
     warnings = summary.get("warnings") or []
@@ -254,51 +292,78 @@ def render_html(summary: dict, images: dict[str, bytes], subsections: list[dict]
     for key in order:
         b64 = base64.b64encode(images[key]).decode("ascii")
         cap = captions.get(key, key.removesuffix("_png").replace("_", " "))
-        out.append(f"<figure id='plot-{_e(key)}'><img alt='{_e(cap)}' src='data:image/png;base64,{b64}'>"
-                   f"<figcaption>{_e(cap)}</figcaption></figure>")
+        out.append(
+            f"<figure id='plot-{_e(key)}'><img alt='{_e(cap)}' src='data:image/png;base64,{b64}'>"
+            f"<figcaption>{_e(cap)}</figcaption></figure>"
+        )
 
     if subsections:
         cols = list(subsections[0].keys())
-        out.append("<h2>Subsections</h2><table id='subsections'><tr>"
-                   + "".join(f"<th>{_e(_COLUMN_NAMES.get(c, c))}</th>" for c in cols) + "</tr>")
+        out.append(
+            "<h2>Subsections</h2><table id='subsections'><tr>"
+            + "".join(f"<th>{_e(_COLUMN_NAMES.get(c, c))}</th>" for c in cols)
+            + "</tr>"
+        )
         for r in subsections:
             out.append("<tr>" + "".join(f"<td>{_e(subsection_cell(c, r.get(c, '')))}</td>" for c in cols) + "</tr>")
         out.append("</table>")
 
-    out.append("<h2>Parameters</h2><table id='inputs'><tr><th class='k'>step</th><th class='k'>parameter</th>"
-               "<th class='k'>value</th></tr>")
-    out += [f"<tr><td class='k'>{_e(a)}</td><td class='k'>{_e(b)}</td><td class='k'>{_e(c)}</td></tr>"
-            for a, b, c in parameter_rows(inputs)]
+    out.append(
+        "<h2>Parameters</h2><table id='inputs'><tr><th class='k'>step</th><th class='k'>parameter</th>"
+        "<th class='k'>value</th></tr>"
+    )
+    out += [
+        f"<tr><td class='k'>{_e(a)}</td><td class='k'>{_e(b)}</td><td class='k'>{_e(c)}</td></tr>"
+        for a, b, c in parameter_rows(inputs)
+    ]
     out.append("</table>")
     if measurement is not None and measurement.input_hash:
-        out.append(f"<p class='muted'>history id {measurement.id}; input hash (SHA-256 of parameters and input "
-                   f"files): <code>{_e(measurement.input_hash)}</code></p>")
+        out.append(
+            f"<p class='muted'>history id {measurement.id}; input hash (SHA-256 of parameters and input "
+            f"files): <code>{_e(measurement.input_hash)}</code></p>"
+        )
     now = datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC")
-    out.append(f"<p class='muted'>report written {now} by fieldtool {_e(__version__)}; the run used fieldtool "
-               f"{_e(summary.get('fieldtool_version', '?'))}. Every value of the run: result.json.</p></body></html>")
+    out.append(
+        f"<p class='muted'>report written {now} by fieldtool {_e(__version__)}; the run used fieldtool "
+        f"{_e(summary.get('fieldtool_version', '?'))}. Every value of the run: result.json.</p></body></html>"
+    )
     return "\n".join(out)
 
 
 _COLUMN_NAMES = COLUMN_NAMES
 
 
-def render_pdf(summary: dict, images: dict[str, bytes], subsections: list[dict], *,
-               measurement: Measurement | None = None, references: list[Reference] = ()) -> bytes:
+def render_pdf(
+    summary: dict,
+    images: dict[str, bytes],
+    subsections: list[dict],
+    *,
+    measurement: Measurement | None = None,
+    references: list[Reference] = (),
+) -> bytes:
     """The report as PDF bytes (A4), with everything the HTML has (``records.report_pdf``)."""
     from fieldtool.records.report_pdf import render_pdf as _render  # matplotlib only when a PDF is asked for
 
     return _render(summary, images, subsections, measurement=measurement, references=references, plots=PLOTS)
 
 
-def write_report(result_dir: Path | str, out: Path | str | None = None, *, pdf: bool = False,
-                 measurement: Measurement | None = None, references: Sequence[Reference] = ()) -> list[Path]:
+def write_report(
+    result_dir: Path | str,
+    out: Path | str | None = None,
+    *,
+    pdf: bool = False,
+    measurement: Measurement | None = None,
+    references: Sequence[Reference] = (),
+) -> list[Path]:
     """Write ``report.html`` (and ``report.pdf``) for a run's output folder. Returns the paths."""
     result_dir = Path(result_dir)
     summary, images, rows = load_result(result_dir)
     out = Path(out) if out else result_dir / "report.html"
     video = overlay_video(result_dir, summary, out)
-    atomic_write_bytes(out, render_html(summary, images, rows, measurement=measurement, references=references,
-                                        video=video).encode("utf-8"))
+    atomic_write_bytes(
+        out,
+        render_html(summary, images, rows, measurement=measurement, references=references, video=video).encode("utf-8"),
+    )
     written = [out]
     if pdf:
         p = out.with_suffix(".pdf")

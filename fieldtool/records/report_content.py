@@ -26,9 +26,16 @@ PLOTS = (
 )
 GRADE_COLOURS = {"good": "#1a7f37", "doubtful": "#9a6700", "unusable": "#cf222e"}
 # columns of the subsection table, with their headings
-COLUMN_NAMES = {"subsection": "#", "station_from_m": "from (m)", "station_to_m": "to (m)", "area_m2": "area (m²)",
-                 "mean_depth_m": "mean depth (m)", "surface_velocity_ms": "surface velocity (m/s)",
-                 "velocity_filled": "filled", "discharge_m3s": "Q (m³/s)"}
+COLUMN_NAMES = {
+    "subsection": "#",
+    "station_from_m": "from (m)",
+    "station_to_m": "to (m)",
+    "area_m2": "area (m²)",
+    "mean_depth_m": "mean depth (m)",
+    "surface_velocity_ms": "surface velocity (m/s)",
+    "velocity_filled": "filled",
+    "discharge_m3s": "Q (m³/s)",
+}
 
 
 def fmt_value(v, fmt: str = ".4f", unit: str = "") -> str:
@@ -58,20 +65,32 @@ def header_rows(summary: dict, measurement=None) -> list[tuple[str, str]]:
         when, source = measurement.video_time, measurement.video_time_source
     if when:
         recorded = when.replace("T", " ").replace("Z", " UTC") + (
-            " (from the video container)" if source == "container" else f" ({source}: the container gave no date)")
+            " (from the video container)" if source == "container" else f" ({source}: the container gave no date)"
+        )
     else:
         recorded = "unknown"
     vpath = video.get("file") or Path(str((inputs.get("video") or {}).get("path", ""))).name or "–"
-    rows = [("Site", str(site)), ("Station", inputs.get("station") or "–"), ("Operator", inputs.get("operator") or "–"),
-            ("Video file", vpath), ("Recorded", recorded)]
+    rows = [
+        ("Site", str(site)),
+        ("Station", inputs.get("station") or "–"),
+        ("Operator", inputs.get("operator") or "–"),
+        ("Video file", vpath),
+        ("Recorded", recorded),
+    ]
     if video:
         dur = _num(video.get("duration_s"), ".2f", "s")
         used = f"{_num(video.get('start_s'), '.2f')} – " + (
-            _num(video.get("end_s"), ".2f", "s") if video.get("end_s") is not None else "end")
-        rows += [("Duration", f"{dur} (analysed {used})"),
-                 ("Resolution", f"{video.get('width_px', '?')} × {video.get('height_px', '?')} px"),
-                 ("Frame rate", _num(video.get("fps"), ".4g", "frames/s") + (
-                     f", {video.get('n_frames')} frames" if video.get("n_frames") else ""))]
+            _num(video.get("end_s"), ".2f", "s") if video.get("end_s") is not None else "end"
+        )
+        rows += [
+            ("Duration", f"{dur} (analysed {used})"),
+            ("Resolution", f"{video.get('width_px', '?')} × {video.get('height_px', '?')} px"),
+            (
+                "Frame rate",
+                _num(video.get("fps"), ".4g", "frames/s")
+                + (f", {video.get('n_frames')} frames" if video.get("n_frames") else ""),
+            ),
+        ]
     return rows
 
 
@@ -111,14 +130,25 @@ def discharge_text(summary: dict) -> dict:
 
 def budget_rows(summary: dict) -> list[tuple[str, str, str]]:
     """(source, share, u) rows of the uncertainty budget, when the run has one."""
-    names = {"water_level": "water level", "gcp_pixels": "GCP picks (pixels)", "gcp_distances": "GCP distances",
-             "velocity_index": "velocity index α", "velocity_sampling": "velocity sampling (frame pairs)",
-             "filled_subsections": "filled subsections", "cross_section": "cross-section survey"}
+    names = {
+        "water_level": "water level",
+        "gcp_pixels": "GCP picks (pixels)",
+        "gcp_distances": "GCP distances",
+        "velocity_index": "velocity index α",
+        "velocity_sampling": "velocity sampling (frame pairs)",
+        "filled_subsections": "filled subsections",
+        "cross_section": "cross-section survey",
+    }
     rows = []
     for b in (summary.get("uncertainty") or {}).get("budget") or []:
         if isinstance(b, dict):
-            rows.append((names.get(str(b.get("source")), str(b.get("source"))), _num(100 * float(b.get("share") or 0), ".0f", "%"),
-                         _num(b.get("u_m3s"), ".3f", "m³/s")))
+            rows.append(
+                (
+                    names.get(str(b.get("source")), str(b.get("source"))),
+                    _num(100 * float(b.get("share") or 0), ".0f", "%"),
+                    _num(b.get("u_m3s"), ".3f", "m³/s"),
+                )
+            )
     return rows
 
 
@@ -142,7 +172,9 @@ def standard_rows(summary: dict) -> list[tuple[str, str, str, str]]:
         if not isinstance(b, dict) or not b.get("ci95_m3s"):
             continue
         lo, hi = b["ci95_m3s"]
-        rows.append((name, f"{lo:.3f} – {hi:.3f} m³/s", f"± {100 * float(b['u95_rel']):.1f} %", str(b.get("rating") or "–")))
+        rows.append(
+            (name, f"{lo:.3f} – {hi:.3f} m³/s", f"± {100 * float(b['u95_rel']):.1f} %", str(b.get("rating") or "–"))
+        )
     return rows
 
 
@@ -151,25 +183,43 @@ def parameter_rows(inputs: dict) -> list[tuple[str, str, str]]:
     g = lambda t: inputs.get(t) or {}  # noqa: E731
     rows: list[tuple[str, str, str]] = []
     v = g("video")
-    rows.append(("Video", "Time range", f"{_num(v.get('start_s', 0), '.2f')} – "
-                 + (_num(v["end_s"], ".2f", "s") if v.get("end_s") is not None else "end of clip")))
+    rows.append(
+        (
+            "Video",
+            "Time range",
+            f"{_num(v.get('start_s', 0), '.2f')} – "
+            + (_num(v["end_s"], ".2f", "s") if v.get("end_s") is not None else "end of clip"),
+        )
+    )
     rows.append(("Video", "Frames used", "every frame" if v.get("step", 1) == 1 else f"every {v['step']}th frame"))
     c = g("cross_section")
     if c.get("shape"):
-        dims = ", ".join(f"{k.removesuffix('_m').replace('_', ' ')} {_num(c[k], '.2f', 'm')}"
-                         for k in ("top_width_m", "bottom_width_m", "depth_m") if c.get(k) is not None)
+        dims = ", ".join(
+            f"{k.removesuffix('_m').replace('_', ' ')} {_num(c[k], '.2f', 'm')}"
+            for k in ("top_width_m", "bottom_width_m", "depth_m")
+            if c.get(k) is not None
+        )
         rows.append(("Cross-section", "Shape", f"{c['shape']}" + (f" ({dims})" if dims else "")))
     else:
         rows.append(("Cross-section", "Survey file", Path(str(c.get("path", "–"))).name or "–"))
     cal = g("calibration")
     rows.append(("Lens", "Calibration", Path(cal["path"]).name if cal.get("path") else "none (lens not corrected)"))
     st = g("stabilize")
-    rows.append(("Stabilisation", "Image stabilisation", f"on ({st.get('model', 'homography')})" if st.get("enabled")
-                 else "off"))
+    rows.append(
+        (
+            "Stabilisation",
+            "Image stabilisation",
+            f"on ({st.get('model', 'homography')})" if st.get("enabled") else "off",
+        )
+    )
     o = g("ortho")
-    method = {"distances": "4 GCPs and 6 taped distances", "world": "GCPs with surveyed coordinates",
-              "pose": "camera pose from 3-D GCPs", "two_points": "2 GCPs and their distance (nadir)",
-              "none": "scale from the wetted width (nadir)"}
+    method = {
+        "distances": "4 GCPs and 6 taped distances",
+        "world": "GCPs with surveyed coordinates",
+        "pose": "camera pose from 3-D GCPs",
+        "two_points": "2 GCPs and their distance (nadir)",
+        "none": "scale from the wetted width (nadir)",
+    }
     rows.append(("Orthorectification", "Method", method.get(o.get("method", "distances"), str(o.get("method")))))
     if o.get("distances_m") and o.get("method", "distances") == "distances":
         rows.append(("Orthorectification", "Distances L1–L6", ", ".join(f"{d:.3f}" for d in o["distances_m"]) + " m"))
@@ -177,13 +227,24 @@ def parameter_rows(inputs: dict) -> list[tuple[str, str, str]]:
         rows.append(("Orthorectification", "Coordinate system", f"EPSG:{o['crs_epsg']}"))
     w = g("water_level")
     wm = w.get("method", "value")
-    wl = {"value": "typed value", "width": "from the wetted width", "dem": "from a bank DEM (adapted Hellebaut)",
-          "angle_height": "two images at different heights", "image": "water edges picked on the frame",
-          "waterline": "water edges found in the clip"}
+    wl = {
+        "value": "typed value",
+        "width": "from the wetted width",
+        "dem": "from a bank DEM (adapted Hellebaut)",
+        "angle_height": "two images at different heights",
+        "image": "water edges picked on the frame",
+        "waterline": "water edges found in the clip",
+    }
     rows.append(("Water level", "Method", wl.get(wm, wm)))
     if wm == "value" and w.get("value_m") is not None:
-        rows.append(("Water level", "Level", _num(w["value_m"], ".3f", "m") + (
-            f" ± {_num(w['uncertainty_m'], '.3f', 'm')}" if w.get("uncertainty_m") is not None else "")))
+        rows.append(
+            (
+                "Water level",
+                "Level",
+                _num(w["value_m"], ".3f", "m")
+                + (f" ± {_num(w['uncertainty_m'], '.3f', 'm')}" if w.get("uncertainty_m") is not None else ""),
+            )
+        )
     if wm == "width" and w.get("width_m") is not None:
         rows.append(("Water level", "Wetted width", _num(w["width_m"], ".3f", "m")))
     r = g("roi")
@@ -191,21 +252,33 @@ def parameter_rows(inputs: dict) -> list[tuple[str, str, str]]:
     if r.get("masks_px"):
         rows.append(("Region", "Masked areas", str(len(r["masks_px"]))))
     filters = inputs.get("filters") or []
-    rows.append(("Image filters", "Filters (in order)", ", ".join(str(f.get("name", "?")) for f in filters
-                                                                 if isinstance(f, dict)) or "none"))
+    rows.append(
+        (
+            "Image filters",
+            "Filters (in order)",
+            ", ".join(str(f.get("name", "?")) for f in filters if isinstance(f, dict)) or "none",
+        )
+    )
     p = g("piv")
-    rows += [("PIV", "Engine", str(p.get("engine", "fieldtool"))),
-             ("PIV", "Interrogation window", f"{p.get('window_px', 32)} px, overlap {p.get('overlap_px', 16)} px"),
-             ("PIV", "Search area", f"{p['search_px']} px" if p.get("search_px") else "= window"),
-             ("PIV", "Passes", str(p.get("passes", 2))),
-             ("PIV", "Averaging", str(p.get("averaging", "ensemble"))),
-             ("PIV", "Minimum peak ratio", _num(p.get("snr_min", 1.3), ".2f"))]
+    rows += [
+        ("PIV", "Engine", str(p.get("engine", "fieldtool"))),
+        ("PIV", "Interrogation window", f"{p.get('window_px', 32)} px, overlap {p.get('overlap_px', 16)} px"),
+        ("PIV", "Search area", f"{p['search_px']} px" if p.get("search_px") else "= window"),
+        ("PIV", "Passes", str(p.get("passes", 2))),
+        ("PIV", "Averaging", str(p.get("averaging", "ensemble"))),
+        ("PIV", "Minimum peak ratio", _num(p.get("snr_min", 1.3), ".2f")),
+    ]
     if p.get("max_velocity_ms") is not None:
         rows.append(("PIV", "Maximum velocity", _num(p["max_velocity_ms"], ".2f", "m/s")))
     s = g("section")
     rows.append(("Discharge", "Subsections", str(s.get("n_sub", 15))))
-    rows.append(("Discharge", "Velocity index α", _num(s["alpha"], ".2f") if s.get("alpha") is not None
-                 else "default (0.8 below 2 m mean depth, else 0.9)"))
+    rows.append(
+        (
+            "Discharge",
+            "Velocity index α",
+            _num(s["alpha"], ".2f") if s.get("alpha") is not None else "default (0.8 below 2 m mean depth, else 0.9)",
+        )
+    )
     if s.get("station_offset_m") is not None:
         rows.append(("Discharge", "Station of the left point", _num(s["station_offset_m"], ".2f", "m")))
     return rows
@@ -217,8 +290,11 @@ def result_rows(summary: dict) -> list[tuple[str, str]]:
     res = summary.get("ortho_residual_m")
     alpha = _num(summary.get("alpha"), ".2f")
     return [
-        ("Water level", f"{_num(summary.get('water_level_m'), '.3f', 'm')} ± "
-                        f"{_num(summary.get('water_level_uncertainty_m'), '.3f', 'm')}"),
+        (
+            "Water level",
+            f"{_num(summary.get('water_level_m'), '.3f', 'm')} ± "
+            f"{_num(summary.get('water_level_uncertainty_m'), '.3f', 'm')}",
+        ),
         ("Wetted area", _num(summary.get("wetted_area_m2"), ".3f", "m²")),
         ("Wetted width", _num(summary.get("wetted_width_m"), ".3f", "m")),
         ("Mean velocity", _num(summary.get("mean_velocity_ms"), ".3f", "m/s")),
@@ -232,9 +308,17 @@ def result_rows(summary: dict) -> list[tuple[str, str]]:
 
 
 # subsections.csv columns as the report names them (a column not listed keeps its name)
-COLUMN_NAMES = {"subsection": "#", "station_from_m": "from (m)", "station_to_m": "to (m)", "area_m2": "area (m²)",
-                "mean_depth_m": "mean depth (m)", "surface_velocity_ms": "surface velocity (m/s)",
-                "velocity_filled": "filled", "discharge_m3s": "Q (m³/s)", "stiv_velocity_ms": "STIV velocity (m/s)"}
+COLUMN_NAMES = {
+    "subsection": "#",
+    "station_from_m": "from (m)",
+    "station_to_m": "to (m)",
+    "area_m2": "area (m²)",
+    "mean_depth_m": "mean depth (m)",
+    "surface_velocity_ms": "surface velocity (m/s)",
+    "velocity_filled": "filled",
+    "discharge_m3s": "Q (m³/s)",
+    "stiv_velocity_ms": "STIV velocity (m/s)",
+}
 
 
 def subsection_cell(column: str, value) -> str:
@@ -254,13 +338,28 @@ def sections_rows(summary: dict) -> list[tuple[str, ...]]:
             rows.append((str(e.get("name")), str(e["error"]), "", "", "", ""))
             continue
         ci = e.get("discharge_ci95_m3s")
-        rows.append((str(e.get("name")), _num(e.get("discharge_m3s"), ".4f"),
-                     f"{_num(ci[0], '.4f')} – {_num(ci[1], '.4f')}" if ci else "–", str(e.get("grade") or "–"),
-                     _num(e.get("wetted_width_m"), ".3f"), _num(e.get("mean_velocity_ms"), ".3f")))
+        rows.append(
+            (
+                str(e.get("name")),
+                _num(e.get("discharge_m3s"), ".4f"),
+                f"{_num(ci[0], '.4f')} – {_num(ci[1], '.4f')}" if ci else "–",
+                str(e.get("grade") or "–"),
+                _num(e.get("wetted_width_m"), ".3f"),
+                _num(e.get("mean_velocity_ms"), ".3f"),
+            )
+        )
     sm = summary.get("sections_summary") or {}
     if rows and sm:
         cv = sm.get("cv")
-        rows.append((f"mean of {sm.get('n')}", _num(sm.get("mean_m3s"), ".4f"),
-                     f"std {_num(sm.get('std_m3s'), '.4f')} m³/s, CV {_num(100 * cv if cv is not None else None, '.1f', '%')}",
-                     "", "", ""))
+        rows.append(
+            (
+                f"mean of {sm.get('n')}",
+                _num(sm.get("mean_m3s"), ".4f"),
+                f"std {_num(sm.get('std_m3s'), '.4f')} m³/s, "
+                f"CV {_num(100 * cv if cv is not None else None, '.1f', '%')}",
+                "",
+                "",
+                "",
+            )
+        )
     return rows

@@ -30,8 +30,8 @@ from fieldtool.records.report_content import (
     header_rows,
     parameter_rows,
     result_rows,
-    standard_rows,
     sections_rows,
+    standard_rows,
     subsection_cell,
 )
 
@@ -82,8 +82,14 @@ class _Flow:
         """A table in a monospaced font; the columns of ``right`` are right-aligned."""
         rows = [[str(c) for c in r] for r in rows]
         n = len(header)
-        widths = [max([len(r[i]) for r in rows if i < len(r)] + [len(w) for w in header[i].split()]
-                      + [-(-len(header[i]) // 3), 1]) for i in range(n)]  # a header: whole words, 3 lines at most
+        widths = [
+            max(
+                [len(r[i]) for r in rows if i < len(r)]
+                + [len(w) for w in header[i].split()]
+                + [-(-len(header[i]) // 3), 1]
+            )
+            for i in range(n)
+        ]  # a header: whole words, 3 lines at most
         max_chars = int(WIDTH_PT / (0.602 * size)) - 2 * (n - 1)
         while sum(widths) > max_chars and max(widths) > 8:  # a very long cell (a path) is cut, never the page
             widths[widths.index(max(widths))] -= 1
@@ -94,7 +100,7 @@ class _Flow:
             out = []
             for i in range(n):
                 c = cells[i] if i < len(cells) else ""
-                c = c if len(c) <= widths[i] else c[:widths[i] - 1] + "…"
+                c = c if len(c) <= widths[i] else c[: widths[i] - 1] + "…"
                 out.append(c.rjust(widths[i]) if i in right else c.ljust(widths[i]))
             return "  ".join(out).rstrip()
 
@@ -107,8 +113,9 @@ class _Flow:
                 self.y -= lh
                 self.fig.text(LEFT, self.y, hl, fontsize=size, family=MONO, weight="bold")
             self.y -= 0.35 * lh
-            self.fig.add_artist(Line2D([LEFT, RIGHT], [self.y, self.y], lw=0.5, color="0.4",
-                                       transform=self.fig.transFigure))
+            self.fig.add_artist(
+                Line2D([LEFT, RIGHT], [self.y, self.y], lw=0.5, color="0.4", transform=self.fig.transFigure)
+            )
 
         draw_head()
         for r in rows:
@@ -145,11 +152,22 @@ def _q_block(flow: _Flow, summary: dict) -> None:
     flow.y -= 18 * PT
     flow.fig.text(LEFT, flow.y, f"Q = {t['q']}", fontsize=18, weight="bold")
     if t["grade"]:
-        flow.fig.text(0.62, flow.y + 2 * PT, f" {t['grade'].upper()} ", fontsize=12, weight="bold", color="white",
-                      bbox={"boxstyle": "round,pad=0.3", "fc": GRADE_COLOURS.get(t["grade"], "0.4"), "lw": 0})
+        flow.fig.text(
+            0.62,
+            flow.y + 2 * PT,
+            f" {t['grade'].upper()} ",
+            fontsize=12,
+            weight="bold",
+            color="white",
+            bbox={"boxstyle": "round,pad=0.3", "fc": GRADE_COLOURS.get(t["grade"], "0.4"), "lw": 0},
+        )
     flow.gap(4)
-    flow.text(f"95 % interval {t['ci']} ({t['rel']})" if t["ci"] else
-              "no 95 % interval in this result (computed by newer fieldtool runs)", size=10)
+    flow.text(
+        f"95 % interval {t['ci']} ({t['rel']})"
+        if t["ci"]
+        else "no 95 % interval in this result (computed by newer fieldtool runs)",
+        size=10,
+    )
     if t["grade"]:
         if t["reasons"]:
             for sev, msg in t["reasons"]:
@@ -160,12 +178,23 @@ def _q_block(flow: _Flow, summary: dict) -> None:
         flow.text("no quality grade in this result", size=8.5, color="0.35")
     lo, hi = summary.get("discharge_p05_m3s"), summary.get("discharge_p95_m3s")
     if lo is not None and hi is not None:
-        flow.text(f"Spread of the discharge of single frame pairs (not an interval of Q): 5–95 % {float(lo):.3f} – "
-                  f"{float(hi):.3f} m³/s over {summary.get('n_pairs', '?')} frame pairs.", size=8, color="0.35")
+        flow.text(
+            f"Spread of the discharge of single frame pairs (not an interval of Q): 5–95 % {float(lo):.3f} – "
+            f"{float(hi):.3f} m³/s over {summary.get('n_pairs', '?')} frame pairs.",
+            size=8,
+            color="0.35",
+        )
 
 
-def render_pdf(summary: dict, images: dict[str, bytes], subsections: list[dict], *, measurement=None,
-               references=(), plots: tuple = ()) -> bytes:
+def render_pdf(
+    summary: dict,
+    images: dict[str, bytes],
+    subsections: list[dict],
+    *,
+    measurement=None,
+    references=(),
+    plots: tuple = (),
+) -> bytes:
     """The report as PDF bytes (A4); ``plots`` = (files key, caption) in report order."""
     inputs = summary.get("inputs") or {}
     q = summary.get("discharge_m3s")
@@ -184,23 +213,33 @@ def render_pdf(summary: dict, images: dict[str, bytes], subsections: list[dict],
         budget = budget_rows(summary)
         if budget:
             flow.heading("Uncertainty budget")
-            flow.table(["uncertainty source", "share of variance", "u (m³/s)"], [list(r) for r in budget],
-                       size=8, right={1, 2})
+            flow.table(
+                ["uncertainty source", "share of variance", "u (m³/s)"], [list(r) for r in budget], size=8, right={1, 2}
+            )
         flow.heading("Result")
         flow.pairs(result_rows(summary), size=9, key_w=0.34)
         secs = sections_rows(summary)
         if secs:
             flow.heading("Sections")
-            flow.table(["section", "Q (m³/s)", "95 % interval (m³/s)", "grade", "wetted width (m)",
-                        "mean velocity (m/s)"], [list(r) for r in secs], right={1, 4, 5})
+            flow.table(
+                ["section", "Q (m³/s)", "95 % interval (m³/s)", "grade", "wetted width (m)", "mean velocity (m/s)"],
+                [list(r) for r in secs],
+                right={1, 4, 5},
+            )
         if references:
             flow.heading("Reference discharges")
             rows = []
             for r in references:
                 err = 100.0 * (q - r.discharge_m3s) / r.discharge_m3s if q is not None and r.discharge_m3s else None
-                rows.append([str(r.method), f"{r.discharge_m3s:.4f}",
-                             "–" if r.uncertainty_m3s is None else f"{r.uncertainty_m3s:.4f}",
-                             "–" if err is None else f"{err:+.2f}", str(r.note or "")])
+                rows.append(
+                    [
+                        str(r.method),
+                        f"{r.discharge_m3s:.4f}",
+                        "–" if r.uncertainty_m3s is None else f"{r.uncertainty_m3s:.4f}",
+                        "–" if err is None else f"{err:+.2f}",
+                        str(r.note or ""),
+                    ]
+                )
             flow.table(["method", "Q ref (m³/s)", "± (m³/s)", "LSPIV − ref (%)", "note"], rows, right={1, 2, 3})
         warnings = summary.get("warnings") or []
         if warnings:
@@ -208,27 +247,38 @@ def render_pdf(summary: dict, images: dict[str, bytes], subsections: list[dict],
             for w in warnings:
                 flow.text(f"• {w}", size=8.5, color="#9a6700")
         if subsections:
-            cols = [c for c in COLUMN_NAMES if c in subsections[0]] + [c for c in subsections[0] if c not in COLUMN_NAMES]
+            cols = [c for c in COLUMN_NAMES if c in subsections[0]] + [
+                c for c in subsections[0] if c not in COLUMN_NAMES
+            ]
             flow.heading("Subsections")
-            flow.table([COLUMN_NAMES.get(c, c) for c in cols],
-                       [[subsection_cell(c, r.get(c)) for c in cols] for r in subsections],
-                       right={i for i, c in enumerate(cols) if c != "velocity_filled"})
+            flow.table(
+                [COLUMN_NAMES.get(c, c) for c in cols],
+                [[subsection_cell(c, r.get(c)) for c in cols] for r in subsections],
+                right={i for i, c in enumerate(cols) if c != "velocity_filled"},
+            )
         flow.heading("Parameters")
         flow.table(["step", "parameter", "value"], [list(r) for r in parameter_rows(inputs)], size=7.5)
         if measurement is not None and getattr(measurement, "input_hash", None):
-            flow.text(f"history id {measurement.id}; input hash (SHA-256 of parameters and input files): "
-                      f"{measurement.input_hash}", size=7.5, color="0.35")
+            flow.text(
+                f"history id {measurement.id}; input hash (SHA-256 of parameters and input files): "
+                f"{measurement.input_hash}",
+                size=7.5,
+                color="0.35",
+            )
         now = datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC")
-        flow.text(f"report written {now} by fieldtool {__version__}; the run used fieldtool "
-                  f"{summary.get('fieldtool_version', '?')}. Every value of the run: result.json.", size=7.5,
-                  color="0.35")
+        flow.text(
+            f"report written {now} by fieldtool {__version__}; the run used fieldtool "
+            f"{summary.get('fieldtool_version', '?')}. Every value of the run: result.json.",
+            size=7.5,
+            color="0.35",
+        )
         flow.close()
 
         captions = dict(plots)
         order = [k for k, _ in plots if k in images] + sorted(k for k in images if k not in captions)
         for first in range(0, len(order), 2):
             fig = Figure(figsize=A4)
-            for slot, key in enumerate(order[first:first + 2]):
+            for slot, key in enumerate(order[first : first + 2]):
                 ax = fig.add_axes([0.06, 0.53 - 0.47 * slot, 0.88, 0.42])
                 ax.imshow(mpimg.imread(io.BytesIO(images[key]), format="png"))
                 ax.axis("off")

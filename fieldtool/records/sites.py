@@ -29,7 +29,6 @@ import tomli_w
 from fieldtool.errors import InputFileError, ParameterError
 from fieldtool.processing.cross_section import load_cross_section
 from fieldtool.processing.paths import is_pattern
-from fieldtool.project.validation import check
 from fieldtool.project.model import (
     Project,
     atomic_write_bytes,
@@ -38,6 +37,7 @@ from fieldtool.project.model import (
     project_to_dict,
 )
 from fieldtool.project.sync import ProjectSync
+from fieldtool.project.validation import check
 from fieldtool.records import user_data_dir
 from fieldtool.records.history import utc_now
 
@@ -45,14 +45,27 @@ SITE_FILE = "site.toml"
 _NAME_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}")  # used with fullmatch: "$" lets a final newline in
 
 # (table, key, stored file stem): input files that belong to the site and are copied with it
-SITE_FILES = (("cross_section", "path", "cross_section"), ("calibration", "path", "calibration"),
-              ("water_level", "dem_path", "dem"))
+SITE_FILES = (
+    ("cross_section", "path", "cross_section"),
+    ("calibration", "path", "calibration"),
+    ("water_level", "dem_path", "dem"),
+)
 
 # per-visit inputs, removed from the site's project
 _PER_VISIT = {
     "video": ("path",),
-    "water_level": ("value_m", "width_m", "edges_px", "edges1_px", "edges2_px", "image1", "image2", "height_m",
-                    "dh_m", "divergence_station_m"),
+    "water_level": (
+        "value_m",
+        "width_m",
+        "edges_px",
+        "edges1_px",
+        "edges2_px",
+        "image1",
+        "image2",
+        "height_m",
+        "dh_m",
+        "divergence_station_m",
+    ),
     "calibration": ("checkerboard_video",),  # the lens model (calibration.path) is what is kept
 }
 
@@ -98,11 +111,14 @@ def check_name(name: str) -> str:
     """The name when it can be a site (and folder) name; else ParameterError naming the fault."""
     bad = [c for c in (name or "") if ord(c) < 32 or ord(c) == 127]
     if bad:
-        raise ParameterError(f"site name {name!r}: contains a control character ({bad[0]!r}); use 1-64 letters, "
-                             "digits, '.', '_' or '-'")
+        raise ParameterError(
+            f"site name {name!r}: contains a control character ({bad[0]!r}); use 1-64 letters, digits, '.', '_' or '-'"
+        )
     if not _NAME_RE.fullmatch(name or ""):
-        raise ParameterError(f"site name {name!r}: use 1-64 letters, digits, '.', '_' or '-', starting with a letter "
-                             "or digit (it becomes a folder name)")
+        raise ParameterError(
+            f"site name {name!r}: use 1-64 letters, digits, '.', '_' or '-', starting with a letter "
+            "or digit (it becomes a folder name)"
+        )
     return name
 
 
@@ -141,8 +157,10 @@ def load_site(name: str, root: Path | str) -> Site:
     if not _NAME_RE.fullmatch(name or "") or not path.is_file():
         known = sorted(p.name for p in root.iterdir() if (p / SITE_FILE).is_file()) if root.is_dir() else []
         hint = f"known sites: {', '.join(known)}" if known else f"no sites in {root} yet"
-        raise ParameterError(f"site {name!r} not found ({hint}); create it with "
-                             "`fieldtool site create NAME --from PROJECT.toml` or give the folder with --sites")
+        raise ParameterError(
+            f"site {name!r} not found ({hint}); create it with "
+            "`fieldtool site create NAME --from PROJECT.toml` or give the folder with --sites"
+        )
     try:
         data = tomllib.loads(path.read_text(encoding="utf-8"))
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
@@ -153,15 +171,22 @@ def load_site(name: str, root: Path | str) -> Site:
     proj = data.get("project")
     if not isinstance(meta, dict) or not isinstance(proj, dict):
         raise InputFileError(f"{path}: needs a [site] and a [project] table; re-create the site with --force")
-    site = Site(name=name, folder=path.parent, project=proj, description=str(meta.get("description", "")),
-                created_at=str(meta.get("created_at", "")), updated_at=str(meta.get("updated_at", "")),
-                source=str(meta.get("source", "")))
+    site = Site(
+        name=name,
+        folder=path.parent,
+        project=proj,
+        description=str(meta.get("description", "")),
+        created_at=str(meta.get("created_at", "")),
+        updated_at=str(meta.get("updated_at", "")),
+        source=str(meta.get("source", "")),
+    )
     site.template()  # validates the [project] table, naming a bad key
     return site
 
 
-def create_site(name: str, project: Project, root: Path | str, *, description: str = "", force: bool = False,
-                source: str = "") -> Site:
+def create_site(
+    name: str, project: Project, root: Path | str, *, description: str = "", force: bool = False, source: str = ""
+) -> Site:
     """Make (or with ``force`` replace) a site from a project: copies its cross-section,
     calibration and DEM files into the site folder and keeps everything but the per-visit inputs.
 
@@ -196,16 +221,28 @@ def create_site(name: str, project: Project, root: Path | str, *, description: s
     for fname, blob in blobs.items():
         atomic_write_bytes(folder / fname, blob)
     now = utc_now()
-    site = Site(name=name, folder=folder, project=d, description=description,
-                created_at=old.created_at if old else now, updated_at=now, source=source)
+    site = Site(
+        name=name,
+        folder=folder,
+        project=d,
+        description=description,
+        created_at=old.created_at if old else now,
+        updated_at=now,
+        source=source,
+    )
     site.template()
     save_site(site)
     return site
 
 
 def save_site(site: Site) -> None:
-    meta = {"name": site.name, "description": site.description, "created_at": site.created_at,
-            "updated_at": site.updated_at, "source": site.source}
+    meta = {
+        "name": site.name,
+        "description": site.description,
+        "created_at": site.created_at,
+        "updated_at": site.updated_at,
+        "source": site.source,
+    }
     blob = tomli_w.dumps({"site": meta, "project": site.project}).encode("utf-8")
     atomic_write_bytes(site.folder / SITE_FILE, blob)
 
@@ -221,15 +258,24 @@ def strip_per_visit(d: dict) -> dict:
     return d
 
 
-def measurement_dict(site: Site, video: Path | str, level_m: float | None, out_dir: Path | str, *,
-                     level_uncertainty_m: float | None = None, name: str | None = None) -> dict:
+def measurement_dict(
+    site: Site,
+    video: Path | str,
+    level_m: float | None,
+    out_dir: Path | str,
+    *,
+    level_uncertainty_m: float | None = None,
+    name: str | None = None,
+) -> dict:
     """The project dict of a new visit, for a project file written in ``out_dir``.
 
     The site's files are referred to where the visit's folder will hold copies (same names);
     the video by a path relative to ``out_dir`` when it lies below it, else absolute."""
     if level_m is None and site.project.get("water_level", {}).get("method", "value") == "value":
-        raise ParameterError(f"site {site.name!r} takes a typed water level: give it with --level (m, in the "
-                             "datum of the site's cross-section)")
+        raise ParameterError(
+            f"site {site.name!r} takes a typed water level: give it with --level (m, in the "
+            "datum of the site's cross-section)"
+        )
     d = copy.deepcopy(site.project)
     video = Path(video).expanduser().absolute()
     out_dir = Path(out_dir).absolute()
@@ -249,9 +295,16 @@ def measurement_dict(site: Site, video: Path | str, level_m: float | None, out_d
     return d
 
 
-def new_measurement(site: Site, video: Path | str, level_m: float | None, out_dir: Path | str, *,
-                    level_uncertainty_m: float | None = None, name: str | None = None,
-                    force: bool = False) -> Path:
+def new_measurement(
+    site: Site,
+    video: Path | str,
+    level_m: float | None,
+    out_dir: Path | str,
+    *,
+    level_uncertainty_m: float | None = None,
+    name: str | None = None,
+    force: bool = False,
+) -> Path:
     """Write ``out_dir/project.toml`` for a new visit of ``site`` with copies of the site's files.
 
     Only the video and the water level (m) are new; everything else comes from the site.
@@ -308,27 +361,35 @@ def describe(site: Site) -> list[str]:
     else:
         try:
             x = load_cross_section(p.resolve(cs.path))
-            lines.append(f"cross-section {cs.path}: {len(x.station)} points, stations {x.station.min():.2f}-"
-                         f"{x.station.max():.2f} m, lowest bed {x.bed_min:.3f} m")
+            lines.append(
+                f"cross-section {cs.path}: {len(x.station)} points, stations {x.station.min():.2f}-"
+                f"{x.station.max():.2f} m, lowest bed {x.bed_min:.3f} m"
+            )
         except (InputFileError, ParameterError) as e:
             lines.append(f"cross-section {cs.path}: cannot be read ({e})")
     o = p.ortho
-    gcp = f"{len(o.gcp_px)} GCPs" + (f", distances {', '.join(f'{v:.3f}' for v in o.distances_m)} m"
-                                     if o.distances_m else "")
+    gcp = f"{len(o.gcp_px)} GCPs" + (
+        f", distances {', '.join(f'{v:.3f}' for v in o.distances_m)} m" if o.distances_m else ""
+    )
     lines.append(f"ortho         {o.method}: {gcp}")
     lines.append(f"calibration   {p.calibration.path or '(none: no lens correction)'}")
-    lines.append(f"water level   method {p.water_level.method}"
-                 + (f", uncertainty {p.water_level.uncertainty_m} m" if p.water_level.uncertainty_m is not None else ""))
+    lines.append(
+        f"water level   method {p.water_level.method}"
+        + (f", uncertainty {p.water_level.uncertainty_m} m" if p.water_level.uncertainty_m is not None else "")
+    )
     lines.append(f"ROI           {p.roi.rect_px or 'whole frame'}; {len(p.roi.masks_px)} mask(s)")
     st = p.stabilize
     lines.append(f"stabilise     {'on' if st.enabled else 'off'}; {len(st.regions_px)} stable region(s)")
     lines.append(f"filters       {', '.join(f.get('name', '?') for f in p.filters) or 'none'}")
     pv = p.piv
-    lines.append(f"PIV           window {pv.window_px} px, overlap {pv.overlap_px} px, {pv.passes} pass(es), "
-                 f"engine {pv.engine}")
+    lines.append(
+        f"PIV           window {pv.window_px} px, overlap {pv.overlap_px} px, {pv.passes} pass(es), engine {pv.engine}"
+    )
     se = p.section
-    lines.append(f"section       {len(se.points_px)} points, {se.n_sub} subsections, alpha "
-                 f"{se.alpha if se.alpha is not None else 'automatic'}")
+    lines.append(
+        f"section       {len(se.points_px)} points, {se.n_sub} subsections, alpha "
+        f"{se.alpha if se.alpha is not None else 'automatic'}"
+    )
     v = p.video
     lines.append(f"clip          from {v.start_s} s to {v.end_s if v.end_s is not None else 'end'}, step {v.step}")
     return lines

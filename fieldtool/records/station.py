@@ -93,9 +93,16 @@ class StationConfig:
     poll_s: float = 1.0
 
 
-def station_config(site: Site, *, level_order: str | None = None, level_file: str | None = None,
-                   gauge_m: float | None = None, level_uncertainty_m: float | None = None,
-                   stable_s: float | None = None, poll_s: float | None = None) -> StationConfig:
+def station_config(
+    site: Site,
+    *,
+    level_order: str | None = None,
+    level_file: str | None = None,
+    gauge_m: float | None = None,
+    level_uncertainty_m: float | None = None,
+    stable_s: float | None = None,
+    poll_s: float | None = None,
+) -> StationConfig:
     """The site's ``[station]`` table of ``site.toml`` (optional), overridden by the arguments given."""
     try:
         table = tomllib.loads((site.folder / SITE_FILE).read_text(encoding="utf-8")).get("station", {})
@@ -109,15 +116,22 @@ def station_config(site: Site, *, level_order: str | None = None, level_file: st
         names = [s.strip() for s in (order.split(",") if isinstance(order, str) else order) if str(s).strip()]
         bad = [s for s in names if s not in LEVEL_SOURCES]
         if bad or not names:
-            raise ParameterError(f"level sources {order!r}: use some of {', '.join(LEVEL_SOURCES)}, in the order to "
-                                 "try them (e.g. waterline,file,gauge)")
+            raise ParameterError(
+                f"level sources {order!r}: use some of {', '.join(LEVEL_SOURCES)}, in the order to "
+                "try them (e.g. waterline,file,gauge)"
+            )
         cfg.level_sources = tuple(names)
     lf = level_file if level_file is not None else table.get("level_file")
     if lf:
         p = Path(str(lf)).expanduser()
         cfg.level_file = p if p.is_absolute() or level_file is not None else site.folder / p
-    for name, given in (("level_max_gap_s", None), ("level_uncertainty_m", level_uncertainty_m),
-                        ("gauge_m", gauge_m), ("stable_s", stable_s), ("poll_s", poll_s)):
+    for name, given in (
+        ("level_max_gap_s", None),
+        ("level_uncertainty_m", level_uncertainty_m),
+        ("gauge_m", gauge_m),
+        ("stable_s", stable_s),
+        ("poll_s", poll_s),
+    ):
         v = given if given is not None else table.get(name)
         if v is None:
             continue
@@ -126,8 +140,9 @@ def station_config(site: Site, *, level_order: str | None = None, level_file: st
         except (TypeError, ValueError):
             raise ParameterError(f"[station] {name} = {v!r}: not a number") from None
         if not math.isfinite(v) or (name != "gauge_m" and v < 0):
-            raise ParameterError(f"[station] {name} = {v!r}: give a finite{' non-negative' if name != 'gauge_m' else ''} "
-                                 "number")
+            raise ParameterError(
+                f"[station] {name} = {v!r}: give a finite{' non-negative' if name != 'gauge_m' else ''} number"
+            )
         setattr(cfg, name, v)
     return cfg
 
@@ -167,8 +182,9 @@ def read_level_file(path: Path | str) -> list[tuple[float, float]]:
         except (ValueError, FieldToolError):
             if i == 1:
                 continue  # the header
-            raise InputFileError(f"{path}, line {i}: {','.join(r)[:60]!r} is not 'time,level' (ISO 8601 time, "
-                                 "level in m)") from None
+            raise InputFileError(
+                f"{path}, line {i}: {','.join(r)[:60]!r} is not 'time,level' (ISO 8601 time, level in m)"
+            ) from None
         if not math.isfinite(h):
             raise InputFileError(f"{path}, line {i}: the level {r[1]!r} is not a number (m)")
         rows.append((t, h))
@@ -201,8 +217,9 @@ class LevelChoice:
     uncertainty_m: float | None = None
 
 
-def level_choices(site: Site, cfg: StationConfig, clip: Path, clip_time: str | None,
-                  level_rows: list[tuple[float, float]] | None) -> tuple[list[LevelChoice], list[str]]:
+def level_choices(
+    site: Site, cfg: StationConfig, clip: Path, clip_time: str | None, level_rows: list[tuple[float, float]] | None
+) -> tuple[list[LevelChoice], list[str]]:
     """The level sources that have a level for ``clip``, in the configured order, and why the others do not."""
     out, why = [], []
     for s in cfg.level_sources:
@@ -210,7 +227,7 @@ def level_choices(site: Site, cfg: StationConfig, clip: Path, clip_time: str | N
             if (site.project.get("water_level") or {}).get("method") == "waterline":
                 out.append(LevelChoice("waterline", None))
             else:
-                why.append("waterline: the site's project does not use water_level.method = \"waterline\"")
+                why.append('waterline: the site\'s project does not use water_level.method = "waterline"')
         elif s == "file":
             if level_rows is None:
                 why.append("file: no level file (--level-file or [station] level_file)")
@@ -269,12 +286,15 @@ def measure_clip(task: ClipTask) -> ClipOutcome:
     for c in task.choices:
         visit = Path(task.out_dir)
         try:
-            proj = new_measurement(site, task.clip, c.level_m, visit, level_uncertainty_m=c.uncertainty_m,
-                                   force=True)
+            proj = new_measurement(site, task.clip, c.level_m, visit, level_uncertainty_m=c.uncertainty_m, force=True)
         except FieldToolError as e:
             return ClipOutcome(False, reason=str(e), notes=notes)
-        r = run_item(BatchItem(label=Path(task.clip).name, project_path=str(proj), out_dir=str(visit / "results"),
-                               site=site.name), single_thread=task.single_thread)
+        r = run_item(
+            BatchItem(
+                label=Path(task.clip).name, project_path=str(proj), out_dir=str(visit / "results"), site=site.name
+            ),
+            single_thread=task.single_thread,
+        )
         if r.ok:
             return ClipOutcome(True, r, c.source, notes=notes)
         last = r.error or "failed"
@@ -321,7 +341,10 @@ def journal(hist: History, site: str, incoming: Path | str, state: str | None = 
 
 def retry_failed(hist: History, site: str, incoming: Path | str, clip: str | None = None) -> int:
     """Put failed clips (all, or the one named ``clip``) back to pending; returns how many."""
-    sql = "UPDATE station_journal SET state = 'pending', updated_at = ? WHERE site = ? AND incoming = ? AND state = 'failed'"
+    sql = (
+        "UPDATE station_journal SET state = 'pending', updated_at = ? "
+        "WHERE site = ? AND incoming = ? AND state = 'failed'"
+    )
     args: list = [utc_now(), site, str(Path(incoming).resolve())]
     if clip:
         sql += " AND (path = ? OR path LIKE ?)"
@@ -333,17 +356,24 @@ def retry_failed(hist: History, site: str, incoming: Path | str, clip: str | Non
 def _claim(hist: History, site: str, incoming: str, path: str, size: int, mtime_ns: int, out_dir: str) -> int | None:
     """Mark a clip running; None when the journal has it done, failed or running already."""
     with hist.write() as c:
-        row = c.execute("SELECT id, state FROM station_journal WHERE site = ? AND path = ? AND size = ? AND mtime_ns = ?",
-                        (site, path, size, mtime_ns)).fetchone()
+        row = c.execute(
+            "SELECT id, state FROM station_journal WHERE site = ? AND path = ? AND size = ? AND mtime_ns = ?",
+            (site, path, size, mtime_ns),
+        ).fetchone()
         if row is None:
-            cur = c.execute("INSERT INTO station_journal (site, incoming, path, size, mtime_ns, state, out_dir, attempts, "
-                            "updated_at) VALUES (?, ?, ?, ?, ?, 'running', ?, 1, ?)",
-                            (site, incoming, path, size, mtime_ns, out_dir, utc_now()))
+            cur = c.execute(
+                "INSERT INTO station_journal (site, incoming, path, size, mtime_ns, state, out_dir, attempts, "
+                "updated_at) VALUES (?, ?, ?, ?, ?, 'running', ?, 1, ?)",
+                (site, incoming, path, size, mtime_ns, out_dir, utc_now()),
+            )
             return int(cur.lastrowid)
         if row[1] != "pending":
             return None
-        c.execute("UPDATE station_journal SET state = 'running', attempts = attempts + 1, out_dir = ?, updated_at = ? "
-                  "WHERE id = ?", (out_dir, utc_now(), row[0]))
+        c.execute(
+            "UPDATE station_journal SET state = 'running', attempts = attempts + 1, out_dir = ?, updated_at = ? "
+            "WHERE id = ?",
+            (out_dir, utc_now(), row[0]),
+        )
         return int(row[0])
 
 
@@ -351,18 +381,31 @@ def _finish(hist: History, jid: int, outcome: ClipOutcome, site: str) -> int | N
     """Record the outcome: the measurement and the journal's ``done`` in one transaction; or ``failed``."""
     with hist.write() as c:
         if not outcome.ok:
-            c.execute("UPDATE station_journal SET state = 'failed', reason = ?, updated_at = ? WHERE id = ?",
-                      (outcome.reason, utc_now(), jid))
+            c.execute(
+                "UPDATE station_journal SET state = 'failed', reason = ?, updated_at = ? WHERE id = ?",
+                (outcome.reason, utc_now(), jid),
+            )
             return None
         r = outcome.result
         summary = dict(r.summary)
         if outcome.notes:
             summary["warnings"] = list(summary.get("warnings") or []) + outcome.notes
-        mid = insert_measurement(c, summary_values(summary, site=site, output_dir=Path(r.item.out_dir).resolve(),
-                                                   video_path=r.video_path, video_time=r.video_time,
-                                                   input_hash=r.input_hash))
-        c.execute("UPDATE station_journal SET state = 'done', reason = '', level_source = ?, measurement_id = ?, "
-                  "updated_at = ? WHERE id = ?", (outcome.source, mid, utc_now(), jid))
+        mid = insert_measurement(
+            c,
+            summary_values(
+                summary,
+                site=site,
+                output_dir=Path(r.item.out_dir).resolve(),
+                video_path=r.video_path,
+                video_time=r.video_time,
+                input_hash=r.input_hash,
+            ),
+        )
+        c.execute(
+            "UPDATE station_journal SET state = 'done', reason = '', level_source = ?, measurement_id = ?, "
+            "updated_at = ? WHERE id = ?",
+            (outcome.source, mid, utc_now(), jid),
+        )
         return mid
 
 
@@ -391,8 +434,10 @@ class StationLock:
             os.lseek(fd, 0, os.SEEK_SET)
             other = os.read(fd, 32).decode(errors="replace").strip() or "?"
             os.close(fd)
-            raise ParameterError(f"{self.path.parent}: another fieldtool station (process {other}) is already watching "
-                                 "this folder; stop it first (one station per folder)") from None
+            raise ParameterError(
+                f"{self.path.parent}: another fieldtool station (process {other}) is already watching "
+                "this folder; stop it first (one station per folder)"
+            ) from None
         os.ftruncate(fd, 0)
         os.lseek(fd, 0, os.SEEK_SET)
         os.write(fd, f"{os.getpid()}\n".encode())
@@ -443,8 +488,9 @@ def _alive(pid: int) -> bool:  # pragma: no cover - only without flock
 
 def clip_files(incoming: Path) -> list[Path]:
     """The video files at the top of ``incoming``, by name."""
-    return sorted(p for p in incoming.iterdir() if p.is_file() and p.suffix.lower() in VIDEO_EXTS
-                  and not p.name.startswith("."))
+    return sorted(
+        p for p in incoming.iterdir() if p.is_file() and p.suffix.lower() in VIDEO_EXTS and not p.name.startswith(".")
+    )
 
 
 def has_marker(clip: Path) -> bool:
@@ -507,9 +553,13 @@ def status(hist: History, site: str, incoming: Path | str) -> StationStatus:
             key = (str(p.resolve()), st.st_size, st.st_mtime_ns)
             if key not in settled and key[0] not in pending:
                 pending.append(key[0])
-    return StationStatus([r for r in rows if r.state == "done"], [r for r in rows if r.state == "failed"],
-                         [r for r in rows if r.state == "running"], pending,
-                         StationLock(incoming).held_by_other() if incoming.is_dir() else None)
+    return StationStatus(
+        [r for r in rows if r.state == "done"],
+        [r for r in rows if r.state == "failed"],
+        [r for r in rows if r.state == "running"],
+        pending,
+        StationLock(incoming).held_by_other() if incoming.is_dir() else None,
+    )
 
 
 def clip_out_dir(out_root: Path, clip: Path, size: int, mtime_ns: int) -> Path:
@@ -521,9 +571,19 @@ def clip_out_dir(out_root: Path, clip: Path, size: int, mtime_ns: int) -> Path:
 class Station:
     """The watching loop. ``log(line)`` receives one line per event (printed by the CLI)."""
 
-    def __init__(self, site: Site, sites_root: Path, incoming: Path, hist: History, cfg: StationConfig, *,
-                 out_root: Path | None = None, dask: str | None = None, rerun: str | None = None,
-                 log: Callable[[str], None] = print):
+    def __init__(
+        self,
+        site: Site,
+        sites_root: Path,
+        incoming: Path,
+        hist: History,
+        cfg: StationConfig,
+        *,
+        out_root: Path | None = None,
+        dask: str | None = None,
+        rerun: str | None = None,
+        log: Callable[[str], None] = print,
+    ):
         self.site, self.sites_root, self.hist, self.cfg = site, Path(sites_root), hist, cfg
         self.incoming = Path(incoming).resolve()
         self.out_root = Path(out_root).resolve() if out_root else self.incoming / "fieldtool_station"
@@ -560,8 +620,9 @@ class Station:
             self.log(f"level file: {e}")
         choices, why = level_choices(self.site, self.cfg, clip, when, rows)
         out = clip_out_dir(self.out_root, clip, size, mtime_ns)
-        task = ClipTask(self.site.name, str(self.sites_root), str(clip), str(out), choices,
-                        single_thread=self.dask is not None)
+        task = ClipTask(
+            self.site.name, str(self.sites_root), str(clip), str(out), choices, single_thread=self.dask is not None
+        )
         return (task if choices else None), ("no water level for this clip: " + "; ".join(why))
 
     def _record(self, jid: int, clip: Path, outcome: ClipOutcome) -> None:
@@ -574,8 +635,10 @@ class Station:
             iso = ((s.get("uncertainty_standard") or {}).get("iso748") or {}).get("u95_rel")
             ci_txt = f" (95 %: {ci[0]:.3f} - {ci[1]:.3f})" if ci[0] is not None and ci[1] is not None else ""
             iso_txt = f", ISO 748 ±{100 * iso:.1f} %" if iso is not None else ""
-            self.log(f"{clip.name}: Q = {s['discharge_m3s']:.4f} m3/s{ci_txt}{iso_txt}, level {s['water_level_m']:.3f} m "
-                     f"({outcome.source}), {grade or 'no grade'}; measurement {mid}")
+            self.log(
+                f"{clip.name}: Q = {s['discharge_m3s']:.4f} m3/s{ci_txt}{iso_txt}, level {s['water_level_m']:.3f} m "
+                f"({outcome.source}), {grade or 'no grade'}; measurement {mid}"
+            )
         else:
             self.n_failed += 1
             self.log(f"{clip.name}: failed: {outcome.reason}")
@@ -593,31 +656,51 @@ class Station:
 
         rows = []
         for m in self.hist.query(site=self.site.name):
-            rows.append({"id": m.id, "time": m.video_time or m.recorded_at, "discharge_m3s": m.discharge_m3s,
-                         "ci95_lo_m3s": m.discharge_ci95_lo_m3s, "ci95_hi_m3s": m.discharge_ci95_hi_m3s,
-                         "water_level_m": m.water_level_m, "grade": m.grade, "video_path": m.video_path})
+            rows.append(
+                {
+                    "id": m.id,
+                    "time": m.video_time or m.recorded_at,
+                    "discharge_m3s": m.discharge_m3s,
+                    "ci95_lo_m3s": m.discharge_ci95_lo_m3s,
+                    "ci95_hi_m3s": m.discharge_ci95_hi_m3s,
+                    "water_level_m": m.water_level_m,
+                    "grade": m.grade,
+                    "video_path": m.video_path,
+                }
+            )
         self.out_root.mkdir(parents=True, exist_ok=True)
         try:
             plot_timeseries(self.out_root / "timeseries.png", rows, site=self.site.name)
             _write_csv(self.out_root / "timeseries.csv", rows)
         except (OSError, ValueError) as e:
             self.log(f"time-series plot not written: {e}")
-        pts = [(r["water_level_m"], r["discharge_m3s"]) for r in rows
-               if r["water_level_m"] is not None and r["discharge_m3s"] is not None and r["discharge_m3s"] > 0]
+        pts = [
+            (r["water_level_m"], r["discharge_m3s"])
+            for r in rows
+            if r["water_level_m"] is not None and r["discharge_m3s"] is not None and r["discharge_m3s"] > 0
+        ]
         if len(pts) >= 3 and max(h for h, _ in pts) - min(h for h, _ in pts) > 1e-3:
             from fieldtool.records.rating import fit_rating, plot_rating
 
             try:
                 curve = fit_rating([h for h, _ in pts], [q for _, q in pts])
-                plot_rating(self.out_root / "rating.png", curve, [h for h, _ in pts], [q for _, q in pts],
-                            site=self.site.name)
+                plot_rating(
+                    self.out_root / "rating.png", curve, [h for h, _ in pts], [q for _, q in pts], site=self.site.name
+                )
             except (FieldToolError, RuntimeError, ValueError) as e:
                 self.log(f"rating curve not refreshed: {e}")
         if self.series is not None and new_id is not None:
             r = next((r for r in rows if r["id"] == new_id), None)
             if r is not None:
-                self.series.measurement(r["time"], r["discharge_m3s"], r["ci95_lo_m3s"], r["ci95_hi_m3s"],
-                                        r["water_level_m"], r["grade"], Path(r["video_path"]).name)
+                self.series.measurement(
+                    r["time"],
+                    r["discharge_m3s"],
+                    r["ci95_lo_m3s"],
+                    r["ci95_hi_m3s"],
+                    r["water_level_m"],
+                    r["grade"],
+                    Path(r["video_path"]).name,
+                )
             for w in self.series.warnings:
                 self.log(w)
             self.series.warnings.clear()
@@ -626,8 +709,10 @@ class Station:
     def _states(self) -> dict[tuple[str, int, int], str]:
         """(path, size, mtime_ns) -> state of this folder's journal, in one read (a retry asked for by another
         process shows here as pending)."""
-        rows = self.hist._select("SELECT path, size, mtime_ns, state FROM station_journal WHERE site = ? AND "
-                                 "incoming = ?", (self.site.name, str(self.incoming)))
+        rows = self.hist._select(
+            "SELECT path, size, mtime_ns, state FROM station_journal WHERE site = ? AND incoming = ?",
+            (self.site.name, str(self.incoming)),
+        )
         return {(r[0], r[1], r[2]): r[3] for r in rows}
 
     def _candidates(self, watcher: Watcher, busy: set[str]) -> list[tuple[Path, int, int]]:
@@ -643,9 +728,11 @@ class Station:
         """Watch until stopped (or, with ``max_idle_s``, until nothing was pending for that long). Returns 0."""
         with StationLock(self.incoming):
             with self.hist.write() as c:  # rows a killed station left running: measured again
-                n = c.execute("UPDATE station_journal SET state = 'pending', updated_at = ? WHERE site = ? AND "
-                              "incoming = ? AND state = 'running'", (utc_now(), self.site.name,
-                                                                    str(self.incoming))).rowcount
+                n = c.execute(
+                    "UPDATE station_journal SET state = 'pending', updated_at = ? WHERE site = ? AND "
+                    "incoming = ? AND state = 'running'",
+                    (utc_now(), self.site.name, str(self.incoming)),
+                ).rowcount
             if n:
                 self.log(f"{n} clip(s) left in flight by a stopped station: measured again")
             if self.rerun_target:
@@ -654,9 +741,11 @@ class Station:
                 )
 
                 self.series = StationSeries(self.rerun_target, self.site.name)
-            self.log(f"station {self.site.name}: watching {self.incoming} (results in {self.out_root}; "
-                     f"{'Dask ' + self.dask if self.dask else 'in this process'}; level from "
-                     f"{', '.join(self.cfg.level_sources)})")
+            self.log(
+                f"station {self.site.name}: watching {self.incoming} (results in {self.out_root}; "
+                f"{'Dask ' + self.dask if self.dask else 'in this process'}; level from "
+                f"{', '.join(self.cfg.level_sources)})"
+            )
             try:
                 if self.dask:
                     self._loop_dask(max_idle_s)
@@ -671,8 +760,15 @@ class Station:
     def _start(self, p: Path, size: int, mt: int) -> tuple[int, ClipTask] | None:
         """Claim a clip; a clip without a level fails here with the reason."""
         task, why = self._task(p, size, mt)
-        jid = _claim(self.hist, self.site.name, str(self.incoming), str(p.resolve()), size, mt,
-                     str(clip_out_dir(self.out_root, p, size, mt)))
+        jid = _claim(
+            self.hist,
+            self.site.name,
+            str(self.incoming),
+            str(p.resolve()),
+            size,
+            mt,
+            str(clip_out_dir(self.out_root, p, size, mt)),
+        )
         if jid is None:
             return None
         if task is None:
@@ -716,8 +812,10 @@ class Station:
         try:
             client = Client(self.dask, timeout="20s", set_as_default=False)
         except (OSError, TimeoutError) as e:
-            raise ParameterError(f"--dask {self.dask}: cannot reach the Dask scheduler ({e}); start it with `dask "
-                                 "scheduler` and workers with `dask worker ADDRESS --nthreads 1`") from e
+            raise ParameterError(
+                f"--dask {self.dask}: cannot reach the Dask scheduler ({e}); start it with `dask "
+                "scheduler` and workers with `dask worker ADDRESS --nthreads 1`"
+            ) from e
         watcher = Watcher(self.cfg.stable_s)
         flight: dict = {}  # future -> (journal id, clip path)
         idle_since = time.monotonic()
@@ -728,8 +826,9 @@ class Station:
                     started = self._start(p, size, mt)
                     if started is not None:
                         jid, task = started
-                        f = client.submit(measure_clip, task, key=f"fieldtool-station-{jid}-{time.time_ns()}",
-                                          pure=False)
+                        f = client.submit(
+                            measure_clip, task, key=f"fieldtool-station-{jid}-{time.time_ns()}", pure=False
+                        )
                         flight[f] = (jid, p)
                 if flight:
                     done = [f for f in flight if f.done()]  # polled: wait() would look for a default client
@@ -756,8 +855,10 @@ class Station:
             if flight:  # measured again at the next start
                 with self.hist.write() as c:
                     for jid, _p in flight.values():
-                        c.execute("UPDATE station_journal SET state = 'pending', updated_at = ? WHERE id = ?",
-                                  (utc_now(), jid))
+                        c.execute(
+                            "UPDATE station_journal SET state = 'pending', updated_at = ? WHERE id = ?",
+                            (utc_now(), jid),
+                        )
             client.close()
 
 
@@ -774,10 +875,10 @@ def _write_csv(path: Path, rows: list[dict]) -> None:
 
 def install_signal_handlers(station: Station) -> None:
     """SIGTERM and SIGINT stop the station cleanly (after the clip in hand)."""
+
     def handler(signum, _frame):
         station.log(f"station {station.site.name}: {signal.Signals(signum).name} received, stopping")
         station.stop.set()
 
     signal.signal(signal.SIGTERM, handler)
     signal.signal(signal.SIGINT, handler)
-

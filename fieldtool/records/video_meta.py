@@ -95,8 +95,16 @@ def video_info(project, source) -> dict:
     info = source.info
     path = project.resolve(project.video.path)
     when, where = recording_time(path)
-    return {"file": Path(project.video.path).name or str(path), "recorded_utc": when, "recorded_source": where,
-            "width_px": int(info.width), "height_px": int(info.height), "fps": float(info.fps),
-            "n_frames": int(info.n_frames), "duration_s": float(info.duration_s),
-            "is_sequence": bool(info.is_sequence), "start_s": float(source.start_s),
-            "end_s": None if source.end_s is None else float(source.end_s)}
+    return {
+        "file": Path(project.video.path).name or str(path),
+        "recorded_utc": when,
+        "recorded_source": where,
+        "width_px": int(info.width),
+        "height_px": int(info.height),
+        "fps": float(info.fps),
+        "n_frames": int(info.n_frames),
+        "duration_s": float(info.duration_s),
+        "is_sequence": bool(info.is_sequence),
+        "start_s": float(source.start_s),
+        "end_s": None if source.end_s is None else float(source.end_s),
+    }

@@ -29,9 +29,15 @@ def sigmas(project, level) -> un.McSigmas:
     alpha_sigma = u.alpha_sigma
     if alpha_sigma is None:
         alpha_sigma = un.ALPHA_SIGMA_DEFAULT if project.section.alpha is None else un.ALPHA_SIGMA_GIVEN
-    return un.McSigmas(level_m=float(level.uncertainty_m or 0.0), gcp_px=u.gcp_px_sigma_px,
-                       gcp_ref_m=u.gcp_distance_sigma_m, alpha=alpha_sigma, bed_m=u.bed_sigma_m,
-                       filled_rel=u.filled_rel_sigma, piv_rel=u.piv_rel_sigma)
+    return un.McSigmas(
+        level_m=float(level.uncertainty_m or 0.0),
+        gcp_px=u.gcp_px_sigma_px,
+        gcp_ref_m=u.gcp_distance_sigma_m,
+        alpha=alpha_sigma,
+        bed_m=u.bed_sigma_m,
+        filled_rel=u.filled_rel_sigma,
+        piv_rel=u.piv_rel_sigma,
+    )
 
 
 def _mapping_fn(project, inputs, mapping: OrthoMapping):
@@ -107,32 +113,71 @@ def assess_run(project, inputs, level, mapping, geom, res, U, V, dres, q_pairs, 
     th = thresholds(project)
     suspect, upper = _suspect(dres, th)
     fn, px, ref = _mapping_fn(project, inputs, mapping)
-    model = un.McModel(cross_section=inputs.cross_section, level_m=level.level_m, section_px=geom.p_img,
-                       n_sub=len(geom.station_edges) - 1, station_offset_m=project.section.station_offset_m,
-                       alpha=dres.alpha, mapping_fn=fn, method=mapping.method, gcp_px=px, gcp_ref=ref,
-                       x=res.x, y=res.y, u=res.u, v=res.v, u_pairs=res.u_pairs, v_pairs=res.v_pairs,
-                       suspect=suspect, suspect_upper_ms=upper, trusted=geom.trusted)
+    model = un.McModel(
+        cross_section=inputs.cross_section,
+        level_m=level.level_m,
+        section_px=geom.p_img,
+        n_sub=len(geom.station_edges) - 1,
+        station_offset_m=project.section.station_offset_m,
+        alpha=dres.alpha,
+        mapping_fn=fn,
+        method=mapping.method,
+        gcp_px=px,
+        gcp_ref=ref,
+        x=res.x,
+        y=res.y,
+        u=res.u,
+        v=res.v,
+        u_pairs=res.u_pairs,
+        v_pairs=res.v_pairs,
+        suspect=suspect,
+        suspect_upper_ms=upper,
+        trusted=geom.trusted,
+    )
     dt = float(np.median(res.dt_s)) if res.dt_s is not None and len(res.dt_s) else 1.0
     p = res.params
     first = p.window_px * 2 ** (max(p.passes, 1) - 1)
     v_meas = np.where(dres.velocity_filled, np.nan, dres.surface_velocity_ms)
-    ev = ql.Evidence(subsection_width_m=np.diff(geom.station_edges), subsection_velocity_ms=v_meas,
-                     subsection_depth_m=dres.mean_depth_m,
-                     discharge_m3s=dres.discharge_m3s, first_window_px=first, search_px=p.search_px or first,
-                     q_pairs_m3s=q_pairs,
-                     **ql.section_evidence(geom.sample_img, geom.normal, res.x, res.y, res.u, res.v, U, V, dt,
-                                           res.valid_fraction, res.peak, res.first_guess))
+    ev = ql.Evidence(
+        subsection_width_m=np.diff(geom.station_edges),
+        subsection_velocity_ms=v_meas,
+        subsection_depth_m=dres.mean_depth_m,
+        discharge_m3s=dres.discharge_m3s,
+        first_window_px=first,
+        search_px=p.search_px or first,
+        q_pairs_m3s=q_pairs,
+        **ql.section_evidence(
+            geom.sample_img,
+            geom.normal,
+            res.x,
+            res.y,
+            res.u,
+            res.v,
+            U,
+            V,
+            dt,
+            res.valid_fraction,
+            res.peak,
+            res.first_guess,
+        ),
+    )
     if frame_stats.get("pairs"):
         ev.identical_frames = frame_stats["identical"] / frame_stats["pairs"]
         ev.n_frame_pairs = frame_stats["pairs"]
     extra = []
     if mapping.details.get("residual_accepted"):
         r = mapping.residual_m
-        extra.append(ql.Reason("gcp_residual", "doubtful",
-                               f"the GCP residual ({mapping.details.get('max_distance_residual_m', r):.3f} m) exceeds "
-                               f"ortho.max_residual_m = {project.ortho.max_residual_m:g} m and was accepted "
-                               "(ortho.accept_residual)", float(mapping.details.get('max_distance_residual_m', r)),
-                               project.ortho.max_residual_m))
+        extra.append(
+            ql.Reason(
+                "gcp_residual",
+                "doubtful",
+                f"the GCP residual ({mapping.details.get('max_distance_residual_m', r):.3f} m) exceeds "
+                f"ortho.max_residual_m = {project.ortho.max_residual_m:g} m and was accepted "
+                "(ortho.accept_residual)",
+                float(mapping.details.get("max_distance_residual_m", r)),
+                project.ortho.max_residual_m,
+            )
+        )
     for d in (level.details.get("doubtful") or []) if level.method == "waterline" else []:
         extra.append(ql.Reason(d["code"], "doubtful", d["message"], d.get("value"), d.get("threshold")))
     # a verdict that doubts the velocities widens the interval upward: LSPIV fails by under-reading
@@ -144,7 +189,8 @@ def assess_run(project, inputs, level, mapping, geom, res, U, V, dres, q_pairs, 
     if doubts:
         unusable = any(r.severity == "unusable" for r in doubts)
         model.underread_max = u.underread_unusable if unusable else u.underread_doubtful
-    mc = un.monte_carlo_discharge(model, sig, dres.discharge_m3s, n_draws=u.n_draws,
-                                  n_draws_source=max(u.n_draws // 4, 20), seed=u.seed)
+    mc = un.monte_carlo_discharge(
+        model, sig, dres.discharge_m3s, n_draws=u.n_draws, n_draws_source=max(u.n_draws // 4, 20), seed=u.seed
+    )
     ev.relative_u95 = mc.relative_u95
     return mc, ql.assess(ev, th, extra)

@@ -68,15 +68,25 @@ class ClipCheck:
 
     def facts(self) -> dict:
         s = self.stats
-        return {"noise": None if s is None else {"temporal_sd_gray": s.noise, "frames": s.frames},
-                "contrast": None if s is None else {"tracer_gray": s.contrast, "cnr": s.cnr, "texture_gray": s.texture,
-                                                    "level_gray": s.level, "glare_fraction": s.glare_fraction,
-                                                    "window_contrast_p10_p90": list(s.contrast_spread)},
-                "gates": self.gates.to_dict()}
+        return {
+            "noise": None if s is None else {"temporal_sd_gray": s.noise, "frames": s.frames},
+            "contrast": None
+            if s is None
+            else {
+                "tracer_gray": s.contrast,
+                "cnr": s.cnr,
+                "texture_gray": s.texture,
+                "level_gray": s.level,
+                "glare_fraction": s.glare_fraction,
+                "window_contrast_p10_p90": list(s.contrast_spread),
+            },
+            "gates": self.gates.to_dict(),
+        }
 
 
-def check(inputs, roi, n_clip: int, params=None, mask=None, standardize: bool = True,
-          user_gap: int | None = None) -> ClipCheck:
+def check(
+    inputs, roi, n_clip: int, params=None, mask=None, standardize: bool = True, user_gap: int | None = None
+) -> ClipCheck:
     """Estimates and gates for the clip of ``inputs`` inside ``roi`` (x0, y0, x1, y1 px of the working frame).
     Where the estimates are ambiguous (:func:`clip_stats.ambiguous`) and the standardisation is on, the
     standard and the weak-signal gates are both run on the first frames' pairs and the more self-consistent
@@ -93,17 +103,24 @@ def check(inputs, roi, n_clip: int, params=None, mask=None, standardize: bool = 
     out = ClipCheck(stats, g)
     if params is None or not standardize or not clip_stats.ambiguous(stats):
         return out
-    variants = {"standard": clip_stats.gates(stats, **kw, force="standard"),
-                "weak_signal": _user_gap(clip_stats.gates(stats, **kw, force="low_light"), user_gap)}
+    variants = {
+        "standard": clip_stats.gates(stats, **kw, force="standard"),
+        "weak_signal": _user_gap(clip_stats.gates(stats, **kw, force="low_light"), user_gap),
+    }
     dt = float(np.median(np.diff([f.t_s for f in got]))) or 1.0 / 30.0
 
     def make(gv):
         def run():
             c = ClipCheck(stats, gv)
-            fr = surface.standardize(c.before(list(zip([f.t_s for f in got], frames))), roi, half=surface.HALF_WINDOW,
-                                     shrink=gv.shrink)
+            fr = surface.standardize(
+                c.before(list(zip([f.t_s for f in got], frames, strict=False))),
+                roi,
+                half=surface.HALF_WINDOW,
+                shrink=gv.shrink,
+            )
             fr = c.after(fr, None)
             return [f for _, f in fr], c.params(params, True)
+
         return run
 
     best, scores = selfcheck.choose({k: make(v) for k, v in variants.items()}, dt, roi, mask, gap=SELF_GAP)

@@ -19,7 +19,7 @@ levels, exact), and STIV, when on, samples round 1's pass too (every frame is th
 
 from __future__ import annotations
 
-from typing import Callable, Iterator
+from collections.abc import Callable, Iterator
 
 import numpy as np
 
@@ -53,8 +53,9 @@ class KeptFrames:
         self.times: list[float] = []
         self.complete = False  # the pass reached the clip's end
 
-    def plan(self, n_pairs_total: int, first_round: int, gap: int, box: tuple[int, int, int, int],
-             bytes_per_px: int = 4) -> None:
+    def plan(
+        self, n_pairs_total: int, first_round: int, gap: int, box: tuple[int, int, int, int], bytes_per_px: int = 4
+    ) -> None:
         """Keep the frames of the pairs after round 1's ``first_round`` ones, in the convergence order, within
         the budget; ``box`` is the box kept of each frame (px) and ``bytes_per_px`` what a pixel takes (4:
         float32; 1: whole working frames of whole grey levels, kept as uint8)."""

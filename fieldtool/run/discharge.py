@@ -5,8 +5,8 @@ discharge of single frame pairs (m³/s), which the fast path converges on and th
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 
@@ -65,9 +65,17 @@ class Discharge:
     unmeasured: object | None = None  # processing.quality.Quality (unusable) when nothing was measured on the section
 
 
-def compute_discharge(project: Project, inputs: Inputs, level_m: float, mapping: ortho.OrthoMapping,
-                      geom: dq.SectionGeometry, setup: PivSetup, vel: Velocimetry, pairs: PairDischarge,
-                      warnings: list[str]) -> Discharge:
+def compute_discharge(
+    project: Project,
+    inputs: Inputs,
+    level_m: float,
+    mapping: ortho.OrthoMapping,
+    geom: dq.SectionGeometry,
+    setup: PivSetup,
+    vel: Velocimetry,
+    pairs: PairDischarge,
+    warnings: list[str],
+) -> Discharge:
     """The main section's discharge from the velocimetry (see the module's docstring)."""
     cs, sec, res = inputs.cross_section, project.section, vel.piv
     U, V = mapping.rectify_velocity(res.x, res.y, res.u, res.v)
@@ -78,8 +86,10 @@ def compute_discharge(project: Project, inputs: Inputs, level_m: float, mapping:
     dres = dq.compute_discharge(geom, cs, level_m, v_sub, sec.alpha)
     if dres.discharge_m3s < 0:
         # P1/P2 picked right-to-left: swap them so P1 is the left edge, as the stations assume
-        warnings.append("section.points_px were given right edge first; they were swapped (P1 must be the left "
-                        "water edge looking downstream)")
+        warnings.append(
+            "section.points_px were given right edge first; they were swapped (P1 must be the left "
+            "water edge looking downstream)"
+        )
         geom = build_section(project, inputs, level_m, mapping, np.asarray(sec.points_px, float)[::-1])
         geom.swapped = True
         v_sub = dq.subsection_velocity(geom, res.x, res.y, U, V)
@@ -88,8 +98,11 @@ def compute_discharge(project: Project, inputs: Inputs, level_m: float, mapping:
     setup.clip.annotate(robust_facts)  # robust.noise, robust.contrast, robust.gates, robust.plan.preprocessing
     if vel.surface_stats is not None:
         ss = vel.surface_stats
-        robust_facts["stationary_removed"] = {"frames": ss.frames, "std_ref": ss.std_ref,
-                                              "specular_fraction": ss.specular_fraction}
+        robust_facts["stationary_removed"] = {
+            "frames": ss.frames,
+            "std_ref": ss.std_ref,
+            "specular_fraction": ss.specular_fraction,
+        }
     zr = getattr(res, "zero_peak_removed", None)
     if zr is not None:
         robust_facts["zero_peak_removed_nodes"] = int(np.count_nonzero(zr))
@@ -98,8 +111,10 @@ def compute_discharge(project: Project, inputs: Inputs, level_m: float, mapping:
         robust_facts["upstream_rejected"] = [int(i) for i in np.flatnonzero(rejected)]
         if rejected.any():
             dres = dq.compute_discharge(geom, cs, level_m, v_clean, sec.alpha)
-            warnings.append(f"{int(rejected.sum())} subsection(s) went upstream while the section goes downstream "
-                            "(wind ripples, standing waves or glints); rejected and filled from their neighbours")
+            warnings.append(
+                f"{int(rejected.sum())} subsection(s) went upstream while the section goes downstream "
+                "(wind ripples, standing waves or glints); rejected and filled from their neighbours"
+            )
     stiv_block, dres = stiv_stage.finish(setup.stiv_run, project, geom, cs, level_m, dres, res, U, V)
     robust_facts["filled_subsections"] = [int(i) for i in np.flatnonzero(dres.velocity_filled)]
     robust_facts["filled_width_share"] = robust.width_share(dres.station_from, dres.station_to, dres.velocity_filled)

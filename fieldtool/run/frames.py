@@ -8,7 +8,7 @@ frames of their pairs."""
 
 from __future__ import annotations
 
-from typing import Callable, Iterator
+from collections.abc import Callable, Iterator
 
 import numpy as np
 
@@ -16,17 +16,24 @@ from fieldtool.errors import Cancelled
 from fieldtool.processing.filters import FilterStack
 from fieldtool.processing.stabilize import Stabilizer
 from fieldtool.project.model import Project
-from fieldtool.run.geometry import roi_and_mask
 from fieldtool.run.clip_pass import DecodeCount
+from fieldtool.run.geometry import roi_and_mask
 from fieldtool.run.inputs import Inputs
 from fieldtool.run.observer import Guarded, Progress
 
 
-def working_frames(project: Project, inputs: Inputs, cancel: Callable[[], bool] | None = None,
-                   observer: Guarded | None = None, stab_report: dict | None = None,
-                   progress: Progress | None = None, stage: str = "frames",
-                   want: Callable[[int], bool] | None = None, raw: bool = False,
-                   count: DecodeCount | None = None) -> Iterator[tuple[float, np.ndarray]]:
+def working_frames(
+    project: Project,
+    inputs: Inputs,
+    cancel: Callable[[], bool] | None = None,
+    observer: Guarded | None = None,
+    stab_report: dict | None = None,
+    progress: Progress | None = None,
+    stage: str = "frames",
+    want: Callable[[int], bool] | None = None,
+    raw: bool = False,
+    count: DecodeCount | None = None,
+) -> Iterator[tuple[float, np.ndarray]]:
     """Stream (t_s, float32 working frame): undistorted, stabilised, filtered.
 
     ``raw``: without filters, the frames keep the decoder's uint8 (for consumers that convert only what they
@@ -47,7 +54,7 @@ def working_frames(project: Project, inputs: Inputs, cancel: Callable[[], bool] 
 
     def corrected() -> Iterator[tuple[int, float, np.ndarray]]:
         nonlocal stabilizer
-        for fr in (inputs.source if want is None else inputs.source.iter_wanted(want)):
+        for fr in inputs.source if want is None else inputs.source.iter_wanted(want):
             if count is not None:
                 count.frames += 1
             img = fr.image
@@ -61,8 +68,13 @@ def working_frames(project: Project, inputs: Inputs, cancel: Callable[[], bool] 
                     st = project.stabilize
                     regions = [inputs.to_working([[r[0], r[1]], [r[2], r[3]]]).ravel().tolist() for r in st.regions_px]
                     poly = inputs.to_working(st.water_polygon_px).tolist() if st.water_polygon_px else None
-                    stabilizer = Stabilizer(img, regions_px=regions or None, water_polygon_px=poly, model=st.model,
-                                            max_drift_px=st.max_drift_px)
+                    stabilizer = Stabilizer(
+                        img,
+                        regions_px=regions or None,
+                        water_polygon_px=poly,
+                        model=st.model,
+                        max_drift_px=st.max_drift_px,
+                    )
                 else:
                     img = stabilizer.register(img)
             yield fr.index, fr.t_s, img

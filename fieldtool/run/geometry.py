@@ -14,8 +14,8 @@ from fieldtool.processing import ortho, pose, water_level, waterline
 from fieldtool.processing.calibration import LensModel
 from fieldtool.processing.masks import rasterize
 from fieldtool.project.model import Project
-from fieldtool.run.inputs import Inputs
 from fieldtool.project.sections import SectionSpec
+from fieldtool.run.inputs import Inputs
 
 
 def detect_waterline(project: Project, inputs: Inputs, mapping: ortho.OrthoMapping | None = None) -> dict:
@@ -30,11 +30,16 @@ def detect_waterline(project: Project, inputs: Inputs, mapping: ortho.OrthoMappi
     else:
         sec = np.asarray(project.section.points_px, float)
         if sec.shape != (2, 2):
-            raise ParameterError("water_level.search_line_px: draw a line from bank to bank across the river "
-                                 "(or pick the section's water edges, which it extends)")
+            raise ParameterError(
+                "water_level.search_line_px: draw a line from bank to bank across the river "
+                "(or pick the section's water edges, which it extends)"
+            )
         line = waterline.extend_line(*inputs.to_working(sec), 0.4, inputs.shape)
-    lines = (waterline.parallel_lines(line, mapping, wl.search_spacing_m, 2, inputs.shape) if mapping is not None
-             else [(0.0, line)])
+    lines = (
+        waterline.parallel_lines(line, mapping, wl.search_spacing_m, 2, inputs.shape)
+        if mapping is not None
+        else [(0.0, line)]
+    )
     frames = (inputs.lens.undistort(f.image) if inputs.lens is not None else f.image for f in inputs.source)
     return waterline.detect_water_edges(frames, lines)
 
@@ -47,10 +52,17 @@ def compute_level(project: Project, inputs: Inputs, mapping: ortho.OrthoMapping 
     if detected is not None and sec.station_offset_m is not None and np.shape(sec.points_px) == (2, 2):
         station_of = waterline.station_function(inputs.to_working(sec.points_px), mapping, sec.station_offset_m)
     fov = inputs.lens.fov_deg() if inputs.lens is not None else None
-    return water_level.compute_level(project.water_level, inputs.cross_section, root=project.root, mapping=mapping,
-                                     fov_deg=fov, points_transform=inputs.to_working if inputs.lens is not None else None,
-                                     image_undistort=inputs.lens.undistort_points_in if inputs.lens is not None else None,
-                                     detected=detected, station_of=station_of)
+    return water_level.compute_level(
+        project.water_level,
+        inputs.cross_section,
+        root=project.root,
+        mapping=mapping,
+        fov_deg=fov,
+        points_transform=inputs.to_working if inputs.lens is not None else None,
+        image_undistort=inputs.lens.undistort_points_in if inputs.lens is not None else None,
+        detected=detected,
+        station_of=station_of,
+    )
 
 
 def build_mapping(project: Project, inputs: Inputs, level_m: float | None) -> ortho.OrthoMapping:
@@ -63,15 +75,21 @@ def build_mapping(project: Project, inputs: Inputs, level_m: float | None) -> or
         if raw.shape != (4, 2):
             raise ParameterError("ortho.gcp_px: give exactly four [x, y] pixel points P1..P4 for method = distances")
         ortho.check_in_frame(raw, shape, "ortho.gcp_px")
-        return ortho.from_distances(inputs.to_working(raw), o.distances_m, max_residual_m=o.max_residual_m,
-                                    accept_residual=o.accept_residual, frame_shape=shape)
+        return ortho.from_distances(
+            inputs.to_working(raw),
+            o.distances_m,
+            max_residual_m=o.max_residual_m,
+            accept_residual=o.accept_residual,
+            frame_shape=shape,
+        )
     if o.method == "two_points":
         raw = np.asarray(o.gcp_px, float)
         if raw.shape != (2, 2):
             raise ParameterError("ortho.gcp_px: give exactly two [x, y] pixel points P1, P2 for method = two_points")
         ortho.check_in_frame(raw, shape, "ortho.gcp_px")
-        return ortho.from_two_points(inputs.to_working(raw), o.distances_m[0] if len(o.distances_m) == 1 else None,
-                                     o.gcp_world_m or None)
+        return ortho.from_two_points(
+            inputs.to_working(raw), o.distances_m[0] if len(o.distances_m) == 1 else None, o.gcp_world_m or None
+        )
     if o.method == "world":
         raw = np.asarray(o.gcp_px, float)
         ortho.check_in_frame(raw.reshape(-1, 2), shape, "ortho.gcp_px")
@@ -86,8 +104,10 @@ def build_mapping(project: Project, inputs: Inputs, level_m: float | None) -> or
         lens_fit = None
         if inputs.lens is None:
             if not o.fit_lens:
-                raise ParameterError("ortho.method = pose needs the camera intrinsics: set calibration.path, or set "
-                                     "ortho.fit_lens = true to fit focal length and k1 from 8+ GCPs")
+                raise ParameterError(
+                    "ortho.method = pose needs the camera intrinsics: set calibration.path, or set "
+                    "ortho.fit_lens = true to fit focal length and k1 from 8+ GCPs"
+                )
             h, w = shape
             K, dist, p, lens_fit = pose.fit_lens(raw, world, (w, h))
             inputs.lens = LensModel(K, dist, (w, h), rms_px=lens_fit["rms_px"])  # frames are undistorted with it
@@ -96,10 +116,15 @@ def build_mapping(project: Project, inputs: Inputs, level_m: float | None) -> or
         H = pose.plane_homography(p, level_m)
         # residual in metres: each GCP's ray met on the horizontal plane at its own elevation
         und = inputs.to_working(raw)
-        miss = [np.hypot(*(ortho._apply(pose.plane_homography(p, z), und[i:i + 1])[0] - world[i, :2]))
-                for i, z in enumerate(world[:, 2])]
-        details = {"reprojection_rms_px": p.rms_px, "gcp_residual_m": [float(m) for m in miss],
-                   "gcp_reprojection_px": [float(r) for r in p.reprojection_px]}
+        miss = [
+            np.hypot(*(ortho._apply(pose.plane_homography(p, z), und[i : i + 1])[0] - world[i, :2]))
+            for i, z in enumerate(world[:, 2])
+        ]
+        details = {
+            "reprojection_rms_px": p.rms_px,
+            "gcp_residual_m": [float(m) for m in miss],
+            "gcp_reprojection_px": [float(r) for r in p.reprojection_px],
+        }
         if lens_fit is not None:
             details["lens_from_gcps"] = lens_fit
         m = ortho.from_homography(H, "pose", float(np.sqrt(np.mean(np.square(miss)))), world[:, :2], details)
@@ -107,7 +132,9 @@ def build_mapping(project: Project, inputs: Inputs, level_m: float | None) -> or
         return m
     if o.method == "none":
         if level_m is None:
-            raise ParameterError("ortho.method = none takes the image scale from the wetted width: the water level is needed first")
+            raise ParameterError(
+                "ortho.method = none takes the image scale from the wetted width: the water level is needed first"
+            )
         pts = inputs.to_working(project.section.points_px)
         if pts.shape != (2, 2):
             raise ParameterError("section.points_px: give the two water edges; without GCPs they set the image scale")
@@ -119,17 +146,24 @@ def build_mapping(project: Project, inputs: Inputs, level_m: float | None) -> or
     raise ParameterError(f"ortho.method: {o.method!r} is not one of distances, world, pose, two_points, none")
 
 
-def build_section(project: Project, inputs: Inputs, level_m: float, mapping: ortho.OrthoMapping,
-                  points_px=None) -> dq.SectionGeometry:
+def build_section(
+    project: Project, inputs: Inputs, level_m: float, mapping: ortho.OrthoMapping, points_px=None
+) -> dq.SectionGeometry:
     """The section of interest (raw-frame ``points_px``, default the project's), checked against the water
     edges of the cross-section at ``level_m`` (see processing.discharge.check_section)."""
     sec = project.section
     pts = sec.points_px if points_px is None else points_px
     if np.asarray(pts).shape == (2, 2):  # raw-frame pixels, checked before undistortion
         ortho.check_in_frame(np.asarray(pts, float), inputs.shape, "section.points_px")
-    geom = dq.section_geometry(inputs.to_working(pts) if len(pts) else pts, mapping, inputs.cross_section,
-                               level_m, sec.n_sub, sec.station_offset_m,
-                               footprint_px=dq.window_reach_px(project.piv.window_px))
+    geom = dq.section_geometry(
+        inputs.to_working(pts) if len(pts) else pts,
+        mapping,
+        inputs.cross_section,
+        level_m,
+        sec.n_sub,
+        sec.station_offset_m,
+        footprint_px=dq.window_reach_px(project.piv.window_px),
+    )
     dq.check_section(geom, inputs.cross_section, level_m, sec.min_length_fraction, sec.edge_tolerance_m)
     return geom
 
@@ -181,8 +215,9 @@ class Sections:
     extra: list[SectionSpec]
 
 
-def place_sections(project: Project, inputs: Inputs, level_m: float, mapping: ortho.OrthoMapping,
-                   extra: list[SectionSpec]) -> Sections:
+def place_sections(
+    project: Project, inputs: Inputs, level_m: float, mapping: ortho.OrthoMapping, extra: list[SectionSpec]
+) -> Sections:
     """The main section (checked, see :func:`build_section`), the ROI and mask, and the segments of all
     sections."""
     geom = build_section(project, inputs, level_m, mapping)

@@ -39,8 +39,15 @@ def load_cross_section(project: Project) -> xs.CrossSection:
     """The project's cross-section, from its shape or its file."""
     c = project.cross_section
     if c.shape:
-        return xs.from_shape(c.shape, top_width_m=c.top_width_m, bottom_width_m=c.bottom_width_m, depth_m=c.depth_m,
-                             left_station_m=c.left_station_m, bank_elevation_m=c.bank_elevation_m, points=c.points)
+        return xs.from_shape(
+            c.shape,
+            top_width_m=c.top_width_m,
+            bottom_width_m=c.bottom_width_m,
+            depth_m=c.depth_m,
+            left_station_m=c.left_station_m,
+            bank_elevation_m=c.bank_elevation_m,
+            points=c.points,
+        )
     if not c.path:
         raise ParameterError("cross_section.path: no cross-section given; set a CSV file or a shape")
     return xs.load_cross_section(project.resolve(c.path))

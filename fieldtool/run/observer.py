@@ -4,7 +4,8 @@ failures become warnings: logging never fails a measurement."""
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Callable
+from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -25,10 +26,18 @@ class Observer:
     def geometry(self, pair_discharge: Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray], float]) -> None:
         """Called once before PIV: ``pair_discharge(x, y, u_px_s, v_px_s) -> m³/s`` for live discharge."""
 
-    def pair(self, i: int, t_s: float, x: np.ndarray, y: np.ndarray, u_px_s: np.ndarray, v_px_s: np.ndarray,
-             valid: np.ndarray) -> None: ...
+    def pair(
+        self,
+        i: int,
+        t_s: float,
+        x: np.ndarray,
+        y: np.ndarray,
+        u_px_s: np.ndarray,
+        v_px_s: np.ndarray,
+        valid: np.ndarray,
+    ) -> None: ...
 
-    def result(self, result: "RunResult") -> None: ...
+    def result(self, result: RunResult) -> None: ...
 
     def warning(self, message: str) -> None: ...
 

@@ -206,21 +206,26 @@ def check_out(out: Path | str, project=None) -> Path:
     if project is not None:
         root = Path(project.root).resolve()
         if real == root or _inside(root, real):
-            raise OutputFolderError(f"--out {given}: is the project's own folder{' (or one above it)' if real != root else ''}"
-                                    f"; the results would overwrite or sit among its inputs; {hint}")
+            raise OutputFolderError(
+                f"--out {given}: is the project's own folder{' (or one above it)' if real != root else ''}"
+                f"; the results would overwrite or sit among its inputs; {hint}"
+            )
         for key, p in input_paths(project):
             rp = p.resolve()
             if _inside(rp, real):
-                raise OutputFolderError(f"--out {given}: holds {key} ({p}); the results would overwrite or be read "
-                                        f"as an input; {hint}")
+                raise OutputFolderError(
+                    f"--out {given}: holds {key} ({p}); the results would overwrite or be read as an input; {hint}"
+                )
     for folder, what in ((real, "--out"), (real.parent, "the folder of --out")):
         try:
             st = folder.stat()
         except FileNotFoundError:
             continue
         if _read_only(st.st_mode):
-            raise OutputFolderError(f"{what} {folder}: is read-only (mode {stat.S_IMODE(st.st_mode):04o}); the results "
-                                    "are not written there. Make it writable (chmod u+w) or give another --out")
+            raise OutputFolderError(
+                f"{what} {folder}: is read-only (mode {stat.S_IMODE(st.st_mode):04o}); the results "
+                "are not written there. Make it writable (chmod u+w) or give another --out"
+            )
         if folder == real.parent and not os.access(folder, os.W_OK | os.X_OK):
             raise OutputFolderError(f"{what} {folder}: permission denied; make it writable or give another --out")
     return real
@@ -321,8 +326,10 @@ class _Claim:
                 other = _read_pid(fd)
                 os.close(fd)
                 who = f" (pid {other})" if other else ""
-                raise OutputFolderError(f"--out {self.given}: another fieldtool run{who} is writing into this folder; "
-                                        "wait for it to end, or give another --out") from None
+                raise OutputFolderError(
+                    f"--out {self.given}: another fieldtool run{who} is writing into this folder; "
+                    "wait for it to end, or give another --out"
+                ) from None
             try:
                 same = os.fstat(fd).st_ino == os.stat(self.lock_path).st_ino
             except FileNotFoundError:

@@ -21,9 +21,8 @@ import numpy as np
 from fieldtool.errors import FieldToolError
 from fieldtool.plots import prerender
 from fieldtool.project.model import Project, atomic_write_bytes
-from fieldtool.run import stiv_stage
+from fieldtool.run import outdir, overlay_stage, stiv_stage
 from fieldtool.run.inputs import Inputs
-from fieldtool.run import outdir, overlay_stage
 from fieldtool.run.outdir import strict_json
 from fieldtool.run.result import RunResult
 from fieldtool.writers import write_standard
@@ -58,25 +57,42 @@ def _write_result_json(result: RunResult, out: Path) -> None:
     summary = strict_json(result.summary(), extra)
     if extra:
         summary["warnings"] = list(summary.get("warnings") or []) + extra
-    atomic_write_bytes(out / "result.json", json.dumps(summary, indent=2, default=json_default,
-                                                       allow_nan=False).encode())
+    atomic_write_bytes(
+        out / "result.json", json.dumps(summary, indent=2, default=json_default, allow_nan=False).encode()
+    )
 
 
 def _write_outputs(result: RunResult, inputs: Inputs, out: Path) -> None:
     d, p = result.discharge, result.piv
     files = result.files
-    lines = ["subsection,station_from_m,station_to_m,area_m2,mean_depth_m,surface_velocity_ms,velocity_filled,discharge_m3s,stiv_velocity_ms"]
+    lines = [
+        "subsection,station_from_m,station_to_m,area_m2,mean_depth_m,surface_velocity_ms,velocity_filled,discharge_m3s,stiv_velocity_ms"
+    ]
     stiv_v = stiv_stage.stiv_column(result.stiv, len(d.area_m2))
     for i in range(len(d.area_m2)):
-        lines.append(f"{i + 1},{d.station_from[i]:.4f},{d.station_to[i]:.4f},{d.area_m2[i]:.5f},{d.mean_depth_m[i]:.4f},"
-                     f"{d.surface_velocity_ms[i]:.5f},{int(d.velocity_filled[i])},{d.sub_discharge_m3s[i]:.5f},{stiv_v[i]}")
+        lines.append(
+            f"{i + 1},{d.station_from[i]:.4f},{d.station_to[i]:.4f},{d.area_m2[i]:.5f},{d.mean_depth_m[i]:.4f},"
+            f"{d.surface_velocity_ms[i]:.5f},{int(d.velocity_filled[i])},{d.sub_discharge_m3s[i]:.5f},{stiv_v[i]}"
+        )
     atomic_write_bytes(out / "subsections.csv", ("\n".join(lines) + "\n").encode())
     files["subsections"] = "subsections.csv"
 
     XY = result.mapping.image_to_world(np.c_[p.x.ravel(), p.y.ravel()]).reshape(p.x.shape + (2,))
-    arrays = dict(x_px=p.x, y_px=p.y, u_px_s=p.u, v_px_s=p.v, X_m=XY[..., 0], Y_m=XY[..., 1], U_ms=result.world_u,
-                  V_ms=result.world_v, valid=p.valid, valid_fraction=p.valid_fraction, H=result.mapping.H,
-                  water_level_m=np.float64(d.water_level_m), discharge_m3s=np.float64(d.discharge_m3s))
+    arrays = dict(
+        x_px=p.x,
+        y_px=p.y,
+        u_px_s=p.u,
+        v_px_s=p.v,
+        X_m=XY[..., 0],
+        Y_m=XY[..., 1],
+        U_ms=result.world_u,
+        V_ms=result.world_v,
+        valid=p.valid,
+        valid_fraction=p.valid_fraction,
+        H=result.mapping.H,
+        water_level_m=np.float64(d.water_level_m),
+        discharge_m3s=np.float64(d.discharge_m3s),
+    )
     buf = io.BytesIO()
     np.savez_compressed(buf, **arrays)
     atomic_write_bytes(out / "mean_field.npz", buf.getvalue())
@@ -94,9 +110,10 @@ def _write_figures(result: RunResult, inputs: Inputs, out: Path) -> None:
     files = result.files
     pre = result.prerendered
     for key, name, draw in (
-            ("vectors_png", "vectors.png", lambda p, f: p.plot_vectors(f, inputs.first_color, result, inputs)),
-            ("rectified_png", "rectified.png", lambda p, f: p.plot_rectified(f, inputs.first_color, result, inputs)),
-            ("section_png", "section.png", lambda p, f: p.plot_section(f, inputs.cross_section, result))):
+        ("vectors_png", "vectors.png", lambda p, f: p.plot_vectors(f, inputs.first_color, result, inputs)),
+        ("rectified_png", "rectified.png", lambda p, f: p.plot_rectified(f, inputs.first_color, result, inputs)),
+        ("section_png", "section.png", lambda p, f: p.plot_section(f, inputs.cross_section, result)),
+    ):
         png = pre.file(name) if pre is not None else None  # drawn by the figure process
         if png:
             atomic_write_bytes(out / name, png)
@@ -109,8 +126,9 @@ def _write_figures(result: RunResult, inputs: Inputs, out: Path) -> None:
             atomic_write_bytes(out / "water_level.png", png)
             files["water_level_png"] = "water_level.png"
         else:
-            files["water_level_png"] = _plots().water_level.plot_level(out / "water_level.png", inputs.cross_section,
-                                                                       result.level).name
+            files["water_level_png"] = (
+                _plots().water_level.plot_level(out / "water_level.png", inputs.cross_section, result.level).name
+            )
     except FieldToolError as e:
         result.warnings.append(f"water-level plot not written: {e}")
 

@@ -162,11 +162,18 @@ class Recorder:
         o = project.overlay
         self.view, self.width_px, self.fps_set, self.card_s = o.view, int(o.width_px), o.fps, float(o.card_s)
         self.table = draw.lut(o.colormap)
-        self.header = [t for t in (project.name if project.name != "measurement" else "",
-                                   "  ".join(f"{k} {v}" for k, v in (("site", project.site),
-                                                                      ("station", project.station),
-                                                                      ("operator", project.operator)) if v))
-                       if t]
+        self.header = [
+            t
+            for t in (
+                project.name if project.name != "measurement" else "",
+                "  ".join(
+                    f"{k} {v}"
+                    for k, v in (("site", project.site), ("station", project.station), ("operator", project.operator))
+                    if v
+                ),
+            )
+            if t
+        ]
         self.pairs: list[_Pair] = []
         self.pair_q: Callable | None = None
         self.frames_seen = 0
@@ -245,8 +252,14 @@ class Recorder:
                 self._cond.notify_all()
 
     def pair(self, i, t_s, x, y, u_px_s, v_px_s, valid) -> None:
-        p = _Pair(float(t_s), np.asarray(x, float), np.asarray(y, float), np.array(u_px_s, np.float32),
-                  np.array(v_px_s, np.float32), np.array(valid, bool))
+        p = _Pair(
+            float(t_s),
+            np.asarray(x, float),
+            np.asarray(y, float),
+            np.array(u_px_s, np.float32),
+            np.array(v_px_s, np.float32),
+            np.array(valid, bool),
+        )
         with self._cond:
             self.pairs.append(p)
             self._cond.notify_all()
@@ -339,8 +352,9 @@ class Recorder:
             spacing = float(np.median(np.diff(xs))) if len(xs) > 1 else 16.0
             sp = np.hypot(u[ok], v[ok])
             ref = float(np.percentile(sp, 90)) if sp.size else 0.0
-            self._stride = max(1, int(round(MIN_ARROW_GAP_PX / (spacing * self._M[0, 0])))) \
-                if self.view == "camera" else 1  # nodes closer than that on the video: every stride-th drawn
+            self._stride = (
+                max(1, int(round(MIN_ARROW_GAP_PX / (spacing * self._M[0, 0])))) if self.view == "camera" else 1
+            )  # nodes closer than that on the video: every stride-th drawn
             self._arrow_s = 1.2 * spacing * self._stride / ref if ref > 0 else 0.5
             world = np.hypot(U[ok], V[ok])
             self._vrange = (0.0, draw.nice_ceil(float(np.percentile(world, 98))))  # fixed for the video
@@ -367,10 +381,18 @@ class Recorder:
         lo, hi = self._vrange
         th = max(1, int(round(img.shape[0] / 270)))  # 2 px at 540 lines
         if start is not None and len(start):
-            draw.draw_arrows(img, self.to_view(start), self.to_view(end),
-                            draw.colours(speed, lo, hi, self.table, levels=48), th)
-        draw.draw_section(img, self.to_view(self._limits_img), v_sub, lo, hi, self.table,
-                          thickness=max(4, int(round(img.shape[0] / 90))))
+            draw.draw_arrows(
+                img, self.to_view(start), self.to_view(end), draw.colours(speed, lo, hi, self.table, levels=48), th
+            )
+        draw.draw_section(
+            img,
+            self.to_view(self._limits_img),
+            v_sub,
+            lo,
+            hi,
+            self.table,
+            thickness=max(4, int(round(img.shape[0] / 90))),
+        )
         draw.draw_legend(img, lo, hi, self.table)
 
     def _draw_frame(self, item, pairs: list[_Pair]) -> None:
@@ -393,12 +415,18 @@ class Recorder:
                 self._prepare(p)
                 if np.isfinite(p.q):
                     so_far.append(p.q)
-        q_line = (f"running Q {np.median(so_far):.3f} m3/s (median of {len(so_far)} pair{'s' * (len(so_far) > 1)} "
-                  f"so far)" if so_far else "running Q: no pair measured yet")
+        q_line = (
+            f"running Q {np.median(so_far):.3f} m3/s (median of {len(so_far)} pair{'s' * (len(so_far) > 1)} so far)"
+            if so_far
+            else "running Q: no pair measured yet"
+        )
         draw.draw_panel(img, self.header + [f"t = {t:.2f} s   frame {index}", q_line])
         if near is not None:
-            draw.draw_panel(img, [f"vectors: frame pair at {near.t:.2f} s" + (" (rectified view)" if self.view ==
-                                                                                "rectified" else "")], corner="bl")
+            draw.draw_panel(
+                img,
+                [f"vectors: frame pair at {near.t:.2f} s" + (" (rectified view)" if self.view == "rectified" else "")],
+                corner="bl",
+            )
         t_enc = time.perf_counter()
         self._writer.write(img, pts)
         self._encode_s += time.perf_counter() - t_enc
@@ -433,14 +461,26 @@ class Recorder:
         shutil.move(str(self._tmp), str(path))
         self._tmp = None
         self.info = {
-            "file": FILE, "backend": self._writer.backend, "codec": self._writer.codec, "pix_fmt": "yuv420p"
-            if self._writer.backend == "pyav" else None, "width_px": self.size[0], "height_px": self.size[1],
-            "fps": float(self._writer.rate), "view": self.view, "frames": self._drawn, "card_frames": self._card_frames,
-            "t_first_s": self._t_first, "t_last_s": self._t_last, "pairs_drawn": len(self._pairs_used),
-            "pairs_known": len(self.pairs), "draw_encode_s": round(self._busy_s, 3),
+            "file": FILE,
+            "backend": self._writer.backend,
+            "codec": self._writer.codec,
+            "pix_fmt": "yuv420p" if self._writer.backend == "pyav" else None,
+            "width_px": self.size[0],
+            "height_px": self.size[1],
+            "fps": float(self._writer.rate),
+            "view": self.view,
+            "frames": self._drawn,
+            "card_frames": self._card_frames,
+            "t_first_s": self._t_first,
+            "t_last_s": self._t_last,
+            "pairs_drawn": len(self._pairs_used),
+            "pairs_known": len(self.pairs),
+            "draw_encode_s": round(self._busy_s, 3),
             "encode_s": round(self._encode_s, 3),
-            "frame_prep_s": round(self._prep_s, 3), "run_waited_s": round(self._wait_s, 3),
-            "warning": self._writer.warning or None}
+            "frame_prep_s": round(self._prep_s, 3),
+            "run_waited_s": round(self._wait_s, 3),
+            "warning": self._writer.warning or None,
+        }
 
     def _card(self, result) -> np.ndarray:
         """The closing card: the mean field and the subsections' final velocities under Q, its interval and the
@@ -465,8 +505,14 @@ class Recorder:
             lines.append((f"95 % interval {ci[0]:.3f} - {ci[1]:.3f} m3/s", (255, 255, 255), 1.2))
         if grade:
             lines.append((f"grade: {grade.upper()}", draw.GRADE_BGR.get(grade, (255, 255, 255)), 1.5))
-        lines.append((f"mean velocity {d.mean_velocity_ms:.3f} m/s   level {d.water_level_m:.3f} m   "
-                      f"area {d.wetted_area_m2:.2f} m2", (220, 220, 220), 0.9))
+        lines.append(
+            (
+                f"mean velocity {d.mean_velocity_ms:.3f} m/s   level {d.water_level_m:.3f} m   "
+                f"area {d.wetted_area_m2:.2f} m2",
+                (220, 220, 220),
+                0.9,
+            )
+        )
         draw.draw_card(img, lines)
         draw.draw_panel(img, self.header + ["final result (mean field)"])
         return img

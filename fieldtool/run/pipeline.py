@@ -22,13 +22,13 @@ from __future__ import annotations
 
 import contextlib
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 from fieldtool.plots.prerender import Prerender
+from fieldtool.project import sections
 from fieldtool.project.model import Project, project_to_dict
 from fieldtool.project.validation import check
-from fieldtool.project import sections
 from fieldtool.run import discharge, geometry, outdir, outputs, overlay_stage, quality, velocimetry
 from fieldtool.run.inputs import load_inputs
 from fieldtool.run.observer import Guarded, Observer, Progress
@@ -49,16 +49,28 @@ class _Laps:
         self.t0 = now
 
 
-def run_project(project: Project, out_dir: Path | str | None = None, *, progress: Progress | None = None,
-                cancel: Callable[[], bool] | None = None, observer: Observer | None = None) -> RunResult:
+def run_project(
+    project: Project,
+    out_dir: Path | str | None = None,
+    *,
+    progress: Progress | None = None,
+    cancel: Callable[[], bool] | None = None,
+    observer: Observer | None = None,
+) -> RunResult:
     """Run every step of ``project``; write the results to ``out_dir`` when given. The figure process the run
     draws its figures in (``plots.prerender``) ends with the run, whether it succeeds, fails or is cancelled."""
     with contextlib.ExitStack() as ends:
         return _run_project(project, out_dir, progress, cancel, observer, ends)
 
 
-def _run_project(project: Project, out_dir: Path | str | None, progress: Progress | None,
-                 cancel: Callable[[], bool] | None, observer: Observer | None, ends) -> RunResult:
+def _run_project(
+    project: Project,
+    out_dir: Path | str | None,
+    progress: Progress | None,
+    cancel: Callable[[], bool] | None,
+    observer: Observer | None,
+    ends,
+) -> RunResult:
     """:func:`run_project`; ``ends`` (a contextlib.ExitStack) takes what must be closed when the run ends."""
     warnings: list[str] = []
     overlay = overlay_stage.start(project, out_dir, ends)  # [overlay] enabled: overlay.mp4 drawn as frames stream
@@ -93,9 +105,19 @@ def _run_project(project: Project, out_dir: Path | str | None, progress: Progres
     # the pixel-space field is reused when only the mapping, level, section or alpha changed (not while
     # streaming to an observer, who wants to see the frames and pairs)
     cache_dir = Path(out_dir) if out_dir is not None and observer is None else None
-    vel = velocimetry.measure_velocity(project, inputs, setup, pairs.on(placed.geom), cache_dir,
-                                       stage.path if stage is not None else None, cancel, obs, progress, warnings,
-                                       overlay)
+    vel = velocimetry.measure_velocity(
+        project,
+        inputs,
+        setup,
+        pairs.on(placed.geom),
+        cache_dir,
+        stage.path if stage is not None else None,
+        cancel,
+        obs,
+        progress,
+        warnings,
+        overlay,
+    )
     lap("frames_and_piv")
 
     obs("stage", "discharge")
@@ -109,12 +131,31 @@ def _run_project(project: Project, out_dir: Path | str | None, progress: Progres
         verdict = quality.Verdict(None, q.unmeasured, [])
     lap("uncertainty_and_quality")
 
-    result = RunResult(q.result, q.q_pairs, level, mapping, vel.piv, q.geom, q.world_u, q.world_v, None,
-                       timings_s=lap.timings, warnings=warnings, stabilization=vel.stabilization or None,
-                       project=project_to_dict(project), piv_reused=vel.reused, uncertainty=verdict.uncertainty,
-                       quality=verdict.quality, sections=verdict.sections, robust=q.robust, stiv=q.stiv,
-                       piv_fast=vel.fast, prerendered=prerendered,
-                       uncertainty_standard=verdict.standard, overlay=overlay)
+    result = RunResult(
+        q.result,
+        q.q_pairs,
+        level,
+        mapping,
+        vel.piv,
+        q.geom,
+        q.world_u,
+        q.world_v,
+        None,
+        timings_s=lap.timings,
+        warnings=warnings,
+        stabilization=vel.stabilization or None,
+        project=project_to_dict(project),
+        piv_reused=vel.reused,
+        uncertainty=verdict.uncertainty,
+        quality=verdict.quality,
+        sections=verdict.sections,
+        robust=q.robust,
+        stiv=q.stiv,
+        piv_fast=vel.fast,
+        prerendered=prerendered,
+        uncertainty_standard=verdict.standard,
+        overlay=overlay,
+    )
     if out_dir is not None:
         outputs.write_outputs(result, project, inputs, Path(out_dir))
     obs("result", result)

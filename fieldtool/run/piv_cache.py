@@ -43,14 +43,19 @@ def piv_key(project: Project, max_speed_px_s: np.ndarray | None, box_px=None, ne
     parts["video_file"] = _stat(project.resolve(project.video.path))
     if project.calibration.path:
         parts["calibration_file"] = _stat(project.resolve(project.calibration.path))
-    elif project.ortho.method == "pose" and project.ortho.fit_lens:  # the lens (frames' undistortion) comes from the GCPs
+    elif (
+        project.ortho.method == "pose" and project.ortho.fit_lens
+    ):  # the lens (frames' undistortion) comes from the GCPs
         parts["lens_from_gcps"] = [project.ortho.gcp_px, project.ortho.gcp_world_m]
     if max_speed_px_s is not None:
         parts["max_speed"] = hashlib.sha256(np.ascontiguousarray(max_speed_px_s, dtype=np.float64)).hexdigest()
     if box_px is not None:
         parts["box_px"] = [int(c) for c in box_px]
     if near is not None:
-        parts["near"] = [[np.round(np.asarray(sg, float), 3).tolist() for sg in near[0]], [round(r, 3) for r in near[1]]]
+        parts["near"] = [
+            [np.round(np.asarray(sg, float), 3).tolist() for sg in near[0]],
+            [round(r, 3) for r in near[1]],
+        ]
     parts["version"] = __version__
     parts["engine_revision"] = REVISION
     return hashlib.sha256(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()
@@ -63,8 +68,13 @@ def save(folder: Path, key: str, res, stabilization: dict | None, extra: dict | 
         v = getattr(res, f.name)
         if isinstance(v, np.ndarray):
             arrays[f.name] = v
-    meta = {"key": key, "params": dataclasses.asdict(res.params), "n_pairs": res.n_pairs,
-            "stabilization": stabilization, "extra": extra}
+    meta = {
+        "key": key,
+        "params": dataclasses.asdict(res.params),
+        "n_pairs": res.n_pairs,
+        "stabilization": stabilization,
+        "extra": extra,
+    }
     buf = io.BytesIO()
     np.savez(buf, meta=np.array(json.dumps(meta)), **arrays)
     atomic_write_bytes(folder / FILE, buf.getvalue())

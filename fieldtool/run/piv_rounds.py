@@ -11,8 +11,8 @@ first round, and every later round reads the clip again (a new pass), building o
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterator
 from dataclasses import asdict
-from typing import Callable, Iterator
 
 import numpy as np
 
@@ -22,8 +22,23 @@ from fieldtool.processing import piv_fast
 from fieldtool.run.clip_pass import KeptFrames
 
 
-def run_piv_fast(make_frames, n_pairs: int, gap: int, params, roi, mask, max_speed, cancel, on_pair, pair_q,
-                 rel_ci: float, min_pairs: int, drain_first: bool = False, near=None, first_guess=None):
+def run_piv_fast(
+    make_frames,
+    n_pairs: int,
+    gap: int,
+    params,
+    roi,
+    mask,
+    max_speed,
+    cancel,
+    on_pair,
+    pair_q,
+    rel_ci: float,
+    min_pairs: int,
+    drain_first: bool = False,
+    near=None,
+    first_guess=None,
+):
     """PIV with pairs added until the discharge has converged (``processing.piv_fast.converge``), each round's
     frames read by a background thread (``make_frames`` may hand one already reading). ``drain_first``: the
     first round's stream is read to its end (STIV samples its lines from it). Returns (PivResult, dict of
@@ -36,8 +51,19 @@ def run_piv_fast(make_frames, n_pairs: int, gap: int, params, roi, mask, max_spe
     def run(frames, select, carry):
         reader = frames if isinstance(frames, (piv_fast.prefetch, piv_fast.Prefetched)) else piv_fast.prefetch(frames)
         try:
-            res = piv_mod.analyze(reader, params, roi=roi, mask=mask, max_speed_px_s=max_speed, cancel=cancel,
-                                  on_pair=on_pair, select=select, carry=carry, near=near, first_guess=first_guess)
+            res = piv_mod.analyze(
+                reader,
+                params,
+                roi=roi,
+                mask=mask,
+                max_speed_px_s=max_speed,
+                cancel=cancel,
+                on_pair=on_pair,
+                select=select,
+                carry=carry,
+                near=near,
+                first_guess=first_guess,
+            )
             if carry is None and drain_first:
                 for _ in reader:
                     pass
@@ -45,8 +71,9 @@ def run_piv_fast(make_frames, n_pairs: int, gap: int, params, roi, mask, max_spe
         finally:
             reader.close()
 
-    res, conv, _ = piv_fast.converge(make_frames, n_pairs, run, pair_q, rel_ci=rel_ci, min_pairs=min_pairs,
-                                     frame_gap=gap)
+    res, conv, _ = piv_fast.converge(
+        make_frames, n_pairs, run, pair_q, rel_ci=rel_ci, min_pairs=min_pairs, frame_gap=gap
+    )
     return res, asdict(conv)
 
 
@@ -56,8 +83,14 @@ class SharedFirstRound:
     built for; every later call replays the frames round 1's pass kept (``kept``, run/clip_pass.py) or, when
     one it wants was not kept, opens a new stream with ``stream(want=...)``."""
 
-    def __init__(self, stream: Callable[..., Iterator], reader: "piv_fast.prefetch | None", first: Iterator | None,
-                 round1_want: list, kept: "KeptFrames | None" = None):
+    def __init__(
+        self,
+        stream: Callable[..., Iterator],
+        reader: piv_fast.prefetch | None,
+        first: Iterator | None,
+        round1_want: list,
+        kept: KeptFrames | None = None,
+    ):
         self.stream, self.reader, self.first, self.round1_want = stream, reader, first, round1_want
         self.kept = kept
 

@@ -15,14 +15,14 @@ from fieldtool.processing import cross_section as xs
 from fieldtool.processing import discharge as dq
 from fieldtool.processing import ortho
 from fieldtool.processing.quality import Reason
-from fieldtool.project.model import Project
 from fieldtool.project import sections as secs
+from fieldtool.project.model import Project
+from fieldtool.project.sections import SectionSpec
 from fieldtool.run import standard_stage, stiv_stage
 from fieldtool.run.assess import assess_run
 from fieldtool.run.discharge import Discharge, PairDischarge
 from fieldtool.run.geometry import build_section
 from fieldtool.run.inputs import Inputs
-from fieldtool.project.sections import SectionSpec
 from fieldtool.run.velocimetry import Velocimetry
 
 
@@ -38,14 +38,24 @@ class Verdict:
     standard: dict | None = None  # ISO 748 and IVE beside the Monte Carlo, 2σ (run/standard_stage.py)
 
 
-def assess(project: Project, inputs: Inputs, level, mapping: ortho.OrthoMapping, vel: Velocimetry, q: Discharge,
-           pairs: PairDischarge, extra: list[SectionSpec], warnings: list[str]) -> Verdict:
+def assess(
+    project: Project,
+    inputs: Inputs,
+    level,
+    mapping: ortho.OrthoMapping,
+    vel: Velocimetry,
+    q: Discharge,
+    pairs: PairDischarge,
+    extra: list[SectionSpec],
+    warnings: list[str],
+) -> Verdict:
     """Interval, verdict and the extra sections (see the module's docstring); never raises for the verdict
     (the discharge is kept and the missing verdict said in the warnings)."""
     res, dres = vel.piv, q.result
     try:
-        unc, qual = assess_run(project, inputs, level, mapping, q.geom, res, q.world_u, q.world_v, dres, q.q_pairs,
-                               vel.frame_stats)
+        unc, qual = assess_run(
+            project, inputs, level, mapping, q.geom, res, q.world_u, q.world_v, dres, q.q_pairs, vel.frame_stats
+        )
     except Exception as e:  # noqa: BLE001 - the discharge is kept; the missing verdict is said
         unc = qual = None
         warnings.append(f"uncertainty and quality not computed ({type(e).__name__}: {e}); please report this")
@@ -58,14 +68,34 @@ def assess(project: Project, inputs: Inputs, level, mapping: ortho.OrthoMapping,
     entries: list = []
     if extra:
         sec = project.section
-        main = {"name": "main", "points_px": np.asarray(sec.points_px, float).tolist(), "discharge_m3s": dres.discharge_m3s,
-                "discharge_ci95_m3s": (list(unc.ci95_m3s) if unc is not None and np.all(np.isfinite(unc.ci95_m3s))
-                                       else None), "grade": qual.grade if qual is not None else None,
-                "wetted_area_m2": dres.wetted_area_m2, "wetted_width_m": dres.wetted_width_m,
-                "mean_velocity_ms": dres.mean_velocity_ms, "subsections_filled": int(dres.velocity_filled.sum())}
-        entries = [main] + [measure_section(project, inputs, s, level, mapping, res, q.world_u, q.world_v,
-                                            vel.frame_stats, lambda g, cs_g: pairs.of_pairs(res, g, cs_g))
-                            for s in extra]
+        main = {
+            "name": "main",
+            "points_px": np.asarray(sec.points_px, float).tolist(),
+            "discharge_m3s": dres.discharge_m3s,
+            "discharge_ci95_m3s": (
+                list(unc.ci95_m3s) if unc is not None and np.all(np.isfinite(unc.ci95_m3s)) else None
+            ),
+            "grade": qual.grade if qual is not None else None,
+            "wetted_area_m2": dres.wetted_area_m2,
+            "wetted_width_m": dres.wetted_width_m,
+            "mean_velocity_ms": dres.mean_velocity_ms,
+            "subsections_filled": int(dres.velocity_filled.sum()),
+        }
+        entries = [main] + [
+            measure_section(
+                project,
+                inputs,
+                s,
+                level,
+                mapping,
+                res,
+                q.world_u,
+                q.world_v,
+                vel.frame_stats,
+                lambda g, cs_g: pairs.of_pairs(res, g, cs_g),
+            )
+            for s in extra
+        ]
         for e in entries:
             if "error" in e:
                 warnings.append(f"section {e['name']!r}: {e['error']}")
@@ -75,23 +105,39 @@ def assess(project: Project, inputs: Inputs, level, mapping: ortho.OrthoMapping,
 
 def _sections_reason(project: Project, qual, summ: dict | None) -> None:
     """The sections' disagreement as a reason (doubtful; a good grade becomes doubtful)."""
-    if qual is not None and summ is not None and summ["cv"] is not None \
-            and summ["cv"] > project.quality.sections_cv_doubtful:
-        qual.reasons.append(Reason("sections_disagree", "doubtful",
-                                   f"the {summ['n']} sections' discharges differ by a coefficient of variation of "
-                                   f"{100 * summ['cv']:.1f} % (quality.sections_cv_doubtful = "
-                                   f"{100 * project.quality.sections_cv_doubtful:g} %)", summ["cv"],
-                                   project.quality.sections_cv_doubtful))
+    if (
+        qual is not None
+        and summ is not None
+        and summ["cv"] is not None
+        and summ["cv"] > project.quality.sections_cv_doubtful
+    ):
+        qual.reasons.append(
+            Reason(
+                "sections_disagree",
+                "doubtful",
+                f"the {summ['n']} sections' discharges differ by a coefficient of variation of "
+                f"{100 * summ['cv']:.1f} % (quality.sections_cv_doubtful = "
+                f"{100 * project.quality.sections_cv_doubtful:g} %)",
+                summ["cv"],
+                project.quality.sections_cv_doubtful,
+            )
+        )
         if qual.grade == "good":
             qual.grade = "doubtful"
 
 
-def measure_section(project, inputs, spec: SectionSpec, level, mapping, res, U, V, frame_stats: dict, pair_q_of) -> dict:
+def measure_section(
+    project, inputs, spec: SectionSpec, level, mapping, res, U, V, frame_stats: dict, pair_q_of
+) -> dict:
     """Discharge, interval and grade of one extra section on the run's field; never raises for a bad section
     (its entry then holds ``error``)."""
     entry: dict = {"name": spec.name, "points_px": spec.points_px}
     try:
-        cs = inputs.cross_section if not spec.cross_section else xs.load_cross_section(project.resolve(spec.cross_section))
+        cs = (
+            inputs.cross_section
+            if not spec.cross_section
+            else xs.load_cross_section(project.resolve(spec.cross_section))
+        )
         cs.check_level(level.level_m)
         view = copy.deepcopy(project)
         view.section.points_px = spec.points_px
@@ -111,11 +157,19 @@ def measure_section(project, inputs, spec: SectionSpec, level, mapping, res, U, 
         q_pairs = pair_q_of(geom, cs)
         unc, qual = assess_run(view, vin, level, mapping, geom, res, U, V, dres, q_pairs, frame_stats)
         ci = list(unc.ci95_m3s) if np.all(np.isfinite(unc.ci95_m3s)) else None
-        entry.update({"discharge_m3s": dres.discharge_m3s, "discharge_ci95_m3s": ci,
-                      "grade": qual.grade, "reasons": [r.message for r in qual.reasons],
-                      "wetted_area_m2": dres.wetted_area_m2, "wetted_width_m": dres.wetted_width_m,
-                      "mean_velocity_ms": dres.mean_velocity_ms, "subsections_filled": int(dres.velocity_filled.sum()),
-                      "cross_section": spec.cross_section or "(the project's)"})
+        entry.update(
+            {
+                "discharge_m3s": dres.discharge_m3s,
+                "discharge_ci95_m3s": ci,
+                "grade": qual.grade,
+                "reasons": [r.message for r in qual.reasons],
+                "wetted_area_m2": dres.wetted_area_m2,
+                "wetted_width_m": dres.wetted_width_m,
+                "mean_velocity_ms": dres.mean_velocity_ms,
+                "subsections_filled": int(dres.velocity_filled.sum()),
+                "cross_section": spec.cross_section or "(the project's)",
+            }
+        )
     except FieldToolError as e:
         entry["error"] = str(e)
     return entry

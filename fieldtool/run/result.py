@@ -40,8 +40,8 @@ class RunResult:
     piv_fast: dict | None = None  # region box and pair sampling of the fast path (see piv_region / run_piv_fast)
     video: dict = field(default_factory=dict)  # the clip's metadata (records.video_meta.video_info)
     uncertainty_standard: dict | None = None  # ISO 748 and IVE beside the Monte Carlo (run/standard_stage.py)
-    prerendered: object | None = None
-    overlay: object | None = None  # run.overlay_stage.Recorder (overlay.mp4 drawn as the frames streamed) or None  # plots.prerender.Prerender: figures drawn during the PIV
+    prerendered: object | None = None  # plots.prerender.Prerender: figures drawn during the PIV
+    overlay: object | None = None  # run.overlay_stage.Recorder (overlay.mp4 drawn as the frames streamed) or None
 
     def summary(self) -> dict:
         d = self.discharge
@@ -49,8 +49,11 @@ class RunResult:
         lv = self.level
         return {
             "discharge_m3s": d.discharge_m3s,
-            "discharge_ci95_m3s": (list(self.uncertainty.ci95_m3s) if self.uncertainty is not None
-                                   and np.all(np.isfinite(self.uncertainty.ci95_m3s)) else None),
+            "discharge_ci95_m3s": (
+                list(self.uncertainty.ci95_m3s)
+                if self.uncertainty is not None and np.all(np.isfinite(self.uncertainty.ci95_m3s))
+                else None
+            ),
             "uncertainty": self.uncertainty.to_dict() if self.uncertainty is not None else None,
             "uncertainty_standard": self.uncertainty_standard,  # ISO 748 and IVE, 2σ (run/standard_stage.py)
             "quality": self.quality.to_dict() if self.quality is not None else None,
@@ -101,8 +104,10 @@ def fast_summary(fast: dict | None, n_pairs: int) -> dict:
     fast = fast or {}
     out = {"pairs_used": int(fast.get("pairs_used", n_pairs)), "converged": fast.get("converged")}
     if fast:
-        out["piv_sampling"] = {k: fast.get(k) for k in ("pairs_total", "rel_ci", "threshold", "min_pairs", "rounds",
-                                                                 "frames_decoded", "frames_in_range")
-                               if k in fast}
+        out["piv_sampling"] = {
+            k: fast.get(k)
+            for k in ("pairs_total", "rel_ci", "threshold", "min_pairs", "rounds", "frames_decoded", "frames_in_range")
+            if k in fast
+        }
         out["piv_region"] = {k: fast.get(k) for k in ("region", "box_px", "roi_px")}
     return out

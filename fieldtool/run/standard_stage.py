@@ -37,16 +37,25 @@ def standard_sigmas(project, level, mapping, dres, geom) -> su.StandardSigmas:
     """The standard methods' 1σ from the same [uncertainty] keys the Monte Carlo reads."""
     mc = sigmas(project, level)
     return su.StandardSigmas(
-        piv_rel=max(mc.piv_rel, 0.0), filled_rel=mc.filled_rel,
+        piv_rel=max(mc.piv_rel, 0.0),
+        filled_rel=mc.filled_rel,
         alpha_rel=mc.alpha / dres.alpha if dres.alpha > 0 else 0.0,
         rect_rel=float(mapping.residual_m or 0.0) / geom.length_m if geom.length_m > 0 else 0.0,
-        level_m=mc.level_m, bed_m=mc.bed_m)
+        level_m=mc.level_m,
+        bed_m=mc.bed_m,
+    )
 
 
 def compute(project, level, mapping, geom, res, dres) -> dict:
     """``{"iso748": {...}, "ive": {...}, "k": 2}`` of a finished run."""
     edges = np.r_[dres.station_from, dres.station_to[-1:]]
-    return su.standard_uncertainty(edges, dres.mean_depth_m, dres.surface_velocity_ms, dres.velocity_filled,
-                                   dres.sub_discharge_m3s, exposure_s(res),
-                                   standard_sigmas(project, level, mapping, dres, geom),
-                                   velocity_pairs=pair_velocities(geom, mapping, res))
+    return su.standard_uncertainty(
+        edges,
+        dres.mean_depth_m,
+        dres.surface_velocity_ms,
+        dres.velocity_filled,
+        dres.sub_discharge_m3s,
+        exposure_s(res),
+        standard_sigmas(project, level, mapping, dres, geom),
+        velocity_pairs=pair_velocities(geom, mapping, res),
+    )

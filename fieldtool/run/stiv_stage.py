@@ -9,8 +9,8 @@ The science is in :mod:`fieldtool.processing.stiv`; this module only reads the P
 from __future__ import annotations
 
 import time
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
-from typing import Callable, Iterator
 
 import numpy as np
 
@@ -44,17 +44,26 @@ class StivRun:
             yield t, img
 
 
-def start(project: Project, mapping, geom: dq.SectionGeometry, shape: tuple[int, int],
-          roi: tuple[int, int, int, int] | None, mask: np.ndarray | None) -> StivRun | None:
+def start(
+    project: Project,
+    mapping,
+    geom: dq.SectionGeometry,
+    shape: tuple[int, int],
+    roi: tuple[int, int, int, int] | None,
+    mask: np.ndarray | None,
+) -> StivRun | None:
     """The STIV lines of ``project`` on ``geom`` (None when ``[stiv] enabled = false``)."""
     s = project.stiv
     if project.section.velocity_source not in SOURCES:
-        raise ParameterError(f"section.velocity_source: {project.section.velocity_source!r} is not one of "
-                             f"{', '.join(SOURCES)}")
+        raise ParameterError(
+            f"section.velocity_source: {project.section.velocity_source!r} is not one of {', '.join(SOURCES)}"
+        )
     if not s.enabled:
         if project.section.velocity_source != "piv":
-            raise ParameterError(f"section.velocity_source = {project.section.velocity_source!r} needs STIV: "
-                                 "set [stiv] enabled = true or velocity_source = \"piv\"")
+            raise ParameterError(
+                f"section.velocity_source = {project.section.velocity_source!r} needs STIV: "
+                'set [stiv] enabled = true or velocity_source = "piv"'
+            )
         return None
     if s.method not in stiv.METHODS:
         raise ParameterError(f"stiv.method: {s.method!r} is not one of {', '.join(stiv.METHODS)}")
@@ -68,9 +77,17 @@ def start(project: Project, mapping, geom: dq.SectionGeometry, shape: tuple[int,
         if mask is not None:
             valid &= ~mask
     t0 = time.perf_counter()
-    lines = stiv.build_lines(geom.p_world, geom.normal, mapping, len(geom.station_edges) - 1,
-                             length_m=s.line_length_m, lines_per_sub=s.lines_per_sub, angles_deg=s.angles_deg,
-                             image_shape=shape, valid=valid)
+    lines = stiv.build_lines(
+        geom.p_world,
+        geom.normal,
+        mapping,
+        len(geom.station_edges) - 1,
+        length_m=s.line_length_m,
+        lines_per_sub=s.lines_per_sub,
+        angles_deg=s.angles_deg,
+        image_shape=shape,
+        valid=valid,
+    )
     run = StivRun(stiv.StiAccumulator(lines), len(geom.station_edges) - 1, geom.normal.copy(), geom.p_img.copy())
     run.seconds = time.perf_counter() - t0
     return run
@@ -114,8 +131,17 @@ def combine(v_piv: np.ndarray, w_piv: np.ndarray, v_stiv: np.ndarray, w_stiv: np
     return np.where(both, (w_piv * np.nan_to_num(vp) + w_stiv * np.nan_to_num(vs)) / wsum, out)
 
 
-def finish(run: StivRun | None, project: Project, geom: dq.SectionGeometry, cs, level_m: float,
-           dres: dq.DischargeResult, piv_res, U: np.ndarray, V: np.ndarray) -> tuple[dict | None, dq.DischargeResult]:
+def finish(
+    run: StivRun | None,
+    project: Project,
+    geom: dq.SectionGeometry,
+    cs,
+    level_m: float,
+    dres: dq.DischargeResult,
+    piv_res,
+    U: np.ndarray,
+    V: np.ndarray,
+) -> tuple[dict | None, dq.DischargeResult]:
     """STIV per subsection on the final ``geom``; returns (the ``"stiv"`` block, the discharge result of
     the chosen velocity source: ``dres`` itself for "piv")."""
     if run is None:
@@ -129,19 +155,36 @@ def finish(run: StivRun | None, project: Project, geom: dq.SectionGeometry, cs, 
         flow = stiv.guide_directions(_flow_dir(geom, piv_res.x, piv_res.y, U, V), geom.normal, w_piv)
     only = stiv.select_lines(run.acc.lines, run.n_sub, flow, reversed_order=swapped)
     v_line, c_line = stiv.line_velocities(run.acc, s.method, only=only)
-    v_st, c_st, ang = stiv.subsection_velocity(run.acc.lines, v_line, c_line, run.n_sub, geom.normal,
-                                               reversed_order=swapped, flow_dir=flow, min_confidence=s.min_confidence)
+    v_st, c_st, ang = stiv.subsection_velocity(
+        run.acc.lines,
+        v_line,
+        c_line,
+        run.n_sub,
+        geom.normal,
+        reversed_order=swapped,
+        flow_dir=flow,
+        min_confidence=s.min_confidence,
+    )
     v_piv_raw = dq.subsection_velocity(geom, piv_res.x, piv_res.y, U, V)
     v_comb = combine(v_piv_raw, w_piv, v_st, c_st)
     q_w = dres.alpha * dres.area_m2
-    block: dict = {"method": s.method, "n_lines": len(run.acc.lines), "n_lines_analysed": int(only.sum()),
-                   "n_frames": len(run.acc.rows), "angles_deg": list(s.angles_deg),
-                   "line_length_m": s.line_length_m, "lines_per_sub": s.lines_per_sub,
-                   "velocity_ms": _clean(v_st), "confidence": _clean(c_st), "angle_deg": _clean(ang),
-                   "piv_velocity_ms": _clean(v_piv_raw), "piv_confidence": _clean(w_piv),
-                   "combined_velocity_ms": _clean(v_comb),
-                   "disagreement": stiv.disagreement(v_piv_raw, v_st, q_w),
-                   "velocity_source": project.section.velocity_source}
+    block: dict = {
+        "method": s.method,
+        "n_lines": len(run.acc.lines),
+        "n_lines_analysed": int(only.sum()),
+        "n_frames": len(run.acc.rows),
+        "angles_deg": list(s.angles_deg),
+        "line_length_m": s.line_length_m,
+        "lines_per_sub": s.lines_per_sub,
+        "velocity_ms": _clean(v_st),
+        "confidence": _clean(c_st),
+        "angle_deg": _clean(ang),
+        "piv_velocity_ms": _clean(v_piv_raw),
+        "piv_confidence": _clean(w_piv),
+        "combined_velocity_ms": _clean(v_comb),
+        "disagreement": stiv.disagreement(v_piv_raw, v_st, q_w),
+        "velocity_source": project.section.velocity_source,
+    }
     block["disagreement_reason"] = stiv.disagreement_reason(block["disagreement"])
     alpha = project.section.alpha
     out = {}
@@ -157,8 +200,10 @@ def finish(run: StivRun | None, project: Project, geom: dq.SectionGeometry, cs, 
     if src == "piv":
         return block, dres
     if src not in out:
-        raise ParameterError(f"section.velocity_source = {src!r}: STIV found no velocity on the section "
-                             "(check the search lines lie on textured water, or use velocity_source = \"piv\")")
+        raise ParameterError(
+            f"section.velocity_source = {src!r}: STIV found no velocity on the section "
+            '(check the search lines lie on textured water, or use velocity_source = "piv")'
+        )
     chosen = out[src]
     chosen.warnings.insert(0, f"discharge from the {src} velocities (section.velocity_source)")
     return block, chosen

@@ -11,9 +11,9 @@ field from the output folder's PIV cache (run/piv_cache.py) when only the geomet
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
@@ -22,8 +22,8 @@ from fieldtool.processing import piv as piv_mod
 from fieldtool.processing import piv_fast, planning, surface
 from fieldtool.processing.piv import PivParams
 from fieldtool.project.model import Project
-from fieldtool.run import frames as frames_mod
 from fieldtool.run import clip_check, clip_pass, overlay_stage, piv_cache, piv_rounds, stiv_stage
+from fieldtool.run import frames as frames_mod
 from fieldtool.run.geometry import Sections
 from fieldtool.run.inputs import Inputs
 from fieldtool.run.observer import Guarded, Progress
@@ -31,10 +31,20 @@ from fieldtool.run.observer import Guarded, Progress
 
 def piv_params(project: Project):
     p = project.piv
-    return PivParams(window_px=p.window_px, overlap_px=p.overlap_px, search_px=p.search_px, passes=p.passes,
-                     snr_min=p.snr_min, averaging=p.averaging, median_threshold=p.median_threshold,
-                     std_threshold=p.std_threshold, min_valid_fraction=p.min_valid_fraction, engine=p.engine,
-                     frame_gap=p.frame_gap or 1, remove_zero_peak=p.remove_zero_peak)
+    return PivParams(
+        window_px=p.window_px,
+        overlap_px=p.overlap_px,
+        search_px=p.search_px,
+        passes=p.passes,
+        snr_min=p.snr_min,
+        averaging=p.averaging,
+        median_threshold=p.median_threshold,
+        std_threshold=p.std_threshold,
+        min_valid_fraction=p.min_valid_fraction,
+        engine=p.engine,
+        frame_gap=p.frame_gap or 1,
+        remove_zero_peak=p.remove_zero_peak,
+    )
 
 
 def piv_region(project: Project, inputs: Inputs, params, roi, segments) -> tuple[int, int, int, int] | None:
@@ -81,16 +91,20 @@ def setup(project: Project, inputs: Inputs, mapping, sections: Sections, warning
     n_clip = inputs.source.estimated_count() or 0
     standardize = project.piv.remove_stationary and (n_clip == 0 or n_clip >= 2 * surface.HALF_WINDOW + 1)
     if project.piv.remove_stationary and not standardize:
-        warnings.append(f"piv.remove_stationary: the clip has {n_clip} frames, fewer than the "
-                        f"{2 * surface.HALF_WINDOW + 1} its time window needs; glints and other patterns fixed in "
-                        "the image are not removed")
+        warnings.append(
+            f"piv.remove_stationary: the clip has {n_clip} frames, fewer than the "
+            f"{2 * surface.HALF_WINDOW + 1} its time window needs; glints and other patterns fixed in "
+            "the image are not removed"
+        )
     clip = clip_check.check(inputs, roi, n_clip, params, mask, standardize, project.piv.frame_gap)
     params = clip.params(params, standardize)  # the texture gate from the clip's noise (run/clip_check.py)
     box = piv_region(project, inputs, params, roi, sections.segments)
     near = None
     if project.piv.region == "section" and box is not None:  # in the band's box, only the nodes near the sections
-        near = ([np.asarray(sg, float)[:2] for sg in sections.segments],
-                piv_fast.node_reach_px(params.window_px, params.overlap_px, params.passes))
+        near = (
+            [np.asarray(sg, float)[:2] for sg in sections.segments],
+            piv_fast.node_reach_px(params.window_px, params.overlap_px, params.passes),
+        )
     x, y = piv_mod.grid(inputs.shape, params, box)
     max_speed = None
     if project.piv.max_velocity_ms is not None:
@@ -116,9 +130,24 @@ class _Streams:
     """The frame streams the PIV reads and the pair plan (frame gap, search area) the first look sets; holds
     what every stream adds to as it is read (stabilisation report, identical frames, last time decoded)."""
 
-    def __init__(self, project: Project, inputs: Inputs, s: PivSetup, cancel, obs: Guarded,
-                 progress: Progress | None, warnings: list[str]):
-        self.project, self.inputs, self.s, self.cancel, self.obs, self.progress = project, inputs, s, cancel, obs, progress
+    def __init__(
+        self,
+        project: Project,
+        inputs: Inputs,
+        s: PivSetup,
+        cancel,
+        obs: Guarded,
+        progress: Progress | None,
+        warnings: list[str],
+    ):
+        self.project, self.inputs, self.s, self.cancel, self.obs, self.progress = (
+            project,
+            inputs,
+            s,
+            cancel,
+            obs,
+            progress,
+        )
         self.warnings = warnings
         self.params = s.params
         self.plan = None
@@ -138,19 +167,32 @@ class _Streams:
             want = None
         elif tap and s.stiv_run is not None:  # STIV samples every frame of the stream it taps
             want = None
-        frames = frames_mod.working_frames(project, self.inputs, self.cancel, self.obs,
-                                           self.stab if project.stabilize.enabled else None, self.progress,
-                                           want=want, raw=s.standardize,  # the standardisation converts its box only
-                                           count=self.count)
+        frames = frames_mod.working_frames(
+            project,
+            self.inputs,
+            self.cancel,
+            self.obs,
+            self.stab if project.stabilize.enabled else None,
+            self.progress,
+            want=want,
+            raw=s.standardize,  # the standardisation converts its box only
+            count=self.count,
+        )
         if tap and s.stiv_run is not None:  # STIV samples its lines from the same stream (one decode)
             frames = s.stiv_run.tap(frames)
         frames = frames_mod.count_identical(self._tracked(frames), self.frame_stats)
         if s.standardize:
             self.surface_stats.frames = 0  # each round of the fast path standardises the clip again: count one pass
             frames = piv_fast.threaded(s.clip.before(frames))  # decoding (and STIV's sampling) in a thread of its own
-            frames = surface.standardize(frames, s.roi, margin=max(64, self.params.search_px or 0),
-                                         half=surface.HALF_WINDOW, shrink=s.clip.gates.shrink,
-                                         stats=self.surface_stats, want=s.clip.std_want(want_std))
+            frames = surface.standardize(
+                frames,
+                s.roi,
+                margin=max(64, self.params.search_px or 0),
+                half=surface.HALF_WINDOW,
+                shrink=s.clip.gates.shrink,
+                stats=self.surface_stats,
+                want=s.clip.std_want(want_std),
+            )
             frames = s.clip.after(frames, want_std)  # weak clips: the glints masked (before) and the temporal mean
         return frames
 
@@ -179,16 +221,27 @@ class _Streams:
                     f"fast nodes {plan.fast_px_per_frame:.1f} px per frame) pairs are {plan.frame_gap} frame(s) apart"
                     + (f" and the first pass searches {plan.search_px} px" if plan.search_px else "")
                     + (" and the first pass starts from the look's field" if plan.guess is not None else "")
-                    + "; set piv.frame_gap (and piv.search_px) to choose yourself")
+                    + "; set piv.frame_gap (and piv.search_px) to choose yourself"
+                )
         else:
             plan = planning.Plan(frame_gap=int(project.piv.frame_gap), search_px=params.search_px, chosen="user")
         self.plan = plan
         return frames
 
 
-def measure_velocity(project: Project, inputs: Inputs, s: PivSetup, pair_q: Callable[..., float],
-                     cache_dir: Path | None, save_dir: Path | None, cancel, obs: Guarded,
-                     progress: Progress | None, warnings: list[str], overlay=None) -> Velocimetry:
+def measure_velocity(
+    project: Project,
+    inputs: Inputs,
+    s: PivSetup,
+    pair_q: Callable[..., float],
+    cache_dir: Path | None,
+    save_dir: Path | None,
+    cancel,
+    obs: Guarded,
+    progress: Progress | None,
+    warnings: list[str],
+    overlay=None,
+) -> Velocimetry:
     """The PIV field of the clip (and STIV's sampling on the way). ``pair_q(x, y, u, v)`` is the discharge of
     one pair's field on the main section (m³/s), which the rounds converge on; ``cache_dir``: the folder whose
     PIV cache is read (None: none); ``save_dir``: where a new one is written, the run's staging folder, so that
@@ -196,8 +249,11 @@ def measure_velocity(project: Project, inputs: Inputs, s: PivSetup, pair_q: Call
     st = _Streams(project, inputs, s, cancel, obs, progress, warnings)
     key = piv_cache.piv_key(project, s.max_speed, s.roi, s.near) if cache_dir is not None else ""
     cached = piv_cache.load(cache_dir, key, with_extra=True) if cache_dir is not None else None
-    fast = {"region": project.piv.region, "box_px": None if s.roi is None else list(s.roi),
-            "roi_px": None if s.roi_user is None else list(s.roi_user)}
+    fast = {
+        "region": project.piv.region,
+        "box_px": None if s.roi is None else list(s.roi),
+        "roi_px": None if s.roi_user is None else list(s.roi_user),
+    }
 
     def on_pair(i, t, xx, yy, u, v, valid):
         obs("pair", i, t, xx, yy, u, v, valid)
@@ -235,8 +291,9 @@ def _rounds(project: Project, st: _Streams, n_exp: int, pair_q, on_pair, fast: d
     s = st.s
     kept = clip_pass.KeptFrames(st.surface_stats if s.standardize else None, st.inputs.shape)
     round1_want: list = [None]
-    reader1 = piv_fast.prefetch(kept.keeping(st.stream(
-        want=lambda k: round1_want[0] is None or round1_want[0](k) or kept.wants(k), tap=True)))
+    reader1 = piv_fast.prefetch(
+        kept.keeping(st.stream(want=lambda k: round1_want[0] is None or round1_want[0](k) or kept.wants(k), tap=True))
+    )
     make_frames = piv_rounds.SharedFirstRound(st.stream, reader1, st.plan_pairs(reader1), round1_want, kept)
     params = st.params
     gap = max(1, int(params.frame_gap))
@@ -251,16 +308,38 @@ def _rounds(project: Project, st: _Streams, n_exp: int, pair_q, on_pair, fast: d
     drain = s.stiv_run is not None or len(kept.keep) > 1  # the pass reaches the clip's end
     try:
         if n_exp - gap >= 2:
-            res, conv = piv_rounds.run_piv_fast(make_frames, n_exp - gap, gap, params, s.roi, s.mask, s.max_speed,
-                                                st.cancel, on_pair, pair_q, project.piv.converge_rel_ci,
-                                                min_pairs, drain_first=drain,
-                                                near=s.near, first_guess=st.plan.guess)
+            res, conv = piv_rounds.run_piv_fast(
+                make_frames,
+                n_exp - gap,
+                gap,
+                params,
+                s.roi,
+                s.mask,
+                s.max_speed,
+                st.cancel,
+                on_pair,
+                pair_q,
+                project.piv.converge_rel_ci,
+                min_pairs,
+                drain_first=drain,
+                near=s.near,
+                first_guess=st.plan.guess,
+            )
             fast.update(conv)
         else:
             frames = make_frames()
             try:
-                res = piv_mod.analyze(frames, params, roi=s.roi, mask=s.mask, max_speed_px_s=s.max_speed,
-                                      cancel=st.cancel, on_pair=on_pair, near=s.near, first_guess=st.plan.guess)
+                res = piv_mod.analyze(
+                    frames,
+                    params,
+                    roi=s.roi,
+                    mask=s.mask,
+                    max_speed_px_s=s.max_speed,
+                    cancel=st.cancel,
+                    on_pair=on_pair,
+                    near=s.near,
+                    first_guess=st.plan.guess,
+                )
             finally:
                 getattr(frames, "close", lambda: None)()
             fast.update(pairs_used=int(res.n_pairs or 0), converged=None)
@@ -269,8 +348,7 @@ def _rounds(project: Project, st: _Streams, n_exp: int, pair_q, on_pair, fast: d
     return res
 
 
-def _all_pairs(project: Project, inputs: Inputs, st: _Streams, n_exp: int, on_pair, fast: dict,
-               warnings: list[str]):
+def _all_pairs(project: Project, inputs: Inputs, st: _Streams, n_exp: int, on_pair, fast: dict, warnings: list[str]):
     """Every pair in one streamed pass (``[piv] all_pairs``, or a clip of 2 frames)."""
     s = st.s
     reader = piv_fast.prefetch(st.plan_pairs(st.stream(tap=True)))
@@ -278,14 +356,26 @@ def _all_pairs(project: Project, inputs: Inputs, st: _Streams, n_exp: int, on_pa
     if n_exp:
         frames = frames_mod.Sized(frames, n_exp)  # lets the ensemble plan which pairs get per-pair vectors
     try:
-        res = piv_mod.analyze(frames, st.params, roi=s.roi, mask=s.mask, max_speed_px_s=s.max_speed,
-                              progress=None, cancel=st.cancel, on_pair=on_pair, near=s.near, first_guess=st.plan.guess)
+        res = piv_mod.analyze(
+            frames,
+            st.params,
+            roi=s.roi,
+            mask=s.mask,
+            max_speed_px_s=s.max_speed,
+            progress=None,
+            cancel=st.cancel,
+            on_pair=on_pair,
+            near=s.near,
+            first_guess=st.plan.guess,
+        )
     finally:
         reader.close()
     fast.update(pairs_used=int(res.n_pairs or 0), converged=None)
     v, fps = project.video, getattr(getattr(inputs.source, "info", None), "fps", 0) or 0
     decoded = st.decoded
     if v.end_s is not None and decoded and fps > 0 and decoded[0] < v.end_s - (v.step + 1) / fps:
-        warnings.append(f"video.end_s: the clip decoded only up to {decoded[0]:.2f} s of the {v.end_s:g} s asked "
-                        f"(its container claims more); the measurement covers {v.start_s:g}-{decoded[0]:.2f} s")
+        warnings.append(
+            f"video.end_s: the clip decoded only up to {decoded[0]:.2f} s of the {v.end_s:g} s asked "
+            f"(its container claims more); the measurement covers {v.start_s:g}-{decoded[0]:.2f} s"
+        )
     return res

@@ -96,7 +96,9 @@ class Camera:
         if not self.has_distortion:
             return pts.copy()
         crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
-        und = cv2.undistortPoints(pts.reshape(-1, 1, 2), self.K, self.dist_array, R=np.eye(3), P=np.eye(3), criteria=crit).reshape(-1, 2)
+        und = cv2.undistortPoints(
+            pts.reshape(-1, 1, 2), self.K, self.dist_array, R=np.eye(3), P=np.eye(3), criteria=crit
+        ).reshape(-1, 2)
         fx, fy, cx, cy = self.K[0, 0], self.K[1, 1], self.K[0, 2], self.K[1, 2]
         # Newton refinement in normalised coordinates on the forward model
         xd = (pts[:, 0] - cx) / fx
@@ -145,7 +147,9 @@ def distortion_maps(cam: Camera, margin_px: int = 4) -> tuple[np.ndarray, np.nda
     return map_x, map_y, (ox, oy), (cw, ch)
 
 
-def render_canvas(cam: Camera) -> tuple[np.ndarray | None, np.ndarray | None, tuple[int, int], tuple[int, int], np.ndarray]:
+def render_canvas(
+    cam: Camera,
+) -> tuple[np.ndarray | None, np.ndarray | None, tuple[int, int], tuple[int, int], np.ndarray]:
     """Where to render an ideal (pinhole) view before the lens is applied.
 
     Returns ``(map_x, map_y, offset, canvas_size, T)``: remap tables from the distorted frame into the

@@ -68,9 +68,20 @@ def render_checkerboard(
     A = np.array([[sq_tex, 0, 0.5 * sq_tex - square_m], [0, sq_tex, 0.5 * sq_tex - square_m], [0, 0, 1.0]])
     cols, rows = corners
     bw, bh = (cols + 1) * square_m, (rows + 1) * square_m
-    outline = np.array([[-square_m, -square_m, 0], [bw + square_m, -square_m, 0], [bw + square_m, bh + square_m, 0], [-square_m, bh + square_m, 0]])
+    outline = np.array(
+        [
+            [-square_m, -square_m, 0],
+            [bw + square_m, -square_m, 0],
+            [bw + square_m, bh + square_m, 0],
+            [-square_m, bh + square_m, 0],
+        ]
+    )
     inner = board_corners(corners, square_m)
-    background = 0.5 + 0.12 * cv2.resize(rng.standard_normal((canvas[1] // 16, canvas[0] // 16)).astype(np.float32), canvas, interpolation=cv2.INTER_CUBIC)
+    background = 0.5 + 0.12 * cv2.resize(
+        rng.standard_normal((canvas[1] // 16, canvas[0] // 16)).astype(np.float32),
+        canvas,
+        interpolation=cv2.INTER_CUBIC,
+    )
     scale = square_m / 0.05
     wr = cv2.VideoWriter(str(path), cv2.VideoWriter.fourcc(*fourcc), fps, (w, h), True)
     if not wr.isOpened():

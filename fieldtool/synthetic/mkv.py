@@ -89,14 +89,28 @@ class MkvWriter:
 
     def release(self) -> None:
         self._flush()
-        header = _el(b"\x1a\x45\xdf\xa3", _uint(b"\x42\x86", 1) + _uint(b"\x42\xf7", 1) + _uint(b"\x42\xf2", 4)
-                     + _uint(b"\x42\xf3", 8) + _str(b"\x42\x82", "matroska") + _uint(b"\x42\x87", 4)
-                     + _uint(b"\x42\x85", 2))
+        header = _el(
+            b"\x1a\x45\xdf\xa3",
+            _uint(b"\x42\x86", 1)
+            + _uint(b"\x42\xf7", 1)
+            + _uint(b"\x42\xf2", 4)
+            + _uint(b"\x42\xf3", 8)
+            + _str(b"\x42\x82", "matroska")
+            + _uint(b"\x42\x87", 4)
+            + _uint(b"\x42\x85", 2),
+        )
         duration = float((self._last or 0) + self._step)
-        info = _el(b"\x15\x49\xa9\x66", _uint(b"\x2a\xd7\xb1", TIMECODE_SCALE_NS) + _float(b"\x44\x89", duration)
-                   + _str(b"\x4d\x80", "fieldtool") + _str(b"\x57\x41", "fieldtool"))
+        info = _el(
+            b"\x15\x49\xa9\x66",
+            _uint(b"\x2a\xd7\xb1", TIMECODE_SCALE_NS)
+            + _float(b"\x44\x89", duration)
+            + _str(b"\x4d\x80", "fieldtool")
+            + _str(b"\x57\x41", "fieldtool"),
+        )
         video = _el(b"\xe0", _uint(b"\xb0", self.w) + _uint(b"\xba", self.h))
-        track = _el(b"\xae", _uint(b"\xd7", 1) + _uint(b"\x73\xc5", 1) + _uint(b"\x83", 1) + _str(b"\x86", "V_MJPEG") + video)
+        track = _el(
+            b"\xae", _uint(b"\xd7", 1) + _uint(b"\x73\xc5", 1) + _uint(b"\x83", 1) + _str(b"\x86", "V_MJPEG") + video
+        )
         segment = _el(b"\x18\x53\x80\x67", info + _el(b"\x16\x54\xae\x6b", track) + b"".join(self._clusters))
         self.path.write_bytes(header + segment)
         self._clusters = []

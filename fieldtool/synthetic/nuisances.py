@@ -54,9 +54,25 @@ class Nuisances:
 
     @property
     def any(self) -> bool:
-        return any(v for v in (self.read_noise, self.shot_gain, self.vignette, self.rain_rate_m2s, self.rain_streaks,
-                               self.shadow_band_depth, self.leaf_shadows, self.exposure_amp, self.white_balance_amp,
-                               self.debris, self.standing_amp, self.jump_amp, self.glitter_per_frame, self.haze))
+        return any(
+            v
+            for v in (
+                self.read_noise,
+                self.shot_gain,
+                self.vignette,
+                self.rain_rate_m2s,
+                self.rain_streaks,
+                self.shadow_band_depth,
+                self.leaf_shadows,
+                self.exposure_amp,
+                self.white_balance_amp,
+                self.debris,
+                self.standing_amp,
+                self.jump_amp,
+                self.glitter_per_frame,
+                self.haze,
+            )
+        )
 
 
 def _rng(seed: int, k: int) -> np.random.Generator:
@@ -78,8 +94,17 @@ class Layer:
     roi_half_m : half length (m) of the reach around the section where rain falls and debris floats.
     """
 
-    def __init__(self, nz: Nuisances, seed: int, river, world_xy: np.ndarray, H_world: np.ndarray,
-                 section_px: np.ndarray, fps: float, roi_half_m: float):
+    def __init__(
+        self,
+        nz: Nuisances,
+        seed: int,
+        river,
+        world_xy: np.ndarray,
+        H_world: np.ndarray,
+        section_px: np.ndarray,
+        fps: float,
+        roi_half_m: float,
+    ):
         self.nz, self.seed, self.river, self.H = nz, seed, river, H_world
         self.fps = fps
         X, Y = world_xy
@@ -115,8 +140,12 @@ class Layer:
             area = 2 * roi_half_m * river.width_m
             dur = 60.0
             n = rng.poisson(nz.rain_rate_m2s * area * dur)
-            self._rain = (rng.uniform(-1.0, dur, n), xs + rng.uniform(-roi_half_m, roi_half_m, n),
-                          rng.uniform(river.y_right_edge + 0.1, river.y_left_edge - 0.1, n), rng.uniform(0.5, 1.0, n))
+            self._rain = (
+                rng.uniform(-1.0, dur, n),
+                xs + rng.uniform(-roi_half_m, roi_half_m, n),
+                rng.uniform(river.y_right_edge + 0.1, river.y_left_edge - 0.1, n),
+                rng.uniform(0.5, 1.0, n),
+            )
         self._debris = None
         if nz.debris > 0:  # rigid polygons (X, Y offsets, m) whose centre moves at the surface velocity
             n = nz.debris
@@ -149,7 +178,7 @@ class Layer:
             xc = mid[0]
             cols = np.arange(self.w)
             col = np.abs(cols - xc) < nz.glitter_halfwidth_px
-            self._glitter = (col[None, :] & self.water)
+            self._glitter = col[None, :] & self.water
             hz = np.exp(-0.5 * ((cols - xc) / (3 * nz.glitter_halfwidth_px)) ** 2).astype(np.float32)
             self._haze = np.broadcast_to(nz.haze * (0.5 + 0.5 * hz)[None, :], (self.h, self.w)).astype(np.float32)
             ys, xs_ = np.nonzero(self._glitter)
@@ -163,8 +192,10 @@ class Layer:
         self._wb = (rng.uniform(0, 2 * np.pi, 2), rng.uniform(0.1, 0.3, 2))
         self._vig = None
         if nz.vignette > 0:
-            yy, xx = np.mgrid[0:self.h, 0:self.w].astype(np.float32)
-            r2 = ((xx - (self.w - 1) / 2) ** 2 + (yy - (self.h - 1) / 2) ** 2) / (((self.w - 1) / 2) ** 2 + ((self.h - 1) / 2) ** 2)
+            yy, xx = np.mgrid[0 : self.h, 0 : self.w].astype(np.float32)
+            r2 = ((xx - (self.w - 1) / 2) ** 2 + (yy - (self.h - 1) / 2) ** 2) / (
+                ((self.w - 1) / 2) ** 2 + ((self.h - 1) / 2) ** 2
+            )
             self._vig = (1.0 - nz.vignette * r2).astype(np.float32)
 
     # -- the canvas (0..1), before the lens ----------------------------------------------------------
@@ -204,7 +235,7 @@ class Layer:
             ang = np.radians(self._frng.normal(100, 5, n))
             ln = self._frng.uniform(15, 45, n)
             p1 = p0 + ln[:, None] * np.column_stack([np.cos(ang), np.sin(ang)])
-            for a, b, v in zip(p0.astype(int), p1.astype(int), self._frng.uniform(0.04, 0.12, n)):
+            for a, b, v in zip(p0.astype(int), p1.astype(int), self._frng.uniform(0.04, 0.12, n), strict=False):
                 cv2.line(streak, (int(a[0]), int(a[1])), (int(b[0]), int(b[1])), float(v), 1)
             img += cv2.GaussianBlur(streak, (0, 0), 0.8)
         return img
@@ -215,7 +246,7 @@ class Layer:
         sway = amp * np.sin(2 * np.pi * f * t + ph)
         for j in range(len(cx)):
             d2 = ((self._Xs - cx[j] - sway[j]) ** 2 + (self._Ys - cy[j] - 0.5 * sway[j]) ** 2) / r[j] ** 2
-            acc = np.maximum(acc, np.exp(-0.5 * d2 ** 2))
+            acc = np.maximum(acc, np.exp(-0.5 * d2**2))
         fac = 1.0 - 0.45 * acc
         return cv2.resize(fac, (self.w, self.h), interpolation=cv2.INTER_LINEAR)
 
@@ -231,7 +262,7 @@ class Layer:
             return
         ring = np.zeros_like(img)
         ang = np.linspace(0, 2 * np.pi, 33)
-        for x, y, ag, amp in zip(X[live], Y[live], age[live], a[live]):
+        for x, y, ag, amp in zip(X[live], Y[live], age[live], a[live], strict=False):
             r = 0.02 + 0.35 * ag
             pts = self._project(np.column_stack([x + r * np.cos(ang), y + r * np.sin(ang)]))
             v = 0.18 * amp * (1.0 - ag / 0.7)
@@ -278,7 +309,7 @@ class Layer:
         if self._vig is not None and self._vig.shape == img.shape:
             img *= self._vig
         if nz.read_noise > 0 or nz.shot_gain > 0:
-            sd = np.sqrt(nz.read_noise ** 2 + nz.shot_gain * np.maximum(img, 0.0))
+            sd = np.sqrt(nz.read_noise**2 + nz.shot_gain * np.maximum(img, 0.0))
             img += sd * rng.standard_normal(img.shape, dtype=np.float32)
         return img
 

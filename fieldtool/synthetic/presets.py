@@ -66,30 +66,63 @@ def _oblique() -> SceneSpec:
     r = River()
     xs, lv = r.x_section_m, r.level_m
     cam = Camera(position_m=(xs - 3.0, r.y_left_edge + 8.0, lv + 6.0), target_m=(xs + 2.0, 3.2, lv), hfov_deg=70.0)
-    return SceneSpec(name="oblique", river=r, camera=cam, particle_density_m2=20.0,
-                     particle_diameters_m=(0.07,), texture_res_m=0.015, piv_window_px=32, piv_overlap_px=16)
+    return SceneSpec(
+        name="oblique",
+        river=r,
+        camera=cam,
+        particle_density_m2=20.0,
+        particle_diameters_m=(0.07,),
+        texture_res_m=0.015,
+        piv_window_px=32,
+        piv_overlap_px=16,
+    )
 
 
 def _nadir() -> SceneSpec:
     r = River()
     xs, lv = r.x_section_m, r.level_m
     cam = Camera(position_m=(xs, 0.0, lv + 25.0), target_m=(xs, 0.0, lv), hfov_deg=60.0, up_hint=(0.0, 1.0, 0.0))
-    return SceneSpec(name="nadir", river=r, camera=cam, particle_density_m2=16.0,
-                     particle_diameters_m=(0.08,), texture_res_m=0.02, piv_window_px=32, piv_overlap_px=16)
+    return SceneSpec(
+        name="nadir",
+        river=r,
+        camera=cam,
+        particle_density_m2=16.0,
+        particle_diameters_m=(0.08,),
+        texture_res_m=0.02,
+        piv_window_px=32,
+        piv_overlap_px=16,
+    )
 
 
 def _far_bank() -> SceneSpec:
     r = River(shape_a=0.7, shape_b=1.2, u_max_ms=1.4)
     xs, lv = r.x_section_m, r.level_m
     cam = Camera(position_m=(xs - 0.5, r.y_right_edge - 8.0, lv + 3.0), target_m=(xs + 0.5, -3.1, lv), hfov_deg=50.0)
-    return SceneSpec(name="far_bank", river=r, camera=cam, particle_density_m2=10.0, gcp_half_dx_m=2.5,
-                     particle_diameters_m=(0.10,), texture_res_m=0.02, piv_window_px=32, piv_overlap_px=16)
+    return SceneSpec(
+        name="far_bank",
+        river=r,
+        camera=cam,
+        particle_density_m2=10.0,
+        gcp_half_dx_m=2.5,
+        particle_diameters_m=(0.10,),
+        texture_res_m=0.02,
+        piv_window_px=32,
+        piv_overlap_px=16,
+    )
 
 
 _BASE = {"oblique": _oblique, "nadir": _nadir, "far_bank": _far_bank}
 
-HARD_NAMES = ("glints_section", "ripples", "sparse_patchy", "fast_1080p", "grazing", "compressed", "skewed",
-              "dropped_frames")
+HARD_NAMES = (
+    "glints_section",
+    "ripples",
+    "sparse_patchy",
+    "fast_1080p",
+    "grazing",
+    "compressed",
+    "skewed",
+    "dropped_frames",
+)
 HARD_DURATION_S = 8.0
 
 
@@ -98,30 +131,68 @@ def _glints_section() -> SceneSpec:
 
 
 def _ripples() -> SceneSpec:
-    return replace(_oblique(), particle_density_m2=1.0, particle_diameters_m=(0.10,), ripple_amp=0.04,
-                   ripple_dir_deg=160.0, ripple_spread_deg=40.0, ripple_lambda_m=(0.08, 0.5))
+    return replace(
+        _oblique(),
+        particle_density_m2=1.0,
+        particle_diameters_m=(0.10,),
+        ripple_amp=0.04,
+        ripple_dir_deg=160.0,
+        ripple_spread_deg=40.0,
+        ripple_lambda_m=(0.08, 0.5),
+    )
 
 
 def _sparse_patchy() -> SceneSpec:
-    return replace(_oblique(), particle_density_m2=6.0, particle_diameters_m=(0.06, 0.10), patch_cover=0.35,
-                   patch_scale_m=1.5, empty_band_m=(0.0, 3.0), empty_after_s=3.0)
+    return replace(
+        _oblique(),
+        particle_density_m2=6.0,
+        particle_diameters_m=(0.06, 0.10),
+        patch_cover=0.35,
+        patch_scale_m=1.5,
+        empty_band_m=(0.0, 3.0),
+        empty_after_s=3.0,
+    )
 
 
 def _fast_1080p() -> SceneSpec:
     r = River(u_max_ms=3.2, shape_a=0.6, shape_b=0.8)
     xs, lv = r.x_section_m, r.level_m
-    cam = Camera(position_m=(xs - 2.0, r.y_left_edge + 10.0, lv + 5.0), target_m=(xs + 1.0, 0.8, lv), hfov_deg=40.0,
-                 width_px=1920, height_px=1080)
-    return SceneSpec(name="fast_1080p", river=r, camera=cam, fps=25.0, particle_density_m2=20.0, gcp_half_dx_m=2.0,
-                     particle_diameters_m=(0.06,), texture_res_m=0.01, piv_window_px=32, piv_overlap_px=16)
+    cam = Camera(
+        position_m=(xs - 2.0, r.y_left_edge + 10.0, lv + 5.0),
+        target_m=(xs + 1.0, 0.8, lv),
+        hfov_deg=40.0,
+        width_px=1920,
+        height_px=1080,
+    )
+    return SceneSpec(
+        name="fast_1080p",
+        river=r,
+        camera=cam,
+        fps=25.0,
+        particle_density_m2=20.0,
+        gcp_half_dx_m=2.0,
+        particle_diameters_m=(0.06,),
+        texture_res_m=0.01,
+        piv_window_px=32,
+        piv_overlap_px=16,
+    )
 
 
 def _grazing() -> SceneSpec:
     r = River(width_m=25.0, depth_m=2.5, shape_a=1.0, shape_b=0.8, u_max_ms=1.5)
     xs, lv = r.x_section_m, r.level_m
     cam = Camera(position_m=(xs - 3.0, r.y_left_edge + 8.0, lv + 2.0), target_m=(xs + 2.0, -2.0, lv), hfov_deg=60.0)
-    return SceneSpec(name="grazing", river=r, camera=cam, particle_density_m2=10.0, gcp_half_dx_m=3.0,
-                     particle_diameters_m=(0.10,), texture_res_m=0.02, piv_window_px=32, piv_overlap_px=16)
+    return SceneSpec(
+        name="grazing",
+        river=r,
+        camera=cam,
+        particle_density_m2=10.0,
+        gcp_half_dx_m=3.0,
+        particle_diameters_m=(0.10,),
+        texture_res_m=0.02,
+        piv_window_px=32,
+        piv_overlap_px=16,
+    )
 
 
 def _compressed() -> SceneSpec:
@@ -136,9 +207,16 @@ def _dropped_frames() -> SceneSpec:
     return replace(_oblique(), drop_fraction=0.2, video_name="river.mkv")
 
 
-_HARD = {"glints_section": _glints_section, "ripples": _ripples, "sparse_patchy": _sparse_patchy,
-         "fast_1080p": _fast_1080p, "grazing": _grazing, "compressed": _compressed, "skewed": _skewed,
-         "dropped_frames": _dropped_frames}
+_HARD = {
+    "glints_section": _glints_section,
+    "ripples": _ripples,
+    "sparse_patchy": _sparse_patchy,
+    "fast_1080p": _fast_1080p,
+    "grazing": _grazing,
+    "compressed": _compressed,
+    "skewed": _skewed,
+    "dropped_frames": _dropped_frames,
+}
 
 
 NEW_NAMES = ("low_light", "glare_column", "rain", "shadows", "exposure", "debris", "standing_waves", "drone_4k")
@@ -151,14 +229,23 @@ def _base_by_seed(seed: int) -> SceneSpec:
 
 
 def _low_light(seed: int) -> SceneSpec:
-    return replace(_base_by_seed(seed), water_gray=22 / 255, bank_gray=0.16, bank_contrast=0.06,
-                   particle_brightness=8 / 255, noise_sigma=0.0,
-                   nuisances=Nuisances(read_noise=4.0, shot_gain=0.41, vignette=0.3))
+    return replace(
+        _base_by_seed(seed),
+        water_gray=22 / 255,
+        bank_gray=0.16,
+        bank_contrast=0.06,
+        particle_brightness=8 / 255,
+        noise_sigma=0.0,
+        nuisances=Nuisances(read_noise=4.0, shot_gain=0.41, vignette=0.3),
+    )
 
 
 def _glare_column(seed: int) -> SceneSpec:
-    return replace(_base_by_seed(seed), particle_brightness=0.05,
-                   nuisances=Nuisances(glitter_per_frame=400, glitter_halfwidth_px=50.0, haze=0.35))
+    return replace(
+        _base_by_seed(seed),
+        particle_brightness=0.05,
+        nuisances=Nuisances(glitter_per_frame=400, glitter_halfwidth_px=50.0, haze=0.35),
+    )
 
 
 def _rain(seed: int) -> SceneSpec:
@@ -187,15 +274,30 @@ def _drone_4k(seed: int) -> SceneSpec:
     return replace(s, camera=cam, texture_res_m=0.006, particle_diameters_m=(0.06,))
 
 
-_NEW = {"low_light": _low_light, "glare_column": _glare_column, "rain": _rain, "shadows": _shadows,
-        "exposure": _exposure, "debris": _debris, "standing_waves": _standing_waves, "drone_4k": _drone_4k}
+_NEW = {
+    "low_light": _low_light,
+    "glare_column": _glare_column,
+    "rain": _rain,
+    "shadows": _shadows,
+    "exposure": _exposure,
+    "debris": _debris,
+    "standing_waves": _standing_waves,
+    "drone_4k": _drone_4k,
+}
 
 
 STRONG_DISTORTION = (-0.35, 0.03675, 0.0, 0.0, 0.0)
 
 
-def get(name: str, *, shake: bool = False, distortion: bool = False, glints: bool = False, lens_gcps: bool = False,
-        **overrides) -> SceneSpec:
+def get(
+    name: str,
+    *,
+    shake: bool = False,
+    distortion: bool = False,
+    glints: bool = False,
+    lens_gcps: bool = False,
+    **overrides,
+) -> SceneSpec:
     """The scene ``name`` (one of :data:`NAMES`, :data:`HARD_NAMES` or :data:`NEW_NAMES`) with variant flags and field
     overrides applied. Hard scenes last :data:`HARD_DURATION_S` unless ``duration_s`` is given.
 

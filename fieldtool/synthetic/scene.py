@@ -46,8 +46,8 @@ from fieldtool.project.model import (
 )
 from fieldtool.synthetic.camera import Camera, render_canvas
 from fieldtool.synthetic.checkerboard import render_checkerboard
-from fieldtool.synthetic.nuisances import Layer, Nuisances
 from fieldtool.synthetic.mkv import TIMECODE_SCALE_NS, MkvWriter, ticks_of
+from fieldtool.synthetic.nuisances import Layer, Nuisances
 
 
 @dataclass(frozen=True)
@@ -66,7 +66,9 @@ class River:
     left_bank_height_m: float = 0.6  # bank top above the level
     right_bank_height_m: float = 0.8
     x_section_m: float = 0.0  # X of the surveyed section
-    island_m: tuple[float, float] | None = None  # (from, to) distance from the left water edge (m): a bar 0.15 m above the level
+    island_m: tuple[float, float] | None = (
+        None  # (from, to) distance from the left water edge (m): a bar 0.15 m above the level
+    )
 
     # -- geometry ---------------------------------------------------------------------------
     @property
@@ -307,7 +309,9 @@ def gcp_world(spec: SceneSpec) -> np.ndarray:
     xs, dx = r.x_section_m, spec.gcp_half_dx_m
     yl = r.y_left_edge + spec.gcp_offset_m
     yr = r.y_right_edge - spec.gcp_offset_m
-    base = np.array([[xs - dx, yl, r.level_m], [xs + dx, yl, r.level_m], [xs + dx, yr, r.level_m], [xs - dx, yr, r.level_m]])
+    base = np.array(
+        [[xs - dx, yl, r.level_m], [xs + dx, yl, r.level_m], [xs + dx, yr, r.level_m], [xs - dx, yr, r.level_m]]
+    )
     if spec.extra_gcps <= 0:
         return base
     # candidates on both banks, kept where they are seen well inside the frame; the farthest from those
@@ -539,7 +543,9 @@ def _patch_keep(spec: SceneSpec, x: np.ndarray, y: np.ndarray, x_lo: float, x_le
     g = spec.patch_scale_m / 3.0
     nx = int(np.ceil(x_len / g)) + 2
     ny = int(np.ceil(r.width_m / g)) + 2
-    field_ = cv2.GaussianBlur(rng.standard_normal((ny, nx)).astype(np.float32), (0, 0), 1.5, borderType=cv2.BORDER_REFLECT)
+    field_ = cv2.GaussianBlur(
+        rng.standard_normal((ny, nx)).astype(np.float32), (0, 0), 1.5, borderType=cv2.BORDER_REFLECT
+    )
     thr = np.quantile(field_, 1.0 - spec.patch_cover)
     ci = np.clip(((x - x_lo) / g).astype(int), 0, nx - 1)
     ri = np.clip(((r.y_left_edge - y) / g).astype(int), 0, ny - 1)
@@ -706,7 +712,7 @@ def _seed_particles(spec: SceneSpec, ras: _Raster, H_static: np.ndarray, rng: np
 
 def _section_and_gcps(spec: SceneSpec) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(section's two water edges px on frame 0 through the lens, GCP world points, their px)."""
-    cam, river = spec.camera, spec.river
+    cam = spec.camera
     sec_world = _section_world(spec)
     gw = gcp_world(spec)
     return cam.project(sec_world), gw, cam.project(gw)
@@ -725,19 +731,39 @@ class _FrameRenderer:
     lens, shake, glints, sensor noise and JPEG loss. Draws the glints' flicker and the noise from ``rng``, in
     frame order."""
 
-    def __init__(self, spec: SceneSpec, ras: _Raster, parts: _Particles, static_tex: np.ndarray,
-                 H_static: np.ndarray, shake: np.ndarray, canvas: tuple[int, int], map_x, map_y,
-                 rng: np.random.Generator, glint_layers, sec_glints, flicker_rng: np.random.Generator, ripples):
+    def __init__(
+        self,
+        spec: SceneSpec,
+        ras: _Raster,
+        parts: _Particles,
+        static_tex: np.ndarray,
+        H_static: np.ndarray,
+        shake: np.ndarray,
+        canvas: tuple[int, int],
+        map_x,
+        map_y,
+        rng: np.random.Generator,
+        glint_layers,
+        sec_glints,
+        flicker_rng: np.random.Generator,
+        ripples,
+    ):
         cam = spec.camera
         self.spec, self.ras, self.p, self.static_tex, self.H_static = spec, ras, parts, static_tex, H_static
         self.shake, self.canvas, self.map_x, self.map_y, self.rng = shake, canvas, map_x, map_y, rng
         # the glint layers, the section's glints (with their own flicker generator) and the ripples
-        self.glint_layers, self.sec_glints, self.flicker_rng, self.ripples = glint_layers, sec_glints, flicker_rng, ripples
+        self.glint_layers, self.sec_glints, self.flicker_rng, self.ripples = (
+            glint_layers,
+            sec_glints,
+            flicker_rng,
+            ripples,
+        )
         self.shaken = spec.shake_px > 0 or spec.shake_deg > 0
         self.static_img = None
         if not self.shaken:
-            self.static_img = cv2.warpPerspective(static_tex, H_static, canvas, flags=cv2.INTER_LINEAR,
-                                                  borderMode=cv2.BORDER_CONSTANT, borderValue=0.5)
+            self.static_img = cv2.warpPerspective(
+                static_tex, H_static, canvas, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0.5
+            )
         self.noise = np.empty((cam.height_px, cam.width_px), np.float32)
         self.nuis: Layer | None = None  # low light, rain, shadows, ... (synthetic/nuisances.py), set by render_scene
 
@@ -750,19 +776,28 @@ class _FrameRenderer:
         fu = u_cols - ui
         img = np.zeros((canvas[1], canvas[0]), np.float32)
         Hs = self.shake[i] if (self.shaken and not cam.has_distortion) else np.eye(3)
-        w_now = p.weight if p.band is None else np.where(
-            p.band, p.weight * np.clip((spec.empty_after_s + 0.2 - t) / 0.2, 0, 1), p.weight)
+        w_now = (
+            p.weight
+            if p.band is None
+            else np.where(p.band, p.weight * np.clip((spec.empty_after_s + 0.2 - t) / 0.2, 0, 1), p.weight)
+        )
         fv, vi, lx, ly, layer_size = p.fv, p.vi, p.lx, p.ly, p.ly * p.lx
         for c in range(len(spec.particle_diameters_m)):
             sel = p.cls == c
             acc = np.zeros(layer_size, np.float64)
-            for du, dv, wt in ((0, 0, (1 - fu) * (1 - fv)), (1, 0, fu * (1 - fv)), (0, 1, (1 - fu) * fv), (1, 1, fu * fv)):
+            for du, dv, wt in (
+                (0, 0, (1 - fu) * (1 - fv)),
+                (1, 0, fu * (1 - fv)),
+                (0, 1, (1 - fu) * fv),
+                (1, 1, fu * fv),
+            ):
                 cc = np.clip(ui[sel] + du, 0, lx - 1)
                 rr = np.clip(vi[sel] + dv, 0, ly - 1)
                 acc += np.bincount(rr * lx + cc, weights=(wt[sel] * w_now[sel]), minlength=layer_size)
             layer = cv2.GaussianBlur(acc.reshape(ly, lx).astype(np.float32), (0, 0), p.sig_t[c])
-            img += cv2.warpPerspective(layer, Hs @ p.H_layer, canvas, flags=cv2.INTER_LINEAR,
-                                       borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+            img += cv2.warpPerspective(
+                layer, Hs @ p.H_layer, canvas, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0
+            )
         return img, Hs
 
     def render(self, i: int, t: float) -> np.ndarray:
@@ -771,8 +806,14 @@ class _FrameRenderer:
         w, h = cam.width_px, cam.height_px
         img, Hs = self._tracers(i, t)
         if self.static_img is None:
-            img += cv2.warpPerspective(self.static_tex, Hs @ self.H_static, canvas, flags=cv2.INTER_LINEAR,
-                                       borderMode=cv2.BORDER_CONSTANT, borderValue=0.5)
+            img += cv2.warpPerspective(
+                self.static_tex,
+                Hs @ self.H_static,
+                canvas,
+                flags=cv2.INTER_LINEAR,
+                borderMode=cv2.BORDER_CONSTANT,
+                borderValue=0.5,
+            )
         else:
             img += self.static_img
         if self.ripples is not None:
@@ -781,18 +822,21 @@ class _FrameRenderer:
         if self.nuis is not None:
             img = self.nuis.canvas(img, t)
         if cam.has_distortion:
-            img = cv2.remap(img, self.map_x, self.map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
-                            borderValue=0.5)
+            img = cv2.remap(
+                img, self.map_x, self.map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0.5
+            )
             if shaken:
-                img = cv2.warpAffine(img, self.shake[i][:2], (w, h), flags=cv2.INTER_LINEAR,
-                                     borderMode=cv2.BORDER_REFLECT)
+                img = cv2.warpAffine(
+                    img, self.shake[i][:2], (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT
+                )
         if self.glint_layers is not None:
             flick = 0.7 + 0.3 * self.rng.uniform(size=2)
             img += flick[0] * self.glint_layers[0] + flick[1] * self.glint_layers[1]
         if self.sec_glints is not None:
             layers, (gx0, gy0, gx1, gy1) = self.sec_glints
-            lit = ((self.flicker_rng.uniform(size=len(layers)) < spec.glint_duty)
-                   * self.flicker_rng.uniform(0.6, 1.2, len(layers)))
+            lit = (self.flicker_rng.uniform(size=len(layers)) < spec.glint_duty) * self.flicker_rng.uniform(
+                0.6, 1.2, len(layers)
+            )
             img[gy0:gy1, gx0:gx1] += np.tensordot(lit.astype(np.float32), layers, axes=1)
         img *= 255.0
         if self.nuis is not None:
@@ -808,8 +852,14 @@ class _FrameRenderer:
         return bgr if self.nuis is None else self.nuis.colour(bgr, t)
 
 
-def _write_video(spec: SceneSpec, video_path: Path, times: list[float], draw: Callable[[int, float], np.ndarray],
-                 progress: Callable[[int, int], None] | None, cancel: Callable[[], bool] | None) -> float:
+def _write_video(
+    spec: SceneSpec,
+    video_path: Path,
+    times: list[float],
+    draw: Callable[[int, float], np.ndarray],
+    progress: Callable[[int, int], None] | None,
+    cancel: Callable[[], bool] | None,
+) -> float:
     """Stream the frames ``draw(i, t)`` into the video (MJPEG in Matroska with dropped frames, else
     ``spec.fourcc``); returns the render+encode seconds per frame."""
     cam = spec.camera
@@ -842,20 +892,23 @@ def _roi_rect(spec: SceneSpec) -> list[float]:
     L = spec.roi_half_length_m
     tt = np.linspace(-L, L, 41)
     ee = np.linspace(river.y_right_edge, river.y_left_edge, 41)
-    border = np.vstack([
-        np.column_stack([xs + tt, np.full_like(tt, river.y_left_edge), np.full_like(tt, river.level_m)]),
-        np.column_stack([xs + tt, np.full_like(tt, river.y_right_edge), np.full_like(tt, river.level_m)]),
-        np.column_stack([np.full_like(ee, xs - L), ee, np.full_like(ee, river.level_m)]),
-        np.column_stack([np.full_like(ee, xs + L), ee, np.full_like(ee, river.level_m)]),
-    ])
+    border = np.vstack(
+        [
+            np.column_stack([xs + tt, np.full_like(tt, river.y_left_edge), np.full_like(tt, river.level_m)]),
+            np.column_stack([xs + tt, np.full_like(tt, river.y_right_edge), np.full_like(tt, river.level_m)]),
+            np.column_stack([np.full_like(ee, xs - L), ee, np.full_like(ee, river.level_m)]),
+            np.column_stack([np.full_like(ee, xs + L), ee, np.full_like(ee, river.level_m)]),
+        ]
+    )
     bpx = cam.project(border)
     rx0, ry0 = np.clip(bpx.min(axis=0), 0, [w - 1, h - 1])
     rx1, ry1 = np.clip(bpx.max(axis=0), 0, [w - 1, h - 1])
     return [float(np.floor(rx0)), float(np.floor(ry0)), float(np.ceil(rx1)), float(np.ceil(ry1))]
 
 
-def _write_project(spec: SceneSpec, out: Path, ras: _Raster, sec_px: np.ndarray, gw: np.ndarray,
-                   gcp_clicked: np.ndarray, shaken: bool) -> tuple[Path, Path, Path | None]:
+def _write_project(
+    spec: SceneSpec, out: Path, ras: _Raster, sec_px: np.ndarray, gw: np.ndarray, gcp_clicked: np.ndarray, shaken: bool
+) -> tuple[Path, Path, Path | None]:
     """What the hydrologist enters: cross_section.csv, project.toml (and checkerboard.mp4 for a distorted
     lens); returns (project, cross-section, checkerboard or None) paths."""
     cam, river = spec.camera, spec.river
@@ -867,7 +920,9 @@ def _write_project(spec: SceneSpec, out: Path, ras: _Raster, sec_px: np.ndarray,
     proj = Project(name=f"synthetic {spec.name}")
     proj.video = VideoCfg(path=spec.video_name)
     proj.cross_section = CrossSectionCfg(path=cs_path.name)
-    proj.ortho = OrthoCfg(method="distances", gcp_px=_r(gcp_clicked[:4]), distances_m=[round(d, 4) for d in gcp_distances(gw)])
+    proj.ortho = OrthoCfg(
+        method="distances", gcp_px=_r(gcp_clicked[:4]), distances_m=[round(d, 4) for d in gcp_distances(gw)]
+    )
     proj.water_level = WaterLevelCfg(method="value", value_m=float(river.level_m))
     proj.section = SectionCfg(points_px=_r(sec_px), n_sub=spec.n_sub, alpha=float(river.alpha))
     proj.roi = RoiCfg(rect_px=_roi_rect(spec))
@@ -877,10 +932,18 @@ def _write_project(spec: SceneSpec, out: Path, ras: _Raster, sec_px: np.ndarray,
     cb_path = None
     if cam.has_distortion:
         cb_path = out / "checkerboard.mp4"
-        render_checkerboard(cam, cb_path, n_frames=spec.checkerboard_frames, square_m=spec.checkerboard_square_m,
-                            seed=spec.seed + 1, fps=spec.fps, fourcc=spec.fourcc)
-        proj.calibration = CalibrationCfg(checkerboard_video=cb_path.name, corners=[9, 6],
-                                          square_mm=spec.checkerboard_square_m * 1000.0, n_frames=20)
+        render_checkerboard(
+            cam,
+            cb_path,
+            n_frames=spec.checkerboard_frames,
+            square_m=spec.checkerboard_square_m,
+            seed=spec.seed + 1,
+            fps=spec.fps,
+            fourcc=spec.fourcc,
+        )
+        proj.calibration = CalibrationCfg(
+            checkerboard_video=cb_path.name, corners=[9, 6], square_mm=spec.checkerboard_square_m * 1000.0, n_frames=20
+        )
     proj_path = out / "project.toml"
     save_project(proj, proj_path)
     return proj_path, cs_path, cb_path
@@ -900,8 +963,15 @@ def _section_motion(spec: SceneSpec) -> list[float]:
     return motion
 
 
-def _truth_doc(spec: SceneSpec, truth: dict, res: "SceneTruth", gcp_clicked: np.ndarray, ras: _Raster, n_part: int,
-               times: list[float]) -> dict:
+def _truth_doc(
+    spec: SceneSpec,
+    truth: dict,
+    res: SceneTruth,
+    gcp_clicked: np.ndarray,
+    ras: _Raster,
+    n_part: int,
+    times: list[float],
+) -> dict:
     """truth.json: the generator's truth, camera, GCPs and the spec's fields that are set."""
     cam = spec.camera
     doc = {
@@ -909,10 +979,20 @@ def _truth_doc(spec: SceneSpec, truth: dict, res: "SceneTruth", gcp_clicked: np.
         "scene": spec.name,
         "n_frames": res.n_frames,
         "fps": spec.fps,
-        "timestamps": ("container timestamps (Matroska, 10 µs ticks), listed in frame_times_s" if spec.drop_fraction > 0
-                       else "frame i at i / fps seconds"),
-        "camera": {"K": cam.K.tolist(), "R": cam.R.tolist(), "t": cam.t.tolist(), "rvec": cam.rvec.tolist(),
-                   "dist": cam.dist_array.tolist(), "position_m": list(cam.position_m), "target_m": list(cam.target_m)},
+        "timestamps": (
+            "container timestamps (Matroska, 10 µs ticks), listed in frame_times_s"
+            if spec.drop_fraction > 0
+            else "frame i at i / fps seconds"
+        ),
+        "camera": {
+            "K": cam.K.tolist(),
+            "R": cam.R.tolist(),
+            "t": cam.t.tolist(),
+            "rvec": cam.rvec.tolist(),
+            "dist": cam.dist_array.tolist(),
+            "position_m": list(cam.position_m),
+            "target_m": list(cam.target_m),
+        },
         "gcp_world_m": res.gcp_world_m.tolist(),
         "gcp_px_exact": res.gcp_px.tolist(),
         "gcp_px_clicked": gcp_clicked.tolist(),
@@ -923,15 +1003,22 @@ def _truth_doc(spec: SceneSpec, truth: dict, res: "SceneTruth", gcp_clicked: np.
         "seconds_per_frame": res.seconds_per_frame,
         "codec": "MJPEG in Matroska (variable frame rate)" if spec.drop_fraction > 0 else spec.fourcc,
         "checkerboard_video": res.checkerboard_path.name if res.checkerboard_path else None,
-        "spec": _jsonable({k: v for k, v in asdict(spec).items()
-                           if (k not in _VARIANT_DEFAULTS or v != _VARIANT_DEFAULTS[k])
-                           and (k != "nuisances" or spec.nuisances.any)}),
+        "spec": _jsonable(
+            {
+                k: v
+                for k, v in asdict(spec).items()
+                if (k not in _VARIANT_DEFAULTS or v != _VARIANT_DEFAULTS[k])
+                and (k != "nuisances" or spec.nuisances.any)
+            }
+        ),
     }
     if spec.drop_fraction > 0:
         doc["frame_times_s"] = times
     if spec.section_skew_deg:
-        doc["section_note"] = (f"section surveyed at {spec.section_skew_deg:g} deg to the flow's normal; "
-                               "cross-section stations run along it")
+        doc["section_note"] = (
+            f"section surveyed at {spec.section_skew_deg:g} deg to the flow's normal; "
+            "cross-section stations run along it"
+        )
     return doc
 
 
@@ -966,12 +1053,31 @@ def render_scene(
     glint_layers = None
     if spec.glints > 0:
         xs, L = river.x_section_m, spec.roi_half_length_m
-        quad_w = np.array([[xs - L, river.y_left_edge - 0.3, river.level_m], [xs + L, river.y_left_edge - 0.3, river.level_m],
-                           [xs + L, river.y_right_edge + 0.3, river.level_m], [xs - L, river.y_right_edge + 0.3, river.level_m]])
+        quad_w = np.array(
+            [
+                [xs - L, river.y_left_edge - 0.3, river.level_m],
+                [xs + L, river.y_left_edge - 0.3, river.level_m],
+                [xs + L, river.y_right_edge + 0.3, river.level_m],
+                [xs - L, river.y_right_edge + 0.3, river.level_m],
+            ]
+        )
         glint_layers = _glint_layers(spec, rng, cam.project(quad_w))
-    renderer = _FrameRenderer(spec, ras, parts, static_tex, H_static, shake, canvas, map_x, map_y, rng, glint_layers,
-                              _section_glint_layers(spec) if spec.section_glints > 0 else None, _aux_rng(spec, 5),
-                              _ripples(spec, offset, canvas) if spec.ripple_amp > 0 else None)
+    renderer = _FrameRenderer(
+        spec,
+        ras,
+        parts,
+        static_tex,
+        H_static,
+        shake,
+        canvas,
+        map_x,
+        map_y,
+        rng,
+        glint_layers,
+        _section_glint_layers(spec) if spec.section_glints > 0 else None,
+        _aux_rng(spec, 5),
+        _ripples(spec, offset, canvas) if spec.ripple_amp > 0 else None,
+    )
     renderer.nuis = _nuisance_layer(spec, offset, canvas, H_world, _section_world(spec))  # None when it has none
 
     video_path = out / spec.video_name
@@ -981,12 +1087,28 @@ def render_scene(
     gcp_clicked = g_px + rng.normal(0.0, spec.click_error_px, g_px.shape)
     proj_path, cs_path, cb_path = _write_project(spec, out, ras, sec_px, gw, gcp_clicked, renderer.shaken)
     res = SceneTruth(
-        discharge_m3s=truth["discharge_m3s"], water_level_m=river.level_m, alpha=river.alpha,
-        wetted_width_m=truth["wetted_width_m"], wetted_area_m2=truth["wetted_area_m2"],
-        mean_velocity_ms=truth["mean_velocity_ms"], K=cam.K.copy(), R=cam.R.copy(), t=cam.t.copy(),
-        dist=cam.dist_array.copy(), gcp_world_m=gw, gcp_px=g_px, section_px=sec_px, video_path=video_path,
-        project_path=proj_path, cross_section_path=cs_path, truth_path=out / "truth.json", n_frames=len(times),
-        fps=spec.fps, seconds_per_frame=spf, section_motion_px=_section_motion(spec), checkerboard_path=cb_path,
+        discharge_m3s=truth["discharge_m3s"],
+        water_level_m=river.level_m,
+        alpha=river.alpha,
+        wetted_width_m=truth["wetted_width_m"],
+        wetted_area_m2=truth["wetted_area_m2"],
+        mean_velocity_ms=truth["mean_velocity_ms"],
+        K=cam.K.copy(),
+        R=cam.R.copy(),
+        t=cam.t.copy(),
+        dist=cam.dist_array.copy(),
+        gcp_world_m=gw,
+        gcp_px=g_px,
+        section_px=sec_px,
+        video_path=video_path,
+        project_path=proj_path,
+        cross_section_path=cs_path,
+        truth_path=out / "truth.json",
+        n_frames=len(times),
+        fps=spec.fps,
+        seconds_per_frame=spf,
+        section_motion_px=_section_motion(spec),
+        checkerboard_path=cb_path,
         spec=spec,
     )
     truth_doc = _truth_doc(spec, truth, res, gcp_clicked, ras, parts.n, times)
@@ -994,15 +1116,31 @@ def render_scene(
     return res
 
 
-_VARIANT_FIELDS = ("patch_cover", "patch_scale_m", "empty_band_m", "empty_after_s", "section_glints", "section_glint_span",
-                   "section_glint_half_m", "glint_duty", "ripple_amp", "ripple_dir_deg", "ripple_spread_deg",
-                   "ripple_lambda_m", "ripple_waves", "section_skew_deg", "jpeg_quality", "drop_fraction")
+_VARIANT_FIELDS = (
+    "patch_cover",
+    "patch_scale_m",
+    "empty_band_m",
+    "empty_after_s",
+    "section_glints",
+    "section_glint_span",
+    "section_glint_half_m",
+    "glint_duty",
+    "ripple_amp",
+    "ripple_dir_deg",
+    "ripple_spread_deg",
+    "ripple_lambda_m",
+    "ripple_waves",
+    "section_skew_deg",
+    "jpeg_quality",
+    "drop_fraction",
+)
 # truth.json lists a variant field only when it is set, so the base scenes' files stay as they were
 _VARIANT_DEFAULTS = {k: SceneSpec.__dataclass_fields__[k].default for k in _VARIANT_FIELDS}
 
 
-def _nuisance_layer(spec: SceneSpec, offset: tuple[int, int], canvas: tuple[int, int], H_world: np.ndarray,
-                    sec_world: np.ndarray) -> Layer | None:
+def _nuisance_layer(
+    spec: SceneSpec, offset: tuple[int, int], canvas: tuple[int, int], H_world: np.ndarray, sec_world: np.ndarray
+) -> Layer | None:
     """The scene's nuisances prepared on its canvas (world X, Y of each canvas pixel), or None."""
     if not spec.nuisances.any:
         return None
@@ -1013,8 +1151,9 @@ def _nuisance_layer(spec: SceneSpec, offset: tuple[int, int], canvas: tuple[int,
     Y = np.where(ok, pts[:, 1], np.nan).reshape(ch, cw).astype(np.float32)
     p = np.column_stack([sec_world[:, :2], np.ones(2)]) @ H_world.T
     sec_canvas = p[:, :2] / p[:, 2:3]
-    return Layer(spec.nuisances, spec.seed, spec.river, np.stack([X, Y]), H_world, sec_canvas, spec.fps,
-                 spec.roi_half_length_m)
+    return Layer(
+        spec.nuisances, spec.seed, spec.river, np.stack([X, Y]), H_world, sec_canvas, spec.fps, spec.roi_half_length_m
+    )
 
 
 def _bank_mask(spec: SceneSpec, ras: _Raster) -> np.ndarray:
@@ -1025,7 +1164,13 @@ def _bank_mask(spec: SceneSpec, ras: _Raster) -> np.ndarray:
     ideal = cam.undistorted_of_distorted(np.column_stack([xs.ravel(), ys.ravel()]))
     pts, ok = _world_of_pixels(cam, r.level_m, ideal)
     X, Y = pts[:, 0], pts[:, 1]
-    inside = ok & (X > ras.x0 + 1) & (X < ras.x0 + ras.res * ras.nx - 1) & (Y < ras.y_top - 1) & (Y > ras.y_top - ras.res * ras.ny + 1)
+    inside = (
+        ok
+        & (X > ras.x0 + 1)
+        & (X < ras.x0 + ras.res * ras.nx - 1)
+        & (Y < ras.y_top - 1)
+        & (Y > ras.y_top - ras.res * ras.ny + 1)
+    )
     lab = np.zeros(len(X), np.uint8)
     lab[inside & (Y > r.y_left_edge + 0.5)] = 1
     lab[inside & (Y < r.y_right_edge - 0.5)] = 2

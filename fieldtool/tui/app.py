@@ -40,8 +40,19 @@ from fieldtool.viewer.picks import MODES
 from fieldtool.viewer.registry import running_viewer
 
 SCREENS_BY_STEP: dict[str, type[StepScreen]] = {
-    s.STEP: s for s in (CrossSectionScreen, VideoScreen, CalibrationScreen, OrthoScreen, WaterLevelScreen, RoiScreen,
-                        FiltersScreen, PivScreen, SectionScreen, ResultsScreen)
+    s.STEP: s
+    for s in (
+        CrossSectionScreen,
+        VideoScreen,
+        CalibrationScreen,
+        OrthoScreen,
+        WaterLevelScreen,
+        RoiScreen,
+        FiltersScreen,
+        PivScreen,
+        SectionScreen,
+        ResultsScreen,
+    )
 }
 assert tuple(SCREENS_BY_STEP) == STEP_IDS
 
@@ -77,8 +88,9 @@ class FieldToolApp(App):
 
     def get_system_commands(self, screen: Screen) -> Iterable[SystemCommand]:
         for i, s in enumerate(STEPS):
-            yield SystemCommand(f"Step {i + 1}: {s.title}", f"go to the {s.title.lower()} step",
-                                lambda step=s.id: self.goto(step))
+            yield SystemCommand(
+                f"Step {i + 1}: {s.title}", f"go to the {s.title.lower()} step", lambda step=s.id: self.goto(step)
+            )
         yield from super().get_system_commands(screen)
 
     def save_project(self) -> bool:
@@ -110,8 +122,11 @@ class FieldToolApp(App):
         project file: the open step shows it at once."""
         err_before = self.session.sync.error
         screen = self.screen
-        before = ({r.field.key: r.field.format(r.field.get(self.session.project)) for r in screen.rows}
-                  if isinstance(screen, StepScreen) else None)  # to tell typing not yet taken in from old text
+        before = (
+            {r.field.key: r.field.format(r.field.get(self.session.project)) for r in screen.rows}
+            if isinstance(screen, StepScreen)
+            else None
+        )  # to tell typing not yet taken in from old text
         try:
             res = self.session.poll()
         except FieldToolError as e:  # this window's own values no longer fit the merged file
@@ -120,19 +135,30 @@ class FieldToolApp(App):
         err = self.session.sync.error
         if err and err != err_before:
             self.status = (f"NOT SAVED: {err}", True)
-            self.notify(f"the project file was changed by another program and is not valid now: {err}",
-                        severity="error", timeout=12)
+            self.notify(
+                f"the project file was changed by another program and is not valid now: {err}",
+                severity="error",
+                timeout=12,
+            )
             if isinstance(self.screen, StepScreen):
                 self.show_status(self.screen)
                 self.screen.update_title()
         if res is None:
             return
-        if not err and self.status[1] and self.status[0].startswith("NOT SAVED") and "another program" in self.status[0]:
+        if (
+            not err
+            and self.status[1]
+            and self.status[0].startswith("NOT SAVED")
+            and "another program" in self.status[0]
+        ):
             self.status = (f"{self.session.path.name} is valid again", False)
         self._after_merge(res, before)
         if res.theirs_changed:
-            self.status = (f"changed in {self.session.path.name} by another program: "
-                           f"{', '.join(res.theirs_changed[:4])}{' …' if len(res.theirs_changed) > 4 else ''}", False)
+            self.status = (
+                f"changed in {self.session.path.name} by another program: "
+                f"{', '.join(res.theirs_changed[:4])}{' …' if len(res.theirs_changed) > 4 else ''}",
+                False,
+            )
             if self.viewer is not None and getattr(self.viewer, "in_process", False):
                 self.viewer_reload()
         if isinstance(self.screen, StepScreen):
@@ -290,27 +316,37 @@ class FieldToolApp(App):
             self.viewer = running
         else:
             try:
-                self.viewer = start_viewer(self.session.path, host="127.0.0.1", on_pick=self._pick_from_viewer)  # the project's port
+                self.viewer = start_viewer(
+                    self.session.path, host="127.0.0.1", on_pick=self._pick_from_viewer
+                )  # the project's port
             except Exception as e:  # noqa: BLE001 - no viewer must not stop the measurement
                 self.notify(f"the viewer did not start: {e}; type pixel points as 'x, y'", severity="error")
                 return
         self.viewer_url = self.viewer.url
         if running is not None:
-            self.status = (f"attached to the viewer that runs already (pid {running.pid}); over SSH: "
-                           f"{ssh_line(self.viewer)}", False)
+            self.status = (
+                f"attached to the viewer that runs already (pid {running.pid}); over SSH: {ssh_line(self.viewer)}",
+                False,
+            )
             if isinstance(self.screen, StepScreen):
                 self.screen.update_title()
                 self.show_status(self.screen)
-            self.notify(f"viewer at {self.viewer_url} (already running, pid {running.pid}): its picks appear "
-                        "here within a second", timeout=12)
+            self.notify(
+                f"viewer at {self.viewer_url} (already running, pid {running.pid}): its picks appear "
+                "here within a second",
+                timeout=12,
+            )
             return
         if isinstance(self.screen, StepScreen):
             self.screen.update_title()
         self.status = (f"viewer over SSH: {ssh_line(self.viewer)}", False)  # the URL is in the title bar
         if isinstance(self.screen, StepScreen):
             self.show_status(self.screen)
-        self.notify(f"viewer at {self.viewer_url}: focus a pixel field here, click in the browser; "
-                    f"over SSH first run on your computer: {ssh_line(self.viewer)}", timeout=12)
+        self.notify(
+            f"viewer at {self.viewer_url}: focus a pixel field here, click in the browser; "
+            f"over SSH first run on your computer: {ssh_line(self.viewer)}",
+            timeout=12,
+        )
 
     def show_in_viewer(self, kind: str) -> None:
         """Show an image (``viewer.images.KINDS``, e.g. "filtered") in the viewer, started if needed."""

@@ -42,8 +42,15 @@ def build_cross_section(project) -> xs.CrossSection:
     """The project's cross-section (shape or file); FieldToolError with the user's message."""
     c = project.cross_section
     if c.shape:
-        return xs.from_shape(c.shape, top_width_m=c.top_width_m, bottom_width_m=c.bottom_width_m, depth_m=c.depth_m,
-                             left_station_m=c.left_station_m, bank_elevation_m=c.bank_elevation_m, points=c.points)
+        return xs.from_shape(
+            c.shape,
+            top_width_m=c.top_width_m,
+            bottom_width_m=c.bottom_width_m,
+            depth_m=c.depth_m,
+            left_station_m=c.left_station_m,
+            bank_elevation_m=c.bank_elevation_m,
+            points=c.points,
+        )
     return xs.load_cross_section(project.resolve(c.path))
 
 
@@ -59,8 +66,9 @@ def core_check(session, step: str) -> None:
         src = FrameSource(p.resolve(v.path), v.start_s, v.end_s, v.step, v.frame_interval_s)
         read_color_frame(p.resolve(v.path), v.start_s, v.frame_interval_s)
         if src.estimated_count() < 2:
-            raise ParameterError("video: the range holds fewer than 2 frames; widen video.start_s .. video.end_s "
-                                 "or lower video.step")
+            raise ParameterError(
+                "video: the range holds fewer than 2 frames; widen video.start_s .. video.end_s or lower video.step"
+            )
     elif step == "calibration":
         if session.ui.get("calibration_mode") != "skip" and p.calibration.path:
             load_calibration(p.resolve(p.calibration.path))
@@ -105,8 +113,7 @@ class CoreChecks:
         if tables is None:
             return None
         d = project_to_dict(session.project)
-        key = json.dumps([d.get(t) for t in tables] + [session.ui.get("calibration_mode")], sort_keys=True,
-                         default=str)
+        key = json.dumps([d.get(t) for t in tables] + [session.ui.get("calibration_mode")], sort_keys=True, default=str)
         hit = self._cache.get(step)
         if hit is not None and hit[0] == key:
             return hit[1]

@@ -15,6 +15,10 @@ def cmd_tui(args: argparse.Namespace) -> int:
 
 def register(sub) -> None:
     p = sub.add_parser("tui", help="step-by-step measurement in the terminal (keyboard only, works over SSH)")
-    p.add_argument("project", nargs="?", default="project.toml",
-                   help="project file or its folder (default ./project.toml; created when missing)")
+    p.add_argument(
+        "project",
+        nargs="?",
+        default="project.toml",
+        help="project file or its folder (default ./project.toml; created when missing)",
+    )
     p.set_defaults(func=cmd_tui)

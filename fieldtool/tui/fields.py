@@ -228,8 +228,10 @@ class Field:
             if k in ("points", "rects", "worldpoints", "polygons", "floats"):
                 return []
             if not self.nullable():
-                raise Invalid("a value is needed" + (f" (default {self.format(self.default())})"
-                                                      if self.default() is not None else ""))
+                raise Invalid(
+                    "a value is needed"
+                    + (f" (default {self.format(self.default())})" if self.default() is not None else "")
+                )
             return None
         if k == "float":
             return _number(t, "")
@@ -286,8 +288,10 @@ class Field:
         if self.kind == "path" and value:
             p = project.resolve(value)
             if not p.exists():
-                return (f"{self.key}: {value} not found (looked in {p.parent}); give a path relative to the project "
-                        "folder or absolute")
+                return (
+                    f"{self.key}: {value} not found (looked in {p.parent}); give a path relative to the project "
+                    "folder or absolute"
+                )
         if self.check is not None:
             msg = self.check(value, project)
             if msg:

@@ -133,8 +133,9 @@ def run_piv_only(project: Project, job: Job, out_dir: Path | None = None) -> dic
     inputs = load_inputs(project)
     mapping, roi, mask, params, max_speed, key = _piv_setup(project, inputs)
     stab: dict = {}
-    frames = run_frames.working_frames(project, inputs, job.cancelled, None, stab if project.stabilize.enabled else None,
-                            job.progress)
+    frames = run_frames.working_frames(
+        project, inputs, job.cancelled, None, stab if project.stabilize.enabled else None, job.progress
+    )
     n_expected = inputs.source.estimated_count()
     if n_expected:
         frames = Sized(frames, n_expected)  # the same pair plan as the discharge run
@@ -166,12 +167,21 @@ def run_calibration(project: Project, job: Job) -> dict:
     c = project.calibration
     if not c.path:
         raise ParameterError("calibration.path: give the file name the calibration is saved as")
-    model = calibrate_video(project.resolve(c.checkerboard_video), tuple(int(v) for v in c.corners),
-                            c.square_mm, c.n_frames, progress=job.progress2("checkerboard frames"),
-                            cancel=job.cancelled)
+    model = calibrate_video(
+        project.resolve(c.checkerboard_video),
+        tuple(int(v) for v in c.corners),
+        c.square_mm,
+        c.n_frames,
+        progress=job.progress2("checkerboard frames"),
+        cancel=job.cancelled,
+    )
     save_calibration(model, project.resolve(c.path))
-    return {"inputs": project_to_dict(project)["calibration"], "rms_px": model.rms_px,
-            "fov_deg": model.fov_deg, "views": len(model.frames_used)}
+    return {
+        "inputs": project_to_dict(project)["calibration"],
+        "rms_px": model.rms_px,
+        "fov_deg": model.fov_deg,
+        "views": len(model.frames_used),
+    }
 
 
 def run_stabilization(project: Project, job: Job) -> dict:

@@ -1,9 +1,9 @@
 """The measurement being edited: the Project, its file, and what was computed from it.
 
-Every change is written to the project file at once (atomically, merged with other editors by ``project.sync``). Results are
-the files of the last run in ``out/`` beside the project file; ``result.json`` carries the inputs
-that made it, so a result whose inputs have changed since is known to be stale, even after the
-project is closed and opened again.
+Every change is written to the project file at once (atomically, merged with other editors by
+``project.sync``). Results are the files of the last run in ``out/`` beside the project file;
+``result.json`` carries the inputs that made it, so a result whose inputs have changed since is known to
+be stale, even after the project is closed and opened again.
 """
 
 from __future__ import annotations
@@ -124,7 +124,7 @@ class Session:
         return ("stale" if changed else "current"), changed
 
     def piv_state(self) -> str:
-        """"none" | "current" | "stale" for the velocity field (last full run or PIV-only run)."""
+        """ "none" | "current" | "stale" for the velocity field (last full run or PIV-only run)."""
         self.restore_piv()
         candidates = []
         res = self.last_result()
@@ -164,8 +164,12 @@ class Session:
         if self.ui.get("calibration_mode") != "run":
             return "none"
         if self.calibration_run is None:
-            return "stale" if not self.project.calibration.path or not self.project.resolve(
-                self.project.calibration.path).is_file() else "current"
+            return (
+                "stale"
+                if not self.project.calibration.path
+                or not self.project.resolve(self.project.calibration.path).is_file()
+                else "current"
+            )
         now = project_to_dict(self.project).get("calibration")
         return "current" if now == self.calibration_run["inputs"] else "stale"
 
@@ -181,11 +185,16 @@ class Session:
         if step == "calibration" and self.ui.get("calibration_mode") == "run":
             errs = field_errors(fields_for(step, self.ui), self.project)
             if not errs and self.calibration_state() != "current":
-                errs.append("calibration: run the calibration (ctrl+r) so the lens file exists and matches the settings")
+                errs.append(
+                    "calibration: run the calibration (ctrl+r) so the lens file exists and matches the settings"
+                )
             return errs
         errs = field_errors(fields_for(step, self.ui), self.project)
-        return errs + [str(pr) for pr in step_problems(step, self.project)
-                       if pr.severity == "error" and not any(e.startswith(pr.key) for e in errs)]
+        return errs + [
+            str(pr)
+            for pr in step_problems(step, self.project)
+            if pr.severity == "error" and not any(e.startswith(pr.key) for e in errs)
+        ]
 
     def step_problems(self, step: str, core: bool = True) -> list[str]:
         """Every message against ``step``: its fields and the validation layer (``step_errors``), then

@@ -53,12 +53,20 @@ def register(sub) -> None:
     """Add `fieldtool view` to the CLI's subparsers."""
     p = sub.add_parser("view", help="open the picking viewer (web page) for a project file")
     p.add_argument("project", help="project file (TOML); picks are saved into it")
-    p.add_argument("--host", default="127.0.0.1",
-                   help="address to listen on (default 127.0.0.1; anything else exposes the page to the network)")
-    p.add_argument("--port", type=int, default=None,
-                   help="TCP port (default: the project's viewer.port, chosen free at the first launch and "
-                        "remembered; 0: a free port this time)")
-    p.add_argument("--mode", help="pick mode to start in: gcp, section, roi, masks, stable, edges, edges1, "
-                                  "edges2, divergence")
+    p.add_argument(
+        "--host",
+        default="127.0.0.1",
+        help="address to listen on (default 127.0.0.1; anything else exposes the page to the network)",
+    )
+    p.add_argument(
+        "--port",
+        type=int,
+        default=None,
+        help="TCP port (default: the project's viewer.port, chosen free at the first launch and "
+        "remembered; 0: a free port this time)",
+    )
+    p.add_argument(
+        "--mode", help="pick mode to start in: gcp, section, roi, masks, stable, edges, edges1, edges2, divergence"
+    )
     p.add_argument("--image", help="image to show: frame, working, ortho, image1, image2, dem_plot")
     p.set_defaults(func=cmd_view)

@@ -30,8 +30,8 @@ import secrets
 import socket
 import sys
 import threading
-from collections.abc import Callable, Iterator
 import warnings
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from http import HTTPStatus
 from pathlib import Path
@@ -144,8 +144,11 @@ class AccessGuard:
             return self._refuse(HTTPStatus.FORBIDDEN, f"origin {origin!r} is not the viewer's page")
         ok, _rest = self._key_of(path)
         if not ok:
-            return self._refuse(HTTPStatus.FORBIDDEN, "the URL lacks the viewer's access key: open the address "
-                                "printed by `fieldtool view` or shown in the TUI")
+            return self._refuse(
+                HTTPStatus.FORBIDDEN,
+                "the URL lacks the viewer's access key: open the address "
+                "printed by `fieldtool view` or shown in the TUI",
+            )
         return None
 
     def _refuse(self, status: HTTPStatus, why: str) -> tuple[HTTPStatus, str]:
@@ -206,8 +209,10 @@ def guard_handler(inner: Callable) -> Callable:
         try:
             await inner(connection)
         except Exception as e:  # noqa: BLE001 - a client's bad message must not reach the log as a traceback
-            log_once("malformed-message", f"fieldtool view: closed a connection that sent a malformed message "
-                                          f"({_one_line(e)})")
+            log_once(
+                "malformed-message",
+                f"fieldtool view: closed a connection that sent a malformed message ({_one_line(e)})",
+            )
             with contextlib.suppress(Exception):
                 await connection.close(1007, "malformed message")
 
@@ -254,17 +259,24 @@ SECURITY_HEADERS = {
 _INSTALL_LOCK = threading.Lock()
 
 
-def make_process_request(guard: AccessGuard, inner: Callable | None,
-                         extra_routes: Callable[[str, object], object] | None = None) -> Callable:
+def make_process_request(
+    guard: AccessGuard, inner: Callable | None, extra_routes: Callable[[str, object], object] | None = None
+) -> Callable:
     """A ``process_request(connection, request)`` for websockets that applies ``guard``, strips
     the key from the path and hands the request to viser's own file server (``inner``).
 
     ``extra_routes(rest_of_path, request)`` may answer paths itself (a Response) or return None."""
+
     def refuse(status: HTTPStatus, why: str) -> Response:
         body = f"{status.value} {status.phrase}: {why}\n".encode()
-        return Response(status.value, status.phrase,
-                        Headers({"Content-Type": "text/plain; charset=utf-8", "Content-Length": str(len(body)),
-                                 **SECURITY_HEADERS}), body)
+        return Response(
+            status.value,
+            status.phrase,
+            Headers(
+                {"Content-Type": "text/plain; charset=utf-8", "Content-Length": str(len(body)), **SECURITY_HEADERS}
+            ),
+            body,
+        )
 
     def process_request(connection, request: Request):
         is_ws = (request.headers.get("Upgrade") or "").lower() == "websocket"
@@ -275,8 +287,12 @@ def make_process_request(guard: AccessGuard, inner: Callable | None,
         if is_ws:
             return None  # accepted: viser's handler takes the connection
         if rest == "":  # /<token> -> /<token>/ so that the page's relative URLs keep the key
-            return Response(HTTPStatus.FOUND.value, "Found",
-                            Headers({"Location": guard.prefix + "/", "Content-Length": "0", **SECURITY_HEADERS}), b"")
+            return Response(
+                HTTPStatus.FOUND.value,
+                "Found",
+                Headers({"Location": guard.prefix + "/", "Content-Length": "0", **SECURITY_HEADERS}),
+                b"",
+            )
         query = request.path.partition("?")[2]
         if extra_routes is not None:
             answer = extra_routes(rest + ("?" + query if query else ""), request)

@@ -26,8 +26,7 @@ from fieldtool.processing.calibration import load_calibration
 from fieldtool.processing.frames import read_color_frame
 from fieldtool.project.model import Project
 from fieldtool.run.geometry import build_mapping, compute_level
-from fieldtool.run.inputs import load_cross_section
-from fieldtool.run.inputs import load_inputs
+from fieldtool.run.inputs import load_cross_section, load_inputs
 from fieldtool.viewer.mapping import PlotAxes
 from fieldtool.viewer.plot_image import Curve, render_plot
 
@@ -144,8 +143,13 @@ def _ortho(project: Project) -> Display:
         return lens.distort_points(work_px) if lens is not None else work_px
 
     r = 1.0 / A[0, 0]
-    return Display("ortho", _rgb(rect), to_display, from_display,
-                   note=f"map of the water plane, {r * 1000:.1f} mm/pixel, north-up in the GCP frame")
+    return Display(
+        "ortho",
+        _rgb(rect),
+        to_display,
+        from_display,
+        note=f"map of the water plane, {r * 1000:.1f} mm/pixel, north-up in the GCP frame",
+    )
 
 
 def _dem_plot(project: Project) -> Display:
@@ -155,10 +159,13 @@ def _dem_plot(project: Project) -> Display:
 
     cs = load_cross_section(project)
     dem = wl.read_dem(project.resolve(cfg.dem_path))
-    st, prof = wl.dem_profile(dem, cfg.dem_x_m, cfg.dem_y_m, cfg.dem_precision_mm, cs,
-                              getattr(cfg, "dem_section_y_m", None))
-    curves = [Curve("surveyed bed", np.asarray(cs.station), np.asarray(cs.elevation), (40, 40, 40)),
-              Curve("DEM", st, prof, (30, 110, 220))]
+    st, prof = wl.dem_profile(
+        dem, cfg.dem_x_m, cfg.dem_y_m, cfg.dem_precision_mm, cs, getattr(cfg, "dem_section_y_m", None)
+    )
+    curves = [
+        Curve("surveyed bed", np.asarray(cs.station), np.asarray(cs.elevation), (40, 40, 40)),
+        Curve("DEM", st, prof, (30, 110, 220)),
+    ]
     vlines = []
     note = ""
     try:
@@ -167,8 +174,13 @@ def _dem_plot(project: Project) -> Display:
         vlines.append((float(auto["station_m"][auto["index"]]), (0, 150, 0), "automatic"))
     except FieldToolError as e:
         note = f"no automatic divergence point: {e}"
-    img, axes = render_plot(curves, title="DEM vs surveyed bed: click where they diverge",
-                            xlabel="station (m, left bank -> right bank)", ylabel="elevation (m)", vlines=vlines)
+    img, axes = render_plot(
+        curves,
+        title="DEM vs surveyed bed: click where they diverge",
+        xlabel="station (m, left bank -> right bank)",
+        ylabel="elevation (m)",
+        vlines=vlines,
+    )
     return Display("dem_plot", img, axes=axes, note=note)
 
 

@@ -155,8 +155,18 @@ class PlotAxes:
         return self.left_px <= xy[0] <= self.right_px and self.top_px <= xy[1] <= self.bottom_px
 
 
-def zoom_about_cursor(position, look_at, up, fov_y_rad: float, aspect: float, ndc, scale: float,
-                      plane: ImagePlane, min_dist: float | None = None, max_dist: float | None = None):
+def zoom_about_cursor(
+    position,
+    look_at,
+    up,
+    fov_y_rad: float,
+    aspect: float,
+    ndc,
+    scale: float,
+    plane: ImagePlane,
+    min_dist: float | None = None,
+    max_dist: float | None = None,
+):
     """New camera (position, look_at) after a zoom that keeps the point under the cursor fixed.
 
     The camera (``position``, ``look_at``, ``up``; three.js convention, vertical field of view

@@ -302,7 +302,8 @@ class PolygonListPick(PickState):
             return self.close()
         self.open.append(_pt(x, y, exact))
         return f"mask {len(self.closed) + 1}: vertex {len(self.open)}" + (
-            "; Close (or click the first vertex) to finish" if len(self.open) >= 3 else "")
+            "; Close (or click the first vertex) to finish" if len(self.open) >= 3 else ""
+        )
 
     def close(self):
         if len(self.open) < 3:
@@ -359,51 +360,123 @@ class ModeSpec:
     snap: bool = False  # clicks snap to a checker target's centre when one is near
 
 
-MODES: dict[str, ModeSpec] = {m.key: m for m in (
-    ModeSpec("gcp", "GCPs P1-P4", "ortho.gcp_px", "frame", lambda axes=None: PointsPick(("P1", "P2", "P3", "P4")),
-             "Click the 4 ground control points in the thesis order (fig. 7.13): P1 and P2 on one bank, P3 and "
-             "P4 on the other, going round the quadrilateral (L1=|P1P2|, L2=|P2P3|, L3=|P3P4|, L4=|P4P1|). "
-             "A click near a checker target snaps to its centre.",
-             legend="P1-P4: ground control points, in order round the quadrilateral", step=1, required=True,
-             snap=True),
-    ModeSpec("section", "Section end points", "section.points_px", "frame", lambda axes=None: PointsPick(("L", "R")),
-             "Click the left then the right water edge of the section (left/right looking downstream).",
-             legend="L: left water edge, R: right water edge (looking downstream)", step=2, required=True),
-    ModeSpec("sections", "More sections", "sections", "frame", lambda axes=None: SectionListPick(),
-             "Several sections (optional): for each, click its left then its right water edge; each is measured on "
-             "the same velocity field (set its own cross-section file in the project, default the main one).",
-             legend="L2/R2, L3/R3, ...: left and right water edges of the 2nd, 3rd, ... section"),
-    ModeSpec("roi", "ROI rectangle", "roi.rect_px", "frame", lambda axes=None: RectPick(),
-             "Click two opposite corners of the region where PIV runs.",
-             legend="C1, C2: opposite corners of the region where PIV runs", step=3),
-    ModeSpec("masks", "Mask polygons", "roi.masks_px", "frame", lambda axes=None: PolygonListPick(),
-             "Click the vertices of an area to ignore; Close (or click the first vertex) finishes it.",
-             legend="M1, M2 ...: closed masks (at their first vertex); 2.3: vertex 3 of mask 2, still open",
-             buttons=("undo", "close", "clear"), step=4),
-    ModeSpec("stable", "Stable regions", "stabilize.regions_px", "frame", lambda axes=None: RectListPick(),
-             "Click two opposite corners of each fixed area outside the water (banks, rocks, buildings).",
-             legend="S1, S2 ...: fixed regions for stabilisation (at a corner)", step=5),
-    ModeSpec("edges", "Water edges (image method)", "water_level.edges_px", "frame",
-             lambda axes=None: PointsPick(("E1", "E2")),
-             "Click the left then the right water edge on the frame (image method).",
-             legend="E1: left water edge, E2: right water edge"),
-    ModeSpec("search_line", "Water-line search line", "water_level.search_line_px", "frame",
-             lambda axes=None: PointsPick(("S1", "S2")),
-             "Water line found in the clip: click a point on one bank, then one on the other bank, across the river.",
-             legend="S1, S2: ends of the line searched for the water edges, one on each bank"),
-    ModeSpec("edges1", "Water edges, image 1", "water_level.edges1_px", "image1",
-             lambda axes=None: PointsPick(("E1", "E2")),
-             "Angle-and-height method: click the two water edges on the first (lower) image.",
-             legend="E1: left water edge, E2: right water edge (image 1)"),
-    ModeSpec("edges2", "Water edges, image 2", "water_level.edges2_px", "image2",
-             lambda axes=None: PointsPick(("E1", "E2")),
-             "Angle-and-height method: click the same two water edges on the second (higher) image.",
-             legend="E1: left water edge, E2: right water edge (image 2)"),
-    ModeSpec("divergence", "DEM divergence point", "water_level.divergence_station_m", "dem_plot",
-             lambda axes=None: StationPick(axes),
-             "Click where the DEM leaves the surveyed bed: the station of the click is the water edge.",
-             legend="D: station where the DEM leaves the surveyed bed", buttons=("undo",)),
-)}
+MODES: dict[str, ModeSpec] = {
+    m.key: m
+    for m in (
+        ModeSpec(
+            "gcp",
+            "GCPs P1-P4",
+            "ortho.gcp_px",
+            "frame",
+            lambda axes=None: PointsPick(("P1", "P2", "P3", "P4")),
+            "Click the 4 ground control points in the thesis order (fig. 7.13): P1 and P2 on one bank, P3 and "
+            "P4 on the other, going round the quadrilateral (L1=|P1P2|, L2=|P2P3|, L3=|P3P4|, L4=|P4P1|). "
+            "A click near a checker target snaps to its centre.",
+            legend="P1-P4: ground control points, in order round the quadrilateral",
+            step=1,
+            required=True,
+            snap=True,
+        ),
+        ModeSpec(
+            "section",
+            "Section end points",
+            "section.points_px",
+            "frame",
+            lambda axes=None: PointsPick(("L", "R")),
+            "Click the left then the right water edge of the section (left/right looking downstream).",
+            legend="L: left water edge, R: right water edge (looking downstream)",
+            step=2,
+            required=True,
+        ),
+        ModeSpec(
+            "sections",
+            "More sections",
+            "sections",
+            "frame",
+            lambda axes=None: SectionListPick(),
+            "Several sections (optional): for each, click its left then its right water edge; each is measured on "
+            "the same velocity field (set its own cross-section file in the project, default the main one).",
+            legend="L2/R2, L3/R3, ...: left and right water edges of the 2nd, 3rd, ... section",
+        ),
+        ModeSpec(
+            "roi",
+            "ROI rectangle",
+            "roi.rect_px",
+            "frame",
+            lambda axes=None: RectPick(),
+            "Click two opposite corners of the region where PIV runs.",
+            legend="C1, C2: opposite corners of the region where PIV runs",
+            step=3,
+        ),
+        ModeSpec(
+            "masks",
+            "Mask polygons",
+            "roi.masks_px",
+            "frame",
+            lambda axes=None: PolygonListPick(),
+            "Click the vertices of an area to ignore; Close (or click the first vertex) finishes it.",
+            legend="M1, M2 ...: closed masks (at their first vertex); 2.3: vertex 3 of mask 2, still open",
+            buttons=("undo", "close", "clear"),
+            step=4,
+        ),
+        ModeSpec(
+            "stable",
+            "Stable regions",
+            "stabilize.regions_px",
+            "frame",
+            lambda axes=None: RectListPick(),
+            "Click two opposite corners of each fixed area outside the water (banks, rocks, buildings).",
+            legend="S1, S2 ...: fixed regions for stabilisation (at a corner)",
+            step=5,
+        ),
+        ModeSpec(
+            "edges",
+            "Water edges (image method)",
+            "water_level.edges_px",
+            "frame",
+            lambda axes=None: PointsPick(("E1", "E2")),
+            "Click the left then the right water edge on the frame (image method).",
+            legend="E1: left water edge, E2: right water edge",
+        ),
+        ModeSpec(
+            "search_line",
+            "Water-line search line",
+            "water_level.search_line_px",
+            "frame",
+            lambda axes=None: PointsPick(("S1", "S2")),
+            "Water line found in the clip: click a point on one bank, then one on the other bank, across the river.",
+            legend="S1, S2: ends of the line searched for the water edges, one on each bank",
+        ),
+        ModeSpec(
+            "edges1",
+            "Water edges, image 1",
+            "water_level.edges1_px",
+            "image1",
+            lambda axes=None: PointsPick(("E1", "E2")),
+            "Angle-and-height method: click the two water edges on the first (lower) image.",
+            legend="E1: left water edge, E2: right water edge (image 1)",
+        ),
+        ModeSpec(
+            "edges2",
+            "Water edges, image 2",
+            "water_level.edges2_px",
+            "image2",
+            lambda axes=None: PointsPick(("E1", "E2")),
+            "Angle-and-height method: click the same two water edges on the second (higher) image.",
+            legend="E1: left water edge, E2: right water edge (image 2)",
+        ),
+        ModeSpec(
+            "divergence",
+            "DEM divergence point",
+            "water_level.divergence_station_m",
+            "dem_plot",
+            lambda axes=None: StationPick(axes),
+            "Click where the DEM leaves the surveyed bed: the station of the click is the water edge.",
+            legend="D: station where the DEM leaves the surveyed bed",
+            buttons=("undo",),
+        ),
+    )
+}
 
 
 def checklist(states: dict[str, PickState]) -> list[tuple[ModeSpec, str, str]]:
@@ -417,7 +490,7 @@ def checklist(states: dict[str, PickState]) -> list[tuple[ModeSpec, str, str]]:
         labels = [t for t, _ in st.labels()] if st is not None else []
         done = st is not None and st.complete
         nxt = getattr(st, "next_name", None)
-        detail = (" ".join(labels) + " placed" if labels else "nothing placed")
+        detail = " ".join(labels) + " placed" if labels else "nothing placed"
         if not done and nxt:
             detail += f"; next {nxt}"
         rows.append([spec, "done" if done else ("todo" if spec.required else "optional"), detail])

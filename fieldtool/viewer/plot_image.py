@@ -30,9 +30,15 @@ def _nice_ticks(lo: float, hi: float, n: int = 6) -> np.ndarray:
     return np.arange(np.ceil(lo / step) * step, hi + 1e-9 * span, step)
 
 
-def render_plot(curves: list[Curve], *, size: tuple[int, int] = (1000, 600), title: str = "",
-                xlabel: str = "", ylabel: str = "", vlines: Sequence[tuple[float, tuple[int, int, int], str]] = ()
-                ) -> tuple[np.ndarray, PlotAxes]:
+def render_plot(
+    curves: list[Curve],
+    *,
+    size: tuple[int, int] = (1000, 600),
+    title: str = "",
+    xlabel: str = "",
+    ylabel: str = "",
+    vlines: Sequence[tuple[float, tuple[int, int, int], str]] = (),
+) -> tuple[np.ndarray, PlotAxes]:
     """Draw ``curves`` (and labelled vertical lines at x values) into a ``size`` = (width, height)
     RGB image. Returns the image and its :class:`PlotAxes`."""
     w, h = size

@@ -54,8 +54,9 @@ class RunningViewer:
         pass
 
     def show_image(self, kind: str) -> None:
-        raise RuntimeError(f"the viewer at {self.url} belongs to another fieldtool (pid {self.pid}); "
-                           "choose the image there")
+        raise RuntimeError(
+            f"the viewer at {self.url} belongs to another fieldtool (pid {self.pid}); choose the image there"
+        )
 
     def show_field(self, npz_path=None) -> bool:
         return False

@@ -67,11 +67,13 @@ from fieldtool.viewer.rerun_web import OfflineWebViewer, disable_rerun_analytics
 MODES = ("off", "save", "connect", "serve")
 OVERLAY_MAX_BYTES = 64 * 2**20  # overlay.mp4 is put into the recording up to this size (else only named in the log)
 PROFILE_SCALE = 10.0  # section profile: 1 m/s is drawn as 10 "metres" of station, so both axes read well
-SERIES = {"pair_m3s": ("per-pair Q (one frame pair's field)", [150, 150, 150]),
-          "running_m3s": ("running estimate (median of the pairs so far)", [255, 140, 0]),
-          "final_m3s": ("final Q (the run's mean field)", [0, 200, 255]),
-          "final_ci95_lo_m3s": ("final Q 95 % lower", [0, 120, 160]),
-          "final_ci95_hi_m3s": ("final Q 95 % upper", [0, 120, 160])}
+SERIES = {
+    "pair_m3s": ("per-pair Q (one frame pair's field)", [150, 150, 150]),
+    "running_m3s": ("running estimate (median of the pairs so far)", [255, 140, 0]),
+    "final_m3s": ("final Q (the run's mean field)", [0, 200, 255]),
+    "final_ci95_lo_m3s": ("final Q 95 % lower", [0, 120, 160]),
+    "final_ci95_hi_m3s": ("final Q 95 % upper", [0, 120, 160]),
+}
 
 
 def blueprint():
@@ -81,10 +83,13 @@ def blueprint():
             rrb.Spatial2DView(origin="/frames/input", name="Current frame and live vectors (px)"),
             rrb.Vertical(
                 rrb.Spatial2DView(origin="/map", name="Rectified map and mean field (m, north up)"),
-                rrb.Spatial2DView(origin="/section/profile",
-                                  name=f"Section: surface velocity and band (x station m, y m/s x {PROFILE_SCALE:g})"),
-                rrb.TimeSeriesView(origin="/discharge", name="Discharge over time (m³/s)",
-                                   plot_legend=rrb.PlotLegend(visible=True)),
+                rrb.Spatial2DView(
+                    origin="/section/profile",
+                    name=f"Section: surface velocity and band (x station m, y m/s x {PROFILE_SCALE:g})",
+                ),
+                rrb.TimeSeriesView(
+                    origin="/discharge", name="Discharge over time (m³/s)", plot_legend=rrb.PlotLegend(visible=True)
+                ),
                 row_shares=[3, 2, 2],
             ),
             column_shares=[3, 2],
@@ -92,12 +97,16 @@ def blueprint():
         rrb.TimePanel(state="collapsed"),
         collapse_panels=True,
     )
+
+
 DEFAULT_URL = "rerun+http://127.0.0.1:9876/proxy"
 GRPC_PORT = 9876
 WEB_PORT = 9090
-SERVE_WARNING = ("rerun serve: the gRPC server (port {grpc}) and the web viewer (port {web}) listen on ALL network "
-                 "interfaces of this machine; anyone who can reach it can watch the run. Use it on a trusted network, "
-                 "or prefer `--rerun save` and copy the .rrd file.")
+SERVE_WARNING = (
+    "rerun serve: the gRPC server (port {grpc}) and the web viewer (port {web}) listen on ALL network "
+    "interfaces of this machine; anyone who can reach it can watch the run. Use it on a trusted network, "
+    "or prefer `--rerun save` and copy the .rrd file."
+)
 
 
 def _to_uint8(img: np.ndarray) -> np.ndarray:
@@ -107,7 +116,7 @@ def _to_uint8(img: np.ndarray) -> np.ndarray:
     a = np.asarray(img, np.float32)
     sub = a[::2, ::2]
     fin = sub[np.isfinite(sub)]
-    lo, hi = (np.percentile(fin, (1, 99)) if fin.size else (0.0, 1.0))
+    lo, hi = np.percentile(fin, (1, 99)) if fin.size else (0.0, 1.0)
     if hi <= lo:
         hi = lo + 1.0
     return np.clip((np.nan_to_num(a, nan=lo) - lo) * (255.0 / (hi - lo)), 0, 255).astype(np.uint8)
@@ -127,9 +136,18 @@ class RerunObserver(Observer):
     recording : an existing ``rr.RecordingStream`` to log to (tests); ``mode`` is then ignored
     """
 
-    def __init__(self, mode: str = "save", *, path: str | Path | None = None, url: str | None = None,
-                 grpc_port: int = GRPC_PORT, web_port: int = WEB_PORT, max_side_px: int = 640,
-                 jpeg_quality: int = 75, recording=None):
+    def __init__(
+        self,
+        mode: str = "save",
+        *,
+        path: str | Path | None = None,
+        url: str | None = None,
+        grpc_port: int = GRPC_PORT,
+        web_port: int = WEB_PORT,
+        max_side_px: int = 640,
+        jpeg_quality: int = 75,
+        recording=None,
+    ):
         self.rr = rr
         self.mode = mode
         self.max_side_px = max_side_px
@@ -213,15 +231,19 @@ class RerunObserver(Observer):
             im = _to_uint8(im)
             if im.ndim == 3:
                 im = cv2.cvtColor(im, cv2.COLOR_BGR2RGB)
-            self.rec.log(name, rr.Image(im, color_model="L" if im.ndim == 2 else "RGB").compress(
-                jpeg_quality=self.jpeg_quality))
+            self.rec.log(
+                name, rr.Image(im, color_model="L" if im.ndim == 2 else "RGB").compress(jpeg_quality=self.jpeg_quality)
+            )
 
     def _series_names(self) -> None:
         """Name and colour the discharge series once (static), so none can be confused in the plot."""
         rr = self.rr
         for key, (name, colour) in SERIES.items():
-            style = (rr.SeriesPoints(names=name, colors=[colour], marker_sizes=[3.0]) if key == "pair_m3s" else
-                     rr.SeriesLines(names=name, colors=[colour], widths=[1.0 if "ci95" in key else 2.0]))
+            style = (
+                rr.SeriesPoints(names=name, colors=[colour], marker_sizes=[3.0])
+                if key == "pair_m3s"
+                else rr.SeriesLines(names=name, colors=[colour], widths=[1.0 if "ci95" in key else 2.0])
+            )
             self.rec.log(f"discharge/{key}", style, static=True)
 
     def geometry(self, pair_discharge) -> None:
@@ -246,10 +268,15 @@ class RerunObserver(Observer):
         ref = float(np.percentile(sp, 90)) if sp.size else 0.0
         self.arrow_s = 0.9 * spacing / ref if ref > 0 else 1.0
         s = self.image_scale or 1.0
-        self.rec.log("scale", self.rr.TextDocument(
-            f"Image-space arrows: positions x {s:.4g} (frame downscale); a velocity in px/s is drawn as its "
-            f"displacement over {self.arrow_s:.4g} s.",
-            media_type="text/markdown"), static=True)
+        self.rec.log(
+            "scale",
+            self.rr.TextDocument(
+                f"Image-space arrows: positions x {s:.4g} (frame downscale); a velocity in px/s is drawn as its "
+                f"displacement over {self.arrow_s:.4g} s.",
+                media_type="text/markdown",
+            ),
+            static=True,
+        )
 
     def _pair(self, i, t_s, x, y, u, v, valid) -> None:
         rr = self.rr
@@ -260,8 +287,10 @@ class RerunObserver(Observer):
         n_nodes = int(np.size(ok))
         self.rec.log("piv/valid_fraction", rr.Scalars(float(ok.sum()) / n_nodes if n_nodes else 0.0))
         s, a = self.image_scale or 1.0, self.arrow_s or 1.0
-        self.rec.log("frames/input/pair_vectors", rr.Arrows2D(
-            origins=np.c_[x[ok], y[ok]] * s, vectors=np.c_[u[ok], v[ok]] * (a * s), colors=[255, 140, 0]))
+        self.rec.log(
+            "frames/input/pair_vectors",
+            rr.Arrows2D(origins=np.c_[x[ok], y[ok]] * s, vectors=np.c_[u[ok], v[ok]] * (a * s), colors=[255, 140, 0]),
+        )
         if self._pair_q is not None:
             self._log_q(self._pair_q(x, y, np.where(ok, u, np.nan), np.where(ok, v, np.nan)))
 
@@ -297,19 +326,33 @@ class RerunObserver(Observer):
         if self.arrow_s is None and ok.any():
             self._arrow_scale(p.x, p.u[ok], p.v[ok])
         s, a = self.image_scale or 1.0, self.arrow_s or 1.0
-        self.rec.log("frames/input/mean_field", rr.Arrows2D(
-            origins=np.c_[p.x[ok], p.y[ok]] * s, vectors=np.c_[p.u[ok], p.v[ok]] * (a * s), colors=[0, 200, 255]))
+        self.rec.log(
+            "frames/input/mean_field",
+            rr.Arrows2D(
+                origins=np.c_[p.x[ok], p.y[ok]] * s, vectors=np.c_[p.u[ok], p.v[ok]] * (a * s), colors=[0, 200, 255]
+            ),
+        )
         XY = res.mapping.image_to_world(np.c_[p.x[ok], p.y[ok]])
         U, V = np.asarray(res.world_u)[ok], np.asarray(res.world_v)[ok]
         flip = np.array([1.0, -1.0])  # screen y = -world Y: north up
         if self._first is not None:
             self._map_background(res, self._first)
         self.map_arrow_s = _map_arrow_s(XY, U, V)
-        self.rec.log("map/mean_field", rr.Arrows2D(origins=XY * flip, vectors=np.c_[U, V] * flip * self.map_arrow_s,
-                                                   colors=[0, 200, 255], radii=0.02))
-        self.rec.log("map/scale", rr.TextDocument(
-            f"Map: metres, north up (screen y = -Y). A velocity (m/s) is drawn as its displacement over "
-            f"{self.map_arrow_s:.3g} s.", media_type="text/markdown"), static=True)
+        self.rec.log(
+            "map/mean_field",
+            rr.Arrows2D(
+                origins=XY * flip, vectors=np.c_[U, V] * flip * self.map_arrow_s, colors=[0, 200, 255], radii=0.02
+            ),
+        )
+        self.rec.log(
+            "map/scale",
+            rr.TextDocument(
+                f"Map: metres, north up (screen y = -Y). A velocity (m/s) is drawn as its displacement over "
+                f"{self.map_arrow_s:.3g} s.",
+                media_type="text/markdown",
+            ),
+            static=True,
+        )
         # the section: in the image (with subsection limits) and on the map (with velocities)
         edges = np.asarray(geom.station_edges, float)
         frac = (edges - edges[0]) / (edges[-1] - edges[0]) if edges[-1] != edges[0] else np.linspace(0, 1, len(edges))
@@ -325,9 +368,14 @@ class RerunObserver(Observer):
         self._profile(res)
         self.rec.log("section/surface_velocity_ms", rr.BarChart(np.nan_to_num(vel)))
         self.rec.log("section/discharge_m3s", rr.BarChart(np.nan_to_num(np.asarray(d.sub_discharge_m3s, float))))
-        self.rec.log("log", rr.TextLog(
-            f"discharge {d.discharge_m3s:.4f} m3/s, level {d.water_level_m:.3f} m, "
-            f"mean velocity {d.mean_velocity_ms:.3f} m/s, alpha {d.alpha:.2f}", level="INFO"))
+        self.rec.log(
+            "log",
+            rr.TextLog(
+                f"discharge {d.discharge_m3s:.4f} m3/s, level {d.water_level_m:.3f} m, "
+                f"mean velocity {d.mean_velocity_ms:.3f} m/s, alpha {d.alpha:.2f}",
+                level="INFO",
+            ),
+        )
         qual = _quality_line(res)
         if qual is not None:
             self.rec.log("log", rr.TextLog(qual[0], level=qual[1]))
@@ -343,10 +391,14 @@ class RerunObserver(Observer):
             return
         path = Path(res.out_dir) / name
         info = res.summary().get("overlay") or {}
-        self.rec.log("log", self.rr.TextLog(
-            f"overlay video: {path} ({info.get('frames', '?')} frames of the analysed range + "
-            f"{info.get('card_frames', 0)} of the closing card, {info.get('codec', '?')}); also at /overlay/video",
-            level="INFO"))
+        self.rec.log(
+            "log",
+            self.rr.TextLog(
+                f"overlay video: {path} ({info.get('frames', '?')} frames of the analysed range + "
+                f"{info.get('card_frames', 0)} of the closing card, {info.get('codec', '?')}); also at /overlay/video",
+                level="INFO",
+            ),
+        )
         try:
             if info.get("codec") != "h264" or path.stat().st_size > OVERLAY_MAX_BYTES:
                 return
@@ -355,8 +407,11 @@ class RerunObserver(Observer):
             self.rec.log("overlay/video", video, static=True)
             ts = video.read_frame_timestamps_nanos()
             t0 = float(info.get("t_first_s") or 0.0)
-            self.rec.send_columns("overlay/video", indexes=[rr.TimeColumn("time", duration=t0 + ts * 1e-9)],
-                                  columns=rr.VideoFrameReference.columns_nanos(ts))
+            self.rec.send_columns(
+                "overlay/video",
+                indexes=[rr.TimeColumn("time", duration=t0 + ts * 1e-9)],
+                columns=rr.VideoFrameReference.columns_nanos(ts),
+            )
         except Exception as e:  # noqa: BLE001 - the video is extra; the run's log is complete without it
             self.warnings.append(f"rerun: overlay.mp4 not added to the recording ({type(e).__name__}: {e})")
 
@@ -367,10 +422,10 @@ class RerunObserver(Observer):
         r = 1.0 / A[0, 0]
         x0, y1 = -A[0, 2] * r, A[1, 2] * r
         im = img if img.ndim == 2 else cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
-        self.rec.log("map/background", rr.Transform3D(translation=[x0 - r / 2, -y1 - r / 2, 0.0], scale=r),
-                     static=True)
-        self.rec.log("map/background", rr.Image(im, color_model="L" if im.ndim == 2 else "RGB", draw_order=-10.0),
-                     static=True)
+        self.rec.log("map/background", rr.Transform3D(translation=[x0 - r / 2, -y1 - r / 2, 0.0], scale=r), static=True)
+        self.rec.log(
+            "map/background", rr.Image(im, color_model="L" if im.ndim == 2 else "RGB", draw_order=-10.0), static=True
+        )
 
     def _profile(self, res) -> None:
         """Surface velocity along the section with the 2.5-97.5 % band of the pair fields."""
@@ -381,18 +436,26 @@ class RerunObserver(Observer):
         band = np.isfinite(b["p025_ms"]) & np.isfinite(b["p975_ms"])
         if band.any():
             lo, hi = np.c_[s[band], k * b["p025_ms"][band]], np.c_[s[band], k * b["p975_ms"][band]]
-            self.rec.log("section/profile/band", rr.LineStrips2D([lo, hi], colors=[[120, 170, 230], [120, 170, 230]],
-                                                                 radii=0.04))
+            self.rec.log(
+                "section/profile/band", rr.LineStrips2D([lo, hi], colors=[[120, 170, 230], [120, 170, 230]], radii=0.04)
+            )
         fin = np.isfinite(v)
-        self.rec.log("section/profile/velocity", rr.LineStrips2D([np.c_[s[fin], k * v[fin]]], colors=[0, 120, 255],
-                                                                 radii=0.08))
+        self.rec.log(
+            "section/profile/velocity", rr.LineStrips2D([np.c_[s[fin], k * v[fin]]], colors=[0, 120, 255], radii=0.08)
+        )
         every = max(1, int(np.ceil(fin.sum() / 6)))  # at most ~6 labels: more overlap; hover shows the rest
-        labels = [(f"{st:.1f} m: {vel:.2f} m/s" + (" (filled)" if f else "")) if i % every == 0 else ""
-                  for i, (st, vel, f) in enumerate(zip(s[fin], v[fin], b["filled"][fin], strict=True))]
-        self.rec.log("section/profile/subsections", rr.Points2D(np.c_[s[fin], k * v[fin]], labels=labels,
-                                                                colors=[0, 120, 255], radii=0.15))
-        self.rec.log("section/profile/zero", rr.LineStrips2D([[[s.min() - 0.5, 0.0], [s.max() + 0.5, 0.0]]],
-                                                             colors=[128, 128, 128], radii=0.02))
+        labels = [
+            (f"{st:.1f} m: {vel:.2f} m/s" + (" (filled)" if f else "")) if i % every == 0 else ""
+            for i, (st, vel, f) in enumerate(zip(s[fin], v[fin], b["filled"][fin], strict=True))
+        ]
+        self.rec.log(
+            "section/profile/subsections",
+            rr.Points2D(np.c_[s[fin], k * v[fin]], labels=labels, colors=[0, 120, 255], radii=0.15),
+        )
+        self.rec.log(
+            "section/profile/zero",
+            rr.LineStrips2D([[[s.min() - 0.5, 0.0], [s.max() + 0.5, 0.0]]], colors=[128, 128, 128], radii=0.02),
+        )
 
     def close(self, timeout_s: float = 3.0) -> None:
         """Flush what is buffered (a viewer that cannot be reached becomes a warning); in save mode
@@ -441,7 +504,8 @@ def _quality_line(res) -> tuple[str, str] | None:
         return None
     ci = _interval(res)
     head = f"discharge {res.discharge.discharge_m3s:.3f} m3/s" + (
-        f", 95 % interval {ci[0]:.3f} - {ci[1]:.3f}" if ci is not None else "")
+        f", 95 % interval {ci[0]:.3f} - {ci[1]:.3f}" if ci is not None else ""
+    )
     reasons = "; ".join(str(r.get("message", r.get("code", ""))) for r in q.get("reasons") or [] if isinstance(r, dict))
     level = {"good": "INFO", "doubtful": "WARN"}.get(str(q["grade"]), "ERROR")
     return f"{head}: quality {q['grade']}" + (f" ({reasons})" if reasons else ""), level
@@ -474,8 +538,10 @@ def check_url(url: str, key: str = "rerun.url") -> str:
     """The viewer URL, checked: ``rerun+http(s)://HOST:PORT/proxy`` or ``rerun://HOST:PORT/proxy``."""
     u = urlparse(url)
     if u.scheme not in ("rerun", "rerun+http", "rerun+https") or not u.hostname or u.path != "/proxy":
-        raise ParameterError(f"{key}: {url!r} is not a rerun viewer address; write it as "
-                             f"rerun+http://HOST:9876/proxy (the address the supervisor's viewer shows)")
+        raise ParameterError(
+            f"{key}: {url!r} is not a rerun viewer address; write it as "
+            f"rerun+http://HOST:9876/proxy (the address the supervisor's viewer shows)"
+        )
     return url
 
 
@@ -503,8 +569,10 @@ def observer_from_args(project, args, out_dir: str | Path) -> RerunObserver | No
         from_flag = getattr(args, "rerun_url", None)
         url = check_url(from_flag or cfg.url or DEFAULT_URL, "--rerun-url" if from_flag else "rerun.url")
         obs = RerunObserver("connect", url=url)
-        print(f"rerun: streaming to the viewer at {url}; if it is not reachable the run goes on without it",
-              file=sys.stderr)
+        print(
+            f"rerun: streaming to the viewer at {url}; if it is not reachable the run goes on without it",
+            file=sys.stderr,
+        )
         return obs
     print("warning: " + SERVE_WARNING.format(grpc=GRPC_PORT, web=WEB_PORT), file=sys.stderr)
     try:
@@ -512,7 +580,10 @@ def observer_from_args(project, args, out_dir: str | Path) -> RerunObserver | No
     except Exception as e:  # noqa: BLE001 - e.g. a port already in use: the run goes on without it
         print(f"warning: rerun serve failed ({e}); running without live logging", file=sys.stderr)
         return None
-    print(f"rerun: serving gRPC on port {GRPC_PORT} and the web viewer on port {WEB_PORT} (no outside requests, "
-          f"rerun analytics off). Supervisor: `rerun rerun+http://FIELD-MACHINE:{GRPC_PORT}/proxy`, or open "
-          f"{obs.urls['web']} (FIELD-MACHINE = this machine's address; here: {obs.urls['local']})", file=sys.stderr)
+    print(
+        f"rerun: serving gRPC on port {GRPC_PORT} and the web viewer on port {WEB_PORT} (no outside requests, "
+        f"rerun analytics off). Supervisor: `rerun rerun+http://FIELD-MACHINE:{GRPC_PORT}/proxy`, or open "
+        f"{obs.urls['web']} (FIELD-MACHINE = this machine's address; here: {obs.urls['local']})",
+        file=sys.stderr,
+    )
     return obs

@@ -43,9 +43,11 @@ def offline_index(html: str) -> str:
 
 def csp(grpc_port: int) -> str:
     """The page may talk only to its own server and to the gRPC port of the same machine."""
-    return ("default-src 'self'; script-src 'self' 'unsafe-inline' 'unsafe-eval' 'wasm-unsafe-eval'; "
-            "style-src 'self' 'unsafe-inline'; img-src 'self' data: blob:; font-src 'self' data:; "
-            f"worker-src 'self' blob:; connect-src 'self' http://*:{grpc_port} ws://*:{grpc_port}")
+    return (
+        "default-src 'self'; script-src 'self' 'unsafe-inline' 'unsafe-eval' 'wasm-unsafe-eval'; "
+        "style-src 'self' 'unsafe-inline'; img-src 'self' data: blob:; font-src 'self' data:; "
+        f"worker-src 'self' blob:; connect-src 'self' http://*:{grpc_port} ws://*:{grpc_port}"
+    )
 
 
 class OfflineWebViewer:
@@ -55,8 +57,9 @@ class OfflineWebViewer:
     ``start()`` returns the page URL for a browser on this machine.
     """
 
-    def __init__(self, grpc_url: str, grpc_port: int, web_port: int, internal_port: int | None = None,
-                 host: str = "0.0.0.0"):
+    def __init__(
+        self, grpc_url: str, grpc_port: int, web_port: int, internal_port: int | None = None, host: str = "0.0.0.0"
+    ):
         self.grpc_url, self.grpc_port, self.web_port, self.host = grpc_url, grpc_port, web_port, host
         self.internal_port = internal_port or web_port + 1
         self.server: ThreadingHTTPServer | None = None

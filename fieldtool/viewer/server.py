@@ -61,9 +61,16 @@ LOOPBACK = ("127.0.0.1", "localhost", "::1")
 FOV_RAD = np.deg2rad(50.0)
 NO_MODE = "view only"
 COLORS = {
-    "gcp": (255, 200, 0), "section": (0, 220, 255), "roi": (0, 220, 0), "masks": (255, 50, 50),
-    "stable": (220, 0, 220), "edges": (60, 130, 255), "edges1": (60, 130, 255), "edges2": (60, 130, 255),
-    "divergence": (220, 0, 0), "field": (255, 120, 0),
+    "gcp": (255, 200, 0),
+    "section": (0, 220, 255),
+    "roi": (0, 220, 0),
+    "masks": (255, 50, 50),
+    "stable": (220, 0, 220),
+    "edges": (60, 130, 255),
+    "edges1": (60, 130, 255),
+    "edges2": (60, 130, 255),
+    "divergence": (220, 0, 0),
+    "field": (255, 120, 0),
 }
 OnPick = Callable[[str, Any], None]
 
@@ -158,8 +165,9 @@ class ViewerHandle:
         self.stop()
 
 
-def start_viewer(project_path: str | Path, host: str = "127.0.0.1", port: int | None = None,
-                 on_pick: OnPick | None = None) -> ViewerHandle:
+def start_viewer(
+    project_path: str | Path, host: str = "127.0.0.1", port: int | None = None, on_pick: OnPick | None = None
+) -> ViewerHandle:
     """Serve the picking page for the project file ``project_path``.
 
     Parameters
@@ -181,10 +189,12 @@ def start_viewer(project_path: str | Path, host: str = "127.0.0.1", port: int | 
         raise ParameterError(f"{key} = {want}: give a port from 1024 to 65535 (or 0 for a free one)")
     host_warning = None
     if host not in LOOPBACK:
-        host_warning = (f"WARNING: the picking viewer listens on {host}: anyone who can reach this machine on the "
-                        f"port and learns the URL's key can see the frames and change the picks of the project. "
-                        f"Use the default 127.0.0.1 with SSH port forwarding (ssh -L PORT:127.0.0.1:PORT) unless "
-                        f"the network is trusted.")
+        host_warning = (
+            f"WARNING: the picking viewer listens on {host}: anyone who can reach this machine on the "
+            f"port and learns the URL's key can see the frames and change the picks of the project. "
+            f"Use the default 127.0.0.1 with SSH port forwarding (ssh -L PORT:127.0.0.1:PORT) unless "
+            f"the network is trusted."
+        )
         warnings.warn(host_warning, stacklevel=2)
     guard = AccessGuard(host)
     routes = _Routes(guard)
@@ -192,21 +202,24 @@ def start_viewer(project_path: str | Path, host: str = "127.0.0.1", port: int | 
         server = viser.ViserServer(host=host, port=want, verbose=False)
     if not guard.hooked:
         server.stop()
-        raise FieldToolError("the picking viewer could not install its access check in viser's web server "
-                             f"(viser {viser.__version__}); it is not started. Please report this.")
+        raise FieldToolError(
+            "the picking viewer could not install its access check in viser's web server "
+            f"(viser {viser.__version__}); it is not started. Please report this."
+        )
     got = server.get_port()
     notes = []
     if want != 0 and got != want:
         if port is not None:
             server.stop()
-            raise ParameterError(f"--port {want}: the port is in use (another viewer?); stop it or give another "
-                                 "port")
+            raise ParameterError(f"--port {want}: the port is in use (another viewer?); stop it or give another port")
         notes.append(f"port {want} (viewer.port) is in use; this viewer uses {got}: tunnel that port this time")
     try:
         viewer = _Viewer(server, path, host, host_warning, on_pick, guard)
         routes.viewer = viewer
         if got != remembered and (port is None and remembered == 0 or port is not None and port != 0):
-            ProjectSync(path).set_keys({"viewer.port": got})  # remembered: the next launch (and its tunnel) uses it again
+            ProjectSync(path).set_keys(
+                {"viewer.port": got}
+            )  # remembered: the next launch (and its tunnel) uses it again
             notes.append(f"port {got} is remembered in viewer.port of {path.name}")
     except BaseException:
         server.stop()
@@ -247,9 +260,18 @@ class _Routes:
             raw, gz = self.page()
             use_gz = "gzip" in request.headers.get("Accept-Encoding", "")
             body = gz if use_gz else raw
-            return Response(200, "OK", Headers({"Content-Type": "text/html; charset=utf-8",
-                                                "Content-Length": str(len(body)),
-                                                "Content-Encoding": "gzip" if use_gz else "identity"}), body)
+            return Response(
+                200,
+                "OK",
+                Headers(
+                    {
+                        "Content-Type": "text/html; charset=utf-8",
+                        "Content-Length": str(len(body)),
+                        "Content-Encoding": "gzip" if use_gz else "identity",
+                    }
+                ),
+                body,
+            )
         if path == "/zoom":
             q = parse_qs(query)
             try:
@@ -291,8 +313,9 @@ ZOOM_SCRIPT = """
 
 
 class _Viewer:
-    def __init__(self, server, path: Path, host: str, host_warning: str | None, on_pick: OnPick | None,
-                 guard: AccessGuard):
+    def __init__(
+        self, server, path: Path, host: str, host_warning: str | None, on_pick: OnPick | None, guard: AccessGuard
+    ):
         self.server, self.path, self.host, self.host_warning, self.on_pick = server, path, host, host_warning, on_pick
         self.guard = guard
         self._lock = threading.RLock()
@@ -316,14 +339,18 @@ class _Viewer:
         s.scene.world_axes.visible = False
         s.gui.add_markdown(f"**fieldtool picks** - `{path.name}`")
         self.gui_image = s.gui.add_dropdown("Image", tuple(KINDS.values()), initial_value=KINDS["frame"])
-        self.gui_mode = s.gui.add_dropdown("Pick mode", (NO_MODE,) + tuple(m.label for m in MODES.values()),
-                                           initial_value=NO_MODE)
+        self.gui_mode = s.gui.add_dropdown(
+            "Pick mode", (NO_MODE,) + tuple(m.label for m in MODES.values()), initial_value=NO_MODE
+        )
         self.gui_checklist = s.gui.add_markdown(" ")
         next_btn = s.gui.add_button("Next pick")
         self.gui_help = s.gui.add_markdown("Choose a pick mode, then click on the image.")
         self.gui_legend = s.gui.add_markdown(" ")
-        self.buttons = {"undo": s.gui.add_button("Undo"), "close": s.gui.add_button("Close polygon"),
-                        "clear": s.gui.add_button("Clear this mode")}
+        self.buttons = {
+            "undo": s.gui.add_button("Undo"),
+            "close": s.gui.add_button("Close polygon"),
+            "clear": s.gui.add_button("Clear this mode"),
+        }
         self.gui_field = s.gui.add_checkbox("Velocity field", True)
         self.gui_status = s.gui.add_markdown(" ")
         s.gui.add_markdown(f"Picks are saved to `{path}` at once. The mouse wheel zooms about the cursor.")
@@ -493,9 +520,16 @@ class _Viewer:
             self._sync(self.gui_image, KINDS[kind])
             h, w = disp.rgb.shape[:2]
             self.plane = fit_plane(w, h)
-            self.server.scene.add_image("/image", disp.rgb, self.plane.render_width, self.plane.render_height,
-                                        format="png" if kind == "dem_plot" else "jpeg", jpeg_quality=92,
-                                        cast_shadow=False, receive_shadow=False)
+            self.server.scene.add_image(
+                "/image",
+                disp.rgb,
+                self.plane.render_width,
+                self.plane.render_height,
+                format="png" if kind == "dem_plot" else "jpeg",
+                jpeg_quality=92,
+                cast_shadow=False,
+                receive_shadow=False,
+            )
             pos, look, up = camera_pose(self.plane, FOV_RAD, 16 / 9)
             cam = self.server.initial_camera
             cam.fov, cam.position, cam.look_at, cam.up = FOV_RAD, pos, look, up
@@ -552,11 +586,15 @@ class _Viewer:
             before = state.value()
             msg = state.click(float(raw[0]), float(raw[1]), exact=snapped is not None)
             if snapped is not None and state.value() != before:
-                msg += (f" - snapped to the target centre ({raw[0]:.2f}, {raw[1]:.2f}) px, "
-                        f"{snapped.moved_px:.1f} px from the click (Undo if wrong)")
+                msg += (
+                    f" - snapped to the target centre ({raw[0]:.2f}, {raw[1]:.2f}) px, "
+                    f"{snapped.moved_px:.1f} px from the click (Undo if wrong)"
+                )
             elif spec.snap and state.value() != before:  # say so: a click meant for a target stays where it fell
-                msg += (" - NOT snapped: no checker target found near the click (a small or far target); placed "
-                        "where clicked: zoom in (mouse wheel) to place it on the centre, or Undo")
+                msg += (
+                    " - NOT snapped: no checker target found near the click (a small or far target); placed "
+                    "where clicked: zoom in (mouse wheel) to place it on the centre, or Undo"
+                )
         return self._commit(spec, state, msg)
 
     def _act(self, action: str) -> str:
@@ -640,8 +678,7 @@ class _Viewer:
         h, w = self.display.rgb.shape[:2]
         return max(5.0, 0.009 * max(w, h)) * (1.3 if active else 1.0)
 
-    def _lines(self, name: str, pts_raw, color, closed: bool = False, width: float = 2.5,
-               gap_px: float = 0.0) -> None:
+    def _lines(self, name: str, pts_raw, color, closed: bool = False, width: float = 2.5, gap_px: float = 0.0) -> None:
         """Straight segments between points; ``gap_px`` stops each segment short of its ends (the
         rings), so the lines never cross the targets inside the rings."""
         p = np.asarray(pts_raw, float).reshape(-1, 2)
@@ -662,10 +699,12 @@ class _Viewer:
             u = (b - a)[keep] / n[keep, None]
             a, b = a[keep] + gap_px * u, b[keep] - gap_px * u
             lift = self.plane.render_width * 1e-3
-            seg = np.stack([pixel_to_scene(a, self.plane, lift=lift), pixel_to_scene(b, self.plane, lift=lift)],
-                           axis=1)
-        self._overlay.append(self.server.scene.add_line_segments(
-            f"/overlay/{name}_lines", seg, color, thickness=width, thickness_units="screen"))
+            seg = np.stack([pixel_to_scene(a, self.plane, lift=lift), pixel_to_scene(b, self.plane, lift=lift)], axis=1)
+        self._overlay.append(
+            self.server.scene.add_line_segments(
+                f"/overlay/{name}_lines", seg, color, thickness=width, thickness_units="screen"
+            )
+        )
 
     def _points(self, name: str, labels: list[tuple[str, list[float]]], color, active: bool) -> None:
         """Hollow rings around the picked points (the target stays visible inside) and their
@@ -681,13 +720,22 @@ class _Viewer:
         lift = self.plane.render_width * 2e-3
         p = pixel_to_scene(rings.reshape(-1, 2), self.plane, lift=lift).reshape(len(disp), len(th), 3)
         seg = np.concatenate([np.stack([q[:-1], q[1:]], axis=1) for q in p])
-        self._overlay.append(self.server.scene.add_line_segments(
-            f"/overlay/{name}_rings", seg, color, thickness=3.0 if active else 2.0, thickness_units="screen"))
+        self._overlay.append(
+            self.server.scene.add_line_segments(
+                f"/overlay/{name}_rings", seg, color, thickness=3.0 if active else 2.0, thickness_units="screen"
+            )
+        )
         at = pixel_to_scene(disp + np.array([0.8 * r, -0.8 * r]), self.plane, lift=lift)
         for i, ((text, _), q) in enumerate(zip(labels, at, strict=True)):
-            self._overlay.append(self.server.scene.add_label(
-                f"/overlay/{name}_label{i}", text, position=tuple(q), anchor="bottom-left",
-                font_screen_scale=1.3 if active else 1.0))
+            self._overlay.append(
+                self.server.scene.add_label(
+                    f"/overlay/{name}_label{i}",
+                    text,
+                    position=tuple(q),
+                    anchor="bottom-left",
+                    font_screen_scale=1.3 if active else 1.0,
+                )
+            )
 
     def _draw_state(self, key: str) -> None:
         st = self.states.get(key)
@@ -743,8 +791,11 @@ class _Viewer:
         k = len(start)
         p = self._to_scene(pts, lift=self.plane.render_width * 5e-4).reshape(4, k, 3)
         seg = np.concatenate([np.stack([p[0], p[1]], 1), np.stack([p[1], p[2]], 1), np.stack([p[1], p[3]], 1)])
-        self._overlay.append(self.server.scene.add_line_segments(
-            "/overlay/field", seg, COLORS["field"], thickness=1.5, thickness_units="screen"))
+        self._overlay.append(
+            self.server.scene.add_line_segments(
+                "/overlay/field", seg, COLORS["field"], thickness=1.5, thickness_units="screen"
+            )
+        )
 
     def _draw_divergence(self) -> None:
         st = self.states["divergence"]
@@ -754,10 +805,16 @@ class _Viewer:
         col = st.points[0][0]
         color = COLORS["divergence"]
         p = pixel_to_scene([[col, ax.top_px], [col, ax.bottom_px]], self.plane, lift=self.plane.render_width * 1e-3)
-        self._overlay.append(self.server.scene.add_line_segments(
-            "/overlay/divergence", p[None], color, thickness=3.0, thickness_units="screen"))
-        self._overlay.append(self.server.scene.add_label(
-            "/overlay/divergence_label", f"D = {st.value():.3f} m", position=tuple(p[0]), anchor="top-left"))
+        self._overlay.append(
+            self.server.scene.add_line_segments(
+                "/overlay/divergence", p[None], color, thickness=3.0, thickness_units="screen"
+            )
+        )
+        self._overlay.append(
+            self.server.scene.add_label(
+                "/overlay/divergence_label", f"D = {st.value():.3f} m", position=tuple(p[0]), anchor="top-left"
+            )
+        )
 
     # ------------------------------------------------------------------ zoom
 
@@ -768,8 +825,18 @@ class _Viewer:
             try:
                 cam = client.camera
                 aspect = cam.aspect if cam.image_height else 16 / 9
-                new = zoom_about_cursor(cam.position, cam.look_at, cam.up_direction, cam.fov, aspect,
-                                        (ndc_x, ndc_y), scale, self.plane, min_dist=0.02 * size, max_dist=20 * size)
+                new = zoom_about_cursor(
+                    cam.position,
+                    cam.look_at,
+                    cam.up_direction,
+                    cam.fov,
+                    aspect,
+                    (ndc_x, ndc_y),
+                    scale,
+                    self.plane,
+                    min_dist=0.02 * size,
+                    max_dist=20 * size,
+                )
                 if new is None:
                     continue
                 with client.atomic():

@@ -81,6 +81,7 @@ def _ring_score(g: np.ndarray, x: float, y: float) -> float:
 
 def _saddle(d: dict[str, np.ndarray], x: float, y: float, iters: int = 12) -> tuple[float, float] | None:
     """Newton steps to the saddle point of the smoothed intensity (gradient zero, det(H) < 0)."""
+
     def at(name: str, px: float, py: float) -> float:
         return float(cv2.getRectSubPix(d[name], (1, 1), (px, py))[0, 0])
 
@@ -120,9 +121,13 @@ def snap_to_target(image: np.ndarray, x: float, y: float, radius_px: float = 8.0
     if x1 - x0 < 8 or y1 - y0 < 8:
         return None
     sm = cv2.GaussianBlur(g[y0:y1, x0:x1], (0, 0), SMOOTH_PX)
-    d = {"x": cv2.Sobel(sm, cv2.CV_32F, 1, 0, ksize=3) / 8, "y": cv2.Sobel(sm, cv2.CV_32F, 0, 1, ksize=3) / 8,
-         "xx": cv2.Sobel(sm, cv2.CV_32F, 2, 0, ksize=3) / 4, "yy": cv2.Sobel(sm, cv2.CV_32F, 0, 2, ksize=3) / 4,
-         "xy": cv2.Sobel(sm, cv2.CV_32F, 1, 1, ksize=3) / 4}
+    d = {
+        "x": cv2.Sobel(sm, cv2.CV_32F, 1, 0, ksize=3) / 8,
+        "y": cv2.Sobel(sm, cv2.CV_32F, 0, 1, ksize=3) / 8,
+        "xx": cv2.Sobel(sm, cv2.CV_32F, 2, 0, ksize=3) / 4,
+        "yy": cv2.Sobel(sm, cv2.CV_32F, 0, 2, ksize=3) / 4,
+        "xy": cv2.Sobel(sm, cv2.CV_32F, 1, 1, ksize=3) / 4,
+    }
     sad = -(d["xx"] * d["yy"] - d["xy"] * d["xy"])
     peaks = (sad > 0) & (sad >= cv2.dilate(sad, np.ones((3, 3), np.uint8)))
     yy, xx = np.nonzero(peaks)

@@ -42,17 +42,32 @@ class StationSeries:
             self.failed = True
             self.warnings.append(f"rerun logging stopped: {type(e).__name__}: {e}")
 
-    def measurement(self, time_utc: str, q: float | None, lo: float | None, hi: float | None,
-                    level_m: float | None, grade: str | None, label: str) -> None:
+    def measurement(
+        self,
+        time_utc: str,
+        q: float | None,
+        lo: float | None,
+        hi: float | None,
+        level_m: float | None,
+        grade: str | None,
+        label: str,
+    ) -> None:
         def log():
             t = datetime.fromisoformat(time_utc.replace("Z", "+00:00"))
             self.rec.set_time("clip_time", timestamp=t)
-            for name, v in (("discharge_m3s", q), ("ci95_low_m3s", lo), ("ci95_high_m3s", hi),
-                            ("water_level_m", level_m)):
+            for name, v in (
+                ("discharge_m3s", q),
+                ("ci95_low_m3s", lo),
+                ("ci95_high_m3s", hi),
+                ("water_level_m", level_m),
+            ):
                 if v is not None:
                     self.rec.log(f"station/{name}", rr.Scalars(float(v)))
-            self.rec.log("station/log", rr.TextLog(f"{label}: Q {q} m³/s, level {level_m} m, {grade or 'no grade'}",
-                                                   level="INFO"))
+            self.rec.log(
+                "station/log",
+                rr.TextLog(f"{label}: Q {q} m³/s, level {level_m} m, {grade or 'no grade'}", level="INFO"),
+            )
+
         self._guard(log)
 
     def failure(self, label: str, reason: str) -> None:

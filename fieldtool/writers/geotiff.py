@@ -25,9 +25,17 @@ from fieldtool.project.model import atomic_path
 GEOREF_METHODS = ("world", "pose")
 
 # PROJ projection names -> CF grid_mapping_name, and PROJ parameters -> CF attributes
-_CF_NAMES = {"tmerc": "transverse_mercator", "utm": "transverse_mercator", "sterea": "stereographic",
-             "stere": "stereographic", "lcc": "lambert_conformal_conic", "merc": "mercator",
-             "laea": "lambert_azimuthal_equal_area", "aea": "albers_conical_equal_area", "omerc": "oblique_mercator"}
+_CF_NAMES = {
+    "tmerc": "transverse_mercator",
+    "utm": "transverse_mercator",
+    "sterea": "stereographic",
+    "stere": "stereographic",
+    "lcc": "lambert_conformal_conic",
+    "merc": "mercator",
+    "laea": "lambert_azimuthal_equal_area",
+    "aea": "albers_conical_equal_area",
+    "omerc": "oblique_mercator",
+}
 
 
 def _rasterio():
@@ -44,16 +52,22 @@ def check_crs(epsg: int | None, method: str):
     rasterio = _rasterio()
     CRS, CRSError = rasterio.crs.CRS, rasterio.errors.CRSError
     if isinstance(epsg, bool) or not isinstance(epsg, int) or epsg <= 0:
-        raise ParameterError(f"ortho.crs_epsg: {epsg!r} is not an EPSG code; give a whole number such as 28992 or "
-                             "32631, or leave the key out")
+        raise ParameterError(
+            f"ortho.crs_epsg: {epsg!r} is not an EPSG code; give a whole number such as 28992 or "
+            "32631, or leave the key out"
+        )
     try:
         crs = CRS.from_epsg(epsg)
     except CRSError:
-        raise ParameterError(f"ortho.crs_epsg: EPSG:{epsg} is not a known coordinate reference system; check the "
-                             "code (e.g. 28992 Amersfoort / RD New, 326zz WGS 84 / UTM zone zz N)") from None
+        raise ParameterError(
+            f"ortho.crs_epsg: EPSG:{epsg} is not a known coordinate reference system; check the "
+            "code (e.g. 28992 Amersfoort / RD New, 326zz WGS 84 / UTM zone zz N)"
+        ) from None
     if not crs.is_projected or (crs.linear_units or "").lower() not in ("metre", "meter", "m"):
-        raise ParameterError(f"ortho.crs_epsg: EPSG:{epsg} is not a projected system in metres (the GCP "
-                             "coordinates and the mapping are metres); use the projected CRS of the survey")
+        raise ParameterError(
+            f"ortho.crs_epsg: EPSG:{epsg} is not a projected system in metres (the GCP "
+            "coordinates and the mapping are metres); use the projected CRS of the survey"
+        )
     return crs
 
 
@@ -75,16 +89,30 @@ def cf_grid_mapping(crs) -> dict:
         attrs["grid_mapping_name"] = name
     if d.get("proj") == "utm":
         zone = int(d.get("zone", 0))
-        attrs.update(longitude_of_central_meridian=zone * 6.0 - 183.0, latitude_of_projection_origin=0.0,
-                     scale_factor_at_central_meridian=0.9996, false_easting=500000.0,
-                     false_northing=10000000.0 if d.get("south") else 0.0)
+        attrs.update(
+            longitude_of_central_meridian=zone * 6.0 - 183.0,
+            latitude_of_projection_origin=0.0,
+            scale_factor_at_central_meridian=0.9996,
+            false_easting=500000.0,
+            false_northing=10000000.0 if d.get("south") else 0.0,
+        )
     else:
-        central = "longitude_of_central_meridian" if name in ("transverse_mercator", "lambert_conformal_conic",
-                                                             "albers_conical_equal_area") \
+        central = (
+            "longitude_of_central_meridian"
+            if name in ("transverse_mercator", "lambert_conformal_conic", "albers_conical_equal_area")
             else "longitude_of_projection_origin"
-        scale = "scale_factor_at_central_meridian" if name == "transverse_mercator" else "scale_factor_at_projection_origin"
-        for k, cf in (("lon_0", central), ("lat_0", "latitude_of_projection_origin"), ("k", scale), ("k_0", scale),
-                      ("x_0", "false_easting"), ("y_0", "false_northing")):
+        )
+        scale = (
+            "scale_factor_at_central_meridian" if name == "transverse_mercator" else "scale_factor_at_projection_origin"
+        )
+        for k, cf in (
+            ("lon_0", central),
+            ("lat_0", "latitude_of_projection_origin"),
+            ("k", scale),
+            ("k_0", scale),
+            ("x_0", "false_easting"),
+            ("y_0", "false_northing"),
+        ):
             if k in d:
                 attrs[cf] = float(d[k])
         if "lat_1" in d:
@@ -115,8 +143,10 @@ def write_rectified(result, project, inputs, out: Path) -> str | None:
         return None
     crs = crs_of(project)
     if crs is None:
-        result.warnings.append(f"ortho.crs_epsg = {o.crs_epsg} is not used: ortho.method = {o.method} builds a local "
-                               "frame; use method = world with the GCP coordinates in that CRS for a GeoTIFF")
+        result.warnings.append(
+            f"ortho.crs_epsg = {o.crs_epsg} is not used: ortho.method = {o.method} builds a local "
+            "frame; use method = world with the GCP coordinates in that CRS for a GeoTIFF"
+        )
         return None
     rasterio = _rasterio()
     Affine = rasterio.transform.Affine
@@ -125,14 +155,33 @@ def write_rectified(result, project, inputs, out: Path) -> str | None:
     transform = Affine(r, 0.0, x0 - r / 2, 0.0, -r, y1 + r / 2)
     path = Path(out) / "rectified.tif"
     with atomic_path(path) as tmp:
-        with rasterio.open(tmp, "w", driver="GTiff", width=img.shape[1], height=img.shape[0], count=4,
-                           dtype="uint8", crs=crs, transform=transform, compress="deflate", photometric="RGB",
-                           tiled=True) as dst:
+        with rasterio.open(
+            tmp,
+            "w",
+            driver="GTiff",
+            width=img.shape[1],
+            height=img.shape[0],
+            count=4,
+            dtype="uint8",
+            crs=crs,
+            transform=transform,
+            compress="deflate",
+            photometric="RGB",
+            tiled=True,
+        ) as dst:
             for b in range(3):
                 dst.write(img[..., b], b + 1)
             dst.write(alpha, 4)
-            dst.colorinterp = [rasterio.enums.ColorInterp.red, rasterio.enums.ColorInterp.green,
-                               rasterio.enums.ColorInterp.blue, rasterio.enums.ColorInterp.alpha]
-            dst.update_tags(TIFFTAG_SOFTWARE="fieldtool", title=f"rectified first frame — {project.name}",
-                            cell_size_m=f"{r:.6g}", ortho_method=o.method)
+            dst.colorinterp = [
+                rasterio.enums.ColorInterp.red,
+                rasterio.enums.ColorInterp.green,
+                rasterio.enums.ColorInterp.blue,
+                rasterio.enums.ColorInterp.alpha,
+            ]
+            dst.update_tags(
+                TIFFTAG_SOFTWARE="fieldtool",
+                title=f"rectified first frame — {project.name}",
+                cell_size_m=f"{r:.6g}",
+                ortho_method=o.method,
+            )
     return path.name

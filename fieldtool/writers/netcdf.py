@@ -62,7 +62,8 @@ def regular_grid(XY: np.ndarray, values: list[np.ndarray], max_cells: int = MAX_
     far = (dist > np.maximum(d[idx, 1] if len(XY) > 1 else dx, dx)).reshape(Xg.shape)
     if len(XY) >= 3:  # one triangulation for every variable
         g = _linear_on_triangles(XY, np.stack(values, axis=-1), np.c_[Xg.ravel(), Yg.ravel()]).reshape(
-            Xg.shape + (len(values),))
+            Xg.shape + (len(values),)
+        )
     else:
         g = np.full(Xg.shape + (len(values),), np.nan)
     g[far] = np.nan
@@ -124,32 +125,85 @@ def build_dataset(result, project) -> dict:
         t_comment = "recording date unknown: the values are seconds from the start of the clip, not a date"
 
     crs = crs_of(project)
-    frame = (f"EPSG:{project.ortho.crs_epsg}" if crs is not None else
-             f"the site's local frame of the GCPs (ortho.method = {project.ortho.method})")
+    frame = (
+        f"EPSG:{project.ortho.crs_epsg}"
+        if crs is not None
+        else f"the site's local frame of the GCPs (ortho.method = {project.ortho.method})"
+    )
     common = {"grid_mapping": "crs"} if crs is not None else {}
     field = {"zlib": True, "complevel": 4, "fill_value": np.float32(np.nan)}
     plain = {"fill_value": False}
     tyx = ("time", "y", "x")
     variables = {
         # projection coordinates also in a local frame: there is no grid mapping then (CRS unknown)
-        "time": (("time",), np.array([(t0 + t1) / 2]), {
-            "standard_name": "time", "long_name": "time of the mean field", "axis": "T", "bounds": "time_bnds",
-            "units": t_units, "calendar": "standard", "comment": t_comment}, plain),
-        "x": (("x",), x, {"standard_name": "projection_x_coordinate", "long_name": f"x in {frame}", "units": "m",
-                          "axis": "X"}, plain),
-        "y": (("y",), y, {"standard_name": "projection_y_coordinate", "long_name": f"y in {frame}", "units": "m",
-                          "axis": "Y"}, plain),
-        "surface_velocity_x": (tyx, gu[None], {
-            "standard_name": "sea_water_x_velocity", "long_name": "surface velocity, x component (LSPIV)",
-            "units": "m s-1", "cell_methods": "time: mean", **common}, field),
-        "surface_velocity_y": (tyx, gv[None], {
-            "standard_name": "sea_water_y_velocity", "long_name": "surface velocity, y component (LSPIV)",
-            "units": "m s-1", "cell_methods": "time: mean", **common}, field),
-        "surface_speed": (tyx, speed[None].astype(np.float32), {
-            "standard_name": "sea_water_speed", "long_name": "surface speed (LSPIV)", "units": "m s-1",
-            "cell_methods": "time: mean", **common}, field),
-        "valid_fraction": (tyx, gf[None], {
-            "long_name": "fraction of frame pairs in which the PIV vector was valid", "units": "1", **common}, field),
+        "time": (
+            ("time",),
+            np.array([(t0 + t1) / 2]),
+            {
+                "standard_name": "time",
+                "long_name": "time of the mean field",
+                "axis": "T",
+                "bounds": "time_bnds",
+                "units": t_units,
+                "calendar": "standard",
+                "comment": t_comment,
+            },
+            plain,
+        ),
+        "x": (
+            ("x",),
+            x,
+            {"standard_name": "projection_x_coordinate", "long_name": f"x in {frame}", "units": "m", "axis": "X"},
+            plain,
+        ),
+        "y": (
+            ("y",),
+            y,
+            {"standard_name": "projection_y_coordinate", "long_name": f"y in {frame}", "units": "m", "axis": "Y"},
+            plain,
+        ),
+        "surface_velocity_x": (
+            tyx,
+            gu[None],
+            {
+                "standard_name": "sea_water_x_velocity",
+                "long_name": "surface velocity, x component (LSPIV)",
+                "units": "m s-1",
+                "cell_methods": "time: mean",
+                **common,
+            },
+            field,
+        ),
+        "surface_velocity_y": (
+            tyx,
+            gv[None],
+            {
+                "standard_name": "sea_water_y_velocity",
+                "long_name": "surface velocity, y component (LSPIV)",
+                "units": "m s-1",
+                "cell_methods": "time: mean",
+                **common,
+            },
+            field,
+        ),
+        "surface_speed": (
+            tyx,
+            speed[None].astype(np.float32),
+            {
+                "standard_name": "sea_water_speed",
+                "long_name": "surface speed (LSPIV)",
+                "units": "m s-1",
+                "cell_methods": "time: mean",
+                **common,
+            },
+            field,
+        ),
+        "valid_fraction": (
+            tyx,
+            gf[None],
+            {"long_name": "fraction of frame pairs in which the PIV vector was valid", "units": "1", **common},
+            field,
+        ),
         "time_bnds": (("time", "nv"), np.array([[t0, t1]]), {}, plain),
     }
     if crs is not None:
@@ -162,8 +216,10 @@ def build_dataset(result, project) -> dict:
         "source": f"fieldtool {__version__}: large-scale particle image velocimetry of a river surface video",
         "history": f"{now} written by fieldtool {__version__} (fieldtool run)",
         "references": "thesis: LSPIV discharge measurement (fieldtool/shared/seed)",
-        "comment": (f"Node velocities interpolated linearly onto a regular {dx:g} m grid in {frame}; cells farther "
-                    "from a valid node than the local node spacing are empty. Native PIV nodes: mean_field.npz."),
+        "comment": (
+            f"Node velocities interpolated linearly onto a regular {dx:g} m grid in {frame}; cells farther "
+            "from a valid node than the local node spacing are empty. Native PIV nodes: mean_field.npz."
+        ),
         "site": project.site,
         "video_file": video.get("file", ""),
         "discharge_m3s": float(d.discharge_m3s),

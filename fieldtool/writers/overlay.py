@@ -28,11 +28,11 @@ import numpy as np
 # 33 samples of each map, #rrggbb without the hash, from 0 to 1
 _MAPS = {
     "viridis": "440154 470d60 48186a 482374 472d7b 453781 424086 3e4989 3b528b 375b8d 33638d 2f6b8e 2c728e "
-               "297a8e 26828e 23898e 21918c 1f988b 1fa088 22a785 28ae80 32b67a 3fbc73 4ec36b 5ec962 70cf57 "
-               "84d44b 98d83e addc30 c2df23 d8e219 ece51b fde725",
+    "297a8e 26828e 23898e 21918c 1f988b 1fa088 22a785 28ae80 32b67a 3fbc73 4ec36b 5ec962 70cf57 "
+    "84d44b 98d83e addc30 c2df23 d8e219 ece51b fde725",
     "cividis": "00224e 00285b 002e6a 053371 1a386f 273e6e 32436d 3b496c 434e6c 4b546c 535a6d 5a5f6e 61656f "
-               "686a71 6f7073 767676 7d7c78 848279 8c8878 938e78 9b9476 a39a74 aba072 b4a76f bcae6c c4b468 "
-               "cdbb63 d5c25e dec958 e7d150 f0d846 f9e03a fee838",
+    "686a71 6f7073 767676 7d7c78 848279 8c8878 938e78 9b9476 a39a74 aba072 b4a76f bcae6c c4b468 "
+    "cdbb63 d5c25e dec958 e7d150 f0d846 f9e03a fee838",
 }
 COLORMAPS = tuple(_MAPS)
 NO_VALUE_BGR = (150, 150, 150)  # a subsection without a velocity
@@ -44,7 +44,7 @@ def lut(name: str = "viridis") -> np.ndarray:
     """(256, 3) uint8 BGR table of the colour map ``name`` (one of :data:`COLORMAPS`)."""
     if name not in _MAPS:
         raise ValueError(f"colour map {name!r} is not one of {', '.join(COLORMAPS)}")
-    rgb = np.array([[int(h[i:i + 2], 16) for i in (0, 2, 4)] for h in _MAPS[name].split()], float)
+    rgb = np.array([[int(h[i : i + 2], 16) for i in (0, 2, 4)] for h in _MAPS[name].split()], float)
     xa, x = np.linspace(0.0, 1.0, len(rgb)), np.linspace(0.0, 1.0, 256)
     table = np.stack([np.interp(x, xa, rgb[:, k]) for k in range(3)], axis=1)
     return np.round(table[:, ::-1]).astype(np.uint8)  # BGR
@@ -86,8 +86,9 @@ def text_scale(img: np.ndarray) -> float:
     return max(0.4, img.shape[0] / 720.0 * 0.6)
 
 
-def put_text(img: np.ndarray, text: str, org: tuple[int, int], scale: float, colour=(255, 255, 255),
-             thickness: int | None = None) -> None:
+def put_text(
+    img: np.ndarray, text: str, org: tuple[int, int], scale: float, colour=(255, 255, 255), thickness: int | None = None
+) -> None:
     """Text with a dark outline, readable on any background (the outline is the text drawn 1 px off in four
     directions: a thicker stroke would advance the glyphs further and drift from the text)."""
     t = max(1, int(round(scale * 1.8))) if thickness is None else thickness
@@ -123,8 +124,9 @@ def draw_arrows(img: np.ndarray, start: np.ndarray, end: np.ndarray, bgr: np.nda
         cv2.polylines(img, list(lines[which == k]), False, tuple(int(v) for v in col), thickness, cv2.LINE_AA)
 
 
-def draw_section(img: np.ndarray, limits: np.ndarray, v_sub, vmin: float, vmax: float, table: np.ndarray,
-                 thickness: int = 7) -> None:
+def draw_section(
+    img: np.ndarray, limits: np.ndarray, v_sub, vmin: float, vmax: float, table: np.ndarray, thickness: int = 7
+) -> None:
     """The section through its subsection limits ``limits`` ((n+1, 2) frame px), each subsection filled
     with the colour of its surface velocity ``v_sub`` ((n,) m/s; NaN grey), on a dark outline, with ticks."""
     p = np.asarray(limits, float)
@@ -134,8 +136,14 @@ def draw_section(img: np.ndarray, limits: np.ndarray, v_sub, vmin: float, vmax: 
     cv2.polylines(img, [pts.reshape(-1, 1, 2)], False, (0, 0, 0), thickness + 4, cv2.LINE_AA)
     cols = colours(v_sub, vmin, vmax, table)
     for k in range(len(pts) - 1):
-        cv2.line(img, tuple(int(v) for v in pts[k]), tuple(int(v) for v in pts[k + 1]),
-                 tuple(int(v) for v in cols[k]), thickness, cv2.LINE_AA)
+        cv2.line(
+            img,
+            tuple(int(v) for v in pts[k]),
+            tuple(int(v) for v in pts[k + 1]),
+            tuple(int(v) for v in cols[k]),
+            thickness,
+            cv2.LINE_AA,
+        )
     for q in pts:
         cv2.circle(img, (int(q[0]), int(q[1])), max(2, thickness // 2), (255, 255, 255), -1, cv2.LINE_AA)
 
@@ -143,8 +151,9 @@ def draw_section(img: np.ndarray, limits: np.ndarray, v_sub, vmin: float, vmax: 
 _LEGENDS: dict = {}  # (frame shape, range, table, title) -> (patch, x0, y0): the legend is drawn once
 
 
-def draw_legend(img: np.ndarray, vmin: float, vmax: float, table: np.ndarray,
-                title: str = "surface velocity (m/s)") -> None:
+def draw_legend(
+    img: np.ndarray, vmin: float, vmax: float, table: np.ndarray, title: str = "surface velocity (m/s)"
+) -> None:
     """A vertical colour bar in the top-right corner with round ticks in m/s, on a dark box."""
     key = (img.shape, float(vmin), float(vmax), table.tobytes(), title)
     if key not in _LEGENDS:
@@ -152,7 +161,7 @@ def draw_legend(img: np.ndarray, vmin: float, vmax: float, table: np.ndarray,
             _LEGENDS.clear()
         _LEGENDS[key] = _legend_patch(img.shape, vmin, vmax, table, title)
     patch, x0, y0 = _LEGENDS[key]
-    img[y0:y0 + patch.shape[0], x0:x0 + patch.shape[1]] = patch
+    img[y0 : y0 + patch.shape[0], x0 : x0 + patch.shape[1]] = patch
 
 
 def _legend_patch(shape, vmin: float, vmax: float, table: np.ndarray, title: str):
@@ -171,7 +180,7 @@ def _legend_patch(shape, vmin: float, vmax: float, table: np.ndarray, title: str
     canvas[by0:by1, bx0:bx1] = (28, 28, 28)
     put_text(canvas, title, (x1 - tw, y0 - 8), s * 0.8)
     ramp = table[::-1][np.linspace(0, 255, bar_h).astype(int)]
-    canvas[y0:y0 + bar_h, x0:x1] = ramp[:, None, :]
+    canvas[y0 : y0 + bar_h, x0:x1] = ramp[:, None, :]
     cv2.rectangle(canvas, (x0, y0), (x1 - 1, y0 + bar_h - 1), (255, 255, 255), 1)
     for f in np.linspace(0.0, 1.0, _ticks(vmax - vmin) + 1):
         y = int(round(y0 + (1.0 - f) * (bar_h - 1)))
@@ -230,7 +239,7 @@ def draw_card(img: np.ndarray, lines: list[tuple[str, tuple[int, int, int], floa
     bw = max(sz[0] for sz in sizes) + int(0.06 * w)
     y = int(min(h * centre - total / 2, h - total - 0.06 * h))
     _shade(img, (w - bw) // 2, y - int(0.02 * h), (w + bw) // 2, y + total + int(0.04 * h), alpha=0.7)
-    for (t, c, r), lh, (tw, _) in zip(lines, heights, sizes):
+    for (t, c, r), lh, (tw, _) in zip(lines, heights, sizes, strict=False):
         y += lh
         put_text(img, t, ((w - tw) // 2, y), s * r, c)
 
@@ -249,8 +258,17 @@ class VideoWriter:
     0.6 of ``veryfast``'s time for a file 1.4 x larger (~1.5 MB for 5 s at 960 x 540).
     """
 
-    def __init__(self, path: Path | str, width: int, height: int, fps: float, *, crf: int = 23,
-                 preset: str = "superfast", threads: int = 1) -> None:
+    def __init__(
+        self,
+        path: Path | str,
+        width: int,
+        height: int,
+        fps: float,
+        *,
+        crf: int = 23,
+        preset: str = "superfast",
+        threads: int = 1,
+    ) -> None:
         if width % 2 or height % 2:
             raise ValueError(f"frame size {width}x{height}: H.264 in yuv420p needs even sides")
         self.path, self.width, self.height = Path(path), int(width), int(height)
@@ -273,10 +291,13 @@ class VideoWriter:
             self._s = st
         else:
             self.backend, self.codec = "opencv", "mp4v"
-            self.warning = ("overlay.mp4 written with OpenCV's MPEG-4 part 2 (mp4v) codec because PyAV is not "
-                            "installed; browsers may not play it: pip install av")
-            self._w = cv2.VideoWriter(str(self.path), cv2.VideoWriter_fourcc(*"mp4v"), float(self.rate),
-                                      (self.width, self.height))
+            self.warning = (
+                "overlay.mp4 written with OpenCV's MPEG-4 part 2 (mp4v) codec because PyAV is not "
+                "installed; browsers may not play it: pip install av"
+            )
+            self._w = cv2.VideoWriter(
+                str(self.path), cv2.VideoWriter_fourcc(*"mp4v"), float(self.rate), (self.width, self.height)
+            )
             if not self._w.isOpened():
                 raise OSError(f"{self.path}: OpenCV cannot write an MP4 file here")
             self._last_pts = -1

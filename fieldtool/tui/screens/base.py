@@ -98,7 +98,11 @@ class StepScreen(Screen):
                 row.control.focus()
                 return
         for w in self.query("#main Input, #main Select, #main OptionList, #main DataTable"):
-            if w.display and w.parent is not None and all(a.display for a in w.ancestors_with_self if hasattr(a, "display")):
+            if (
+                w.display
+                and w.parent is not None
+                and all(a.display for a in w.ancestors_with_self if hasattr(a, "display"))
+            ):
                 w.focus()
                 return
 
@@ -207,7 +211,9 @@ class StepScreen(Screen):
         box = self.query_one("#step-errors", Static)
         lines = [m.split(" — ")[0] if is_missing(m) else m for m in msgs]
         one_line = len(lines) > 1
-        box.update(Text("\n".join(f"✗ {m}" for m in lines), no_wrap=one_line, overflow="ellipsis" if one_line else None))
+        box.update(
+            Text("\n".join(f"✗ {m}" for m in lines), no_wrap=one_line, overflow="ellipsis" if one_line else None)
+        )
         box.display = bool(msgs)
         if msgs:
             for row in self.rows:
@@ -251,6 +257,7 @@ class StepScreen(Screen):
         ``before``: each row's text as the project's value gave it before the change came in. A row whose
         text differs from it holds typing not yet taken in: it is left as it is and returned as a Conflict
         (its text, the file's value) for the app to ask about."""
+
         def hit(row_key: str) -> bool:
             return any(row_key == k or k.startswith(row_key + "[") or row_key.startswith(k + "[") for k in keys)
 
@@ -258,8 +265,13 @@ class StepScreen(Screen):
         pending = []
         for row in self.rows:
             if hit(row.field.key):
-                mid_typing = (before is not None and row.display and row.field.key in keys
-                              and row.field.key in before and row.text() != before[row.field.key])
+                mid_typing = (
+                    before is not None
+                    and row.display
+                    and row.field.key in keys
+                    and row.field.key in before
+                    and row.text() != before[row.field.key]
+                )
                 if mid_typing:  # this very key changed elsewhere while its row holds typing not taken in
                     try:
                         typed = row.field.parse(row.text())

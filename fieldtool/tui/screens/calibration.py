@@ -22,8 +22,14 @@ class CalibrationScreen(StepScreen):
     def compose_top(self) -> ComposeResult:
         with Horizontal(classes="field-line", id="mode-line"):
             yield Label("Calibration", classes="field-label")
-            yield Select(CALIBRATION_MODES, value=self.session.ui["calibration_mode"], allow_blank=False,
-                         compact=True, id="mode", type_to_search=False)
+            yield Select(
+                CALIBRATION_MODES,
+                value=self.session.ui["calibration_mode"],
+                allow_blank=False,
+                compact=True,
+                id="mode",
+                type_to_search=False,
+            )
 
     def compose_extra(self) -> ComposeResult:
         yield Static("", id="lens-info")
@@ -54,16 +60,22 @@ class CalibrationScreen(StepScreen):
         mode = self.session.ui["calibration_mode"]
         run = self.session.calibration_run
         if mode == "skip":
-            info.update("no lens correction: fine for most phone and action-camera clips of a small river; "
-                        "needed for the angle-and-height water level (field of view)")
+            info.update(
+                "no lens correction: fine for most phone and action-camera clips of a small river; "
+                "needed for the angle-and-height water level (field of view)"
+            )
             return
         if mode == "run" and run is not None:
             fx, fy, fd = run["fov_deg"]
-            state = "" if self.session.calibration_state() == "current" else \
-                " [red]settings changed since: run it again (ctrl+r)[/red]"
-            info.update(f"calibrated from {run['views']} board views: RMS reprojection error {run['rms_px']:.3f} px; "
-                        f"FOV {fx:.1f} x {fy:.1f} deg (diagonal {fd:.1f}); saved as {self.project.calibration.path}"
-                        + state)
+            state = (
+                ""
+                if self.session.calibration_state() == "current"
+                else " [red]settings changed since: run it again (ctrl+r)[/red]"
+            )
+            info.update(
+                f"calibrated from {run['views']} board views: RMS reprojection error {run['rms_px']:.3f} px; "
+                f"FOV {fx:.1f} x {fy:.1f} deg (diagonal {fd:.1f}); saved as {self.project.calibration.path}" + state
+            )
             return
         if mode == "run" and self.session.calibration_state() != "current":
             info.update("ctrl+r runs the calibration; it is written to the 'Save as' file and used from then on")
@@ -75,8 +87,10 @@ class CalibrationScreen(StepScreen):
             return
         fx, fy, fd = lens.fov_deg
         rms = f"RMS {lens.rms_px:.3f} px · " if lens.rms_px is not None else ""
-        info.update(f"lens for {lens.image_size[0]} x {lens.image_size[1]} px: {rms}FOV {fx:.1f} x {fy:.1f} deg "
-                    f"(diagonal {fd:.1f})")
+        info.update(
+            f"lens for {lens.image_size[0]} x {lens.image_size[1]} px: {rms}FOV {fx:.1f} x {fy:.1f} deg "
+            f"(diagonal {fd:.1f})"
+        )
 
     def _load(self):
         if not self.project.calibration.path:
@@ -103,5 +117,8 @@ class CalibrationScreen(StepScreen):
             self.show_errors(errors)
             return
         p = jobs.snapshot(self.project)  # the project as it is now: the job runs on this copy
-        self.app.start_job("calibration", "Calibration",  # type: ignore[attr-defined]
-                           lambda job: jobs.run_calibration(p, job))
+        self.app.start_job(
+            "calibration",
+            "Calibration",  # type: ignore[attr-defined]
+            lambda job: jobs.run_calibration(p, job),
+        )

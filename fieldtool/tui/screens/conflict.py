@@ -37,8 +37,10 @@ class ConflictScreen(ModalScreen[bool]):
             t.append(f"• {c.text()}\n")
         if len(self.conflicts) > 8:
             t.append(f"… and {len(self.conflicts) - 8} more\n")
-        t.append("The file's value is kept (it is what the other window shows). m: put yours back; k / escape: "
-                 "keep the file's.")
+        t.append(
+            "The file's value is kept (it is what the other window shows). m: put yours back; k / escape: "
+            "keep the file's."
+        )
         with Vertical():
             yield Static(t, id="conflict-text")
             yield Button("Keep the file's (k)", id="keep", variant="primary")

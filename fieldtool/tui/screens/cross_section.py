@@ -30,8 +30,9 @@ class CrossSectionScreen(StepScreen):
         plot = self.query_one(SectionPlot)
         c = self.project.cross_section
         if not c.shape and not c.path.strip():  # nothing typed yet: say what to do, not that a file is missing
-            plot.set_data(message="no cross-section yet: type the survey file's name above, or choose a shape "
-                                  "as the source")
+            plot.set_data(
+                message="no cross-section yet: type the survey file's name above, or choose a shape as the source"
+            )
             return
         try:
             cs = build_cross_section(self.project)

@@ -46,8 +46,11 @@ def parse_params(text: str, name: str) -> dict:
 def example_params(cls) -> str:
     """The parameters input's placeholder: the chosen filter's own parameters with their defaults, so an
     example never disagrees with the default beside it (``clahe``: "defaults: clip_limit=40, tile_grid=8")."""
-    shown = [f"{p.name}={fmt_num(p.default) if not isinstance(p.default, str) else p.default}"
-             for p in cls.params if p.default is not None]
+    shown = [
+        f"{p.name}={fmt_num(p.default) if not isinstance(p.default, str) else p.default}"
+        for p in cls.params
+        if p.default is not None
+    ]
     return "defaults: " + ", ".join(shown) if shown else "no parameters to set" if not cls.params else "defaults"
 
 
@@ -65,8 +68,14 @@ class FiltersScreen(StepScreen):
         yield OptionList(id="stack")
         with Horizontal(classes="field-line"):
             yield Label("Filter", classes="field-label")
-            yield Select([(n, n) for n in FILTERS], value="clahe", allow_blank=False, compact=True, id="filter-name",
-                         type_to_search=False)
+            yield Select(
+                [(n, n) for n in FILTERS],
+                value="clahe",
+                allow_blank=False,
+                compact=True,
+                id="filter-name",
+                type_to_search=False,
+            )
         with Horizontal(classes="field-line"):
             yield Label("Parameters", classes="field-label")
             yield Input(placeholder=example_params(FILTERS["clahe"]), compact=True, id="filter-params")
@@ -99,13 +108,22 @@ class FiltersScreen(StepScreen):
         doc = (cls.__doc__ or "").strip().splitlines()[0]
         parts = []
         for p in cls.params:
-            d = "from the image" if p.default is None else fmt_num(p.default) if not isinstance(p.default, str) else p.default
+            d = (
+                "from the image"
+                if p.default is None
+                else fmt_num(p.default)
+                if not isinstance(p.default, str)
+                else p.default
+            )
             parts.append(f"{p.name} ({p.doc or p.kind.__name__}; default {d})")
         self.query_one("#filter-doc", Static).update(Text(f"{doc}\n" + "; ".join(parts), style="dim"))
         self.query_one("#filter-params", Input).placeholder = example_params(cls)
-        self.query_one("#help", Static).update(Text(
-            "ctrl+t adds the chosen filter with these parameters (empty = defaults); ctrl+y removes the last; "
-            "ctrl+r previews"))
+        self.query_one("#help", Static).update(
+            Text(
+                "ctrl+t adds the chosen filter with these parameters (empty = defaults); ctrl+y removes the last; "
+                "ctrl+r previews"
+            )
+        )
 
     def on_select_changed(self, event: Select.Changed) -> None:
         if event.select.id == "filter-name":

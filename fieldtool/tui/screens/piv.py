@@ -31,16 +31,22 @@ class PivScreen(StepScreen):
             grid.set_field(None, None)
             return
         if state == "stale":
-            info.update("[red]! the inputs changed since the last PIV run[/red]: ctrl+r runs it again "
-                        "(the discharge step also recomputes it when needed)")
+            info.update(
+                "[red]! the inputs changed since the last PIV run[/red]: ctrl+r runs it again "
+                "(the discharge step also recomputes it when needed)"
+            )
             grid.set_field(None, None)
             return
         res = s.last_result()
-        if res is not None and not (s.changed_tables(res.summary.get("inputs")) & set(("video", "calibration",
-                                    "stabilize", "roi", "filters", "piv"))):
+        if res is not None and not (
+            s.changed_tables(res.summary.get("inputs"))
+            & set(("video", "calibration", "stabilize", "roi", "filters", "piv"))
+        ):
             sm = res.summary
-            info.update(f"{sm['n_pairs']} pairs · valid vectors {100 * sm['valid_fraction_mean']:.0f} % · "
-                        f"mean velocity in the section {sm['mean_velocity_ms']:.3f} m/s (depth-averaged)")
+            info.update(
+                f"{sm['n_pairs']} pairs · valid vectors {100 * sm['valid_fraction_mean']:.0f} % · "
+                f"mean velocity in the section {sm['mean_velocity_ms']:.3f} m/s (depth-averaged)"
+            )
             try:
                 with np.load(s.out_dir / "mean_field.npz") as z:
                     u, v = z["u_px_s"], z["v_px_s"]
@@ -55,11 +61,18 @@ class PivScreen(StepScreen):
         if water is None:  # a summary of an older session: judged here
             water = water_nodes(u, v)
         ms, mpx = st.get("median_speed_ms"), st.get("median_speed_px_s")
-        speed = (f"median speed on the water {ms:.3f} m/s" if ms is not None else
-                 f"median speed on the water {mpx:.1f} px/s" if mpx is not None else "no moving water found")
+        speed = (
+            f"median speed on the water {ms:.3f} m/s"
+            if ms is not None
+            else f"median speed on the water {mpx:.1f} px/s"
+            if mpx is not None
+            else "no moving water found"
+        )
         n_water = int(np.sum(water))
-        info.update(f"{st['pairs']} pairs · {n_water} of {st['nodes']} nodes on the water · valid "
-                    f"{100 * st['valid_fraction']:.0f} % · {speed} · page down: the arrows")
+        info.update(
+            f"{st['pairs']} pairs · {n_water} of {st['nodes']} nodes on the water · valid "
+            f"{100 * st['valid_fraction']:.0f} % · {speed} · page down: the arrows"
+        )
         grid.set_field(u, v, water)
 
     def action_run(self) -> None:
@@ -71,8 +84,11 @@ class PivScreen(StepScreen):
         full = jobs.has_section(p) and not any(self.session.step_errors(st) for st in ("section",))
         if full:
             out = self.session.out_dir
-            self.app.start_job("piv", "PIV and discharge",  # type: ignore[attr-defined]
-                               lambda job: jobs.run_full(p, out, job))
+            self.app.start_job(
+                "piv",
+                "PIV and discharge",  # type: ignore[attr-defined]
+                lambda job: jobs.run_full(p, out, job),
+            )
         else:
             out = self.session.out_dir  # the field is saved there at once (PIV cache)
             self.app.start_job("piv", "PIV", lambda job: jobs.run_piv_only(p, job, out))  # type: ignore[attr-defined]

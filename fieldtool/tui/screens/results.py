@@ -17,9 +17,15 @@ from fieldtool.tui.steps import MEASUREMENT
 from fieldtool.tui.widgets.field_row import FieldRow
 
 # (header, csv column, decimals)
-COLUMNS = (("#", "subsection", None), ("from m", "station_from_m", 2), ("to m", "station_to_m", 2),
-           ("A m²", "area_m2", 3), ("d m", "mean_depth_m", 2), ("v m/s", "surface_velocity_ms", 3),
-           ("Q m³/s", "discharge_m3s", 3))
+COLUMNS = (
+    ("#", "subsection", None),
+    ("from m", "station_from_m", 2),
+    ("to m", "station_to_m", 2),
+    ("A m²", "area_m2", 3),
+    ("d m", "mean_depth_m", 2),
+    ("v m/s", "surface_velocity_ms", 3),
+    ("Q m³/s", "discharge_m3s", 3),
+)
 
 
 GRADE_STYLE = {"good": "green", "doubtful": "yellow", "unusable": "bold red"}
@@ -41,25 +47,35 @@ def discharge_lines(s: dict) -> list[str]:
     if isinstance(quality, dict) and quality.get("grade"):
         grade = str(quality["grade"])
         style = GRADE_STYLE.get(grade, "")
-        reasons = [str(r.get("message", r.get("code", ""))) if isinstance(r, dict) else str(r)
-                   for r in quality.get("reasons") or []]
+        reasons = [
+            str(r.get("message", r.get("code", ""))) if isinstance(r, dict) else str(r)
+            for r in quality.get("reasons") or []
+        ]
         text = f"quality        [{style}]{escape(grade)}[/{style}]" if style else f"quality        {escape(grade)}"
         lines.append(text + (": " + escape("; ".join(reasons)) if reasons else " (no reason for doubt found)"))
     std = s.get("uncertainty_standard")  # ISO 748 and IVE beside the Monte Carlo (issue 27)
     if isinstance(std, dict):
-        parts = [f"{name} ±{100 * b['u95_rel']:.1f} % ({escape(str(b.get('rating') or '–'))}) "
-                 f"{b['ci95_m3s'][0]:.3f} .. {b['ci95_m3s'][1]:.3f}"
-                 for key, name in (("iso748", "ISO 748"), ("ive", "IVE"))
-                 if isinstance(b := std.get(key), dict) and b.get("ci95_m3s") and b.get("u95_rel") is not None]
+        parts = [
+            f"{name} ±{100 * b['u95_rel']:.1f} % ({escape(str(b.get('rating') or '–'))}) "
+            f"{b['ci95_m3s'][0]:.3f} .. {b['ci95_m3s'][1]:.3f}"
+            for key, name in (("iso748", "ISO 748"), ("ive", "IVE"))
+            if isinstance(b := std.get(key), dict) and b.get("ci95_m3s") and b.get("u95_rel") is not None
+        ]
         if parts:
             lines.append("standard 2σ    " + "  ·  ".join(parts))
     sm = s.get("sections_summary")
     if isinstance(sm, dict) and sm.get("n"):
-        each = ", ".join(f"{escape(str(e.get('name')))} {e['discharge_m3s']:.3f}" for e in s.get("sections") or []
-                         if isinstance(e.get("discharge_m3s"), (int, float)))
+        each = ", ".join(
+            f"{escape(str(e.get('name')))} {e['discharge_m3s']:.3f}"
+            for e in s.get("sections") or []
+            if isinstance(e.get("discharge_m3s"), (int, float))
+        )
         cv = sm.get("cv")
-        lines.append(f"sections       mean {sm['mean_m3s']:.3f} m³/s, std {sm['std_m3s']:.3f}, CV "
-                     f"{100 * cv:.1f} % ({each})" if isinstance(cv, (int, float)) else f"sections       {each}")
+        lines.append(
+            f"sections       mean {sm['mean_m3s']:.3f} m³/s, std {sm['std_m3s']:.3f}, CV {100 * cv:.1f} % ({each})"
+            if isinstance(cv, (int, float))
+            else f"sections       {each}"
+        )
     return lines
 
 
@@ -68,9 +84,11 @@ def overlay_line(s: dict) -> str:
     ov = s.get("overlay")
     name = (s.get("files") or {}).get("overlay")
     if isinstance(ov, dict) and name:
-        return (f"overlay video  {escape(str(name))}: {ov.get('frames', '?')} frames + {ov.get('card_frames', 0)} of the "
-                f"closing card, {ov.get('width_px', '?')}x{ov.get('height_px', '?')} ({ov.get('view', '')} view); "
-                "ctrl+l renders it again")
+        return (
+            f"overlay video  {escape(str(name))}: {ov.get('frames', '?')} frames + {ov.get('card_frames', 0)} of the "
+            f"closing card, {ov.get('width_px', '?')}x{ov.get('height_px', '?')} ({ov.get('view', '')} view); "
+            "ctrl+l renders it again"
+        )
     return "[dim]ctrl+l renders the overlay video (overlay.mp4: vectors, section and Q drawn on the clip)[/dim]"
 
 
@@ -84,8 +102,10 @@ class ResultsScreen(StepScreen):
         yield Static("", id="table-hint")
         yield DataTable(id="subsections", zebra_stripes=True, cursor_type="row")
         yield Static("", id="files")
-        yield Static(Text("The measurement, on the report (ctrl+g writes report.html and report.pdf in out/):",
-                          style="bold"), id="measurement-head")
+        yield Static(
+            Text("The measurement, on the report (ctrl+g writes report.html and report.pdf in out/):", style="bold"),
+            id="measurement-head",
+        )
         for f in MEASUREMENT:  # below the result: Q and its warnings stay at the top of the 80 x 24 screen
             row = FieldRow(f)
             self.rows.append(row)
@@ -106,8 +126,10 @@ class ResultsScreen(StepScreen):
 
     def focus_help(self, widget) -> str:
         if isinstance(widget, DataTable):
-            return ("↑ / ↓ / page up / page down scroll the subsections · ctrl+r recomputes · ctrl+l renders the "
-                    "overlay video · ctrl+b goes back")
+            return (
+                "↑ / ↓ / page up / page down scroll the subsections · ctrl+r recomputes · ctrl+l renders the "
+                "overlay video · ctrl+b goes back"
+            )
         return super().focus_help(widget)
 
     def refresh_view(self) -> None:
@@ -126,8 +148,11 @@ class ResultsScreen(StepScreen):
         table.clear()
         res = self.session.last_result()
         state, changed = self.session.result_state()
-        now = ("[b]computing the discharge…[/b] (progress in the status line below; esc cancels)"
-               if self.computing() else None)
+        now = (
+            "[b]computing the discharge…[/b] (progress in the status line below; esc cancels)"
+            if self.computing()
+            else None
+        )
         if res is None:
             summary.update(now or "no result yet: ctrl+r computes the discharge (every step is used)")
             files.update("")
@@ -148,14 +173,20 @@ class ResultsScreen(StepScreen):
         if warnings:  # next to Q, on the first screen: one line, the first warning cut to fit, how many and where
             lead = f"⚠ {len(warnings)} warning{'s' if len(warnings) > 1 else ''} (in full below the table): "
             room = max(self.query_one("#summary", Static).size.width or 54, 30) - len(lead) - 4  # ⚠ may take 2 cells
-            first = warnings[0] if len(warnings[0]) <= room else warnings[0][:room - 1] + "…"
+            first = warnings[0] if len(warnings[0]) <= room else warnings[0][: room - 1] + "…"
             warn_head = [f"[yellow]{escape(lead)}{escape(first)}[/yellow]"]
-        summary.update(head + "\n".join([
-            *discharge_lines(s),
-            *warn_head,
-            f"water level    {s['water_level_m']:.3f}{unc_t} m ({s.get('water_level_method', '')})",
-            f"wetted area    {s['wetted_area_m2']:.3f} m²    width {s['wetted_width_m']:.3f} m",
-            f"mean velocity  {s['mean_velocity_ms']:.4f} m/s    alpha {s['alpha']:.2f}{alpha_t}"]))
+        summary.update(
+            head
+            + "\n".join(
+                [
+                    *discharge_lines(s),
+                    *warn_head,
+                    f"water level    {s['water_level_m']:.3f}{unc_t} m ({s.get('water_level_method', '')})",
+                    f"wetted area    {s['wetted_area_m2']:.3f} m²    width {s['wetted_width_m']:.3f} m",
+                    f"mean velocity  {s['mean_velocity_ms']:.4f} m/s    alpha {s['alpha']:.2f}{alpha_t}",
+                ]
+            )
+        )
         table.display = True
         for row in res.subsections:
             vals = []
@@ -172,8 +203,9 @@ class ResultsScreen(StepScreen):
         note = "* velocity filled from a neighbour\n" if filled else ""
         names = sorted(set((s.get("files") or {}).values()))
         warn = "".join(f"\n[yellow]warning: {escape(w)}[/yellow]" for w in s.get("warnings", []))
-        files.update(f"{note}files in out/ beside {self.session.path.name}: {', '.join(names)}\n"
-                     f"{overlay_line(s)}{warn}")
+        files.update(
+            f"{note}files in out/ beside {self.session.path.name}: {', '.join(names)}\n{overlay_line(s)}{warn}"
+        )
         self.call_after_refresh(self.update_hint)
 
     def update_hint(self) -> None:
@@ -199,8 +231,21 @@ class ResultsScreen(StepScreen):
         self.focus_first()
 
     def action_run(self) -> None:
-        bad = [st for st in ("cross_section", "video", "calibration", "ortho", "water_level", "roi", "filters", "piv",
-                             "section") if self.session.step_errors(st)]
+        bad = [
+            st
+            for st in (
+                "cross_section",
+                "video",
+                "calibration",
+                "ortho",
+                "water_level",
+                "roi",
+                "filters",
+                "piv",
+                "section",
+            )
+            if self.session.step_errors(st)
+        ]
         if bad:
             self.show_errors([f"step '{st}' is not complete: " + self.session.step_errors(st)[0] for st in bad])
             return
@@ -212,8 +257,21 @@ class ResultsScreen(StepScreen):
     def action_overlay(self) -> None:
         """Run again with ``[overlay] enabled`` for this run only: overlay.mp4 beside the other results (the PIV
         field of the last run is reused when its inputs did not change; the clip is then read once)."""
-        bad = [st for st in ("cross_section", "video", "calibration", "ortho", "water_level", "roi", "filters", "piv",
-                             "section") if self.session.step_errors(st)]
+        bad = [
+            st
+            for st in (
+                "cross_section",
+                "video",
+                "calibration",
+                "ortho",
+                "water_level",
+                "roi",
+                "filters",
+                "piv",
+                "section",
+            )
+            if self.session.step_errors(st)
+        ]
         if bad:
             self.show_errors([f"step '{st}' is not complete: " + self.session.step_errors(st)[0] for st in bad])
             return

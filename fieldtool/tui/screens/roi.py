@@ -28,9 +28,10 @@ class RoiScreen(StepScreen):
         h, w = self.session.inputs().shape
         area = f"x {roi[0]}..{roi[2]}, y {roi[1]}..{roi[3]} px" if roi else "the whole frame"
         masked = f" · {100.0 * mask.mean():.1f} % of the frame masked" if mask is not None else ""
-        info.update(f"frame {w} x {h} px · PIV runs on {area}{masked}\n"
-                    "pick the ROI as two corners (top-left, bottom-right) and each mask as 3+ corners in the viewer")
+        info.update(
+            f"frame {w} x {h} px · PIV runs on {area}{masked}\n"
+            "pick the ROI as two corners (top-left, bottom-right) and each mask as 3+ corners in the viewer"
+        )
 
     def check(self):
         return roi_and_mask(self.project, self.session.inputs())
-

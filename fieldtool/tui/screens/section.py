@@ -39,9 +39,15 @@ class SectionScreen(StepScreen):
         edges = geom.station_edges
         depth = cs.wetted_area(level.level_m, edges[0], edges[-1]) / max(edges[-1] - edges[0], 1e-9)
         alpha = self.project.section.alpha
-        a = f"{alpha:g} (typed)" if alpha is not None else f"{default_alpha(depth):g} (default for mean depth {depth:.2f} m)"
-        info.update(f"section {geom.length_m:.2f} m long, stations {edges[0]:.2f} .. {edges[-1]:.2f} m, "
-                    f"{len(edges) - 1} subsections of {np.diff(edges).mean():.2f} m · velocity index {a}")
+        a = (
+            f"{alpha:g} (typed)"
+            if alpha is not None
+            else f"{default_alpha(depth):g} (default for mean depth {depth:.2f} m)"
+        )
+        info.update(
+            f"section {geom.length_m:.2f} m long, stations {edges[0]:.2f} .. {edges[-1]:.2f} m, "
+            f"{len(edges) - 1} subsections of {np.diff(edges).mean():.2f} m · velocity index {a}"
+        )
 
     def action_run(self) -> None:
         self.refresh_view(checked=True)

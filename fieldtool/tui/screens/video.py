@@ -30,16 +30,22 @@ class VideoScreen(StepScreen):
         i = src.info
         n = src.estimated_count()
         kind = "image sequence" if i.is_sequence else "video"
-        info.update(f"{kind}: {i.width} x {i.height} px · {i.fps:.2f} fps · {i.n_frames} frames · "
-                    f"{i.duration_s:.2f} s\nframes used: about {n} ({max(n - 1, 0)} pairs)")
+        info.update(
+            f"{kind}: {i.width} x {i.height} px · {i.fps:.2f} fps · {i.n_frames} frames · "
+            f"{i.duration_s:.2f} s\nframes used: about {n} ({max(n - 1, 0)} pairs)"
+        )
         st = self.query_one("#stab-info", Static)
         rep = self.session.ui.get("stabilization")
         if self.project.stabilize.enabled:
-            text = ("ctrl+r registers the clip on its first frame and reports the residual motion. Order of the "
-                    "regions: any; type 'x0, y0, x1, y1' or pick two corners per region in the viewer (ctrl+o).")
+            text = (
+                "ctrl+r registers the clip on its first frame and reports the residual motion. Order of the "
+                "regions: any; type 'x0, y0, x1, y1' or pick two corners per region in the viewer (ctrl+o)."
+            )
             if rep:
-                text = (f"stabilised {rep['frames']} frames: residual median {rep['median_px']:.2f} px, "
-                        f"max {rep['max_px']:.2f} px; largest camera motion {rep['max_shift_px']:.1f} px")
+                text = (
+                    f"stabilised {rep['frames']} frames: residual median {rep['median_px']:.2f} px, "
+                    f"max {rep['max_px']:.2f} px; largest camera motion {rep['max_shift_px']:.1f} px"
+                )
             st.update(text)
         else:
             st.update("")
@@ -59,5 +65,8 @@ class VideoScreen(StepScreen):
             self.show_errors(self.errors())
             return
         p = jobs.snapshot(self.project)  # the project as it is now: the job runs on this copy
-        self.app.start_job("stabilize", "Stabilisation",  # type: ignore[attr-defined]
-                           lambda job: jobs.run_stabilization(p, job))
+        self.app.start_job(
+            "stabilize",
+            "Stabilisation",  # type: ignore[attr-defined]
+            lambda job: jobs.run_stabilization(p, job),
+        )

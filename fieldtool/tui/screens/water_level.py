@@ -44,8 +44,10 @@ class WaterLevelScreen(StepScreen):
                     plot.set_data(message=str(e2))
                 return
             unc = f" ± {level.uncertainty_m:.3f}" if level.uncertainty_m else ""
-            info.update(f"water level {level.level_m:.3f}{unc} m · wetted width {cs.wetted_width(level.level_m):.2f} m"
-                        f" · wetted area {cs.wetted_area(level.level_m):.3f} m²")
+            info.update(
+                f"water level {level.level_m:.3f}{unc} m · wetted width {cs.wetted_width(level.level_m):.2f} m"
+                f" · wetted area {cs.wetted_area(level.level_m):.3f} m²"
+            )
             plot.set_data(cs.station, cs.elevation, level.level_m)
             return
         info.update("ctrl+r computes the level with this method")

@@ -27,7 +27,7 @@ class TitleBar(Static):
         if len(head) > room:
             head = f" {name} "
         if len(head) > room:
-            head = f" {name[:max(room - 3, 1)]}… " if room > 4 else " "
+            head = f" {name[: max(room - 3, 1)]}… " if room > 4 else " "
         t = Text()
         t.append(" fieldtool ", style="bold reverse")
         if " · " in head:
@@ -66,7 +66,7 @@ class StepList(OptionList):
             t.append(f"{i + 1:>2} {s.title}", style="bold reverse" if s.id == current else "")
             if mark == "invalid" and reasons.get(s.id):
                 r = reasons[s.id]
-                t.append("\n   " + (r if len(r) <= SIDEBAR_TEXT - 2 else r[:SIDEBAR_TEXT - 3] + "…"), style="red")
+                t.append("\n   " + (r if len(r) <= SIDEBAR_TEXT - 2 else r[: SIDEBAR_TEXT - 3] + "…"), style="red")
             out.append(Option(t, id=s.id))
         return out
 
@@ -112,7 +112,7 @@ def job_line(job, width: int = 78, now: float | None = None) -> str:
     tail = f" {bar(done, total, 8)}{count} · {clock(elapsed)} elapsed · {clock(remaining)} left · esc cancels"
     room = width - len(tail)
     if len(head) > room:
-        head = head[:max(room - 1, 1)] + "…"
+        head = head[: max(room - 1, 1)] + "…"
     return head + tail
 
 

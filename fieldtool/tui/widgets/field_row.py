@@ -56,14 +56,21 @@ class FieldRow(Vertical):
             if f.kind == "choice":
                 options = [(label, v) for label, v in f.choices]
                 known = [v for _, v in options]
-                yield Select(options, value=value if value in known else known[0], allow_blank=False, compact=True,
-                             id="input", type_to_search=False)
+                yield Select(
+                    options,
+                    value=value if value in known else known[0],
+                    allow_blank=False,
+                    compact=True,
+                    id="input",
+                    type_to_search=False,
+                )
             else:
                 ph = f.placeholder(self.project) if callable(f.placeholder) else f.placeholder
                 # select_on_focus: typing into a field that holds "0" replaces it (not "0abc")
                 suggester = PathSuggester(self.project.root, f.key) if f.kind == "path" else None
-                yield Input(f.format(value), placeholder=ph, compact=True, id="input", select_on_focus=True,
-                            suggester=suggester)
+                yield Input(
+                    f.format(value), placeholder=ph, compact=True, id="input", select_on_focus=True, suggester=suggester
+                )
         yield Static("", classes="field-error")
 
     def on_mount(self) -> None:
@@ -138,8 +145,9 @@ class FieldRow(Vertical):
         self.error = msg
         missing = msg is not None and bool(msg) and is_missing(msg)
         box = self.query_one(".field-error", Static)
-        box.update(Text(short_message(msg, self.field.key), no_wrap=True, overflow="ellipsis")
-                   if msg and not missing else "")
+        box.update(
+            Text(short_message(msg, self.field.key), no_wrap=True, overflow="ellipsis") if msg and not missing else ""
+        )
         box.display = bool(msg) and not missing
         self.set_class(bool(msg), "-invalid")
         ctl = self.control
@@ -152,5 +160,5 @@ class FieldRow(Vertical):
 def short_message(msg: str, key: str) -> str:
     """The one-line form of a field's message: "✗ " and the message without the leading key."""
     if msg.startswith(key + ": "):
-        msg = msg[len(key) + 2:]
+        msg = msg[len(key) + 2 :]
     return "✗ " + msg

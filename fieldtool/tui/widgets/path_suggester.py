@@ -39,4 +39,4 @@ class PathSuggester(Suggester):
         names.sort(key=lambda p: (p.suffix.lower() not in self.preferred, not p.is_dir(), p.name.lower()))
         best = names[0]
         name = best.name + ("/" if best.is_dir() else "")
-        return value + name[len(prefix):]
+        return value + name[len(prefix) :]

@@ -16,8 +16,13 @@ from textual.widget import Widget
 _BRAILLE = ((0x01, 0x08), (0x02, 0x10), (0x04, 0x20), (0x40, 0x80))
 
 
-def braille_lines(series: list[tuple[np.ndarray, np.ndarray]], width: int, height: int,
-                  x_range: tuple[float, float], y_range: tuple[float, float]) -> list[list[int]]:
+def braille_lines(
+    series: list[tuple[np.ndarray, np.ndarray]],
+    width: int,
+    height: int,
+    x_range: tuple[float, float],
+    y_range: tuple[float, float],
+) -> list[list[int]]:
     """Rasterise polylines into braille cells: a ``height`` x ``width`` grid of dot bit masks per series.
 
     Returns one grid (list of rows of ints) per series, so each can be coloured.
@@ -165,7 +170,7 @@ class VectorGrid(Widget):
             w = None if water is None else np.asarray(water, bool)
             if w is not None and w.shape == u.shape and w.any():
                 rows, cols = np.nonzero(w.any(axis=1))[0], np.nonzero(w.any(axis=0))[0]
-                sl = np.s_[rows[0]:rows[-1] + 1, cols[0]:cols[-1] + 1]
+                sl = np.s_[rows[0] : rows[-1] + 1, cols[0] : cols[-1] + 1]
                 u, v, w = u[sl], v[sl], w[sl]
             elif w is not None and w.shape != u.shape:
                 w = None
