@@ -98,7 +98,8 @@ def masked_speed(runs: int) -> None:
     import time
 
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-    from tests.test_piv import particle_clip  # the test suite's particle renderer
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "processing"))
+    from test_piv import particle_clip  # the test suite's particle renderer
 
     h, w, pairs = 720, 1280, 8
     frames = particle_clip(lambda x, y: (2.0 + 0 * x, 1.0 + 0 * y), h=h, w=w, n_frames=pairs + 1, seed=1)

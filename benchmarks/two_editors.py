@@ -1,4 +1,4 @@
-"""The long version of tests/test_two_editors.py: the TUI (Pilot) and a viewer in another process edit
+"""The long version of tests/tui/test_two_editors.py: the TUI (Pilot) and a viewer in another process edit
 the GCPs of one project file, N interleaved edits (default 1000; the test runs 50), seeded.
 
     nice -n 10 .venv/bin/python benchmarks/two_editors.py [--edits 1000]

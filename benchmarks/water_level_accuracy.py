@@ -2,7 +2,7 @@
 
     .venv/bin/python benchmarks/water_level_accuracy.py [--seeds N]
 
-Scenes are the ones of tests/test_water_level.py (DEM of one bank with noise and a hedge; two
+Scenes are the ones of tests/processing/test_water_level.py (DEM of one bank with noise and a hedge; two
 rendered nadir images at 7 m and 11 m, camera 0.7 m off the river centre, picks with 0.5 px noise;
 an oblique rendered view with six GCPs). For each method: the error and sigma of seed 0 (the test
 case), then over N seeds the RMS error, the largest error, the RMS sigma and the RMS of error/sigma

@@ -6,7 +6,7 @@ each line gives on that plane (pose from the 6 GCPs and their lens), and a pictu
 
 The Geul data hold no cross-section, so the width cannot be turned into a level here; the config's z_0
 (138.27 m) is the authors' typed level, used only as the plane the widths are measured on. With a surveyed
-section, `water_level.method = "waterline"` turns the same edges into a level (tests/test_waterline.py).
+section, `water_level.method = "waterline"` turns the same edges into a level (tests/processing/test_waterline.py).
 """
 
 from __future__ import annotations

@@ -1,10 +1,21 @@
-"""Shared fixtures: a short synthetic scene rendered once per session."""
+"""Shared fixtures: a short synthetic scene rendered once per session.
 
+tests/ mirrors the package (tests/run/ for fieldtool/run/, ...), plus tests/accuracy/ (whole synthetic scenes
+with known truth) and tests/docs/. Some test modules import helpers from others (``test_tui_snapshots``'s
+``make_project``, ``test_viewer_server``'s ``_tiny_project``): every test folder is put on the path here, so
+they do so by module name whatever folder they sit in, as they did when tests/ was flat.
+"""
+
+import sys
 from pathlib import Path
 
 import pytest
 
-SHARED_DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
+HERE = Path(__file__).resolve().parent
+SHARED_DATA = HERE.parent / ".." / "shared" / "data"
+for _folder in sorted(HERE.iterdir()):
+    if _folder.is_dir() and not _folder.name.startswith(("_", ".")) and str(_folder) not in sys.path:
+        sys.path.append(str(_folder))
 
 
 @pytest.fixture(scope="session")

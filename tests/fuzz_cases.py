@@ -4,7 +4,7 @@ checks every case must pass: exit 0/2/3 (2 where the value cannot be right), one
 no traceback, the project file's bytes unchanged, no partial output folder (a folder that held a
 run still holds that run, or a complete new one), strict JSON.
 
-Used by ``tests/test_fuzz.py`` (a bounded sample) and ``benchmarks/fuzz_all.py`` (every case).
+Used by ``tests/cli/test_fuzz.py`` (a bounded sample) and ``benchmarks/fuzz_all.py`` (every case).
 """
 
 from __future__ import annotations

@@ -187,7 +187,7 @@ def test_fieldtool_view_prints_the_tunnel_line_and_the_keyed_url(tmp_path):
     from pathlib import Path
 
     path = _tiny_project(tmp_path)
-    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]))
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[2]))
     proc = subprocess.Popen(
         [sys.executable, "-m", "fieldtool.cli.main", "view", str(path), "--port", "0"],
         stdout=subprocess.PIPE,

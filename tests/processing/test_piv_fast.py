@@ -4,10 +4,10 @@ import json
 
 import numpy as np
 import pytest
+from test_piv import particle_clip, uniform
 
 from fieldtool.processing import piv_fast
 from fieldtool.processing.piv import PivParams, analyze
-from tests.test_piv import particle_clip, uniform
 
 
 def test_pair_order_is_a_permutation_whose_prefixes_spread_over_the_clip():

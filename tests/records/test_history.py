@@ -264,7 +264,7 @@ def test_two_processes_write_at_once(tmp_path):
     db = tmp_path / "h.sqlite"
     go = tmp_path / "go"
     n = 60
-    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]))
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[2]))
     procs = [
         subprocess.Popen(
             [sys.executable, "-c", WRITER, str(db), tag, str(n), str(go), mode],

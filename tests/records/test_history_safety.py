@@ -16,7 +16,7 @@ from test_history import fill
 from fieldtool.errors import InputFileError
 from fieldtool.records.history import SCHEMA_VERSION, History
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 def _snapshot(folder: Path) -> dict[str, bytes]:

@@ -1,6 +1,6 @@
 """`fieldtool station`: a watched folder of clips measured once each with a site's fixed geometry.
 
-Clips are copies of one short synthetic render (0.5 s, the size of tests/test_batch.py's); the level is the
+Clips are copies of one short synthetic render (0.5 s, the size of tests/records/test_batch.py's); the level is the
 render's true level given as a gauge reading. Every wait is bounded."""
 
 from __future__ import annotations
@@ -40,7 +40,7 @@ def station_site(tmp_path_factory):
 
 def _env():
     env = dict(os.environ)
-    env["PYTHONPATH"] = str(Path(__file__).resolve().parents[1]) + os.pathsep + env.get("PYTHONPATH", "")
+    env["PYTHONPATH"] = str(Path(__file__).resolve().parents[2]) + os.pathsep + env.get("PYTHONPATH", "")
     return env
 
 

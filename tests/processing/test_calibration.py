@@ -13,7 +13,7 @@ import pytest
 from fieldtool.errors import Cancelled, InputFileError, ParameterError
 from fieldtool.processing.calibration import LensModel, calibrate_video, load_calibration, save_calibration
 
-DATA = Path(__file__).parents[1] / ".." / "shared" / "data"
+DATA = Path(__file__).parents[2] / ".." / "shared" / "data"
 REAL = DATA / "real"
 needs_data = pytest.mark.skipif(
     not DATA.is_dir(), reason=f"real data folder {DATA} is absent (only CI and the dev machine have it)"

@@ -2,7 +2,7 @@
 
 The project is small and fixed (a 160 x 120 px noise clip, a trapezoidal bed, four GCPs), so the
 pictures depend only on the TUI. Update them after a deliberate change with
-``pytest tests/test_tui_snapshots.py --snapshot-update`` and look at the report.
+``pytest tests/tui/test_tui_snapshots.py --snapshot-update`` and look at the report.
 """
 
 import json

@@ -13,7 +13,7 @@ from fieldtool.errors import GeometryError, ParameterError
 from fieldtool.processing.calibration import LensModel
 from fieldtool.processing.pose import plane_homography, solve_pose
 
-DATA = Path(__file__).parents[1] / ".." / "shared" / "data"
+DATA = Path(__file__).parents[2] / ".." / "shared" / "data"
 needs_data = pytest.mark.skipif(
     not DATA.is_dir(), reason=f"real data folder {DATA} is absent (only CI and the dev machine have it)"
 )

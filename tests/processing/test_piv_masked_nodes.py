@@ -2,10 +2,10 @@
 
 import numpy as np
 import pytest
+from test_piv import particle_clip, rankine
 
 from fieldtool.processing import piv, piv_engine
 from fieldtool.processing.piv import PivParams, analyze
-from tests.test_piv import particle_clip, rankine
 
 
 def _count_windows(monkeypatch, side: bool = False) -> list:

@@ -209,7 +209,7 @@ def test_few_function_level_imports():
     assert len(lazy) <= MAX_LAZY, f"{len(lazy)} function-level imports (at most {MAX_LAZY}):\n{listing}"
 
 
-if __name__ == "__main__":  # `python tests/test_import_graph.py`: print the cycles and the lazy imports
+if __name__ == "__main__":  # `python tests/run/test_import_graph.py`: print the cycles and the lazy imports
     g, lz = build_graph()
     for c in find_cycles(g):
         print("cycle:", " -> ".join(c))

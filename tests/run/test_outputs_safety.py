@@ -20,7 +20,7 @@ from outputs_harness import kill_once, snapshot, temp_leftovers, time_phases, ve
 
 from fieldtool.cli.main import main
 
-HARNESS = Path(__file__).with_name("outputs_harness.py")
+HARNESS = Path(__file__).resolve().parents[1] / "outputs_harness.py"
 
 
 def _project(scene_dir: Path, edit=None, name="project.toml") -> Path:
