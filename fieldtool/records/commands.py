@@ -275,6 +275,24 @@ def cmd_history_delete(args) -> int:
     return 0
 
 
+def cmd_history_stations(args) -> int:
+    """`fieldtool history stations`: what each fixed-camera station measured, has pending and failed."""
+    hist = _history_or_none(args)
+    if hist is None:
+        return 0
+    with hist:
+        rows = hist.station_counts(args.site)
+    if not rows:
+        print("no station has measured into this history yet (fieldtool station SITE --incoming DIR)")
+        return 0
+    print(f"{'site':<16} {'done':>5} {'pending':>8} {'failed':>7}  {'last update (UTC)':<20} folder")
+    for site, incoming, c, last in rows:
+        pending = c.get("pending", 0) + c.get("running", 0)
+        print(f"{site:<16} {c.get('done', 0):>5} {pending:>8} {c.get('failed', 0):>7}  {last[:19]:<20} {incoming}")
+    print("details and retries: fieldtool station status|retry SITE --incoming FOLDER")
+    return 0
+
+
 def cmd_history_stats(args) -> int:
     hist = _history_or_none(args)
     if hist is None:
@@ -526,6 +544,11 @@ def _register_history(sub: argparse._SubParsersAction) -> None:
     q.add_argument("id", type=int)
     _add_db(q, under_history=True)
     q.set_defaults(func=cmd_history_delete)
+
+    q = hs.add_parser("stations", help="per fixed-camera station: clips done, pending and failed")
+    q.add_argument("--site", help="only this site")
+    _add_db(q, under_history=True)
+    q.set_defaults(func=cmd_history_stations)
 
     q = hs.add_parser("stats", help="per site: error of LSPIV against the reference discharges")
     q.add_argument("--site", help="only this site")

@@ -529,6 +529,25 @@ class History:
                 out.append((m, r))
         return out
 
+    def station_counts(self, site: str | None = None) -> list[tuple[str, str, dict[str, int], str]]:
+        """Per fixed-camera station (site, watched folder) of the journal that ``fieldtool station`` keeps:
+        the number of clips in each state (pending, running, done, failed) and the last update (UTC)."""
+        sql = "SELECT site, incoming, state, COUNT(*), MAX(updated_at) FROM station_journal"
+        args: list = []
+        if site is not None:
+            sql += " WHERE site = ?"
+            args.append(site)
+        try:
+            rows = self._select(sql + " GROUP BY site, incoming, state ORDER BY site, incoming", args)
+        except sqlite3.OperationalError:  # an older history without a journal: no station yet
+            return []
+        out: dict[tuple[str, str], tuple[dict[str, int], str]] = {}
+        for st_site, incoming, state, n, last in rows:
+            counts, prev = out.get((st_site, incoming), ({}, ""))
+            counts[state] = int(n)
+            out[(st_site, incoming)] = (counts, max(prev, last or ""))
+        return [(k[0], k[1], c, last) for k, (c, last) in out.items()]
+
     def error_stats(self, site: str | None = None) -> list[ErrorStats]:
         """Per site, LSPIV against references: over all references ('all') and per method."""
         groups: dict[tuple[str, str], list[tuple[float, float]]] = {}

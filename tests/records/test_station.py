@@ -341,6 +341,17 @@ def test_clips_dropped_at_once_in_process_with_a_broken_one(station_site, tmp_pa
         station.run(max_idle_s=1.0)
         assert station.n_done == 0 and station.n_failed == 1
     assert _journal(db, inc, "failed")[0].attempts == 2
+    # the station's status in the history: `fieldtool history stations`
+    out = subprocess.run(
+        [PY, "-m", "fieldtool.cli", "history", "stations", "--db", str(db)],
+        capture_output=True,
+        text=True,
+        env=_env(),
+        timeout=60,
+    )
+    assert out.returncode == 0, out.stderr
+    row = next(ln for ln in out.stdout.splitlines() if ln.startswith("cam1"))
+    assert row.split()[1:4] == [str(len(names)), "0", "1"], out.stdout  # done, pending, failed (the broken one)
 
 
 @pytest.mark.slow
