@@ -16,7 +16,7 @@ import ast
 import sys
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 PKG = "fieldtool"
 MAX_LAZY = 30
 
