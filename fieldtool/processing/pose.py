@@ -177,6 +177,51 @@ def plane_homography(pose: Pose, level_z: float) -> np.ndarray:
 MIN_GCPS_LENS = 8
 
 
+def _lens_K(f: float, cx: float, cy: float) -> np.ndarray:
+    """Camera matrix (px) of square pixels with focal length ``f`` and principal point ``(cx, cy)`` (px)."""
+    return np.array([[f, 0.0, cx], [0.0, f, cy], [0.0, 0.0, 1.0]])
+
+
+def _lens_first_guess(obj: np.ndarray, px: np.ndarray, w: int, cx: float, cy: float) -> tuple | None:
+    """The undistorted pose that best reprojects the GCPs over fields of view of 20-140 degrees:
+    ``(rms px, [f px, k1 = 0, rvec (3,), tvec (3,) m])``, or None when no pose is found.
+    ``obj`` (N, 1, 3) GCPs (m, about their mean), ``px`` (N, 2) pixels, ``w`` the frame's width (px)."""
+    best = None
+    for fov in np.arange(20.0, 141.0, 5.0):
+        f0 = (w / 2.0) / np.tan(np.radians(fov) / 2.0)
+        K0 = _lens_K(f0, cx, cy)
+        try:
+            ok, rvec, tvec = cv2.solvePnP(obj, px.reshape(-1, 1, 2), K0, np.zeros(5), flags=cv2.SOLVEPNP_SQPNP)
+        except cv2.error:
+            continue
+        if not ok:
+            continue
+        err = _reprojection(obj, px, rvec, tvec, K0, np.zeros(5))
+        rms = float(np.sqrt(np.mean(err**2)))
+        if best is None or rms < best[0]:
+            best = (rms, np.r_[f0, 0.0, rvec.ravel(), tvec.ravel()])
+    return best
+
+
+def _lens_sigmas(
+    J: np.ndarray, sigma: float, px: np.ndarray, cx: float, cy: float, f: float, with_k2: bool
+) -> tuple[float, float, float]:
+    """How well the GCPs constrain the lens: ``(rc, sigma_f, sigma_shift)``, rc the outermost GCP's radius
+    over the focal length (1), sigma_f the focal length's 1-sigma (px) and sigma_shift the distortion's radial
+    shift 1-sigma at that GCP (px; beyond it the fit is an extrapolation), both inf when J is singular.
+    ``J`` the least-squares Jacobian (parameters f, k1, rvec, tvec[, k2]), ``sigma`` a pick's 1-sigma (px)."""
+    rc = float(np.max(np.hypot(px[:, 0] - cx, px[:, 1] - cy))) / f
+    g = np.r_[f * rc**3, f * rc**5] if with_k2 else np.r_[f * rc**3]
+    k_idx = [1, 8] if with_k2 else [1]
+    try:
+        cov = np.linalg.inv(J.T @ J) * sigma**2
+        sf = float(np.sqrt(cov[0, 0]))
+        s_edge = float(np.sqrt(g @ cov[np.ix_(k_idx, k_idx)] @ g))
+    except np.linalg.LinAlgError:
+        sf, s_edge = float("inf"), float("inf")
+    return rc, sf, s_edge
+
+
 def fit_lens(
     gcp_px: np.ndarray,
     gcp_world: np.ndarray,
@@ -231,21 +276,9 @@ def fit_lens(
     obj = (world - origin).reshape(-1, 1, 3)
 
     def K_of(f: float) -> np.ndarray:
-        return np.array([[f, 0.0, cx], [0.0, f, cy], [0.0, 0.0, 1.0]])
+        return _lens_K(f, cx, cy)
 
-    best = None
-    for fov in np.arange(20.0, 141.0, 5.0):
-        f0 = (w / 2.0) / np.tan(np.radians(fov) / 2.0)
-        try:
-            ok, rvec, tvec = cv2.solvePnP(obj, px.reshape(-1, 1, 2), K_of(f0), np.zeros(5), flags=cv2.SOLVEPNP_SQPNP)
-        except cv2.error:
-            continue
-        if not ok:
-            continue
-        err = _reprojection(obj, px, rvec, tvec, K_of(f0), np.zeros(5))
-        rms = float(np.sqrt(np.mean(err**2)))
-        if best is None or rms < best[0]:
-            best = (rms, np.r_[f0, 0.0, rvec.ravel(), tvec.ravel()])
+    best = _lens_first_guess(obj, px, w, cx, cy)
     if best is None:
         raise GeometryError(
             "ortho.fit_lens: no camera pose fits these GCPs; check that each pixel is paired with its X, Y, Z"
@@ -276,15 +309,7 @@ def fit_lens(
     f, k1 = float(f), float(dist[0])
     # how well the distortion is known over the part of the frame the GCPs span: its radial shift (px)
     # at the farthest GCP from the centre (beyond it the fit is an extrapolation, and says so)
-    rc = float(np.max(np.hypot(px[:, 0] - cx, px[:, 1] - cy))) / f
-    g = np.r_[f * rc**3, f * rc**5] if with_k2 else np.r_[f * rc**3]
-    k_idx = [1, 8] if with_k2 else [1]
-    try:
-        cov = np.linalg.inv(J.T @ J) * sigma**2
-        sf = float(np.sqrt(cov[0, 0]))
-        s_edge = float(np.sqrt(g @ cov[np.ix_(k_idx, k_idx)] @ g))
-    except np.linalg.LinAlgError:
-        sf, s_edge = float("inf"), float("inf")
+    rc, sf, s_edge = _lens_sigmas(J, sigma, px, cx, cy, f, with_k2)
     report = {
         "f_px": f,
         "k1": k1,

@@ -873,6 +873,99 @@ def _refuse(why: str) -> GeometryError:
     )
 
 
+def _waterline_line(cs: CrossSection, mapping: OrthoMapping, ln: dict) -> dict:
+    """One parallel search line's record: its offset (m) and pixels, and either ``error`` or the level (m),
+    its 1-sigma (m), the width on the water plane and its 1-sigma (m), the edges in pixels (px, 1-sigma px)
+    and on the water plane (m), the activity contrast (ratio) and the still-water pixels."""
+    item = {"offset_m": ln["offset_m"], "search_line_px": np.asarray(ln["line_px"]).tolist()}
+    if "error" in ln:
+        item["error"] = ln["error"]
+        return item
+    sig = float(np.max(ln["sigma_px"]))
+    try:
+        w, sw, world = image_width(ln["edges_px"], mapping, sig, None)
+        r = _from_width(cs, w, sw, "waterline", {})
+    except GeometryError as e:
+        item["error"] = str(e)
+        return item
+    item.update(
+        level_m=r.level_m,
+        uncertainty_m=r.uncertainty_m,
+        width_m=w,
+        width_sigma_m=sw,
+        edges_px=np.asarray(ln["edges_px"]).tolist(),
+        edge_sigma_px=np.asarray(ln["sigma_px"]).tolist(),
+        edges_world_m=world.tolist(),
+        contrast=ln["contrast"],
+        still_water_px=ln["still_water_px"],
+    )
+    return item
+
+
+def _waterline_doubts(spread: float, contrast: float, n_lines: int) -> list[dict]:
+    """The water line's doubts, in order: lines' scatter ``spread`` (sd, m) over ``WATERLINE_DOUBT_M``,
+    median activity ``contrast`` (ratio, water over banks) under ``WATERLINE_WEAK_CONTRAST``, and a
+    single search line (``n_lines`` == 1)."""
+    doubts = []
+    if spread > WATERLINE_DOUBT_M:
+        doubts.append(
+            {
+                "code": "waterline_scatter",
+                "value": spread,
+                "threshold": WATERLINE_DOUBT_M,
+                "message": f"the water line's parallel search lines give levels {100 * spread:.1f} cm apart "
+                f"(sd, over {100 * WATERLINE_DOUBT_M:g} cm); its uncertainty includes that scatter",
+            }
+        )
+    if contrast < WATERLINE_WEAK_CONTRAST:
+        doubts.append(
+            {
+                "code": "waterline_weak_contrast",
+                "value": contrast,
+                "threshold": WATERLINE_WEAK_CONTRAST,
+                "message": f"along the water line's search lines the water is only {contrast:.1f} times as active "
+                f"as the banks (under {WATERLINE_WEAK_CONTRAST:g}): moving grass or slow water may put an "
+                "edge on the wrong side",
+            }
+        )
+    if n_lines == 1:
+        doubts.append(
+            {
+                "code": "waterline_unchecked",
+                "value": None,
+                "threshold": None,
+                "message": "the water line was searched on one line only (water_level.search_spacing_m = 0): "
+                "nothing checks it",
+            }
+        )
+    return doubts
+
+
+def _waterline_edge_levels(
+    cs: CrossSection, line: dict, station_of: Callable[[np.ndarray], np.ndarray]
+) -> tuple[dict, dict | None]:
+    """The median line's two edges as levels on their own: their stations (m), the bed elevations there
+    (m), the difference (m) and its tolerance (m, ``WATERLINE_EDGES_K`` times the combined 1-sigma, at
+    least ``WATERLINE_EDGES_MIN_M``); and the ``waterline_edges_disagree`` doubt, or None when they agree."""
+    st = np.sort(np.asarray(station_of(np.asarray(line["edges_world_m"], float)), float).ravel())
+    ez = np.interp(st, cs.station, cs.elevation)
+    slope = np.abs(np.gradient(cs.elevation, cs.station))
+    ss = line["width_sigma_m"] * np.interp(st, cs.station, slope)  # each edge's station 1-sigma <= the width's
+    gap, tol = float(ez[1] - ez[0]), float(max(WATERLINE_EDGES_K * np.hypot(*ss), WATERLINE_EDGES_MIN_M))
+    edge_levels = {"stations_m": st.tolist(), "levels_m": ez.tolist(), "difference_m": gap, "tolerance_m": tol}
+    if not abs(gap) > tol:  # as written, so a NaN gap gives no doubt
+        return edge_levels, None
+    doubt = {
+        "code": "waterline_edges_disagree",
+        "value": abs(gap),
+        "threshold": tol,
+        "message": "the water line's left and right edges lie on the banks at levels "
+        f"{100 * abs(gap):.1f} cm "
+        f"apart (over {100 * tol:.1f} cm): an edge is off, or section.station_offset_m is",
+    }
+    return edge_levels, doubt
+
+
 def waterline_level(
     cs: CrossSection,
     mapping: OrthoMapping,
@@ -900,33 +993,7 @@ def waterline_level(
     run is doubtful. A station offset that is wrong moves both edges' levels in opposite directions, so
     this check also catches it.
     """
-    per = []
-    for ln in detected["lines"]:
-        item = {"offset_m": ln["offset_m"], "search_line_px": np.asarray(ln["line_px"]).tolist()}
-        if "error" in ln:
-            item["error"] = ln["error"]
-            per.append(item)
-            continue
-        sig = float(np.max(ln["sigma_px"]))
-        try:
-            w, sw, world = image_width(ln["edges_px"], mapping, sig, None)
-            r = _from_width(cs, w, sw, "waterline", {})
-        except GeometryError as e:
-            item["error"] = str(e)
-            per.append(item)
-            continue
-        item.update(
-            level_m=r.level_m,
-            uncertainty_m=r.uncertainty_m,
-            width_m=w,
-            width_sigma_m=sw,
-            edges_px=np.asarray(ln["edges_px"]).tolist(),
-            edge_sigma_px=np.asarray(ln["sigma_px"]).tolist(),
-            edges_world_m=world.tolist(),
-            contrast=ln["contrast"],
-            still_water_px=ln["still_water_px"],
-        )
-        per.append(item)
+    per = [_waterline_line(cs, mapping, ln) for ln in detected["lines"]]
     ok = [p for p in per if "level_m" in p]
     centre = per[0]
     if "level_m" not in centre:
@@ -942,59 +1009,13 @@ def waterline_level(
             f"the levels of {len(ok)} parallel search lines scatter by {100 * spread:.1f} cm (sd), more "
             f"than {100 * WATERLINE_REFUSE_M:g} cm: the edges are not where the water ends on some of them"
         )
-    doubts = []
-    if spread > WATERLINE_DOUBT_M:
-        doubts.append(
-            {
-                "code": "waterline_scatter",
-                "value": spread,
-                "threshold": WATERLINE_DOUBT_M,
-                "message": f"the water line's parallel search lines give levels {100 * spread:.1f} cm apart "
-                f"(sd, over {100 * WATERLINE_DOUBT_M:g} cm); its uncertainty includes that scatter",
-            }
-        )
-    contrast = float(np.median([p["contrast"] for p in ok]))
-    if contrast < WATERLINE_WEAK_CONTRAST:
-        doubts.append(
-            {
-                "code": "waterline_weak_contrast",
-                "value": contrast,
-                "threshold": WATERLINE_WEAK_CONTRAST,
-                "message": f"along the water line's search lines the water is only {contrast:.1f} times as active "
-                f"as the banks (under {WATERLINE_WEAK_CONTRAST:g}): moving grass or slow water may put an "
-                "edge on the wrong side",
-            }
-        )
-    if len(per) == 1:
-        doubts.append(
-            {
-                "code": "waterline_unchecked",
-                "value": None,
-                "threshold": None,
-                "message": "the water line was searched on one line only (water_level.search_spacing_m = 0): "
-                "nothing checks it",
-            }
-        )
+    doubts = _waterline_doubts(spread, float(np.median([p["contrast"] for p in ok])), len(per))
     k = int(np.argmin(np.abs(z - zm)))
     edge_levels = None
     if station_of is not None:
-        st = np.sort(np.asarray(station_of(np.asarray(ok[k]["edges_world_m"], float)), float).ravel())
-        ez = np.interp(st, cs.station, cs.elevation)
-        slope = np.abs(np.gradient(cs.elevation, cs.station))
-        ss = ok[k]["width_sigma_m"] * np.interp(st, cs.station, slope)  # each edge's station 1-sigma <= the width's
-        gap, tol = float(ez[1] - ez[0]), float(max(WATERLINE_EDGES_K * np.hypot(*ss), WATERLINE_EDGES_MIN_M))
-        edge_levels = {"stations_m": st.tolist(), "levels_m": ez.tolist(), "difference_m": gap, "tolerance_m": tol}
-        if abs(gap) > tol:
-            doubts.append(
-                {
-                    "code": "waterline_edges_disagree",
-                    "value": abs(gap),
-                    "threshold": tol,
-                    "message": "the water line's left and right edges lie on the banks at levels "
-                    f"{100 * abs(gap):.1f} cm "
-                    f"apart (over {100 * tol:.1f} cm): an edge is off, or section.station_offset_m is",
-                }
-            )
+        edge_levels, doubt = _waterline_edge_levels(cs, ok[k], station_of)
+        if doubt is not None:
+            doubts.append(doubt)
     sigma = float(np.hypot(s[k], spread))
     if sigma > WATERLINE_REFUSE_M:
         raise _refuse(

@@ -20,11 +20,14 @@ import numpy as np
 
 from fieldtool.errors import FieldToolError
 from fieldtool.plots import prerender
-from fieldtool.project.model import Project, atomic_write_bytes
+from fieldtool.project.model import Project, atomic_write_bytes, project_to_dict
 from fieldtool.run import outdir, overlay_stage, stiv_stage
+from fieldtool.run.discharge import Discharge
 from fieldtool.run.inputs import Inputs
 from fieldtool.run.outdir import strict_json
+from fieldtool.run.quality import Verdict
 from fieldtool.run.result import RunResult
+from fieldtool.run.velocimetry import Velocimetry
 from fieldtool.writers import write_standard
 
 
@@ -149,3 +152,61 @@ def _plots():
     from fieldtool.plots import discharge, water_level  # lazy: matplotlib, only for a figure drawn here
 
     return SimpleNamespace(discharge=discharge, water_level=water_level)
+
+
+def start_prerender(project: Project, inputs: Inputs, level, mapping, out_dir, ends) -> prerender.Prerender | None:
+    """Start drawing the figures of the inputs in the figure process (during the PIV) when the run writes
+    ``out_dir``; ``ends`` (a contextlib.ExitStack) closes it when the run ends. None without an output folder."""
+    if out_dir is None:
+        return None
+    prerendered = prerender.Prerender(project, inputs, level, mapping)
+    ends.callback(prerendered.close)
+    return prerendered
+
+
+def prerender_velocity(prerendered, inputs: Inputs, mapping, vel: Velocimetry, q: Discharge) -> None:
+    """Hand the velocity figures (m/s on the water plane, the section's discharge in m³/s) to the figure
+    process, drawn there while the Monte Carlo runs; nothing when nothing was measured or no folder is written."""
+    if q.unmeasured is None and prerendered is not None:
+        prerendered.results(inputs, q.result, vel.piv, q.world_u, q.world_v, q.geom, mapping, inputs.cross_section)
+
+
+def build_result(
+    project: Project,
+    level,
+    mapping,
+    vel: Velocimetry,
+    q: Discharge,
+    verdict: Verdict,
+    timings_s: dict[str, float],
+    warnings: list[str],
+    prerendered,
+    overlay,
+) -> RunResult:
+    """The run's :class:`RunResult` from its stages' outputs (discharge m³/s, level m, velocities m/s, stage
+    timings s); no output folder set (``out_dir`` None) and no video metadata yet: the writers add them."""
+    return RunResult(
+        q.result,
+        q.q_pairs,
+        level,
+        mapping,
+        vel.piv,
+        q.geom,
+        q.world_u,
+        q.world_v,
+        None,
+        timings_s=timings_s,
+        warnings=warnings,
+        stabilization=vel.stabilization or None,
+        project=project_to_dict(project),
+        piv_reused=vel.reused,
+        uncertainty=verdict.uncertainty,
+        quality=verdict.quality,
+        sections=verdict.sections,
+        robust=q.robust,
+        stiv=q.stiv,
+        piv_fast=vel.fast,
+        prerendered=prerendered,
+        uncertainty_standard=verdict.standard,
+        overlay=overlay,
+    )

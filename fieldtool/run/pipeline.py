@@ -25,9 +25,8 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-from fieldtool.plots.prerender import Prerender
 from fieldtool.project import sections
-from fieldtool.project.model import Project, project_to_dict
+from fieldtool.project.model import Project
 from fieldtool.project.validation import check
 from fieldtool.run import discharge, geometry, outdir, outputs, overlay_stage, quality, velocimetry
 from fieldtool.run.inputs import load_inputs
@@ -98,10 +97,7 @@ def _run_project(
     overlay_stage.bind(overlay, inputs, mapping, placed.geom)
     obs("geometry", pairs.on(placed.geom))
     obs("stage", "piv")
-    prerendered = None
-    if out_dir is not None:  # the figures of the inputs are drawn in the figure process during the PIV
-        prerendered = Prerender(project, inputs, level, mapping)
-        ends.callback(prerendered.close)
+    prerendered = outputs.start_prerender(project, inputs, level, mapping, out_dir, ends)  # figures during the PIV
     # the pixel-space field is reused when only the mapping, level, section or alpha changed (not while
     # streaming to an observer, who wants to see the frames and pairs)
     cache_dir = Path(out_dir) if out_dir is not None and observer is None else None
@@ -123,39 +119,11 @@ def _run_project(
     obs("stage", "discharge")
     q = discharge.compute_discharge(project, inputs, level.level_m, mapping, placed.geom, setup, vel, pairs, warnings)
     lap("discharge")
-    if q.unmeasured is None:
-        if prerendered is not None:  # the velocity figures are drawn in the figure process during the Monte Carlo
-            prerendered.results(inputs, q.result, vel.piv, q.world_u, q.world_v, q.geom, mapping, inputs.cross_section)
-        verdict = quality.assess(project, inputs, level, mapping, vel, q, pairs, extra, warnings)
-    else:  # nothing measured on the section: graded unusable with its reasons, every file still written
-        verdict = quality.Verdict(None, q.unmeasured, [])
+    outputs.prerender_velocity(prerendered, inputs, mapping, vel, q)  # drawn during the Monte Carlo
+    verdict = quality.judge(project, inputs, level, mapping, vel, q, pairs, extra, warnings)
     lap("uncertainty_and_quality")
 
-    result = RunResult(
-        q.result,
-        q.q_pairs,
-        level,
-        mapping,
-        vel.piv,
-        q.geom,
-        q.world_u,
-        q.world_v,
-        None,
-        timings_s=lap.timings,
-        warnings=warnings,
-        stabilization=vel.stabilization or None,
-        project=project_to_dict(project),
-        piv_reused=vel.reused,
-        uncertainty=verdict.uncertainty,
-        quality=verdict.quality,
-        sections=verdict.sections,
-        robust=q.robust,
-        stiv=q.stiv,
-        piv_fast=vel.fast,
-        prerendered=prerendered,
-        uncertainty_standard=verdict.standard,
-        overlay=overlay,
-    )
+    result = outputs.build_result(project, level, mapping, vel, q, verdict, lap.timings, warnings, prerendered, overlay)
     if out_dir is not None:
         outputs.write_outputs(result, project, inputs, Path(out_dir))
     obs("result", result)

@@ -173,3 +173,21 @@ def measure_section(
     except FieldToolError as e:
         entry["error"] = str(e)
     return entry
+
+
+def judge(
+    project: Project,
+    inputs: Inputs,
+    level,
+    mapping: ortho.OrthoMapping,
+    vel: Velocimetry,
+    q: Discharge,
+    pairs: PairDischarge,
+    extra: list[SectionSpec],
+    warnings: list[str],
+) -> Verdict:
+    """:func:`assess`, or, when nothing was measured on the section (``q.unmeasured``), the verdict that grades
+    it unusable with its reasons and no interval (every file is still written)."""
+    if q.unmeasured is not None:
+        return Verdict(None, q.unmeasured, [])
+    return assess(project, inputs, level, mapping, vel, q, pairs, extra, warnings)

@@ -99,9 +99,9 @@ def _flat_attrs(inputs: dict) -> dict:
     return attrs
 
 
-def build_dataset(result, project) -> dict:
-    """The CF dataset of a run's mean field (see the module docstring), as plain values:
-    ``{"dims": {name: size}, "vars": {name: (dims, array, attrs, encoding)}, "attrs": {...}}``."""
+def _grid_field(result) -> tuple:
+    """The valid PIV node velocities (m s-1) and valid fractions (1) on a regular grid in the world frame:
+    ``(x, y, dx, u, v, valid_fraction, speed)``, x and y the cell centres (m), dx the cell size (m)."""
     p = result.piv
     ok = np.asarray(p.valid, bool) & np.isfinite(result.world_u) & np.isfinite(result.world_v)
     XY = result.mapping.image_to_world(np.c_[p.x[ok], p.y[ok]])
@@ -110,11 +110,16 @@ def build_dataset(result, project) -> dict:
     x, y, dx, (gu, gv, gf) = regular_grid(XY, [U, V, vf])
     speed = np.hypot(gu, gv)
 
+    return x, y, dx, gu, gv, gf, speed
+
+
+def _time_span(p, video: dict) -> tuple[float, float, str, str, str | None]:
+    """The clip span that was averaged: ``(t0, t1, units, comment, recorded)``, t0 and t1 in seconds from
+    the recording start when the container gives its date (``recorded``, ISO UTC), else from the clip's."""
     t = np.asarray(p.t_pairs, float)
     dt = np.asarray(p.dt_s, float) if p.dt_s is not None and len(p.dt_s) else np.zeros_like(t)
     t0 = float(t[0] - dt[0] / 2) if len(t) else 0.0
     t1 = float(t[-1] + dt[-1] / 2) if len(t) else 0.0
-    video = getattr(result, "video", None) or {}
     # a date only from the container: a file's modification time says when it was copied, not recorded
     recorded = video.get("recorded_utc") if video.get("recorded_source") == "container" else None
     if recorded:
@@ -123,13 +128,12 @@ def build_dataset(result, project) -> dict:
     else:
         t_units = "seconds since 1970-01-01 00:00:00"
         t_comment = "recording date unknown: the values are seconds from the start of the clip, not a date"
+    return t0, t1, t_units, t_comment, recorded
 
-    crs = crs_of(project)
-    frame = (
-        f"EPSG:{project.ortho.crs_epsg}"
-        if crs is not None
-        else f"the site's local frame of the GCPs (ortho.method = {project.ortho.method})"
-    )
+
+def _cf_variables(x, y, gu, gv, gf, speed, t0: float, t1: float, t_units: str, t_comment: str, frame: str, crs):
+    """The CF variables ``{name: (dims, array, attrs, encoding)}``: coordinates x, y (m) in ``frame``, time
+    (s, ``t_units``) with its bounds, the gridded velocity components and speed (m s-1), valid fraction (1)."""
     common = {"grid_mapping": "crs"} if crs is not None else {}
     field = {"zlib": True, "complevel": 4, "fill_value": np.float32(np.nan)}
     plain = {"fill_value": False}
@@ -206,8 +210,12 @@ def build_dataset(result, project) -> dict:
         ),
         "time_bnds": (("time", "nv"), np.array([[t0, t1]]), {}, plain),
     }
-    if crs is not None:
-        variables["crs"] = ((), np.int32(0), cf_grid_mapping(crs), {})
+    return variables
+
+
+def _global_attrs(result, project, frame: str, dx: float, video: dict) -> dict:
+    """The global attributes: provenance, the grid cell ``dx`` (m), the discharge (m3 s-1), the water level (m)
+    and the project, flattened and as JSON."""
     d = result.discharge
     now = datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
     attrs = {
@@ -228,6 +236,25 @@ def build_dataset(result, project) -> dict:
         "fieldtool_project_json": json.dumps(result.project, sort_keys=True, default=str),
         **_flat_attrs(result.project),
     }
+    return attrs
+
+
+def build_dataset(result, project) -> dict:
+    """The CF dataset of a run's mean field (see the module docstring), as plain values:
+    ``{"dims": {name: size}, "vars": {name: (dims, array, attrs, encoding)}, "attrs": {...}}``."""
+    x, y, dx, gu, gv, gf, speed = _grid_field(result)
+    video = getattr(result, "video", None) or {}
+    t0, t1, t_units, t_comment, recorded = _time_span(result.piv, video)
+    crs = crs_of(project)
+    frame = (
+        f"EPSG:{project.ortho.crs_epsg}"
+        if crs is not None
+        else f"the site's local frame of the GCPs (ortho.method = {project.ortho.method})"
+    )
+    variables = _cf_variables(x, y, gu, gv, gf, speed, t0, t1, t_units, t_comment, frame, crs)
+    if crs is not None:
+        variables["crs"] = ((), np.int32(0), cf_grid_mapping(crs), {})
+    attrs = _global_attrs(result, project, frame, dx, video)
     if recorded:
         attrs["time_coverage_start"] = recorded
     return {"dims": {"time": 1, "y": len(y), "x": len(x), "nv": 2}, "vars": variables, "attrs": attrs}
