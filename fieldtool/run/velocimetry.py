@@ -96,9 +96,12 @@ def setup(project: Project, inputs: Inputs, mapping, sections: Sections, warning
             f"{2 * surface.HALF_WINDOW + 1} its time window needs; glints and other patterns fixed in "
             "the image are not removed"
         )
-    clip = clip_check.check(inputs, roi, n_clip, params, mask, standardize, project.piv.frame_gap)
-    params = clip.params(params, standardize)  # the texture gate from the clip's noise (run/clip_check.py)
     box = piv_region(project, inputs, params, roi, sections.segments)
+    # the clip's noise and contrast where the PIV correlates (the section's band: the water, not the banks and
+    # sky of a whole frame, whose windows would outvote it), and the texture gate set from them
+    clip = clip_check.check(inputs, box if box is not None else roi, n_clip, params, mask, standardize,
+                            project.piv.frame_gap)
+    params = clip.params(params, standardize)  # min_texture only: the box does not depend on it
     near = None
     if project.piv.region == "section" and box is not None:  # in the band's box, only the nodes near the sections
         near = (
