@@ -26,7 +26,7 @@ import numpy as np
 from fieldtool.processing import piv_fast
 
 #: memory the kept frames may take (bytes): ~430 standardised boxes of 600 x 500 px
-KEEP_BYTES = 512 * 2**20
+KEEP_BYTES = 256 * 2**20
 
 
 class DecodeCount:
