@@ -271,7 +271,7 @@ class _Nodes:
     """The final pass' nodes: grid ``fin``, centres X, Y (px), ``node_mask`` (True: no vector: masked, or
     outside the band of ``near``, which is ``outside``), and the speed limit per node (px/s) or None."""
 
-    fin: object
+    fin: _Level
     X: np.ndarray
     Y: np.ndarray
     node_mask: np.ndarray
@@ -406,7 +406,13 @@ class _PairLoop:
 
 
 def _time_average(
-    per_pair: dict, ens, nodes: _Nodes, params: PivParams, n_pairs: int, wanted, first_guess
+    per_pair: dict,
+    ens,
+    nodes: _Nodes,
+    params: PivParams,
+    n_pairs: int,
+    wanted,
+    first_guess: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None,
 ) -> PivResult:
     """The time-averaged field of the pairs (ensemble, mean or median), validated and filled, as a PivResult."""
     fin = nodes.fin

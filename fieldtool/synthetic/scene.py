@@ -641,7 +641,7 @@ def _ripple_image(rp: _Ripples, t: float, canvas: tuple[int, int]) -> np.ndarray
 
 
 def _open_writer(path: Path, fourcc: str, fps: float, size: tuple[int, int]) -> cv2.VideoWriter:
-    wr = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*fourcc), fps, size, True)
+    wr = cv2.VideoWriter(str(path), cv2.VideoWriter.fourcc(*fourcc), fps, size, True)
     if not wr.isOpened():
         raise ParameterError(f"video writer: this OpenCV build cannot write {fourcc!r} to {path.name}")
     return wr

@@ -117,8 +117,8 @@ class CalibrationScreen(StepScreen):
             self.show_errors(errors)
             return
         p = jobs.snapshot(self.project)  # the project as it is now: the job runs on this copy
-        self.app.start_job(
+        self.app.start_job(  # type: ignore[attr-defined]
             "calibration",
-            "Calibration",  # type: ignore[attr-defined]
+            "Calibration",
             lambda job: jobs.run_calibration(p, job),
         )

@@ -84,9 +84,9 @@ class PivScreen(StepScreen):
         full = jobs.has_section(p) and not any(self.session.step_errors(st) for st in ("section",))
         if full:
             out = self.session.out_dir
-            self.app.start_job(
+            self.app.start_job(  # type: ignore[attr-defined]
                 "piv",
-                "PIV and discharge",  # type: ignore[attr-defined]
+                "PIV and discharge",
                 lambda job: jobs.run_full(p, out, job),
             )
         else:

@@ -65,8 +65,8 @@ class VideoScreen(StepScreen):
             self.show_errors(self.errors())
             return
         p = jobs.snapshot(self.project)  # the project as it is now: the job runs on this copy
-        self.app.start_job(
+        self.app.start_job(  # type: ignore[attr-defined]
             "stabilize",
-            "Stabilisation",  # type: ignore[attr-defined]
+            "Stabilisation",
             lambda job: jobs.run_stabilization(p, job),
         )
