@@ -104,6 +104,7 @@ class FiltersScreen(StepScreen):
 
     def show_doc(self) -> None:
         name = self.query_one("#filter-name", Select).value
+        assert isinstance(name, str)  # the Select has allow_blank=False: always a filter name
         cls = FILTERS[name]
         doc = (cls.__doc__ or "").strip().splitlines()[0]
         parts = []
@@ -133,6 +134,7 @@ class FiltersScreen(StepScreen):
     # -- stack editing -------------------------------------------------------------------------
     def action_add_filter(self) -> None:
         name = self.query_one("#filter-name", Select).value
+        assert isinstance(name, str)  # the Select has allow_blank=False: always a filter name
         text = self.query_one("#filter-params", Input).value
         try:
             item = parse_params(text, name)
