@@ -96,9 +96,9 @@ def assess(
             )
             for s in extra
         ]
-        for e in entries:
-            if "error" in e:
-                warnings.append(f"section {e['name']!r}: {e['error']}")
+        for entry in entries:
+            if "error" in entry:
+                warnings.append(f"section {entry['name']!r}: {entry['error']}")
         _sections_reason(project, qual, secs.summarize(entries))
     return Verdict(unc, qual, entries, standard)
 
