@@ -117,11 +117,11 @@ class Velocimetry:
     """The velocimetry stage's output: the PIV field (``processing.piv.PivResult``) and what the frames
     told on the way. ``fast`` holds the fast path's facts (region, box, pairs used, convergence)."""
 
-    piv: object
+    piv: piv_mod.PivResult
     stabilization: dict
     frame_stats: dict  # {"pairs": n, "identical": n} of consecutive frames
-    surface_stats: object | None  # processing.surface.SurfaceStats with the standardisation on
-    plan: object | None  # processing.planning.Plan (None when the field was reused)
+    surface_stats: surface.SurfaceStats | None  # with the standardisation on
+    plan: planning.Plan | None  # None when the field was reused
     fast: dict
     reused: bool  # the field came from the output folder's piv_cache.npz
 
