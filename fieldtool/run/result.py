@@ -14,6 +14,7 @@ from fieldtool.processing import ortho
 from fieldtool.project.sections import summarize
 
 if TYPE_CHECKING:  # annotations only
+    from fieldtool.plots.prerender import Prerender
     from fieldtool.processing.piv import PivResult
     from fieldtool.processing.quality import Quality
     from fieldtool.processing.uncertainty import McResult
@@ -47,7 +48,7 @@ class RunResult:
     piv_fast: dict | None = None  # region box and pair sampling of the fast path (see piv_region / run_piv_fast)
     video: dict = field(default_factory=dict)  # the clip's metadata (records.video_meta.video_info)
     uncertainty_standard: dict | None = None  # ISO 748 and IVE beside the Monte Carlo (run/standard_stage.py)
-    prerendered: object | None = None  # plots.prerender.Prerender: figures drawn during the PIV
+    prerendered: Prerender | None = None  # figures drawn during the PIV
     overlay: object | None = None  # run.overlay_stage.Recorder (overlay.mp4 drawn as the frames streamed) or None
 
     def summary(self) -> dict:
