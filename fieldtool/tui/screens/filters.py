@@ -17,7 +17,7 @@ from fieldtool.project.model import atomic_write_bytes
 from fieldtool.run.geometry import roi_and_mask
 from fieldtool.tui import keys
 from fieldtool.tui.fields import DECIMAL_HINT, fmt_num
-from fieldtool.tui.screens.base import StepScreen
+from fieldtool.tui.screens.base import StepScreen, fieldtool_app
 from fieldtool.tui.screens.preview import PNG, PreviewScreen
 from fieldtool.tui.widgets.plots import GrayImage
 
@@ -155,7 +155,7 @@ class FiltersScreen(StepScreen):
         self.changed()
 
     def changed(self) -> None:
-        self.app.save_project()  # type: ignore[attr-defined]
+        fieldtool_app(self).save_project()
         self.show_errors([])
         self.refresh_view()
         self.refresh_marks()
