@@ -61,7 +61,7 @@ from __future__ import annotations
 
 import warnings
 from collections import deque
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sized
 from dataclasses import dataclass
 
 import numpy as np
@@ -214,8 +214,8 @@ def analyze(
     PivResult (px, px/s, image axes).
     """
     total = 0
-    if hasattr(frames, "__len__"):
-        total = max(len(frames) - max(1, int(params.frame_gap)), 0)  # type: ignore[arg-type]
+    if isinstance(frames, Sized):  # a stream that knows its count (run/frames.Sized)
+        total = max(len(frames) - max(1, int(params.frame_gap)), 0)
     it = iter(frames)
     try:
         t_prev, first = next(it)
