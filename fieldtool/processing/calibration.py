@@ -17,7 +17,7 @@ from __future__ import annotations
 import json
 import math
 import tomllib
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -214,8 +214,8 @@ def _find_board(gray: np.ndarray, corners: tuple[int, int]) -> np.ndarray | None
 
 def calibrate_video(
     path: Path | str,
-    corners: tuple[int, int] = (9, 6),
-    square_mm: float = 25.0,
+    corners: Sequence[int] = (9, 6),
+    square_mm: float | None = 25.0,
     n_frames: int = 20,
     progress: Callable[[int, int], None] | None = None,
     cancel: Callable[[], bool] | None = None,
@@ -312,6 +312,7 @@ def calibrate_video(
             f"{n_parts} parts of the video; at least {MIN_VIEWS} are needed. Film the board longer, from more "
             "angles and distances, or raise calibration.n_frames"
         )
+    assert size is not None  # set with the first decoded frame, and a board was found in one
     rms, K, dist, per_view = _calibrate(board, img_pts, size)
     # a blurred or mis-ordered detection shows as one view far worse than the others: drop such views
     # (more than 3x the median error and over 1 px) and fit again, as long as enough views remain
@@ -325,7 +326,8 @@ def calibrate_video(
 
 def _calibrate(board: np.ndarray, img_pts: list[np.ndarray], size: tuple[int, int]):
     """cv2.calibrateCamera: RMS (px), K, distortion, per-view RMS errors (px)."""
-    out = cv2.calibrateCameraExtended([board] * len(img_pts), img_pts, size, None, None)
+    # the stubs want arrays for the camera matrix and distortion; OpenCV takes None (no initial guess) for outputs
+    out = cv2.calibrateCameraExtended([board] * len(img_pts), img_pts, size, None, None)  # type: ignore[call-overload]
     rms, K, dist, per_view = out[0], out[1], out[2], out[-1]
     return float(rms), K, dist, np.asarray(per_view, dtype=float).ravel()
 

@@ -269,7 +269,7 @@ def parse_rows(rows: list[tuple[int, list[str]]], source: str, comma_decimal: bo
     """Cross-section from rows of cells ``(line_number, [cell, ...])``: header lines optional (they may
     name the columns and their units, e.g. ``Station (m); Elevation (cm)``); one "station, elevation"
     pair per data row. Raises InputFileError naming the line of the first row it cannot read."""
-    pts = []
+    pts: list[tuple[float, float]] = []
     lines: list[int] = []  # the line of each point
     si, zi, fs, fz = 0, 1, 1.0, 1.0
     width = None
@@ -298,7 +298,9 @@ def parse_rows(rows: list[tuple[int, list[str]]], source: str, comma_decimal: bo
                 f"{source}, line {lineno}: {len(vals)} fields where the rows above have {width}; "
                 "check the separators (a decimal comma in a comma-separated file splits a number)"
             )
-        st_m, z_m = vals[si] * fs, vals[zi] * fz
+        st, z = vals[si], vals[zi]
+        assert st is not None and z is not None  # rows with a non-number were rejected above
+        st_m, z_m = st * fs, z * fz
         for what, v in (("station", st_m), ("elevation", z_m)):
             if not abs(v) <= MAX_ABS_M:
                 raise InputFileError(

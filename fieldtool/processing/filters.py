@@ -359,7 +359,8 @@ class FilterStack:
         if idx is None:
             self._prepassed = True
             return
-        bg: Background = self.filters[idx]  # type: ignore[assignment]
+        bg = self.filters[idx]
+        assert isinstance(bg, Background)  # idx is the first Background
         p = bg.resolve(np.zeros((1, 1), np.float32))
         acc = _MeanAccumulator() if p["method"] == "mean" else _MedianAccumulator(p["samples"])
         shape = None

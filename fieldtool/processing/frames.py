@@ -158,6 +158,7 @@ class FrameSource:
             n = int(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
         finally:
             cap.release()
+        assert frame is not None  # read ok
         h, w = frame.shape[:2]
         dur = n / fps if fps > 0 and n > 0 else 0.0
         return ClipInfo(str(self.path), w, h, float(fps), n, dur, False)
@@ -194,6 +195,7 @@ class FrameSource:
         return 0
 
     def _iter_sequence(self, want=None) -> Iterator[Frame]:
+        assert self.files is not None and self.frame_interval_s is not None  # an image sequence has both
         kept = 0
         for i, f in enumerate(self.files):
             t = i * self.frame_interval_s

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 import cv2
 import numpy as np
@@ -262,7 +263,7 @@ def from_distances(
     H, _ = cv2.findHomography(px, world, 0)
     if H is None:
         raise GeometryError("ortho.gcp_px: no homography fits these points (are three of them on one line?)")
-    details = {"max_distance_residual_m": worst}
+    details: dict[str, Any] = {"max_distance_residual_m": worst}
     if max_residual_m is not None and worst > max_residual_m:
         sus = suspect_distances(px, distances, world, frame_shape)
         details["suspect_distances"] = sus
@@ -387,7 +388,7 @@ def suspect_distances(
         pp = px.mean(axis=0)
         scale = float(np.ptp(px, axis=0).max() * 2 + 1)
     x0 = np.r_[world[0, 1], world[1], world[2]]
-    out = []
+    out: list[dict[str, Any]] = []
     for k in range(6):
         keep = [i for i in range(6) if i != k]
 

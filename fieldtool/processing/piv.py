@@ -61,7 +61,7 @@ from __future__ import annotations
 
 import warnings
 from collections import deque
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sized
 from dataclasses import dataclass
 
 import numpy as np
@@ -214,8 +214,8 @@ def analyze(
     PivResult (px, px/s, image axes).
     """
     total = 0
-    if hasattr(frames, "__len__"):
-        total = max(len(frames) - max(1, int(params.frame_gap)), 0)  # type: ignore[arg-type]
+    if isinstance(frames, Sized):  # a stream that knows its count (run/frames.Sized)
+        total = max(len(frames) - max(1, int(params.frame_gap)), 0)
     it = iter(frames)
     try:
         t_prev, first = next(it)
@@ -271,7 +271,7 @@ class _Nodes:
     """The final pass' nodes: grid ``fin``, centres X, Y (px), ``node_mask`` (True: no vector: masked, or
     outside the band of ``near``, which is ``outside``), and the speed limit per node (px/s) or None."""
 
-    fin: object
+    fin: _Level
     X: np.ndarray
     Y: np.ndarray
     node_mask: np.ndarray
@@ -406,7 +406,13 @@ class _PairLoop:
 
 
 def _time_average(
-    per_pair: dict, ens, nodes: _Nodes, params: PivParams, n_pairs: int, wanted, first_guess
+    per_pair: dict,
+    ens,
+    nodes: _Nodes,
+    params: PivParams,
+    n_pairs: int,
+    wanted,
+    first_guess: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None,
 ) -> PivResult:
     """The time-averaged field of the pairs (ensemble, mean or median), validated and filled, as a PivResult."""
     fin = nodes.fin

@@ -94,8 +94,8 @@ class Stabilizer:
         # stable area and the region each pixel belongs to (1-based; 0 = not stable)
         labels = np.zeros((h, w), np.int32)
         sides = []
-        for i, r in enumerate(regions_px):
-            x0, y0, x1, y1 = check_roi(r, (h, w), key=f"stabilize.regions_px[{i}]")
+        for i, rect in enumerate(regions_px):
+            x0, y0, x1, y1 = check_roi(rect, (h, w), key=f"stabilize.regions_px[{i}]")
             labels[y0:y1, x0:x1] = i + 1
             sides.append(min(x1 - x0, y1 - y0))
         if not regions_px:

@@ -106,6 +106,7 @@ def _frames(crops: Iterator[tuple[float, np.ndarray]], stats: SurfaceStats, want
         if want is not None and not want(k):
             yield t, None
             continue
+        assert stats.shape is not None and stats.box is not None  # set from the first frame, before any crop
         out = np.zeros(stats.shape, np.float32)
         x0, y0, x1, y1 = stats.box
         out[y0:y1, x0:x1] = c
@@ -236,8 +237,9 @@ def _standardize(frames, roi, *, margin: int, half: int, shrink: float, stats: S
             tau = float(np.float32(shrink * 1.4826 * np.median(np.abs(o[::4, ::4]))))
             if mag is None:
                 mag = np.empty_like(o)
-            cv2.max(o, -tau, dst=mag)
-            cv2.min(mag, tau, dst=mag)
+            # the stubs take arrays only; OpenCV takes a scalar as the second operand
+            cv2.max(o, -tau, dst=mag)  # type: ignore[call-overload]
+            cv2.min(mag, tau, dst=mag)  # type: ignore[call-overload]
             cv2.subtract(o, mag, dst=o)
         return t, o
 

@@ -20,7 +20,12 @@ import numpy as np
 
 from fieldtool.errors import ParameterError
 
-SECTION_KEYS = {"name": str, "points_px": list, "cross_section": str, "station_offset_m": (int, float)}
+SECTION_KEYS: dict[str, type | tuple[type, ...]] = {
+    "name": str,
+    "points_px": list,
+    "cross_section": str,
+    "station_offset_m": (int, float),
+}
 
 
 @dataclass

@@ -308,11 +308,12 @@ def _uncomment(text: str, added: list[tuple[str, str]]) -> str:
     for table, k in added:
         start, end = 0, len(lines)
         if table:
-            start = next(
+            found = next(
                 (i + 1 for i, ln in enumerate(lines) if (m := _HEADER.match(ln)) and m.group(1) == table), None
             )
-            if start is None:
+            if found is None:
                 continue
+            start = found
         end = next((i for i in range(start, len(lines)) if _HEADER.match(lines[i])), len(lines))
         key_re = re.compile(rf"^{re.escape(k)}\s*=")
         com_re = re.compile(rf"^#\s*{re.escape(k)}\s*=\s*(?:#\s*(.*))?$")
@@ -320,7 +321,9 @@ def _uncomment(text: str, added: list[tuple[str, str]]) -> str:
         com_i = next((i for i in range(start, end) if com_re.match(lines[i])), None)
         if new_i is None or com_i is None or new_i < com_i:
             continue
-        note = com_re.match(lines[com_i]).group(1)
+        com_m = com_re.match(lines[com_i])
+        assert com_m is not None  # com_i is a line com_re matched
+        note = com_m.group(1)
         if "\n" in lines[new_i] or lines[new_i].rstrip().endswith(("[", "{")):
             continue
         new_line = lines[new_i].rstrip()
@@ -345,7 +348,8 @@ def _dump(old_text: str | None, old: dict | None, new: dict) -> bytes:
     added = [("", k) for k, v in new.items() if k not in old and not isinstance(v, dict)]
     for t, v in new.items():
         if isinstance(v, dict):
-            o = old.get(t) if isinstance(old.get(t), dict) else {}
+            o_t = old.get(t)
+            o = o_t if isinstance(o_t, dict) else {}
             added += [(t, k) for k in v if k not in o]
     return _uncomment(text, added).encode("utf-8") if added else text.encode("utf-8")
 

@@ -10,10 +10,20 @@ import argparse
 import json
 import sys
 from pathlib import Path
+from typing import Any
 
 from fieldtool.errors import ParameterError
 from fieldtool.project.model import atomic_write_bytes
-from fieldtool.records.history import History, export_csv, input_hash, parse_time, resolve_db_path, video_datetime
+from fieldtool.records.history import (
+    History,
+    Measurement,
+    Reference,
+    export_csv,
+    input_hash,
+    parse_time,
+    resolve_db_path,
+    video_datetime,
+)
 from fieldtool.records.report import load_result, write_report
 from fieldtool.records.sites import (
     SITE_FILE,
@@ -29,7 +39,7 @@ from fieldtool.records.sites import (
 
 def _add_db(p: argparse.ArgumentParser, under_history: bool = False) -> None:
     # under `history`, a subcommand's --db must not reset one given before it (`history --db X list`)
-    kw = {"default": argparse.SUPPRESS} if under_history else {}
+    kw: dict[str, Any] = {"default": argparse.SUPPRESS} if under_history else {}
     p.add_argument(
         "--db", help="history database (default: $FIELDTOOL_DB, else history.sqlite in the user data folder)", **kw
     )
@@ -356,7 +366,8 @@ def cmd_history_rating(args) -> int:
 def cmd_report(args) -> int:
     if (args.result_dir is None) == (args.id is None):
         raise ParameterError("give a run's output folder, or --id N of a measurement in the history")
-    m, refs = None, []
+    m: Measurement | None = None
+    refs: list[Reference] = []
     db = resolve_db_path(args.db)
     if args.id is not None or db.exists():
         with _open_history(args, create=False) as hist:
@@ -366,7 +377,11 @@ def cmd_report(args) -> int:
                 found = hist.query(output_dir=str(Path(args.result_dir).resolve()), newest_first=True, limit=1)
                 m = found[0] if found else None
             refs = hist.references(m.id) if m is not None else []
-    result_dir = Path(args.result_dir) if args.result_dir else Path(m.output_dir)
+    if args.result_dir:
+        result_dir = Path(args.result_dir)
+    else:
+        assert m is not None  # --id N: hist.get found it (it raises for an unknown id)
+        result_dir = Path(m.output_dir)
     written = write_report(result_dir, args.out, pdf=args.pdf, measurement=m, references=refs)
     for p in written:
         print(f"wrote {p}")

@@ -626,13 +626,16 @@ def insert_measurement(c: sqlite3.Connection, values: dict) -> int:
     values = {"recorded_at": utc_now(), "parameters_json": "{}", **values}
     cols = ", ".join(values)
     marks = ", ".join("?" for _ in values)
-    return int(c.execute(f"INSERT INTO measurements ({cols}) VALUES ({marks})", list(values.values())).lastrowid)
+    rowid = c.execute(f"INSERT INTO measurements ({cols}) VALUES ({marks})", list(values.values())).lastrowid
+    assert rowid is not None  # always set after an INSERT
+    return int(rowid)
 
 
 def _uncertainty_columns(summary: dict) -> dict:
     """The schema-2 columns of a ``result.json`` summary: the interval, the grade and the standard block."""
     ci = summary.get("discharge_ci95_m3s") or [None, None]
-    quality = summary.get("quality") if isinstance(summary.get("quality"), dict) else {}
+    q = summary.get("quality")
+    quality = q if isinstance(q, dict) else {}
     std = summary.get("uncertainty_standard") if isinstance(summary.get("uncertainty_standard"), dict) else {}
     return {
         "discharge_ci95_lo_m3s": _num(ci[0]),

@@ -304,8 +304,8 @@ def render_html(
             + "".join(f"<th>{_e(_COLUMN_NAMES.get(c, c))}</th>" for c in cols)
             + "</tr>"
         )
-        for r in subsections:
-            out.append("<tr>" + "".join(f"<td>{_e(subsection_cell(c, r.get(c, '')))}</td>" for c in cols) + "</tr>")
+        for row in subsections:
+            out.append("<tr>" + "".join(f"<td>{_e(subsection_cell(c, row.get(c, '')))}</td>" for c in cols) + "</tr>")
         out.append("</table>")
 
     out.append(
@@ -339,7 +339,7 @@ def render_pdf(
     subsections: list[dict],
     *,
     measurement: Measurement | None = None,
-    references: list[Reference] = (),
+    references: Sequence[Reference] = (),
 ) -> bytes:
     """The report as PDF bytes (A4), with everything the HTML has (``records.report_pdf``)."""
     from fieldtool.records.report_pdf import render_pdf as _render  # matplotlib only when a PDF is asked for

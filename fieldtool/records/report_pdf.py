@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import io
 import textwrap
+from collections.abc import Set
 from datetime import UTC, datetime
 
 import matplotlib.image as mpimg
@@ -57,6 +58,12 @@ class _Flow:
         self.fig = Figure(figsize=A4)
         self.y = TOP
 
+    @property
+    def page(self) -> Figure:
+        """The page being drawn on (``need`` opens one)."""
+        assert self.fig is not None, "need() opens a page before anything is drawn"
+        return self.fig
+
     def need(self, height: float) -> None:
         if self.fig is None or self.y - height < BOTTOM:
             self._page()
@@ -70,7 +77,7 @@ class _Flow:
         for line in textwrap.wrap(s, chars, break_long_words=True) or [""]:
             self.need(size * 1.4 * PT)
             self.y -= size * 1.4 * PT
-            self.fig.text(LEFT + indent, self.y, line, fontsize=size, **kw)
+            self.page.text(LEFT + indent, self.y, line, fontsize=size, **kw)
 
     def heading(self, s: str) -> None:
         self.need(40 * PT)
@@ -78,7 +85,7 @@ class _Flow:
         self.text(s, size=11.5, weight="bold")
         self.gap(2)
 
-    def table(self, header: list[str], rows: list[list[str]], size: float = 7.5, right: set[int] = frozenset()) -> None:
+    def table(self, header: list[str], rows: list[list[str]], size: float = 7.5, right: Set[int] = frozenset()) -> None:
         """A table in a monospaced font; the columns of ``right`` are right-aligned."""
         rows = [[str(c) for c in r] for r in rows]
         n = len(header)
@@ -111,10 +118,10 @@ class _Flow:
             self.need((depth + 2) * lh)
             for hl in head_lines:
                 self.y -= lh
-                self.fig.text(LEFT, self.y, hl, fontsize=size, family=MONO, weight="bold")
+                self.page.text(LEFT, self.y, hl, fontsize=size, family=MONO, weight="bold")
             self.y -= 0.35 * lh
-            self.fig.add_artist(
-                Line2D([LEFT, RIGHT], [self.y, self.y], lw=0.5, color="0.4", transform=self.fig.transFigure)
+            self.page.add_artist(
+                Line2D([LEFT, RIGHT], [self.y, self.y], lw=0.5, color="0.4", transform=self.page.transFigure)
             )
 
         draw_head()
@@ -123,7 +130,7 @@ class _Flow:
                 self._page()
                 draw_head()
             self.y -= lh
-            self.fig.text(LEFT, self.y, line(r), fontsize=size, family=MONO)
+            self.page.text(LEFT, self.y, line(r), fontsize=size, family=MONO)
         self.gap(4)
 
     def pairs(self, rows: list[tuple[str, str]], size: float = 9.0, key_w: float = 0.24) -> None:
@@ -133,11 +140,11 @@ class _Flow:
             lines = textwrap.wrap(str(v), chars) or ["–"]
             self.need(len(lines) * size * 1.4 * PT)
             self.y -= size * 1.4 * PT
-            self.fig.text(LEFT, self.y, str(k), fontsize=size, color="0.35")
+            self.page.text(LEFT, self.y, str(k), fontsize=size, color="0.35")
             for i, ln in enumerate(lines):
                 if i:
                     self.y -= size * 1.4 * PT
-                self.fig.text(LEFT + key_w, self.y, ln, fontsize=size, weight="bold" if size >= 9 else "normal")
+                self.page.text(LEFT + key_w, self.y, ln, fontsize=size, weight="bold" if size >= 9 else "normal")
 
     def close(self) -> None:
         if self.fig is not None:
@@ -150,9 +157,9 @@ def _q_block(flow: _Flow, summary: dict) -> None:
     flow.need(60 * PT)
     flow.gap(6)
     flow.y -= 18 * PT
-    flow.fig.text(LEFT, flow.y, f"Q = {t['q']}", fontsize=18, weight="bold")
+    flow.page.text(LEFT, flow.y, f"Q = {t['q']}", fontsize=18, weight="bold")
     if t["grade"]:
-        flow.fig.text(
+        flow.page.text(
             0.62,
             flow.y + 2 * PT,
             f" {t['grade'].upper()} ",
@@ -247,7 +254,7 @@ def render_pdf(
             for w in warnings:
                 flow.text(f"• {w}", size=8.5, color="#9a6700")
         if subsections:
-            cols = [c for c in COLUMN_NAMES if c in subsections[0]] + [
+            cols: list[str] = [c for c in COLUMN_NAMES if c in subsections[0]] + [
                 c for c in subsections[0] if c not in COLUMN_NAMES
             ]
             flow.heading("Subsections")
@@ -279,7 +286,7 @@ def render_pdf(
         for first in range(0, len(order), 2):
             fig = Figure(figsize=A4)
             for slot, key in enumerate(order[first : first + 2]):
-                ax = fig.add_axes([0.06, 0.53 - 0.47 * slot, 0.88, 0.42])
+                ax = fig.add_axes((0.06, 0.53 - 0.47 * slot, 0.88, 0.42))
                 ax.imshow(mpimg.imread(io.BytesIO(images[key]), format="png"))
                 ax.axis("off")
                 fig.text(0.5, 0.51 - 0.47 * slot, captions.get(key, key), ha="center", fontsize=9)

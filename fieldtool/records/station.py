@@ -42,6 +42,7 @@ from __future__ import annotations
 
 import csv
 import errno
+import importlib
 import math
 import os
 import signal
@@ -53,6 +54,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
+from types import ModuleType
+from typing import TYPE_CHECKING, Any
 
 from fieldtool.errors import FieldToolError, InputFileError, ParameterError
 from fieldtool.records.batch import VIDEO_EXTS, BatchItem, ItemResult, run_item
@@ -66,8 +69,11 @@ from fieldtool.records.history import (
 )
 from fieldtool.records.sites import SITE_FILE, Site, load_site, new_measurement
 
+if TYPE_CHECKING:  # rerun is imported only when a stream is asked for
+    from fieldtool.viewer.station_log import StationSeries
+
 try:  # the lock; every Unix has it
-    import fcntl
+    fcntl: ModuleType | None = importlib.import_module("fcntl")
 except ImportError:  # pragma: no cover - Windows: a process-id file instead
     fcntl = None
 
@@ -366,6 +372,7 @@ def _claim(hist: History, site: str, incoming: str, path: str, size: int, mtime_
                 "updated_at) VALUES (?, ?, ?, ?, ?, 'running', ?, 1, ?)",
                 (site, incoming, path, size, mtime_ns, out_dir, utc_now()),
             )
+            assert cur.lastrowid is not None  # always set after an INSERT
             return int(cur.lastrowid)
         if row[1] != "pending":
             return None
@@ -387,6 +394,7 @@ def _finish(hist: History, jid: int, outcome: ClipOutcome, site: str) -> int | N
             )
             return None
         r = outcome.result
+        assert r is not None and r.summary is not None  # an ok outcome carries its run's summary
         summary = dict(r.summary)
         if outcome.notes:
             summary["warnings"] = list(summary.get("warnings") or []) + outcome.notes
@@ -589,7 +597,7 @@ class Station:
         self.out_root = Path(out_root).resolve() if out_root else self.incoming / "fieldtool_station"
         self.dask, self.rerun_target, self.log = dask, rerun, log
         self.stop = threading.Event()
-        self.series = None
+        self.series: StationSeries | None = None
         self._level_stamp: tuple[int, int] | None = None
         self.level_rows: list[tuple[float, float]] | None = None
         self._levels()
@@ -629,6 +637,7 @@ class Station:
         mid = _finish(self.hist, jid, outcome, self.site.name)
         if outcome.ok:
             self.n_done += 1
+            assert outcome.result is not None and outcome.result.summary is not None  # ok: _finish recorded it
             s = outcome.result.summary
             ci = s.get("discharge_ci95_m3s") or [None, None]
             grade = (s.get("quality") or {}).get("grade")
@@ -654,7 +663,7 @@ class Station:
             plot_timeseries,  # matplotlib: imported when the first plot is drawn
         )
 
-        rows = []
+        rows: list[dict[str, Any]] = []
         for m in self.hist.query(site=self.site.name):
             rows.append(
                 {

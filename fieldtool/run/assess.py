@@ -89,12 +89,12 @@ def _mapping_fn(project, inputs, mapping: OrthoMapping):
     pts = inputs.to_working(project.section.points_px)
     length_px = float(np.hypot(*(pts[1] - pts[0])))
 
-    def fn(g, r, level):
+    def fn_scale(g, r, level):
         left, right = cs.water_edges(level)
         s = (right - left) / length_px
         return np.diag([s, -s, 1.0])
 
-    return fn, np.zeros((0, 2)), np.zeros(0)
+    return fn_scale, np.zeros((0, 2)), np.zeros(0)
 
 
 def _suspect(dres, th: ql.Thresholds) -> tuple[np.ndarray, np.ndarray]:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 from itertools import islice
+from typing import Any
 
 import numpy as np
 
@@ -98,7 +99,9 @@ def check(
     if len(frames) < 3:
         return ClipCheck(None, default)
     stats = clip_stats.estimate(frames, roi, step=2)
-    kw = dict(shrink_default=SHRINK, min_texture_default=MIN_TEXTURE, min_pairs=2, n_frames=n_clip or len(frames))
+    kw: dict[str, Any] = dict(
+        shrink_default=SHRINK, min_texture_default=MIN_TEXTURE, min_pairs=2, n_frames=n_clip or len(frames)
+    )
     g = _user_gap(clip_stats.gates(stats, **kw), user_gap)
     out = ClipCheck(stats, g)
     if params is None or not standardize or not clip_stats.ambiguous(stats):

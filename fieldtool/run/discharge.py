@@ -13,6 +13,7 @@ import numpy as np
 from fieldtool.processing import cross_section as xs
 from fieldtool.processing import discharge as dq
 from fieldtool.processing import ortho, robust
+from fieldtool.processing.quality import Quality
 from fieldtool.project.model import Project
 from fieldtool.run import stiv_stage, unmeasured
 from fieldtool.run.geometry import build_section
@@ -27,7 +28,7 @@ class PairDischarge:
     mapping: ortho.OrthoMapping
     cross_section: xs.CrossSection
     level_m: float
-    alpha: object  # section.alpha: a number or "auto" (dq.resolve_alpha)
+    alpha: float | None  # section.alpha; None: the default from the mean depth (dq.resolve_alpha)
 
     def on(self, g: dq.SectionGeometry, cs_g: xs.CrossSection | None = None) -> Callable[..., float]:
         """``q(x, y, u_px_s, v_px_s) -> m³/s`` on the section ``g`` (cross-section ``cs_g``, default the
@@ -62,7 +63,7 @@ class Discharge:
     q_pairs: np.ndarray
     stiv: dict | None
     robust: dict
-    unmeasured: object | None = None  # processing.quality.Quality (unusable) when nothing was measured on the section
+    unmeasured: Quality | None = None  # unusable when nothing was measured on the section
 
 
 def compute_discharge(

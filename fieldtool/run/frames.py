@@ -96,12 +96,12 @@ def working_frames(
         out = stack.apply(img) if stack is not None else img if raw else img.astype(np.float32)
         if observer is not None and k % log_every == 0:
             observer("frame", idx, t, img, out)
-        if every:
+        if every and observer is not None:  # every implies an observer
             observer("every_frame", idx, t, img)
         if progress is not None:
             progress(stage, k + 1, total)
         yield t, out
-    if every:
+    if every and observer is not None:
         observer("frames_done")
     if stab_report is not None and stabilizer is not None:
         stab_report.update(stabilizer.report())

@@ -34,7 +34,8 @@ def detect_waterline(project: Project, inputs: Inputs, mapping: ortho.OrthoMappi
                 "water_level.search_line_px: draw a line from bank to bank across the river "
                 "(or pick the section's water edges, which it extends)"
             )
-        line = waterline.extend_line(*inputs.to_working(sec), 0.4, inputs.shape)
+        p0, p1 = inputs.to_working(sec)
+        line = waterline.extend_line(p0, p1, 0.4, inputs.shape)
     lines = (
         waterline.parallel_lines(line, mapping, wl.search_spacing_m, 2, inputs.shape)
         if mapping is not None

@@ -10,7 +10,7 @@ import numpy as np
 
 from fieldtool.errors import InputFileError, ParameterError
 from fieldtool.processing import cross_section as xs
-from fieldtool.processing.calibration import load_calibration
+from fieldtool.processing.calibration import LensModel, load_calibration
 from fieldtool.processing.frames import FrameSource, read_color_frame
 from fieldtool.project.model import Project
 from fieldtool.project.validation import path_problem
@@ -22,7 +22,7 @@ class Inputs:
 
     cross_section: xs.CrossSection
     source: FrameSource
-    lens: object | None  # calibration.LensModel
+    lens: LensModel | None
     first_color: np.ndarray  # BGR raw first frame of the range
 
     def to_working(self, pts) -> np.ndarray:

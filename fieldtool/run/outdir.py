@@ -124,7 +124,7 @@ def sweep_stale(real: Path, given: Path | None = None) -> list[Path]:
     called with the folder's lock held, so none of them belongs to a live run of this folder. A folder
     whose owner pid is still alive in this process (another thread) is kept. Returns what was removed."""
     given = real if given is None else Path(given).absolute()
-    removed = []
+    removed: list[Path] = []
     try:
         entries = list(real.parent.iterdir())
     except OSError:
@@ -371,6 +371,7 @@ def claim(out: Path | str, project=None) -> Iterator[Staging]:
     with _Claim._guard:
         c = _Claim._held.get(key)
     if c is not None:
+        assert c.staging is not None  # same thread: the outer claim made its staging before yielding
         c.depth += 1
         try:
             yield c.staging

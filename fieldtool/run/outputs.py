@@ -15,6 +15,7 @@ import threading
 import time
 from pathlib import Path
 from types import SimpleNamespace
+from typing import Any
 
 import numpy as np
 
@@ -58,6 +59,7 @@ def _write_result_json(result: RunResult, out: Path) -> None:
     """result.json, strict JSON: a non-finite number is written as null and named in the warnings."""
     extra: list[str] = []
     summary = strict_json(result.summary(), extra)
+    assert isinstance(summary, dict)  # strict_json keeps a dict a dict
     if extra:
         summary["warnings"] = list(summary.get("warnings") or []) + extra
     atomic_write_bytes(
@@ -81,7 +83,7 @@ def _write_outputs(result: RunResult, inputs: Inputs, out: Path) -> None:
     files["subsections"] = "subsections.csv"
 
     XY = result.mapping.image_to_world(np.c_[p.x.ravel(), p.y.ravel()]).reshape(p.x.shape + (2,))
-    arrays = dict(
+    arrays: dict[str, Any] = dict(
         x_px=p.x,
         y_px=p.y,
         u_px_s=p.u,

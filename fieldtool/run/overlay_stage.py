@@ -284,6 +284,7 @@ class Recorder:
         self._prep_s += time.perf_counter() - t0
         self.frames_seen += 1
         self._ensure_thread()
+        assert self._thread is not None  # started by _ensure_thread
         t1 = time.perf_counter()
         with self._cond:
             while len(self._buf) >= self._capacity and self._thread.is_alive() and not self._stop:
@@ -428,6 +429,7 @@ class Recorder:
                 corner="bl",
             )
         t_enc = time.perf_counter()
+        assert self._writer is not None  # made with the drawing thread that calls this
         self._writer.write(img, pts)
         self._encode_s += time.perf_counter() - t_enc
         self._drawn += 1
@@ -485,6 +487,7 @@ class Recorder:
     def _card(self, result) -> np.ndarray:
         """The closing card: the mean field and the subsections' final velocities under Q, its interval and the
         grade."""
+        assert self._last_base is not None  # called once a frame was drawn
         img = (self._base(self._last_base) * 0.5).astype(np.uint8)
         p, d = result.piv, result.discharge
         ok = np.asarray(p.valid, bool) & np.isfinite(p.u) & np.isfinite(p.v)

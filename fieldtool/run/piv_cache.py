@@ -14,6 +14,7 @@ import hashlib
 import io
 import json
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -48,7 +49,9 @@ def piv_key(project: Project, max_speed_px_s: np.ndarray | None, box_px=None, ne
     ):  # the lens (frames' undistortion) comes from the GCPs
         parts["lens_from_gcps"] = [project.ortho.gcp_px, project.ortho.gcp_world_m]
     if max_speed_px_s is not None:
-        parts["max_speed"] = hashlib.sha256(np.ascontiguousarray(max_speed_px_s, dtype=np.float64)).hexdigest()
+        speed = np.ascontiguousarray(max_speed_px_s, dtype=np.float64)
+        # numpy's stubs give ndarray the buffer protocol (__buffer__) only for Python >= 3.12
+        parts["max_speed"] = hashlib.sha256(speed).hexdigest()  # type: ignore[arg-type]
     if box_px is not None:
         parts["box_px"] = [int(c) for c in box_px]
     if near is not None:
@@ -63,7 +66,7 @@ def piv_key(project: Project, max_speed_px_s: np.ndarray | None, box_px=None, ne
 
 def save(folder: Path, key: str, res, stabilization: dict | None, extra: dict | None = None) -> None:
     """Write the PIV result (arrays and parameters) with its key, atomically."""
-    arrays = {}
+    arrays: dict[str, Any] = {}
     for f in dataclasses.fields(res):
         v = getattr(res, f.name)
         if isinstance(v, np.ndarray):

@@ -14,7 +14,8 @@ from fieldtool.errors import FieldToolError
 from fieldtool.processing import cross_section as xs
 from fieldtool.processing import discharge as dq
 from fieldtool.processing import ortho
-from fieldtool.processing.quality import Reason
+from fieldtool.processing.quality import Quality, Reason
+from fieldtool.processing.uncertainty import McResult
 from fieldtool.project import sections as secs
 from fieldtool.project.model import Project
 from fieldtool.project.sections import SectionSpec
@@ -32,8 +33,8 @@ class Verdict:
     (processing.quality.Quality), None when they could not be computed; ``sections`` the entries of all
     sections when extra ones are given (the main one first), else empty."""
 
-    uncertainty: object | None
-    quality: object | None
+    uncertainty: McResult | None
+    quality: Quality | None
     sections: list
     standard: dict | None = None  # ISO 748 and IVE beside the Monte Carlo, 2σ (run/standard_stage.py)
 
@@ -96,9 +97,9 @@ def assess(
             )
             for s in extra
         ]
-        for e in entries:
-            if "error" in e:
-                warnings.append(f"section {e['name']!r}: {e['error']}")
+        for entry in entries:
+            if "error" in entry:
+                warnings.append(f"section {entry['name']!r}: {entry['error']}")
         _sections_reason(project, qual, secs.summarize(entries))
     return Verdict(unc, qual, entries, standard)
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -12,6 +13,13 @@ from fieldtool.processing import discharge as dq
 from fieldtool.processing import ortho
 from fieldtool.project.sections import summarize
 
+if TYPE_CHECKING:  # annotations only
+    from fieldtool.plots.prerender import Prerender
+    from fieldtool.processing.piv import PivResult
+    from fieldtool.processing.quality import Quality
+    from fieldtool.processing.uncertainty import McResult
+    from fieldtool.processing.water_level import LevelResult
+
 
 @dataclass
 class RunResult:
@@ -19,9 +27,9 @@ class RunResult:
 
     discharge: dq.DischargeResult
     q_pairs: np.ndarray
-    level: object  # water_level.LevelResult
+    level: LevelResult
     mapping: ortho.OrthoMapping
-    piv: object  # piv.PivResult
+    piv: PivResult
     section: dq.SectionGeometry
     world_u: np.ndarray
     world_v: np.ndarray
@@ -33,14 +41,14 @@ class RunResult:
     project: dict = field(default_factory=dict)
     piv_reused: bool = False  # the PIV field came from the output folder's piv_cache.npz
     stiv: dict | None = None  # STIV beside PIV per subsection (stiv_stage.finish); None when [stiv] enabled = false
-    uncertainty: object | None = None  # processing.uncertainty.McResult
-    quality: object | None = None  # processing.quality.Quality
+    uncertainty: McResult | None = None
+    quality: Quality | None = None
     sections: list = field(default_factory=list)  # several sections: the main one first (fieldtool.project.sections)
     robust: dict | None = None  # facts of the robust stages (processing/surface.py, robust.py, planning.py)
     piv_fast: dict | None = None  # region box and pair sampling of the fast path (see piv_region / run_piv_fast)
     video: dict = field(default_factory=dict)  # the clip's metadata (records.video_meta.video_info)
     uncertainty_standard: dict | None = None  # ISO 748 and IVE beside the Monte Carlo (run/standard_stage.py)
-    prerendered: object | None = None  # plots.prerender.Prerender: figures drawn during the PIV
+    prerendered: Prerender | None = None  # figures drawn during the PIV
     overlay: object | None = None  # run.overlay_stage.Recorder (overlay.mp4 drawn as the frames streamed) or None
 
     def summary(self) -> dict:

@@ -11,9 +11,10 @@ field from the output folder's PIV cache (run/piv_cache.py) when only the geomet
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -120,11 +121,11 @@ class Velocimetry:
     """The velocimetry stage's output: the PIV field (``processing.piv.PivResult``) and what the frames
     told on the way. ``fast`` holds the fast path's facts (region, box, pairs used, convergence)."""
 
-    piv: object
+    piv: piv_mod.PivResult
     stabilization: dict
     frame_stats: dict  # {"pairs": n, "identical": n} of consecutive frames
-    surface_stats: object | None  # processing.surface.SurfaceStats with the standardisation on
-    plan: object | None  # processing.planning.Plan (None when the field was reused)
+    surface_stats: surface.SurfaceStats | None  # with the standardisation on
+    plan: planning.Plan | None  # None when the field was reused
     fast: dict
     reused: bool  # the field came from the output folder's piv_cache.npz
 
@@ -153,7 +154,7 @@ class _Streams:
         )
         self.warnings = warnings
         self.params = s.params
-        self.plan = None
+        self.plan: planning.Plan | None = None  # set by plan_pairs
         self.stab: dict = {}
         self.frame_stats: dict = {}
         self.surface_stats = surface.SurfaceStats() if s.standardize else None
@@ -170,7 +171,8 @@ class _Streams:
             want = None
         elif tap and s.stiv_run is not None:  # STIV samples every frame of the stream it taps
             want = None
-        frames = frames_mod.working_frames(
+        # a frame ``want`` refuses comes with image None
+        frames: Iterator[tuple[float, np.ndarray | None]] = frames_mod.working_frames(
             project,
             self.inputs,
             self.cancel,
@@ -185,10 +187,12 @@ class _Streams:
             frames = s.stiv_run.tap(frames)
         frames = frames_mod.count_identical(self._tracked(frames), self.frame_stats)
         if s.standardize:
+            assert self.surface_stats is not None  # made in __init__ when standardising
             self.surface_stats.frames = 0  # each round of the fast path standardises the clip again: count one pass
-            frames = piv_fast.threaded(s.clip.before(frames))  # decoding (and STIV's sampling) in a thread of its own
+            # decoding (and STIV's sampling) in a thread of its own; every frame has its image (want is None here)
+            decoded = piv_fast.threaded(s.clip.before(frames))
             frames = surface.standardize(
-                frames,
+                decoded,
                 s.roi,
                 margin=max(64, self.params.search_px or 0),
                 half=surface.HALF_WINDOW,
@@ -198,6 +202,12 @@ class _Streams:
             )
             frames = s.clip.after(frames, want_std)  # weak clips: the glints masked (before) and the temporal mean
         return frames
+
+    @property
+    def guess(self):
+        """The plan's first guess for the PIV's first pass (``plan_pairs`` has made the plan)."""
+        assert self.plan is not None, "plan_pairs makes the plan before the PIV starts"
+        return self.plan.guess
 
     def _tracked(self, it):
         for k, (t, img) in enumerate(it, start=1):
@@ -252,7 +262,7 @@ def measure_velocity(
     st = _Streams(project, inputs, s, cancel, obs, progress, warnings)
     key = piv_cache.piv_key(project, s.max_speed, s.roi, s.near) if cache_dir is not None else ""
     cached = piv_cache.load(cache_dir, key, with_extra=True) if cache_dir is not None else None
-    fast = {
+    fast: dict[str, Any] = {
         "region": project.piv.region,
         "box_px": None if s.roi is None else list(s.roi),
         "roi_px": None if s.roi_user is None else list(s.roi_user),
@@ -308,6 +318,7 @@ def _rounds(project: Project, st: _Streams, n_exp: int, pair_q, on_pair, fast: d
     bytes_px = 1 if not s.standardize and not project.filters else 4
     min_pairs = s.clip.min_pairs(project.piv.min_pairs)  # weak clips average more pairs (run/clip_check.py)
     kept.plan(n_exp - gap, min(max(int(min_pairs), 2), n_exp - gap), gap, box, bytes_px)
+    assert kept.keep is not None  # kept.plan sets it
     drain = s.stiv_run is not None or len(kept.keep) > 1  # the pass reaches the clip's end
     try:
         if n_exp - gap >= 2:
@@ -326,7 +337,7 @@ def _rounds(project: Project, st: _Streams, n_exp: int, pair_q, on_pair, fast: d
                 min_pairs,
                 drain_first=drain,
                 near=s.near,
-                first_guess=st.plan.guess,
+                first_guess=st.guess,
             )
             fast.update(conv)
         else:
@@ -341,7 +352,7 @@ def _rounds(project: Project, st: _Streams, n_exp: int, pair_q, on_pair, fast: d
                     cancel=st.cancel,
                     on_pair=on_pair,
                     near=s.near,
-                    first_guess=st.plan.guess,
+                    first_guess=st.guess,
                 )
             finally:
                 getattr(frames, "close", lambda: None)()
@@ -355,9 +366,8 @@ def _all_pairs(project: Project, inputs: Inputs, st: _Streams, n_exp: int, on_pa
     """Every pair in one streamed pass (``[piv] all_pairs``, or a clip of 2 frames)."""
     s = st.s
     reader = piv_fast.prefetch(st.plan_pairs(st.stream(tap=True)))
-    frames = reader
-    if n_exp:
-        frames = frames_mod.Sized(frames, n_exp)  # lets the ensemble plan which pairs get per-pair vectors
+    # with the count: lets the ensemble plan which pairs get per-pair vectors
+    frames: Iterable[tuple[float, np.ndarray]] = frames_mod.Sized(reader, n_exp) if n_exp else reader
     try:
         res = piv_mod.analyze(
             frames,
@@ -369,7 +379,7 @@ def _all_pairs(project: Project, inputs: Inputs, st: _Streams, n_exp: int, on_pa
             cancel=st.cancel,
             on_pair=on_pair,
             near=s.near,
-            first_guess=st.plan.guess,
+            first_guess=st.guess,
         )
     finally:
         reader.close()

@@ -19,6 +19,7 @@ Units: metres and seconds in the world, pixels on the canvas, grey levels (0..25
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numpy as np
@@ -122,7 +123,7 @@ class Layer:
             d = np.abs(np.where(np.isfinite(X), X - x0 - tilt * Y, 1e9)) - width / 2
             soft = np.clip(0.5 - d / 0.06, 0, 1)  # a 6 cm penumbra
             self._shadow = (1.0 - nz.shadow_band_depth * soft).astype(np.float32)
-        self._leaves = None
+        self._leaves: tuple[Any, ...] | None = None  # drawn parameters, None when off
         if nz.leaf_shadows > 0:  # blobs over the near bank's water, swaying in the wind
             n = nz.leaf_shadows
             cx = xs + rng.uniform(-roi_half_m, roi_half_m, n)
@@ -135,7 +136,7 @@ class Layer:
             self._small = (max(self.w // 4, 1), max(self.h // 4, 1))
             self._Xs = cv2.resize(np.nan_to_num(X, nan=1e6), self._small, interpolation=cv2.INTER_AREA)
             self._Ys = cv2.resize(np.nan_to_num(Y, nan=1e6), self._small, interpolation=cv2.INTER_AREA)
-        self._rain = None
+        self._rain: tuple[Any, ...] | None = None  # drawn parameters, None when off
         if nz.rain_rate_m2s > 0:  # impacts: (t0, X, Y) over the reach, rings spreading at 0.35 m/s for 0.7 s
             area = 2 * roi_half_m * river.width_m
             dur = 60.0
@@ -146,7 +147,7 @@ class Layer:
                 rng.uniform(river.y_right_edge + 0.1, river.y_left_edge - 0.1, n),
                 rng.uniform(0.5, 1.0, n),
             )
-        self._debris = None
+        self._debris: tuple[Any, ...] | None = None  # drawn parameters, None when off
         if nz.debris > 0:  # rigid polygons (X, Y offsets, m) whose centre moves at the surface velocity
             n = nz.debris
             y = rng.uniform(river.y_right_edge + 0.6, river.y_left_edge - 0.6, n)
@@ -241,6 +242,7 @@ class Layer:
         return img
 
     def _leaf_factor(self, t: float) -> np.ndarray:
+        assert self._leaves is not None  # called only when leaves are on
         cx, cy, r, f, ph, amp = self._leaves
         acc = np.zeros(self._Xs.shape, np.float32)
         sway = amp * np.sin(2 * np.pi * f * t + ph)
@@ -255,6 +257,7 @@ class Layer:
         return p[:, :2] / p[:, 2:3]
 
     def _draw_rain(self, img: np.ndarray, t: float) -> None:
+        assert self._rain is not None  # called only when rain is on
         t0, X, Y, a = self._rain
         age = t - t0
         live = (age > 0) & (age < 0.7)
@@ -270,6 +273,7 @@ class Layer:
         img += cv2.GaussianBlur(ring, (0, 0), 0.8)
 
     def _draw_debris(self, img: np.ndarray, t: float) -> None:
+        assert self._debris is not None  # called only when debris is on
         x0, y, u, shapes, val = self._debris
         span = 4 * self.L
         xs = self.river.x_section_m

@@ -23,6 +23,7 @@ import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -165,7 +166,7 @@ class River:
         """True discharge (m³/s), wetted width (m), area (m²) and mean velocity (m/s), integrated
         with ``scipy.integrate.quad`` on the analytic functions."""
         lo, hi = self.s_left, self.s_right
-        opts = dict(limit=200, epsabs=1e-12, epsrel=1e-10)
+        opts: dict[str, Any] = dict(limit=200, epsabs=1e-12, epsrel=1e-10)
         if self.island_m is not None:  # the island's sides are discontinuities of the integrands
             opts["points"] = [self.s_left + self.island_m[0], self.s_left + self.island_m[1]]
         area, _ = integrate.quad(lambda s: float(self.depth(s)), lo, hi, **opts)
@@ -318,8 +319,9 @@ def gcp_world(spec: SceneSpec) -> np.ndarray:
     # already chosen (in the image) first, so the extra targets reach towards the corners
     cam = spec.camera
     cx = xs + dx * np.linspace(-4.0, 4.0, 17)
-    cand = [[x, y, r.level_m] for x in cx for y in (yl + 0.5, yl + 2.0, yl + 3.5, yr - 0.5, yr - 2.0, yr - 3.5)]
-    cand = np.array(cand)
+    cand = np.array(
+        [[x, y, r.level_m] for x in cx for y in (yl + 0.5, yl + 2.0, yl + 3.5, yr - 0.5, yr - 2.0, yr - 3.5)]
+    )
     depth = (cam.R @ cand.T + cam.t.reshape(3, 1))[2]
     px = cam.project(cand)
     m = 40.0
@@ -641,7 +643,7 @@ def _ripple_image(rp: _Ripples, t: float, canvas: tuple[int, int]) -> np.ndarray
 
 
 def _open_writer(path: Path, fourcc: str, fps: float, size: tuple[int, int]) -> cv2.VideoWriter:
-    wr = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*fourcc), fps, size, True)
+    wr = cv2.VideoWriter(str(path), cv2.VideoWriter.fourcc(*fourcc), fps, size, True)
     if not wr.isOpened():
         raise ParameterError(f"video writer: this OpenCV build cannot write {fourcc!r} to {path.name}")
     return wr
@@ -844,10 +846,12 @@ class _FrameRenderer:
         if spec.noise_sigma > 0:
             self.noise[:] = self.rng.standard_normal((h, w), dtype=np.float32)
             img += spec.noise_sigma * self.noise
-        frame = np.clip(img + 0.5, 0, 255).astype(np.uint8)
+        frame: np.ndarray = np.clip(img + 0.5, 0, 255).astype(np.uint8)
         if spec.jpeg_quality > 0:
             enc = cv2.imencode(".jpg", frame, [cv2.IMWRITE_JPEG_QUALITY, int(spec.jpeg_quality)])[1]
-            frame = cv2.imdecode(enc, cv2.IMREAD_GRAYSCALE)
+            decoded = cv2.imdecode(enc, cv2.IMREAD_GRAYSCALE)
+            assert decoded is not None  # the JPEG just encoded
+            frame = decoded
         bgr = cv2.cvtColor(frame, cv2.COLOR_GRAY2BGR)
         return bgr if self.nuis is None else self.nuis.colour(bgr, t)
 
@@ -864,12 +868,14 @@ def _write_video(
     ``spec.fourcc``); returns the render+encode seconds per frame."""
     cam = spec.camera
     w, h = cam.width_px, cam.height_px
+    writer: MkvWriter | cv2.VideoWriter
+    write: Callable[[np.ndarray, float], object]
     if spec.drop_fraction > 0:
-        writer = MkvWriter(video_path, (w, h), quality=95)
-        write = writer.write
+        writer = mkv = MkvWriter(video_path, (w, h), quality=95)
+        write = mkv.write
     else:
-        writer = _open_writer(video_path, spec.fourcc, spec.fps, (w, h))
-        write = lambda img, _t: writer.write(img)  # noqa: E731
+        writer = cvw = _open_writer(video_path, spec.fourcc, spec.fps, (w, h))
+        write = lambda img, _t: cvw.write(img)  # noqa: E731
     n = len(times)
     t_start = time.perf_counter()
     try:

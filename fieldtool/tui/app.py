@@ -10,7 +10,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Iterable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from textual.app import App, SystemCommand
 from textual.screen import Screen
@@ -37,7 +37,10 @@ from fieldtool.tui.session import Session, open_session
 from fieldtool.tui.steps import STEP_IDS, STEPS
 from fieldtool.tui.viewer_link import ssh_line
 from fieldtool.viewer.picks import MODES
-from fieldtool.viewer.registry import running_viewer
+from fieldtool.viewer.registry import RunningViewer, running_viewer
+
+if TYPE_CHECKING:  # viser is imported only when the viewer is opened
+    from fieldtool.viewer.server import ViewerHandle
 
 SCREENS_BY_STEP: dict[str, type[StepScreen]] = {
     s.STEP: s
@@ -71,7 +74,7 @@ class FieldToolApp(App):
         super().__init__()
         self.session = project_path if isinstance(project_path, Session) else open_session(project_path)
         self.job: Job | None = None
-        self.viewer = None
+        self.viewer: RunningViewer | ViewerHandle | None = None  # the browser viewer, when open
         self.viewer_url: str | None = None
         self.last_job: dict[str, Any] = {}  # name -> (result or error text), for tests and the panel
         self.status: tuple[str, bool] = ("no run in progress", False)  # the status line when idle: text, error

@@ -10,7 +10,9 @@ from __future__ import annotations
 import copy
 import threading
 import time
+from collections.abc import Iterable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -108,7 +110,7 @@ def _preview(project: Project, res, mapping) -> dict:
     that of the water nodes only (``piv_summary.water_nodes``: what moves), not of the banks."""
     speed = np.hypot(res.u, res.v)
     water = water_nodes(res.u, res.v, getattr(res, "valid_fraction", None))
-    stats = {
+    stats: dict[str, Any] = {
         "nodes": int(res.u.size),
         "water_nodes": int(water.sum()),
         "pairs": int(res.n_pairs or len(res.u_pairs)),
@@ -133,12 +135,12 @@ def run_piv_only(project: Project, job: Job, out_dir: Path | None = None) -> dic
     inputs = load_inputs(project)
     mapping, roi, mask, params, max_speed, key = _piv_setup(project, inputs)
     stab: dict = {}
-    frames = run_frames.working_frames(
+    stream = run_frames.working_frames(
         project, inputs, job.cancelled, None, stab if project.stabilize.enabled else None, job.progress
     )
     n_expected = inputs.source.estimated_count()
-    if n_expected:
-        frames = Sized(frames, n_expected)  # the same pair plan as the discharge run
+    # with the count: the same pair plan as the discharge run
+    frames: Iterable[tuple[float, np.ndarray]] = Sized(stream, n_expected) if n_expected else stream
     res = piv_mod.analyze(frames, params, roi=roi, mask=mask, max_speed_px_s=max_speed, cancel=job.cancelled)
     if out_dir is not None and key is not None:
         folder = Path(out_dir) / PREVIEW_DIR

@@ -8,15 +8,15 @@ avoided. Tab / shift+tab move between fields; enter opens a choice list.
 
 from __future__ import annotations
 
-from textual.binding import Binding
+from textual.binding import Binding, BindingType
 
-APP = [
+APP: list[BindingType] = [
     Binding("ctrl+q", "quit", "Quit", priority=True),
     Binding("escape", "cancel_job", "Cancel"),
     Binding("ctrl+o", "viewer", "Viewer"),
 ]
 
-STEP = [
+STEP: list[BindingType] = [
     Binding("ctrl+b", "back", "Back"),
     Binding("ctrl+n", "next", "Next"),
 ]
@@ -27,16 +27,16 @@ def run(label: str) -> Binding:
     return Binding("ctrl+r", "run", label)
 
 
-FILTERS = [
+FILTERS: list[BindingType] = [
     Binding("ctrl+t", "add_filter", "Add"),
     Binding("ctrl+y", "remove_filter", "Remove"),
 ]
 
-CROSS_SECTION = [
+CROSS_SECTION: list[BindingType] = [
     Binding("ctrl+s", "write_csv", "Save as CSV"),
 ]
 
-RESULTS = [
+RESULTS: list[BindingType] = [
     Binding("ctrl+g", "report", "Report"),
     Binding("ctrl+l", "overlay", "Overlay video"),  # run again with overlay.mp4 (the PIV field is reused)
 ]

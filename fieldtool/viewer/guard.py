@@ -136,8 +136,9 @@ class AccessGuard:
                 why = f"{len(values)} {name} headers in one request"
                 log_once("duplicate-header", f"fieldtool view: refused a request with {why} (400)")
                 return self._refuse(HTTPStatus.BAD_REQUEST, why)
-        host = (_all(headers, "Host") or [None])[0]
-        origin = (_all(headers, "Origin") or [None])[0]
+        hosts, origins = _all(headers, "Host"), _all(headers, "Origin")
+        host = hosts[0] if hosts else None
+        origin = origins[0] if origins else None
         if not self.host_allowed(host):
             return self._refuse(HTTPStatus.FORBIDDEN, f"host {host!r} is not this viewer's address")
         if (websocket or origin is not None) and not self.origin_allowed(origin, host):
@@ -260,7 +261,7 @@ _INSTALL_LOCK = threading.Lock()
 
 
 def make_process_request(
-    guard: AccessGuard, inner: Callable | None, extra_routes: Callable[[str, object], object] | None = None
+    guard: AccessGuard, inner: Callable | None, extra_routes: Callable[[str, Request], Response | None] | None = None
 ) -> Callable:
     """A ``process_request(connection, request)`` for websockets that applies ``guard``, strips
     the key from the path and hands the request to viser's own file server (``inner``).
@@ -335,11 +336,12 @@ def install(guard: AccessGuard, extra_routes: Callable | None = None) -> Iterato
     # fails says it in one line (_loop_exception)
     warnings.filterwarnings("ignore", message=r"\[viser\] .* does not match annotation", category=UserWarning)
     with _INSTALL_LOCK:
-        wss.serve = guarded_serve
+        # setattr: mypy refuses an assignment to a class name, and rebinding websockets' serve is the point here
+        setattr(wss, "serve", guarded_serve)  # noqa: B010
         try:
             yield
         finally:
-            wss.serve = original
+            setattr(wss, "serve", original)  # noqa: B010
 
 
 def ssh_hint(port: int, user: str | None = None, host: str | None = None) -> str:

@@ -102,21 +102,21 @@ def load_display(project: Project, kind: str) -> Display:
         if not rel:
             raise ParameterError(f"water_level.{kind}: no image given for the angle-and-height method")
         path = project.resolve(rel)
-        img = cv2.imread(str(path), cv2.IMREAD_COLOR)
-        if img is None:
+        photo = cv2.imread(str(path), cv2.IMREAD_COLOR)
+        if photo is None:
             raise InputFileError(f"{path}: cannot be read as an image (water_level.{kind})")
-        return Display(kind, _rgb(img))
+        return Display(kind, _rgb(photo))
     if kind == "dem_plot":
         return _dem_plot(project)
     if kind == "filtered":  # written by the TUI's filter preview: the working frame, filtered
         path = project.root / "out" / "filter_preview.png"
-        img = cv2.imread(str(path), cv2.IMREAD_COLOR)
-        if img is None:
+        preview = cv2.imread(str(path), cv2.IMREAD_COLOR)
+        if preview is None:
             raise InputFileError(f"{path}: no filter preview yet; press ctrl+r on the filters step of the TUI")
         lens = lens_of(project)
         if lens is None:
-            return Display("filtered", _rgb(img))
-        return Display("filtered", _rgb(img), lens.undistort_points, lens.distort_points)
+            return Display("filtered", _rgb(preview))
+        return Display("filtered", _rgb(preview), lens.undistort_points, lens.distort_points)
     raise ParameterError(f"unknown image {kind!r}; one of {', '.join(KINDS)}")
 
 

@@ -50,7 +50,8 @@ class PickState:
     project field should hold now, or ``...`` (Ellipsis) when nothing is ready to be saved.
     """
 
-    def click(self, x: float, y: float) -> str:
+    def click(self, x: float, y: float, exact: bool = False) -> str:
+        """Place a point at (x, y) px; ``exact``: keep every digit (a point snapped to a target's centre)."""
         raise NotImplementedError
 
     def undo(self) -> str:
@@ -484,8 +485,8 @@ def checklist(states: dict[str, PickState]) -> list[tuple[ModeSpec, str, str]]:
     step not done, else the first optional one not started) or "todo"/"optional".
 
     ``detail`` says what is placed and what comes next within the mode (e.g. "P1 P2 placed; next P3")."""
-    rows = []
-    for spec in sorted((m for m in MODES.values() if m.step is not None), key=lambda m: m.step):
+    rows: list[list[Any]] = []  # [mode, status, detail]
+    for spec in sorted((m for m in MODES.values() if m.step is not None), key=lambda m: m.step or 0):
         st = states.get(spec.key)
         labels = [t for t, _ in st.labels()] if st is not None else []
         done = st is not None and st.complete
@@ -503,7 +504,7 @@ def checklist(states: dict[str, PickState]) -> list[tuple[ModeSpec, str, str]]:
             if row[1] == "optional" and row[2] == "nothing placed":
                 row[1] = "next"
                 break
-    return [tuple(r) for r in rows]
+    return [(r[0], r[1], r[2]) for r in rows]
 
 
 def next_mode(states: dict[str, PickState]) -> str | None:

@@ -54,7 +54,15 @@ from fieldtool.viewer.mapping import (
     ray_to_pixel,
     zoom_about_cursor,
 )
-from fieldtool.viewer.picks import MODES, PickState, checklist, get_field, next_mode
+from fieldtool.viewer.picks import (
+    MODES,
+    PickState,
+    PolygonListPick,
+    StationPick,
+    checklist,
+    get_field,
+    next_mode,
+)
 from fieldtool.viewer.snap import snap_to_target
 
 LOOPBACK = ("127.0.0.1", "localhost", "::1")
@@ -755,6 +763,7 @@ class _Viewer:
             for i, (x0, y0, x1, y1) in enumerate(st.value()):
                 self._lines(f"{key}{i}", self._rect_outline(x0, y0, x1, y1), color, width=width)
         elif key == "masks":
+            assert isinstance(st, PolygonListPick)  # MODES["masks"] makes one
             for i, poly in enumerate(st.closed):
                 self._lines(f"{key}{i}", poly, color, closed=True, width=width)
             self._lines(f"{key}_open", st.open, color, width=width)
@@ -770,6 +779,7 @@ class _Viewer:
 
     def _draw_field(self) -> None:
         f = self.field
+        assert f is not None  # drawn only when a field is loaded
         ok = f["valid"]
         if not np.any(ok):
             return
@@ -799,6 +809,7 @@ class _Viewer:
 
     def _draw_divergence(self) -> None:
         st = self.states["divergence"]
+        assert isinstance(st, StationPick)  # MODES["divergence"] makes one
         ax = st.axes
         if ax is None or not st.points:
             return

@@ -18,9 +18,11 @@ browsers may not play) and says so in ``warning``.
 
 from __future__ import annotations
 
+import importlib
 import unicodedata
 from fractions import Fraction
 from pathlib import Path
+from types import ModuleType
 
 import cv2
 import numpy as np
@@ -277,7 +279,7 @@ class VideoWriter:
         self.warning = ""
         try:
             # imported here, not at the top: `import av` costs 40-75 ms, and every run imports this module
-            import av
+            av: ModuleType | None = importlib.import_module("av")
         except ImportError:
             av = None
         if av is not None:
@@ -295,12 +297,12 @@ class VideoWriter:
                 "overlay.mp4 written with OpenCV's MPEG-4 part 2 (mp4v) codec because PyAV is not "
                 "installed; browsers may not play it: pip install av"
             )
-            self._w = cv2.VideoWriter(
-                str(self.path), cv2.VideoWriter_fourcc(*"mp4v"), float(self.rate), (self.width, self.height)
+            self._w: cv2.VideoWriter = cv2.VideoWriter(
+                str(self.path), cv2.VideoWriter.fourcc(*"mp4v"), float(self.rate), (self.width, self.height)
             )
             if not self._w.isOpened():
                 raise OSError(f"{self.path}: OpenCV cannot write an MP4 file here")
-            self._last_pts = -1
+            self._last_pts: int = -1
 
     def write(self, bgr: np.ndarray, pts: int) -> None:
         """Encode one BGR uint8 frame of this writer's size at position ``pts`` (frame periods)."""

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING, cast
+
 from rich.text import Text
 from textual.app import ComposeResult
 from textual.containers import Horizontal, VerticalScroll
@@ -17,7 +19,15 @@ from fieldtool.tui.steps import STEP_BY_ID, STEP_IDS, fields_for
 from fieldtool.tui.widgets.chrome import HelpLine, StatusLine, StepList, TitleBar
 from fieldtool.tui.widgets.field_row import FieldRow, field_id
 
+if TYPE_CHECKING:  # the app imports the screens
+    from fieldtool.tui.app import FieldToolApp
+
 GENERAL_HELP = "tab / shift+tab: next / previous field · enter: open a list · ctrl+p: jump to a step"
+
+
+def fieldtool_app(screen: Screen) -> FieldToolApp:
+    """The app ``screen`` runs in, typed as fieldtool's (textual's ``Screen.app`` is a plain ``App``)."""
+    return cast("FieldToolApp", screen.app)
 
 
 class StepScreen(Screen):
@@ -82,9 +92,9 @@ class StepScreen(Screen):
     def on_mount(self) -> None:
         if self.project.step != self.STEP:
             self.project.step = self.STEP
-            self.app.save_project()  # type: ignore[attr-defined]
+            fieldtool_app(self).save_project()
         self.query_one("#step-errors", Static).display = False
-        self.app.show_status(self)  # type: ignore[attr-defined]
+        fieldtool_app(self).show_status(self)
         self.update_title()
         self.update_visibility()
         self.refresh_view()
@@ -126,8 +136,8 @@ class StepScreen(Screen):
 
     # -- events ------------------------------------------------------------------------------------
     def on_field_row_edited(self, event: FieldRow.Edited) -> None:
-        self.app.save_project()  # type: ignore[attr-defined]
-        self.app.viewer_reload()  # type: ignore[attr-defined]
+        fieldtool_app(self).save_project()
+        fieldtool_app(self).viewer_reload()
         self.after_edit(event.row.field)
         self.update_visibility()
         for row in self.rows:
@@ -151,7 +161,7 @@ class StepScreen(Screen):
         if isinstance(node, FieldRow):
             self.show_row_help(node)
             if node.field.pickable:
-                self.app.viewer_focus(node.field.key)  # type: ignore[attr-defined]
+                fieldtool_app(self).viewer_focus(node.field.key)
         else:
             help_line.update(Text(self.focus_help(event.widget)))
 
@@ -184,7 +194,8 @@ class StepScreen(Screen):
     def on_option_list_option_selected(self, event: OptionList.OptionSelected) -> None:
         if event.option_list.id == "steps":
             event.stop()
-            self.app.goto(event.option.id)  # type: ignore[attr-defined]
+            assert event.option.id is not None  # each option of the step list has its step's id
+            fieldtool_app(self).goto(event.option.id)
 
     # -- checks ----------------------------------------------------------------------------------
     def errors(self) -> list[str]:
@@ -231,12 +242,12 @@ class StepScreen(Screen):
             return
         i = STEP_IDS.index(self.STEP)
         if i + 1 < len(STEP_IDS):
-            self.app.goto(STEP_IDS[i + 1])  # type: ignore[attr-defined]
+            fieldtool_app(self).goto(STEP_IDS[i + 1])
 
     def action_back(self) -> None:
         i = STEP_IDS.index(self.STEP)
         if i > 0:
-            self.app.goto(STEP_IDS[i - 1])  # type: ignore[attr-defined]
+            fieldtool_app(self).goto(STEP_IDS[i - 1])
 
     # -- runs (the app owns the worker; the screen shows it) ----------------------------------------
     def status_line(self) -> StatusLine | None:

@@ -10,7 +10,7 @@ from textual.widgets import Label, Select, Static
 from fieldtool.errors import FieldToolError, ParameterError
 from fieldtool.processing.calibration import load_calibration
 from fieldtool.tui import jobs, keys
-from fieldtool.tui.screens.base import StepScreen
+from fieldtool.tui.screens.base import StepScreen, fieldtool_app
 from fieldtool.tui.steps import CALIBRATION_MODES
 
 
@@ -49,8 +49,8 @@ class CalibrationScreen(StepScreen):
             c.checkerboard_video = ""
         elif mode == "run" and not c.path:
             c.path = "calibration.toml"
-        self.app.save_project()  # type: ignore[attr-defined]
-        self.app.goto(self.STEP)  # type: ignore[attr-defined]  # rebuild the rows for the mode
+        fieldtool_app(self).save_project()
+        fieldtool_app(self).goto(self.STEP)  # rebuild the rows for the mode
 
     def focus_first(self) -> None:
         self.query_one("#mode", Select).focus()
@@ -117,8 +117,8 @@ class CalibrationScreen(StepScreen):
             self.show_errors(errors)
             return
         p = jobs.snapshot(self.project)  # the project as it is now: the job runs on this copy
-        self.app.start_job(
+        fieldtool_app(self).start_job(
             "calibration",
-            "Calibration",  # type: ignore[attr-defined]
+            "Calibration",
             lambda job: jobs.run_calibration(p, job),
         )

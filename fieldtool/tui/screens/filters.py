@@ -17,7 +17,7 @@ from fieldtool.project.model import atomic_write_bytes
 from fieldtool.run.geometry import roi_and_mask
 from fieldtool.tui import keys
 from fieldtool.tui.fields import DECIMAL_HINT, fmt_num
-from fieldtool.tui.screens.base import StepScreen
+from fieldtool.tui.screens.base import StepScreen, fieldtool_app
 from fieldtool.tui.screens.preview import PNG, PreviewScreen
 from fieldtool.tui.widgets.plots import GrayImage
 
@@ -104,6 +104,7 @@ class FiltersScreen(StepScreen):
 
     def show_doc(self) -> None:
         name = self.query_one("#filter-name", Select).value
+        assert isinstance(name, str)  # the Select has allow_blank=False: always a filter name
         cls = FILTERS[name]
         doc = (cls.__doc__ or "").strip().splitlines()[0]
         parts = []
@@ -133,6 +134,7 @@ class FiltersScreen(StepScreen):
     # -- stack editing -------------------------------------------------------------------------
     def action_add_filter(self) -> None:
         name = self.query_one("#filter-name", Select).value
+        assert isinstance(name, str)  # the Select has allow_blank=False: always a filter name
         text = self.query_one("#filter-params", Input).value
         try:
             item = parse_params(text, name)
@@ -153,7 +155,7 @@ class FiltersScreen(StepScreen):
         self.changed()
 
     def changed(self) -> None:
-        self.app.save_project()  # type: ignore[attr-defined]
+        fieldtool_app(self).save_project()
         self.show_errors([])
         self.refresh_view()
         self.refresh_marks()

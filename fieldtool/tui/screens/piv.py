@@ -8,7 +8,7 @@ from textual.widgets import Static
 
 from fieldtool.tui import jobs, keys
 from fieldtool.tui.piv_summary import water_nodes
-from fieldtool.tui.screens.base import StepScreen
+from fieldtool.tui.screens.base import StepScreen, fieldtool_app
 from fieldtool.tui.widgets.plots import VectorGrid
 
 
@@ -84,11 +84,11 @@ class PivScreen(StepScreen):
         full = jobs.has_section(p) and not any(self.session.step_errors(st) for st in ("section",))
         if full:
             out = self.session.out_dir
-            self.app.start_job(
+            fieldtool_app(self).start_job(
                 "piv",
-                "PIV and discharge",  # type: ignore[attr-defined]
+                "PIV and discharge",
                 lambda job: jobs.run_full(p, out, job),
             )
         else:
             out = self.session.out_dir  # the field is saved there at once (PIV cache)
-            self.app.start_job("piv", "PIV", lambda job: jobs.run_piv_only(p, job, out))  # type: ignore[attr-defined]
+            fieldtool_app(self).start_job("piv", "PIV", lambda job: jobs.run_piv_only(p, job, out))

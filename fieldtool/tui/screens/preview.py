@@ -12,6 +12,7 @@ from textual.containers import Horizontal, Vertical
 from textual.screen import ModalScreen
 from textual.widgets import Footer, Static
 
+from fieldtool.tui.screens.base import fieldtool_app
 from fieldtool.tui.widgets.plots import GrayImage
 
 PNG = "filter_preview.png"
@@ -42,4 +43,4 @@ class PreviewScreen(ModalScreen):
         self.app.pop_screen()
 
     def action_viewer(self) -> None:
-        self.app.show_in_viewer("filtered")  # type: ignore[attr-defined]
+        fieldtool_app(self).show_in_viewer("filtered")

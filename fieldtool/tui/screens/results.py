@@ -12,7 +12,7 @@ from fieldtool.errors import FieldToolError
 from fieldtool.project.model import atomic_write_bytes
 from fieldtool.records.report import load_result, render_html, render_pdf
 from fieldtool.tui import jobs, keys
-from fieldtool.tui.screens.base import StepScreen
+from fieldtool.tui.screens.base import StepScreen, fieldtool_app
 from fieldtool.tui.steps import MEASUREMENT
 from fieldtool.tui.widgets.field_row import FieldRow
 
@@ -118,7 +118,7 @@ class ResultsScreen(StepScreen):
             table.add_column(label)
         self.fill()
         state, _ = self.session.result_state()
-        if state != "current" and not self.app.job_running():  # type: ignore[attr-defined]
+        if state != "current" and not fieldtool_app(self).job_running():
             self.action_run()
 
     def focus_first(self) -> None:
@@ -138,7 +138,7 @@ class ResultsScreen(StepScreen):
 
     def computing(self) -> bool:
         """Whether the running job computes the discharge."""
-        job = self.app.job  # type: ignore[attr-defined]
+        job = fieldtool_app(self).job
         return job is not None and job.name in ("results", "piv", "overlay")
 
     def fill(self) -> None:
@@ -251,7 +251,7 @@ class ResultsScreen(StepScreen):
             return
         p = jobs.snapshot(self.project)
         out = self.session.out_dir
-        if self.app.start_job("results", "Discharge", lambda job: jobs.run_full(p, out, job)):  # type: ignore[attr-defined]
+        if fieldtool_app(self).start_job("results", "Discharge", lambda job: jobs.run_full(p, out, job)):
             self.fill()
 
     def action_overlay(self) -> None:
@@ -278,7 +278,7 @@ class ResultsScreen(StepScreen):
         p = jobs.snapshot(self.project)
         p.overlay.enabled = True
         out = self.session.out_dir
-        if self.app.start_job("overlay", "Overlay video", lambda job: jobs.run_full(p, out, job)):  # type: ignore[attr-defined]
+        if fieldtool_app(self).start_job("overlay", "Overlay video", lambda job: jobs.run_full(p, out, job)):
             self.fill()
 
     def action_next(self) -> None:
@@ -291,8 +291,8 @@ class ResultsScreen(StepScreen):
         try:
             summary, images, rows = load_result(out)
         except FieldToolError as e:
-            self.app.status = (f"no report: {e}", True)  # type: ignore[attr-defined]
-            self.app.show_status(self)  # type: ignore[attr-defined]
+            fieldtool_app(self).status = (f"no report: {e}", True)
+            fieldtool_app(self).show_status(self)
             return
         inputs = dict(summary.get("inputs") or {})
         for f in MEASUREMENT:
@@ -302,7 +302,7 @@ class ResultsScreen(StepScreen):
             atomic_write_bytes(out / "report.html", render_html(summary, images, rows).encode("utf-8"))
             atomic_write_bytes(out / "report.pdf", render_pdf(summary, images, rows))
         except (OSError, FieldToolError) as e:
-            self.app.status = (f"report NOT written: {e}", True)  # type: ignore[attr-defined]
+            fieldtool_app(self).status = (f"report NOT written: {e}", True)
         else:
-            self.app.status = (f"wrote out/report.html and out/report.pdf ({self.project.name})", False)  # type: ignore[attr-defined]
-        self.app.show_status(self)  # type: ignore[attr-defined]
+            fieldtool_app(self).status = (f"wrote out/report.html and out/report.pdf ({self.project.name})", False)
+        fieldtool_app(self).show_status(self)

@@ -8,7 +8,7 @@ from textual.widgets import Static
 
 from fieldtool.errors import FieldToolError
 from fieldtool.tui import jobs, keys
-from fieldtool.tui.screens.base import StepScreen
+from fieldtool.tui.screens.base import StepScreen, fieldtool_app
 
 
 class VideoScreen(StepScreen):
@@ -65,8 +65,8 @@ class VideoScreen(StepScreen):
             self.show_errors(self.errors())
             return
         p = jobs.snapshot(self.project)  # the project as it is now: the job runs on this copy
-        self.app.start_job(
+        fieldtool_app(self).start_job(
             "stabilize",
-            "Stabilisation",  # type: ignore[attr-defined]
+            "Stabilisation",
             lambda job: jobs.run_stabilization(p, job),
         )

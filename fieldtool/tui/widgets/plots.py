@@ -22,7 +22,7 @@ def braille_lines(
     height: int,
     x_range: tuple[float, float],
     y_range: tuple[float, float],
-) -> list[list[int]]:
+) -> list[list[list[int]]]:
     """Rasterise polylines into braille cells: a ``height`` x ``width`` grid of dot bit masks per series.
 
     Returns one grid (list of rows of ints) per series, so each can be coloured.
@@ -72,6 +72,7 @@ class SectionPlot(Widget):
         if self.station is None or w < 20 or h < 3:
             return Text(self.message or "no cross-section yet", style="dim")
         s, z = self.station, self.elevation
+        assert z is not None  # set_data is given a station and an elevation together
         lab_w = 8
         pw, ph = w - lab_w, h - 1
         zmin, zmax = float(z.min()), float(z.max())
@@ -80,7 +81,7 @@ class SectionPlot(Widget):
         pad = 0.05 * (zmax - zmin or 1.0)
         yr = (zmin - pad, zmax + pad)
         xr = (float(s.min()), float(s.max()))
-        series = [(s, z)]
+        series: list[tuple[np.ndarray, np.ndarray]] = [(s, z)]
         if self.level is not None:
             series.append((np.array(xr), np.array([self.level, self.level])))
         grids = braille_lines(series, pw, ph, xr, yr)
@@ -134,7 +135,8 @@ class GrayImage(Widget):
         if self.image is None or w < 2 or h < 2:
             return Text(self.caption or "no image", style="dim")
 
-        cols, rows = fit_cells(*self.image.shape[:2], w, h - 1)
+        ih, iw = self.image.shape[:2]
+        cols, rows = fit_cells(ih, iw, w, h - 1)
         small = cv2.resize(self.image.astype(np.float32), (cols, 2 * rows), interpolation=cv2.INTER_AREA)
         g = np.clip(small, 0, 255).astype(int)
         out = Text()
