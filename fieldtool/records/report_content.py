@@ -26,18 +26,6 @@ PLOTS = (
 )
 GRADE_COLOURS = {"good": "#1a7f37", "doubtful": "#9a6700", "unusable": "#cf222e"}
 # columns of the subsection table, with their headings
-COLUMN_NAMES = {
-    "subsection": "#",
-    "station_from_m": "from (m)",
-    "station_to_m": "to (m)",
-    "area_m2": "area (m²)",
-    "mean_depth_m": "mean depth (m)",
-    "surface_velocity_ms": "surface velocity (m/s)",
-    "velocity_filled": "filled",
-    "discharge_m3s": "Q (m³/s)",
-}
-
-
 def fmt_value(v, fmt: str = ".4f", unit: str = "") -> str:
     """``v`` formatted with ``fmt`` and its unit; "–" for None, the escaped text of what is not a number."""
     if v is None:

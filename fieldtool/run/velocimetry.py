@@ -100,8 +100,9 @@ def setup(project: Project, inputs: Inputs, mapping, sections: Sections, warning
     box = piv_region(project, inputs, params, roi, sections.segments)
     # the clip's noise and contrast where the PIV correlates (the section's band: the water, not the banks and
     # sky of a whole frame, whose windows would outvote it), and the texture gate set from them
-    clip = clip_check.check(inputs, box if box is not None else roi, n_clip, params, mask, standardize,
-                            project.piv.frame_gap)
+    clip = clip_check.check(
+        inputs, box if box is not None else roi, n_clip, params, mask, standardize, project.piv.frame_gap
+    )
     params = clip.params(params, standardize)  # min_texture only: the box does not depend on it
     near = None
     if project.piv.region == "section" and box is not None:  # in the band's box, only the nodes near the sections
