@@ -25,6 +25,8 @@ PLOTS = (
     ("stabilization_png", "Stabilisation"),
 )
 GRADE_COLOURS = {"good": "#1a7f37", "doubtful": "#9a6700", "unusable": "#cf222e"}
+
+
 # columns of the subsection table, with their headings
 def fmt_value(v, fmt: str = ".4f", unit: str = "") -> str:
     """``v`` formatted with ``fmt`` and its unit; "–" for None, the escaped text of what is not a number."""
