@@ -68,6 +68,7 @@ from fieldtool.records.history import (
     video_datetime,
 )
 from fieldtool.records.sites import SITE_FILE, Site, load_site, new_measurement
+from fieldtool.run.outdir import pid_alive
 
 if TYPE_CHECKING:  # rerun is imported only when a stream is asked for
     from fieldtool.viewer.station_log import StationSeries
@@ -436,7 +437,7 @@ class StationLock:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
             else:  # pragma: no cover - no flock: a process-id file, stale when that process is gone
                 other = os.read(fd, 32).decode(errors="replace").strip()
-                if other.isdigit() and int(other) != os.getpid() and _alive(int(other)):
+                if other.isdigit() and int(other) != os.getpid() and pid_alive(int(other)):
                     raise BlockingIOError(errno.EAGAIN, "locked")
         except BlockingIOError:
             os.lseek(fd, 0, os.SEEK_SET)
@@ -478,16 +479,6 @@ class StationLock:
 
     def __exit__(self, *exc) -> None:
         self.release()
-
-
-def _alive(pid: int) -> bool:  # pragma: no cover - only without flock
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
 
 
 # ---------------------------------------------------------------------------------------------

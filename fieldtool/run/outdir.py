@@ -109,7 +109,8 @@ def _pid_of(name: str) -> int | None:
     return int(m.group(1)) if m else None
 
 
-def _alive(pid: int) -> bool:
+def pid_alive(pid: int) -> bool:
+    """Whether process ``pid`` exists on this machine (one of another user counts: it is alive)."""
     try:
         os.kill(pid, 0)
     except ProcessLookupError:

@@ -16,6 +16,7 @@ import socket
 from dataclasses import dataclass
 from pathlib import Path
 
+from fieldtool.run.outdir import pid_alive
 from fieldtool.viewer.guard import ssh_hint as _ssh_hint
 
 
@@ -65,16 +66,6 @@ class RunningViewer:
         pass
 
 
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
-
-
 def _answers(port: int, timeout: float = 1.0) -> bool:
     """Whether an HTTP server answers on the loopback port (a plain request for the key-less root, which
     the viewer refuses with 403: an answer, and no half-open connection in its log)."""
@@ -94,7 +85,7 @@ def running_viewer(project_path: Path | str) -> RunningViewer | None:
         rv = RunningViewer(int(d["pid"]), str(d["host"]), int(d["port"]), str(d["token"]), str(d["url"]))
     except (OSError, ValueError, KeyError, TypeError):
         return None
-    if not _alive(rv.pid) or not _answers(rv.port):
+    if not pid_alive(rv.pid) or not _answers(rv.port):
         return None
     return rv
 
