@@ -216,3 +216,30 @@ if __name__ == "__main__":  # `python tests/run/test_import_graph.py`: print the
     for m, line, t in lz:
         print(f"lazy: {m}:{line}  {t}")
     print(len(lz), "function-level imports")
+
+
+def function_lengths() -> list[tuple[int, str]]:
+    """(lines, "module:qualname") of every top-level function and method of the package, its nested
+    functions counted in it; longest first."""
+    rows: list[tuple[int, str]] = []
+
+    def walk(node, path: Path, prefix: str, nested: bool) -> None:
+        for n in ast.iter_child_nodes(node):
+            if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                if not nested:
+                    rows.append((n.end_lineno - n.lineno + 1, f"{path.relative_to(ROOT)}:{prefix}{n.name}"))
+                walk(n, path, f"{prefix}{n.name}.", True)
+            elif isinstance(n, ast.ClassDef):
+                walk(n, path, f"{prefix}{n.name}.", nested)
+
+    for path in sorted((ROOT / PKG).rglob("*.py")):
+        walk(ast.parse(path.read_text()), path, "", False)
+    return sorted(rows, reverse=True)
+
+
+def test_no_function_over_120_lines():
+    """A function, its nested functions included, fits on a screen or two (issue 24): at most 120 lines."""
+    rows = function_lengths()
+    assert len(rows) > 500  # the walk found the package's functions
+    long = [r for r in rows if r[0] > 120]
+    assert not long, "functions over 120 lines: " + ", ".join(f"{name} ({n})" for n, name in long)
