@@ -92,6 +92,10 @@ def overlay_line(s: dict) -> str:
     return "[dim]ctrl+l renders the overlay video (overlay.mp4: vectors, section and Q drawn on the clip)[/dim]"
 
 
+# the steps a discharge run needs, checked before the run (and the overlay's run) starts
+RUN_STEPS = ("cross_section", "video", "calibration", "ortho", "water_level", "roi", "filters", "piv", "section")
+
+
 class ResultsScreen(StepScreen):
     STEP = "results"
     INTRO = "discharge and export"
@@ -230,24 +234,15 @@ class ResultsScreen(StepScreen):
         super().on_job_finished(name, result)
         self.focus_first()
 
-    def action_run(self) -> None:
-        bad = [
-            st
-            for st in (
-                "cross_section",
-                "video",
-                "calibration",
-                "ortho",
-                "water_level",
-                "roi",
-                "filters",
-                "piv",
-                "section",
-            )
-            if self.session.step_errors(st)
-        ]
+    def _steps_incomplete(self) -> bool:
+        """Show the errors of the steps a run needs that are not complete; True when there are any."""
+        bad = [st for st in RUN_STEPS if self.session.step_errors(st)]
         if bad:
             self.show_errors([f"step '{st}' is not complete: " + self.session.step_errors(st)[0] for st in bad])
+        return bool(bad)
+
+    def action_run(self) -> None:
+        if self._steps_incomplete():
             return
         p = jobs.snapshot(self.project)
         out = self.session.out_dir
@@ -257,23 +252,7 @@ class ResultsScreen(StepScreen):
     def action_overlay(self) -> None:
         """Run again with ``[overlay] enabled`` for this run only: overlay.mp4 beside the other results (the PIV
         field of the last run is reused when its inputs did not change; the clip is then read once)."""
-        bad = [
-            st
-            for st in (
-                "cross_section",
-                "video",
-                "calibration",
-                "ortho",
-                "water_level",
-                "roi",
-                "filters",
-                "piv",
-                "section",
-            )
-            if self.session.step_errors(st)
-        ]
-        if bad:
-            self.show_errors([f"step '{st}' is not complete: " + self.session.step_errors(st)[0] for st in bad])
+        if self._steps_incomplete():
             return
         p = jobs.snapshot(self.project)
         p.overlay.enabled = True
