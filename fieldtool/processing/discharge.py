@@ -151,10 +151,16 @@ def sample_field(
     ``x``, ``y`` (ny, nx) node centres (px), ``U``, ``V`` (ny, nx) m/s with NaN for invalid nodes;
     ``pts`` (..., 2) px. Invalid neighbours are left out and the weights renormalised
     (normalised convolution); a point with no valid neighbour, or outside the grid, gives NaN.
+    ``U``, ``V`` may also be (n, ny, nx), n fields on the same grid, with ``pts`` (n, ..., 2): field i is
+    sampled at ``pts[i]``.
     """
     xs, ys = x[0, :], y[:, 0]
-    ny, nx = U.shape
+    ny, nx = U.shape[-2:]
     px, py = pts[..., 0], pts[..., 1]
+    row0 = np.zeros(px.shape, int)  # the first row of each point's field in the stacked (n * ny, nx) grid
+    if U.ndim == 3:
+        row0 = row0 + (np.arange(len(U)) * ny).reshape((-1,) + (1,) * (px.ndim - 1))
+        U, V = U.reshape(-1, nx), V.reshape(-1, nx)
     fx = np.interp(px, xs, np.arange(nx), left=np.nan, right=np.nan) if nx > 1 else np.zeros_like(px)
     fy = np.interp(py, ys, np.arange(ny), left=np.nan, right=np.nan) if ny > 1 else np.zeros_like(py)
     out_u = np.full(px.shape, np.nan)
@@ -163,13 +169,14 @@ def sample_field(
     fx_i, fy_i = fx[inside], fy[inside]
     i0 = np.clip(np.floor(fx_i).astype(int), 0, max(nx - 2, 0))
     j0 = np.clip(np.floor(fy_i).astype(int), 0, max(ny - 2, 0))
+    r0 = row0[inside]
     ax, ay = fx_i - i0, fy_i - j0
     acc_u = np.zeros(len(fx_i))
     acc_v = np.zeros(len(fx_i))
     acc_w = np.zeros(len(fx_i))
     for dj, wy in ((0, 1 - ay), (1, ay)):
         for di, wx in ((0, 1 - ax), (1, ax)):
-            jj = np.minimum(j0 + dj, ny - 1)
+            jj = r0 + np.minimum(j0 + dj, ny - 1)
             ii = np.minimum(i0 + di, nx - 1)
             uu, vv = U[jj, ii], V[jj, ii]
             ok = np.isfinite(uu) & np.isfinite(vv)
@@ -231,16 +238,26 @@ def manning_factors(cs: CrossSection, level: float, edges: np.ndarray, k: int = 
 
 def fill_velocity(v: np.ndarray, law: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     """Fill NaN subsection velocities from the nearest valid one along the local Manning law:
-    v_i = v_j · to_i / frm_j with ``law = (to, frm)`` of :func:`manning_factors` (m/s)."""
-    to, frm = law
-    v = v.copy()
+    v_i = v_j · to_i / frm_j with ``law = (to, frm)`` of :func:`manning_factors` (m/s); of two valid ones
+    equally near, the left one. ``v`` may be (n, n_sub), n draws at once, with ``to``, ``frm`` of the same
+    shape; a row with nothing valid stays NaN."""
+    to, frm = (np.broadcast_to(np.asarray(a, float), np.shape(v)) for a in law)
+    v = np.array(v, float)
     filled = ~np.isfinite(v)
-    valid = np.nonzero(~filled)[0]
-    if len(valid) == 0:
+    if not filled.any():
         return v, filled
-    for i in np.nonzero(filled)[0]:
-        j = valid[np.argmin(np.abs(valid - i))]
-        v[i] = v[j] * to[i] / frm[j] if frm[j] > 0 else 0.0
+    idx = np.broadcast_to(np.arange(v.shape[-1]), v.shape)
+    prev = np.maximum.accumulate(np.where(filled, -1, idx), axis=-1)  # the nearest valid on the left, -1: none
+    nxt = np.flip(np.minimum.accumulate(np.flip(np.where(filled, v.shape[-1], idx), -1), axis=-1), -1)
+    use_prev = (prev >= 0) & ((nxt >= v.shape[-1]) | (idx - prev <= nxt - idx))
+    j = np.where(use_prev, prev, nxt)
+    some = (prev >= 0) | (nxt < v.shape[-1])
+    jj = np.where(some, j, 0)
+    vj = np.take_along_axis(v, jj, axis=-1)
+    fj = np.take_along_axis(frm, jj, axis=-1)
+    with np.errstate(all="ignore"):
+        fill = np.where(fj > 0, vj * to / np.where(fj > 0, fj, 1.0), 0.0)
+    v = np.where(filled & some, fill, v)
     return v, filled
 
 

@@ -11,9 +11,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fieldtool.errors import FieldToolError
 from fieldtool.processing.cross_section import CrossSection
-from fieldtool.processing.discharge import fill_velocity, manning_factors, section_geometry, section_samples
+from fieldtool.processing.discharge import fill_velocity, section_geometry, section_samples
+from fieldtool.processing.mc_geometry import bed_draws, normal_samples, rectify_sampled, section_draws
 from fieldtool.processing.ortho import OrthoMapping
 
 
@@ -152,7 +152,6 @@ class _Draw:
 
     def __init__(self, m: McModel, sig: McSigmas):
         self.m, self.sig = m, sig
-        self.last_underread = 0.0  # the under-read fraction of the last draw (Q was divided by 1 - it)
         self.theta0 = np.r_[np.asarray(m.gcp_px, float).ravel(), np.asarray(m.gcp_ref, float).ravel(), m.level_m]
         self.n_px = np.asarray(m.gcp_px).size
         self.n_ref = np.asarray(m.gcp_ref).size
@@ -204,87 +203,79 @@ class _Draw:
     #: run's areas, Manning factors and section samples
     GEOMETRY = frozenset({"gcp_pixels", "gcp_distances", "water_level", "cross_section"})
 
-    def _geometry(self, H: np.ndarray, cs: CrossSection, level: float):
-        """(area (n_sub,) m², Manning factors, section samples (n_sub, k) m/s) for this mapping, bed and level."""
-        m = self.m
-        cs.check_level(level)
-        mapping = OrthoMapping(H, m.method)
-        geom = section_geometry(m.section_px, mapping, cs, level, m.n_sub, m.station_offset_m)
-        geom.trusted = m.trusted  # which samples reach a water edge: the run's answer (a draw moves it little)
-        area, _ = _subsection_areas(cs, level, geom.station_edges)
-        law = manning_factors(cs, level, geom.station_edges)
-        U, V = mapping.rectify_velocity(self.x, self.y, self.u, self.v)
-        return area, law, section_samples(geom, self.x, self.y, U, V)
-
-    _plain = None
-
-    def __call__(self, active: frozenset[str], rng: np.random.Generator) -> float:
+    def _geometry(self, active: frozenset[str], n: int, rng: np.random.Generator):
+        """Draw the geometric inputs of ``n`` draws and compute, for all of them at once, the subsection
+        areas (n, n_sub) m², the Manning factors and the section samples (n, n_sub, k) m/s; ``ok`` (n,) is
+        False for a draw whose level leaves the section or whose geometry degenerates."""
         m, sig = self.m, self.sig
         cs = m.cross_section
-        if active & self.GEOMETRY:
+        Hs = np.empty((n, 3, 3))
+        levels = np.full(n, float(m.level_m))
+        elev = np.broadcast_to(cs.elevation, (n, len(cs.elevation))).copy()
+        for i in range(n):
             dtheta = np.zeros_like(self.theta0)
             for src in ("gcp_pixels", "gcp_distances"):
                 if src in active:
                     dtheta += rng.standard_normal(len(dtheta)) * self.sigma_theta[src]
-            level = m.level_m
             if "water_level" in active and sig.level_m > 0:
-                level = m.level_m + sig.level_m * rng.standard_normal()
-                dtheta[-1] = level - m.level_m
-            H = self.H0 + (self.J @ dtheta).reshape(3, 3)
+                levels[i] = m.level_m + sig.level_m * rng.standard_normal()
+                dtheta[-1] = levels[i] - m.level_m
+            Hs[i] = self.H0 + (self.J @ dtheta).reshape(3, 3)
             if "cross_section" in active and sig.bed_m > 0:
-                cs = CrossSection(cs.station, cs.elevation + sig.bed_m * rng.standard_normal(len(cs.elevation)))
-            area, law, vn = self._geometry(H, cs, level)
+                elev[i] += sig.bed_m * rng.standard_normal(len(cs.elevation))
+        sec = section_draws(m.section_px, Hs, m.n_sub)
+        U, V = rectify_sampled(Hs, self.x, self.y, self.u, self.v, sec)
+        vn = normal_samples(sec, self.x, self.y, U, V, m.trusted)
+        edges = None
+        if m.station_offset_m is not None:
+            edges = m.station_offset_m + np.linspace(0.0, 1.0, m.n_sub + 1)[None, :] * sec.length_m[:, None]
+        bed = bed_draws(cs.station, elev, levels, m.n_sub, edges)
+        return bed.area_m2, bed.law, vn, sec.ok & bed.ok
+
+    def draws(self, active: frozenset[str], n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, int]:
+        """Q (m³/s) of ``n`` draws with the sources ``active`` perturbed, the same without the under-read
+        factor (NaN where a draw gave none), and how many draws failed (a level that leaves the section, a
+        geometry that degenerates)."""
+        m, sig = self.m, self.sig
+        if active & self.GEOMETRY:
+            area, law, vn, ok = self._geometry(active, n, rng)
         else:
-            if self._plain is None:
-                self._plain = self._geometry(self.H0, cs, m.level_m)
-            area, law, vn = self._plain
-        if "velocity_sampling" in active and sig.sampling:
-            k = vn.shape[1]
-            vn = np.take_along_axis(vn, rng.integers(0, k, vn.shape), axis=1)
-        with np.errstate(all="ignore"):
-            cnt = np.sum(np.isfinite(vn), axis=1)
-            vs = np.where(cnt > 0, np.nansum(vn, axis=1) / np.maximum(cnt, 1), np.nan)
-            if "velocity_sampling" in active and sig.sampling and self.vp is not None:
-                idx = rng.integers(0, len(self.vp), len(self.vp))
-                dev = _nanmean(self.vp[idx], axis=0) - self.vp_mean
-                vs = vs + np.where(np.isfinite(dev), dev, 0.0)
-            if "velocity_sampling" in active and sig.piv_rel > 0:
-                vs = vs * (1.0 + sig.piv_rel * rng.standard_normal())
-            self.last_underread = 0.0
-            if "velocity_sampling" in active and m.underread_max > 0:
-                self.last_underread = float(rng.uniform(0.0, min(m.underread_max, 0.95)))
-                vs = vs / (1.0 - self.last_underread)  # Q scales by the same factor (it is linear in vs)
-        if not np.any(np.isfinite(vs)):
-            return float("nan")
+            area, law, vn, ok = self._geometry(frozenset(), 1, rng)
+            area, vn, ok = (np.repeat(a, n, axis=0) for a in (area, vn, ok))
+            law = (np.repeat(law[0], n, axis=0), np.repeat(law[1], n, axis=0))
+        n_failed = int(np.sum(~ok))
+        sampling = "velocity_sampling" in active
+        if sampling and sig.sampling:  # bootstrap over the sample points of each subsection
+            vn = np.take_along_axis(vn, rng.integers(0, vn.shape[2], vn.shape), axis=2)
+        vs = _nanmean(vn, axis=2)  # (n, n_sub) m/s
+        if sampling and sig.sampling and self.vp is not None:  # bootstrap over frame pairs
+            idx = rng.integers(0, len(self.vp), (n, len(self.vp)))
+            dev = _nanmean(self.vp[idx], axis=1) - self.vp_mean
+            vs = vs + np.where(np.isfinite(dev), dev, 0.0)
+        if sampling and sig.piv_rel > 0:
+            vs = vs * (1.0 + sig.piv_rel * rng.standard_normal(n))[:, None]
+        underread = np.zeros(n)
+        if sampling and m.underread_max > 0:
+            underread = rng.uniform(0.0, min(m.underread_max, 0.95), n)
+            vs = vs / (1.0 - underread)[:, None]  # Q scales by the same factor (it is linear in vs)
+        ok &= np.isfinite(vs).any(axis=1)
         suspect = m.suspect if m.suspect is not None and "filled_subsections" in active else None
         if suspect is not None and suspect.any():
             # a velocity in doubt lies anywhere between what was measured and what its neighbours suggest
             alt, _ = fill_velocity(np.where(suspect, np.nan, vs), law)
             if m.suspect_upper_ms is not None:
                 alt = np.where(np.isfinite(m.suspect_upper_ms), np.fmax(m.suspect_upper_ms, alt), alt)
-            t = rng.uniform(0.0, 1.0)  # one artefact (glints, waves): the same for every suspect subsection
+            t = rng.uniform(0.0, 1.0, n)[:, None]  # one artefact (glints, waves): the same for every suspect one
             vs = np.where(suspect & np.isfinite(alt), vs + t * (alt - vs), vs)
         vf, filled = fill_velocity(vs, law)
-        if "filled_subsections" in active and sig.filled_rel > 0 and filled.any():
-            vf = np.where(filled, vf * (1.0 + sig.filled_rel * rng.standard_normal(len(vf))), vf)
-        alpha = m.alpha
+        if "filled_subsections" in active and sig.filled_rel > 0:
+            vf = np.where(filled, vf * (1.0 + sig.filled_rel * rng.standard_normal(vf.shape)), vf)
+        alpha = np.full(n, m.alpha)
         if "velocity_index" in active and sig.alpha > 0:
-            alpha = m.alpha + sig.alpha * rng.standard_normal()
-        return float(alpha * np.sum(area * vf))
-
-
-def _subsection_areas(cs: CrossSection, level: float, edges: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Wetted area (m²) and mean depth (m) between consecutive ``edges`` (m): the exact integral of the
-    piecewise-linear depth, as :func:`discharge.subsection_areas`, for all subsections at once."""
-    ss, d = cs.wet_polyline(level)
-    cum = np.r_[0.0, np.cumsum(0.5 * (d[1:] + d[:-1]) * np.diff(ss))]
-    e = np.clip(np.asarray(edges, float), ss[0], ss[-1])
-    k = np.clip(np.searchsorted(ss, e, side="right") - 1, 0, len(ss) - 2)
-    de = np.interp(e, ss, d)
-    a_at = cum[k] + 0.5 * (d[k] + de) * (e - ss[k])
-    area = np.diff(a_at)
-    widths = np.diff(np.asarray(edges, float))
-    return area, np.where(widths > 0, area / np.where(widths > 0, widths, 1), 0.0)
+            alpha = m.alpha + sig.alpha * rng.standard_normal(n)
+        with np.errstate(all="ignore"):
+            q = np.where(ok, alpha * np.sum(area * vf, axis=1), np.nan)
+        return q, q * (1.0 - underread), n_failed
 
 
 def _nanmean(a: np.ndarray, axis: int) -> np.ndarray:
@@ -347,23 +338,13 @@ def monte_carlo_discharge(
     active = _active_sources(sigmas, model, drawer)
     failed = 0
 
-    base: list[float] = []
-
-    def draws(act: frozenset[str], n: int) -> np.ndarray:
+    def draws(act: frozenset[str], n: int) -> tuple[np.ndarray, np.ndarray]:
         nonlocal failed
-        out = np.empty(n)
-        for i in range(n):
-            try:
-                out[i] = drawer(act, rng)
-                base.append(out[i] * (1.0 - drawer.last_underread))
-            except FieldToolError:  # a draw whose level leaves the section or whose geometry degenerates
-                out[i] = np.nan
-                failed += 1
-        return out[np.isfinite(out)]
+        q, q_base, n_failed = drawer.draws(act, n, rng)
+        failed += n_failed
+        return q[np.isfinite(q)], q_base[np.isfinite(q_base)]
 
-    q_all = draws(frozenset(active), n_draws)
-    q_base = np.asarray(base, float)
-    q_base = q_base[np.isfinite(q_base)]
+    q_all, q_base = draws(frozenset(active), n_draws)
     if len(q_all) < 10:
         lo = hi = float("nan")
     else:
@@ -376,7 +357,7 @@ def monte_carlo_discharge(
         if src not in active:
             u[src] = 0.0
             continue
-        q = draws(frozenset([src]), n_draws_source)
+        q, _ = draws(frozenset([src]), n_draws_source)
         sd = float(np.std(q, ddof=1)) if len(q) > 2 else 0.0
         u[src] = sd if sd > 1e-9 * max(abs(discharge_m3s), 1e-12) else 0.0
     total = sum(v * v for v in u.values())
