@@ -14,13 +14,13 @@ from __future__ import annotations
 import json
 
 from fieldtool.errors import FieldToolError, ParameterError
-from fieldtool.processing import cross_section as xs
 from fieldtool.processing import piv as piv_mod
 from fieldtool.processing.calibration import load_calibration
 from fieldtool.processing.filters import FilterStack
 from fieldtool.processing.frames import FrameSource, read_color_frame
 from fieldtool.project.model import project_to_dict
 from fieldtool.run.geometry import build_mapping, build_section, level_and_mapping, roi_and_mask
+from fieldtool.run.inputs import load_cross_section
 from fieldtool.run.velocimetry import piv_params
 
 # project tables each step's core check reads (its cache key)
@@ -38,27 +38,11 @@ CORE_TABLES = {
 }
 
 
-def build_cross_section(project) -> xs.CrossSection:
-    """The project's cross-section (shape or file); FieldToolError with the user's message."""
-    c = project.cross_section
-    if c.shape:
-        return xs.from_shape(
-            c.shape,
-            top_width_m=c.top_width_m,
-            bottom_width_m=c.bottom_width_m,
-            depth_m=c.depth_m,
-            left_station_m=c.left_station_m,
-            bank_elevation_m=c.bank_elevation_m,
-            points=c.points,
-        )
-    return xs.load_cross_section(project.resolve(c.path))
-
-
 def core_check(session, step: str) -> None:
     """The core's check of ``step`` on the session's project; raises FieldToolError with the message."""
     p = session.project
     if step == "cross_section":
-        build_cross_section(p)
+        load_cross_section(p)
     elif step == "video":  # the clip alone (not the lens, whose step comes after)
         v = p.video
         if not v.path:

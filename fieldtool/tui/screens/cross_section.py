@@ -7,8 +7,8 @@ from textual.app import ComposeResult
 from fieldtool.errors import FieldToolError
 from fieldtool.processing import cross_section as xs
 from fieldtool.project.model import atomic_write_bytes
+from fieldtool.run.inputs import load_cross_section
 from fieldtool.tui import keys
-from fieldtool.tui.checks import build_cross_section
 from fieldtool.tui.screens.base import StepScreen
 from fieldtool.tui.widgets.plots import SectionPlot
 
@@ -35,7 +35,7 @@ class CrossSectionScreen(StepScreen):
             )
             return
         try:
-            cs = build_cross_section(self.project)
+            cs = load_cross_section(self.project)
         except FieldToolError as e:
             plot.set_data(message=str(e))
             return
@@ -50,7 +50,7 @@ class CrossSectionScreen(StepScreen):
     def action_write_csv(self) -> None:
         """Write the created shape's points to a CSV beside the project (reusable with 'load a file')."""
         try:
-            cs = build_cross_section(self.project)
+            cs = load_cross_section(self.project)
         except FieldToolError as e:
             self.notify(str(e), severity="error")
             return

@@ -8,8 +8,8 @@ from textual.widgets import Static
 
 from fieldtool.errors import FieldToolError
 from fieldtool.run.geometry import level_and_mapping
+from fieldtool.run.inputs import load_cross_section
 from fieldtool.tui import keys
-from fieldtool.tui.checks import build_cross_section
 from fieldtool.tui.screens.base import StepScreen
 from fieldtool.tui.widgets.plots import SectionPlot
 
@@ -38,7 +38,7 @@ class WaterLevelScreen(StepScreen):
             except FieldToolError as e:
                 info.update(f"[red]{escape(str(e))}[/red]")
                 try:
-                    cs = build_cross_section(self.project)
+                    cs = load_cross_section(self.project)
                     plot.set_data(cs.station, cs.elevation, None)
                 except FieldToolError as e2:
                     plot.set_data(message=str(e2))
@@ -52,7 +52,7 @@ class WaterLevelScreen(StepScreen):
             return
         info.update("ctrl+r computes the level with this method")
         try:
-            cs = build_cross_section(self.project)
+            cs = load_cross_section(self.project)
             plot.set_data(cs.station, cs.elevation, None)
         except FieldToolError as e:
             plot.set_data(message=str(e))
