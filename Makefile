@@ -30,7 +30,7 @@ lint: $(DEV)
 	$(BIN)/mypy fieldtool
 
 test: $(DEV) lint
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q --durations=12
 
 # The user guide (mkdocs, material theme) into site/, offline; open site/index.html.
 docs: $(DEV)
