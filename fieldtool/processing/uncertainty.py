@@ -123,6 +123,7 @@ class McResult:
     n_draws: int
     budget: list[dict]
     n_failed: int = 0
+    underread: dict | None = None  # a doubted under-read: its bound and what set it (run/assess.py)
 
     @property
     def relative_u95(self) -> float:
@@ -140,6 +141,7 @@ class McResult:
             ),
             "relative_u95": _finite_or_none(self.relative_u95),
             "budget": self.budget,
+            **({"underread": self.underread} if self.underread is not None else {}),
         }
 
 
