@@ -107,6 +107,21 @@ def _suspect(dres, th: ql.Thresholds) -> tuple[np.ndarray, np.ndarray]:
     return out, ql.depth_envelope(v, dres.mean_depth_m)
 
 
+def _pair_blocks(res, q_pairs):
+    """The per-pair fields with their deviations from the mean scaled so that the Monte Carlo's bootstrap over
+    pairs gives the standard error of the mean over autocorrelated pairs, ``spread / sqrt(n_eff)`` (pairs a few
+    frames apart share frames and the same eddies: resampled one by one, each would count as independent). The
+    AR(1) ``n_eff`` comes from the lag-1 autocorrelation of the per-pair discharges (:func:`un.ar1_inflation`).
+    Returns (u, v, the ``uncertainty.pairs`` block of result.json, None without per-pair fields)."""
+    up, vp = res.u_pairs, res.v_pairs
+    if up is None or vp is None or len(up) < 4 or q_pairs is None or len(q_pairs) != len(up):
+        return up, vp, None
+    vif, r = un.ar1_inflation(q_pairs)
+    k = float(np.sqrt(vif))
+    n = len(up)
+    return un.inflate_deviations(up, k), un.inflate_deviations(vp, k), {"n": n, "lag1_r": r, "n_eff": n / vif}
+
+
 def underread_bound(project, doubts: list[ql.Reason], stiv_block: dict | None) -> tuple[float, dict | None]:
     """How far the velocities may be under-read (fraction) when the verdict doubts them, and what says so.
 
@@ -142,6 +157,7 @@ def assess_run(project, inputs, level, mapping, geom, res, U, V, dres, q_pairs, 
     th = thresholds(project)
     suspect, upper = _suspect(dres, th)
     fn, px, ref = _mapping_fn(project, inputs, mapping)
+    u_pairs, v_pairs, blocks = _pair_blocks(res, q_pairs)
     model = un.McModel(
         cross_section=inputs.cross_section,
         level_m=level.level_m,
@@ -157,8 +173,8 @@ def assess_run(project, inputs, level, mapping, geom, res, U, V, dres, q_pairs, 
         y=res.y,
         u=res.u,
         v=res.v,
-        u_pairs=res.u_pairs,
-        v_pairs=res.v_pairs,
+        u_pairs=u_pairs,
+        v_pairs=v_pairs,
         suspect=suspect,
         suspect_upper_ms=upper,
         trusted=geom.trusted,
@@ -217,6 +233,9 @@ def assess_run(project, inputs, level, mapping, geom, res, U, V, dres, q_pairs, 
     mc = un.monte_carlo_discharge(
         model, sig, dres.discharge_m3s, n_draws=u.n_draws, n_draws_source=max(u.n_draws // 4, 20), seed=u.seed
     )
-    mc.underread = underread
+    if blocks is not None:
+        mc.notes["pairs"] = blocks
+    if underread is not None:
+        mc.notes["underread"] = underread
     ev.relative_u95 = mc.relative_u95
     return mc, ql.assess(ev, th, extra)

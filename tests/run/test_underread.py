@@ -6,6 +6,7 @@ import pytest
 
 from fieldtool.processing import quality as ql
 from fieldtool.processing import stiv
+from fieldtool.processing import uncertainty as un
 from fieldtool.project.model import Project
 from fieldtool.run.assess import underread_bound
 
@@ -71,3 +72,46 @@ def test_without_stiv_or_when_unusable_the_prior_holds_and_without_doubt_nothing
     agree = {"disagreement": _dis([0.0, 0.01, -0.01, 0.0])}
     assert underread_bound(p, _doubt("unusable"), agree)[0] == p.uncertainty.underread_unusable
     assert underread_bound(p, [], agree) == (0.0, None)
+
+
+def _ar1(rng, n, r):
+    x = np.zeros(n)
+    x[0] = rng.normal() / np.sqrt(1 - r**2)
+    for i in range(1, n):
+        x[i] = r * x[i - 1] + rng.normal()
+    return x
+
+
+def test_the_inflation_follows_the_lag1_autocorrelation_of_an_ar1_series():
+    rng = np.random.default_rng(1)
+    for r_true in (0.0, 0.5, 0.8):
+        vif, r = un.ar1_inflation(_ar1(rng, 4000, r_true))
+        assert r == pytest.approx(r_true, abs=0.05) and vif == pytest.approx((1 + r) / (1 - r))
+    assert un.ar1_inflation([1.0, np.nan, 2.0]) == (1.0, 0.0)
+
+
+def test_inflated_deviations_give_the_standard_error_of_an_autocorrelated_mean():
+    """Over many AR(1) series (r = 0.7), the spread of their means is what the bootstrap over one series' rows
+    predicts once its deviations are inflated; over the rows as they are it predicts far less (it counts each
+    pair as independent)."""
+    rng = np.random.default_rng(2)
+    n = 180
+    means, naive, inflated = [], [], []
+    for _ in range(300):
+        x = _ar1(rng, n, 0.7)
+        means.append(x.mean())
+        naive.append(x.std(ddof=1) / np.sqrt(n))
+        y = un.inflate_deviations(x, float(np.sqrt(un.ar1_inflation(x)[0])))
+        inflated.append(y.std(ddof=1) / np.sqrt(n))
+    true_se = float(np.std(means))
+    assert np.median(naive) < 0.6 * true_se
+    assert np.median(inflated) == pytest.approx(true_se, rel=0.15)
+
+
+def test_inflation_keeps_the_mean_and_ignores_nan():
+    a = np.arange(10.0)[:, None] * np.ones((1, 3))
+    a[0, 0] = np.nan
+    b = un.inflate_deviations(a, 2.0)
+    assert np.nanmean(b, axis=0) == pytest.approx(np.nanmean(a, axis=0)) and np.isnan(b[0, 0])
+    assert b[9, 1] - 4.5 == pytest.approx(2 * (9 - 4.5))
+    assert un.inflate_deviations(a, 1.0) is a
