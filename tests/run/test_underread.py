@@ -1,6 +1,8 @@
 """The under-read a doubted run's interval allows: measured from STIV's disagreement with PIV where STIV compared
 enough subsections, the project's prior otherwise (run/assess.underread_bound, processing/stiv.implied_underread)."""
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 
@@ -8,6 +10,7 @@ from fieldtool.processing import quality as ql
 from fieldtool.processing import stiv
 from fieldtool.processing import uncertainty as un
 from fieldtool.project.model import Project
+from fieldtool.run import quality as stage
 from fieldtool.run.assess import underread_bound
 
 
@@ -115,3 +118,19 @@ def test_inflation_keeps_the_mean_and_ignores_nan():
     assert np.nanmean(b, axis=0) == pytest.approx(np.nanmean(a, axis=0)) and np.isnan(b[0, 0])
     assert b[9, 1] - 4.5 == pytest.approx(2 * (9 - 4.5))
     assert un.inflate_deviations(a, 1.0) is a
+
+
+def test_the_quality_stage_hands_the_runs_stiv_block_to_the_interval(monkeypatch):
+    """run/quality.assess passes the discharge stage's STIV block on, so a doubted run's bound can use it."""
+    seen = {}
+
+    def fake_assess_run(*args, stiv_block=None):
+        seen["stiv"] = stiv_block
+        return None, ql.Quality("good")
+
+    monkeypatch.setattr(stage, "assess_run", fake_assess_run)
+    block = {"disagreement": _dis([0.1, 0.1, 0.1])}
+    q = SimpleNamespace(result=None, geom=None, world_u=None, world_v=None, q_pairs=None, stiv=block)
+    vel = SimpleNamespace(piv=None, frame_stats={})
+    stage.assess(Project(), None, None, None, vel, q, None, [], [])
+    assert seen["stiv"] is block
