@@ -2,10 +2,11 @@
 
     PYTHONPATH=. .venv/bin/python benchmarks/unseen_scenes.py [--presets low_light,glare_column] [--seeds 0,1,2]
         [--duration 6] [--workdir /tmp/unseen] [--baseline /tmp/baseline --kind oblique,nadir,far_bank]
+        [--old] [--results results_after]
 
 A preset may carry variant flags after a ``+`` (``oblique+shake``, ``oblique+distortion``, ``nadir+glints``), as
 ``presets.get`` takes them; a distorted scene's lens is calibrated first from its rendered checkerboard video with
-``fieldtool calibrate --project`` (as a user would), and that step's exit code is the row's when it fails.
+``fieldtool calibrate --project`` (as a user would; a failed calibration stops the benchmark with its error).
 ``--old`` is shorthand for the old presets: the hard ones and the kind scenes with their variants.
 
 Each scene is rendered once into WORKDIR/<preset>_s<seed>_d<duration>/ (kept: a second call reuses it) and run
