@@ -2,6 +2,12 @@
 
     PYTHONPATH=. .venv/bin/python benchmarks/unseen_scenes.py [--presets low_light,glare_column] [--seeds 0,1,2]
         [--duration 6] [--workdir /tmp/unseen] [--baseline /tmp/baseline --kind oblique,nadir,far_bank]
+        [--old] [--results results_after]
+
+A preset may carry variant flags after a ``+`` (``oblique+shake``, ``oblique+distortion``, ``nadir+glints``), as
+``presets.get`` takes them; a distorted scene's lens is calibrated first from its rendered checkerboard video with
+``fieldtool calibrate --project`` (as a user would; a failed calibration stops the benchmark with its error).
+``--old`` is shorthand for the old presets: the hard ones and the kind scenes with their variants.
 
 Each scene is rendered once into WORKDIR/<preset>_s<seed>_d<duration>/ (kept: a second call reuses it) and run
 through ``fieldtool run`` as a new user would (a subprocess: its exit code is part of the verdict). The truth is
@@ -28,6 +34,20 @@ from fieldtool.synthetic import presets, render_scene
 
 #: the kind scenes, which must move by no more than 0.5 percentage points from their baseline
 KIND = ("oblique", "nadir", "far_bank")
+#: the old presets (``--old``): the hard ones, then the kind scenes and their variants (shaken, barrel distortion)
+OLD = (*presets.HARD_NAMES, *presets.NAMES, "oblique+shake", "oblique+distortion")
+
+
+def render(label: str, seed: int, duration: float, d: Path) -> None:
+    """Render ``label`` (a preset with optional ``+flag`` variants) into ``d`` once; calibrate a distorted lens."""
+    name, *flags = label.split("+")
+    if not (d / "truth.json").exists():
+        render_scene(presets.get(name, seed=seed, duration_s=duration, **{f: True for f in flags}), d)
+    cb = d / "checkerboard.mp4"
+    if "distortion" in flags and cb.exists() and not (d / "calibration.toml").exists():
+        subprocess.run([sys.executable, "-m", "fieldtool.cli", "calibrate", str(cb), "--corners", "9x6",
+                        "--square-mm", "50", "--out", str(d / "calibration.toml"), "--project", str(d / "project.toml")],
+                       stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, check=True)
 
 
 def run_cli(project: Path, out: Path) -> tuple[int, dict | None, float]:
@@ -63,33 +83,35 @@ def row(name: str, seed, rc: int, res: dict | None, q_true: float, dt: float) ->
 
 def fmt(r: dict, extra: str = "") -> str:
     f = (lambda v, p=1: "-" if v is None else f"{v:+.{p}f}")
-    return (f"{r['preset']:<15} {str(r['seed']):>4} {r['rc']:>3} {f(r['err']):>8} {str(r['grade']):<9} "
+    return (f"{r['preset']:<18} {str(r['seed']):>4} {r['rc']:>3} {f(r['err']):>8} {str(r['grade']):<9} "
             f"{('-' if r['hw'] is None else f'{r[chr(104)+chr(119)]:.1f}'):>6} {str(r['inside']):<6} "
             f"{str(r['plan']):<10} {'PASS' if r['pass'] else 'FAIL':<5} {r['s']:6.1f}{extra}")
 
 
-HEAD = f"{'preset':<15} {'seed':>4} {'rc':>3} {'err %':>8} {'grade':<9} {'hw %':>6} {'in CI':<6} {'plan':<10} {'':<5} {'run s':>6}"
+HEAD = f"{'preset':<18} {'seed':>4} {'rc':>3} {'err %':>8} {'grade':<9} {'hw %':>6} {'in CI':<6} {'plan':<10} {'':<5} {'run s':>6}"
 
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--presets", default=",".join(presets.NEW_NAMES))
+    ap.add_argument("--old", action="store_true", help="the old presets: " + ",".join(OLD))
     ap.add_argument("--seeds", default="0")
     ap.add_argument("--duration", type=float, default=6.0)
     ap.add_argument("--workdir", default="/tmp/unseen_scenes")
     ap.add_argument("--baseline", default=None)
+    ap.add_argument("--results", default="results", help="results folder inside each scene's (keep before/after)")
     ap.add_argument("--kind", default="oblique,nadir,far_bank")
     a = ap.parse_args()
     work = Path(a.workdir)
     rows = []
     print(HEAD, flush=True)
-    for name in [p for p in a.presets.split(",") if p]:
+    names = list(OLD) if a.old else [p for p in a.presets.split(",") if p]
+    for name in names:
         for seed in [int(s) for s in a.seeds.split(",") if s]:
-            d = work / f"{name}_s{seed}_d{a.duration:g}"
-            if not (d / "truth.json").exists():
-                render_scene(presets.get(name, seed=seed, duration_s=a.duration), d)
+            d = work / f"{name.replace('+', '_')}_s{seed}_d{a.duration:g}"
+            render(name, seed, a.duration, d)
             q_true = json.loads((d / "truth.json").read_text())["discharge_m3s"]
-            rc, res, dt = run_cli(d / "project.toml", d / "results")
+            rc, res, dt = run_cli(d / "project.toml", d / a.results)
             rows.append(row(name, seed, rc, res, q_true, dt))
             print(fmt(rows[-1]), flush=True)
     if a.baseline:

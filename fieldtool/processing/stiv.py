@@ -589,3 +589,38 @@ def disagreement_reason(
         "value": float(abs(dq_rel)) if q_bad and dq_rel is not None else float(share),
         "threshold": q_threshold if q_bad else share_threshold,
     }
+
+
+def implied_underread(dis: dict | None, z: float = 2.0, min_compared: int = 3) -> dict | None:
+    """The under-read of the PIV velocities that the independent STIV supports, at about 95 % (one-sided).
+
+    ``dis`` is :func:`disagreement`'s block. Where STIV reads faster than PIV by ``d`` (its
+    ``discharge_relative``), the PIV may under-read by the fraction ``d / (1 + d)`` (``Q / (1 - u)`` then
+    equals STIV's discharge). ``d`` is uncertain itself: its standard error is the spread of the per-subsection
+    differences over ``sqrt(n_eff)``, with ``n_eff = n (1 - r) / (1 + r)`` for the lag-1 autocorrelation ``r >= 0``
+    of those differences along the section (neighbouring subsections share texture, lines and errors: AR(1)
+    effective sample size). The bound is ``d + z * se``; where STIV reads slower than PIV by more than its
+    noise, it supports no under-read (0).
+
+    Returns ``{"fraction", "stiv_relative", "se", "n_compared", "n_eff"}`` (fractions of Q), or None when STIV
+    compared fewer than ``min_compared`` subsections (the run then keeps the project's prior, the keys
+    ``uncertainty.underread_doubtful`` / ``underread_unusable``).
+    """
+    if not dis or dis.get("discharge_relative") is None:
+        return None
+    rel = np.asarray([r for r in dis.get("subsections_relative") or [] if r is not None], float)
+    rel = rel[np.isfinite(rel)]
+    n = len(rel)
+    d = float(dis["discharge_relative"])
+    if n < max(min_compared, 2) or not np.isfinite(d):
+        return None
+    r = 0.0
+    if n >= 3:
+        a, b = rel[:-1] - rel.mean(), rel[1:] - rel.mean()
+        den = float(np.sum((rel - rel.mean()) ** 2))
+        r = float(np.clip(np.sum(a * b) / den, 0.0, 0.95)) if den > 0 else 0.0
+    n_eff = float(np.clip(n * (1.0 - r) / (1.0 + r), 1.0, n))
+    se = float(np.std(rel, ddof=1) / np.sqrt(n_eff))
+    hi = d + z * se
+    frac = hi / (1.0 + hi) if hi > 0 else 0.0
+    return {"fraction": float(frac), "stiv_relative": d, "se": se, "n_compared": n, "n_eff": n_eff}

@@ -7,7 +7,7 @@ values given (m³/s for discharges).
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -48,6 +48,40 @@ def bootstrap_ci(values, level: float = 0.95, n_boot: int = 1000, seed: int = 0,
     a = (1.0 - level) / 2.0
     lo, hi = np.quantile(s, [a, 1.0 - a])
     return float(lo), float(hi)
+
+
+def ar1_inflation(series, max_r: float = 0.95) -> tuple[float, float]:
+    """Variance inflation of the mean of an autocorrelated series, and the lag-1 autocorrelation it comes from.
+
+    For an AR(1) series with lag-1 autocorrelation ``r``, the mean of ``n`` samples has the variance of
+    ``n_eff = n (1 - r) / (1 + r)`` independent ones: its standard error is ``spread / sqrt(n_eff)``, the
+    independent-sample one times ``sqrt((1 + r) / (1 - r))`` (returned as the variance factor
+    ``(1 + r) / (1 - r)``). ``series`` (n,), e.g. the per-pair discharges in time order (m³/s); non-finite values
+    are left out (with their neighbours' products). ``r`` is clipped to [0, ``max_r``]; fewer than 3 usable
+    products give (1.0, 0.0).
+    """
+    x = np.asarray(series, float).ravel()
+    ok = np.isfinite(x[:-1]) & np.isfinite(x[1:])
+    if ok.sum() < 3:
+        return 1.0, 0.0
+    m = float(np.nanmean(x))
+    a, b = x[:-1][ok] - m, x[1:][ok] - m
+    den = float(np.sqrt(np.sum(a * a) * np.sum(b * b)))
+    r = float(np.clip(np.sum(a * b) / den, 0.0, max_r)) if den > 0 else 0.0
+    return (1.0 + r) / (1.0 - r), r
+
+
+def inflate_deviations(a, factor: float) -> np.ndarray:
+    """``a`` (n, ...) with each entry's deviation from its mean over axis 0 (NaN ignored) scaled by ``factor``:
+    a bootstrap of the mean over these rows then has ``factor`` times the standard error it has over ``a`` (the
+    Monte Carlo's bootstrap over pairs takes rows as independent; ``sqrt`` of :func:`ar1_inflation` makes its
+    standard error hold for autocorrelated pairs). Every operation after it that is linear in the rows
+    (rectification, sampling, means) keeps the scaling."""
+    a = np.asarray(a, float)
+    if factor == 1.0 or len(a) < 2:
+        return a
+    m = _nanmean(a, axis=0)
+    return m + (a - m) * float(factor)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -123,6 +157,7 @@ class McResult:
     n_draws: int
     budget: list[dict]
     n_failed: int = 0
+    notes: dict = field(default_factory=dict)  # more keys of result.json's ``uncertainty`` (run/assess.py)
 
     @property
     def relative_u95(self) -> float:
@@ -140,6 +175,7 @@ class McResult:
             ),
             "relative_u95": _finite_or_none(self.relative_u95),
             "budget": self.budget,
+            **self.notes,
         }
 
 

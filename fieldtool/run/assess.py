@@ -11,7 +11,7 @@ import dataclasses
 
 import numpy as np
 
-from fieldtool.processing import ortho, pose
+from fieldtool.processing import ortho, pose, stiv
 from fieldtool.processing import quality as ql
 from fieldtool.processing import uncertainty as un
 from fieldtool.processing.ortho import OrthoMapping
@@ -107,12 +107,57 @@ def _suspect(dres, th: ql.Thresholds) -> tuple[np.ndarray, np.ndarray]:
     return out, ql.depth_envelope(v, dres.mean_depth_m)
 
 
-def assess_run(project, inputs, level, mapping, geom, res, U, V, dres, q_pairs, frame_stats: dict):
-    """(McResult, Quality) of a finished run; never raises for a draw that fails (it is counted)."""
+def _pair_blocks(res, q_pairs):
+    """The per-pair fields with their deviations from the mean scaled so that the Monte Carlo's bootstrap over
+    pairs gives the standard error of the mean over autocorrelated pairs, ``spread / sqrt(n_eff)`` (pairs a few
+    frames apart share frames and the same eddies: resampled one by one, each would count as independent). The
+    AR(1) ``n_eff`` comes from the lag-1 autocorrelation of the per-pair discharges (:func:`un.ar1_inflation`).
+    Returns (u, v, the ``uncertainty.pairs`` block of result.json, None without per-pair fields)."""
+    up, vp = res.u_pairs, res.v_pairs
+    if up is None or vp is None or len(up) < 4 or q_pairs is None or len(q_pairs) != len(up):
+        return up, vp, None
+    vif, r = un.ar1_inflation(q_pairs)
+    k = float(np.sqrt(vif))
+    n = len(up)
+    return un.inflate_deviations(up, k), un.inflate_deviations(vp, k), {"n": n, "lag1_r": r, "n_eff": n / vif}
+
+
+def underread_bound(project, doubts: list[ql.Reason], stiv_block: dict | None) -> tuple[float, dict | None]:
+    """How far the velocities may be under-read (fraction) when the verdict doubts them, and what says so.
+
+    LSPIV fails by under-reading (stationary glints and waves pull towards zero, empty seeding leaves slow
+    water), so a doubt widens the interval upward. By how much is measured where the clip allows it: STIV reads
+    the same section by another method, and the under-read it supports (:func:`stiv.implied_underread`, its
+    disagreement with PIV plus twice its standard error) replaces the project's prior
+    ``uncertainty.underread_doubtful``, never widening beyond it. Without STIV, or when the doubts make the
+    run unusable (the frames themselves are in question, and STIV reads the same frames), the prior holds.
+    Returns (fraction, the ``uncertainty.underread`` block of result.json, None without doubts).
+    """
+    if not doubts:
+        return 0.0, None
+    u = project.uncertainty
+    unusable = any(r.severity == "unusable" for r in doubts)
+    prior = u.underread_unusable if unusable else u.underread_doubtful
+    implied = None if unusable else stiv.implied_underread((stiv_block or {}).get("disagreement"))
+    frac = prior if implied is None else min(prior, implied["fraction"])
+    block = {
+        "max_fraction": float(frac),
+        "source": "prior" if implied is None or implied["fraction"] >= prior else "stiv",
+        "prior": float(prior),
+        "reasons": sorted({r.code for r in doubts}),
+        "stiv": implied,
+    }
+    return float(frac), block
+
+
+def assess_run(project, inputs, level, mapping, geom, res, U, V, dres, q_pairs, frame_stats: dict, stiv_block=None):
+    """(McResult, Quality) of a finished run; never raises for a draw that fails (it is counted). ``stiv_block``
+    is the run's ``"stiv"`` block (run/stiv_stage.py), None without STIV: it bounds a doubted under-read."""
     sig = sigmas(project, level)
     th = thresholds(project)
     suspect, upper = _suspect(dres, th)
     fn, px, ref = _mapping_fn(project, inputs, mapping)
+    u_pairs, v_pairs, blocks = _pair_blocks(res, q_pairs)
     model = un.McModel(
         cross_section=inputs.cross_section,
         level_m=level.level_m,
@@ -128,8 +173,8 @@ def assess_run(project, inputs, level, mapping, geom, res, U, V, dres, q_pairs, 
         y=res.y,
         u=res.u,
         v=res.v,
-        u_pairs=res.u_pairs,
-        v_pairs=res.v_pairs,
+        u_pairs=u_pairs,
+        v_pairs=v_pairs,
         suspect=suspect,
         suspect_upper_ms=upper,
         trusted=geom.trusted,
@@ -180,17 +225,17 @@ def assess_run(project, inputs, level, mapping, geom, res, U, V, dres, q_pairs, 
         )
     for d in (level.details.get("doubtful") or []) if level.method == "waterline" else []:
         extra.append(ql.Reason(d["code"], "doubtful", d["message"], d.get("value"), d.get("threshold")))
-    # a verdict that doubts the velocities widens the interval upward: LSPIV fails by under-reading
-    # (stationary glints and waves pull towards zero, empty seeding leaves slow water)
+    # a verdict that doubts the velocities widens the interval upward (see underread_bound)
     first_verdict = ql.assess(ev, th, extra)
     doubts = [r for r in first_verdict.reasons if r.code in ql.VELOCITY_DOUBTS]
+    model.underread_max, underread = underread_bound(project, doubts, stiv_block)
     u = project.uncertainty
-    model.underread_max = 0.0
-    if doubts:
-        unusable = any(r.severity == "unusable" for r in doubts)
-        model.underread_max = u.underread_unusable if unusable else u.underread_doubtful
     mc = un.monte_carlo_discharge(
         model, sig, dres.discharge_m3s, n_draws=u.n_draws, n_draws_source=max(u.n_draws // 4, 20), seed=u.seed
     )
+    if blocks is not None:
+        mc.notes["pairs"] = blocks
+    if underread is not None:
+        mc.notes["underread"] = underread
     ev.relative_u95 = mc.relative_u95
     return mc, ql.assess(ev, th, extra)

@@ -55,7 +55,18 @@ def assess(
     res, dres = vel.piv, q.result
     try:
         unc, qual = assess_run(
-            project, inputs, level, mapping, q.geom, res, q.world_u, q.world_v, dres, q.q_pairs, vel.frame_stats
+            project,
+            inputs,
+            level,
+            mapping,
+            q.geom,
+            res,
+            q.world_u,
+            q.world_v,
+            dres,
+            q.q_pairs,
+            vel.frame_stats,
+            stiv_block=q.stiv,
         )
     except Exception as e:  # noqa: BLE001 - the discharge is kept; the missing verdict is said
         unc = qual = None

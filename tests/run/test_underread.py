@@ -1,0 +1,136 @@
+"""The under-read a doubted run's interval allows: measured from STIV's disagreement with PIV where STIV compared
+enough subsections, the project's prior otherwise (run/assess.underread_bound, processing/stiv.implied_underread)."""
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from fieldtool.processing import quality as ql
+from fieldtool.processing import stiv
+from fieldtool.processing import uncertainty as un
+from fieldtool.project.model import Project
+from fieldtool.run import quality as stage
+from fieldtool.run.assess import underread_bound
+
+
+def _dis(rel, d=None):
+    rel = list(rel)
+    finite = [r for r in rel if r is not None]
+    return {
+        "discharge_relative": float(np.mean(finite)) if d is None else d,
+        "subsections_relative": rel,
+        "n_compared": len(finite),
+    }
+
+
+def _doubt(severity="doubtful"):
+    return [ql.Reason("valid_fraction", severity, "few valid vectors", 0.3, 0.5)]
+
+
+def test_stiv_faster_than_piv_bounds_the_under_read_by_its_difference_and_noise():
+    rng = np.random.default_rng(0)
+    rel = 0.10 + rng.normal(0.0, 0.03, 10)
+    out = stiv.implied_underread(_dis(rel))
+    d = float(np.mean(rel))
+    assert out["stiv_relative"] == pytest.approx(d)
+    # Q / (1 - u) reaches STIV's discharge and a little beyond: its own standard error, twice
+    assert d / (1 + d) < out["fraction"] < 0.2
+    assert out["se"] == pytest.approx(np.std(rel, ddof=1) / np.sqrt(out["n_eff"]))
+
+
+def test_stiv_slower_than_piv_supports_no_under_read():
+    rel = [-0.15, -0.18, -0.12, -0.16, -0.14, -0.17]
+    assert stiv.implied_underread(_dis(rel))["fraction"] == 0.0
+
+
+def test_too_few_compared_subsections_leave_the_prior():
+    assert stiv.implied_underread(_dis([0.2, None, 0.25, None])) is None
+    assert stiv.implied_underread(None) is None
+    assert stiv.implied_underread({"discharge_relative": None, "subsections_relative": []}) is None
+
+
+def test_differences_that_drift_along_the_section_count_fewer_independent_samples():
+    """A smooth trend along the section (neighbours alike) has a lag-1 autocorrelation: fewer effective samples,
+    a larger standard error than the same values in an order without it."""
+    smooth = np.linspace(0.0, 0.2, 12)
+    mixed = smooth[[0, 6, 1, 7, 2, 8, 3, 9, 4, 10, 5, 11]]
+    a, b = stiv.implied_underread(_dis(smooth)), stiv.implied_underread(_dis(mixed))
+    assert a["n_eff"] < 0.5 * b["n_eff"] and a["se"] > b["se"]
+
+
+def test_a_doubt_takes_stivs_bound_never_wider_than_the_prior():
+    p = Project()
+    frac, block = underread_bound(p, _doubt(), {"disagreement": _dis([0.05, 0.08, 0.1, 0.07, 0.09])})
+    assert 0.05 < frac < p.uncertainty.underread_doubtful
+    assert block["source"] == "stiv" and block["reasons"] == ["valid_fraction"] and block["prior"] == 0.5
+    far = {"disagreement": _dis([1.5, 1.8, 2.0, 1.7])}  # STIV three times faster: the prior caps it
+    assert underread_bound(p, _doubt(), far)[0] == p.uncertainty.underread_doubtful
+    assert underread_bound(p, _doubt(), far)[1]["source"] == "prior"
+
+
+def test_without_stiv_or_when_unusable_the_prior_holds_and_without_doubt_nothing():
+    p = Project()
+    assert underread_bound(p, _doubt(), None)[0] == p.uncertainty.underread_doubtful
+    agree = {"disagreement": _dis([0.0, 0.01, -0.01, 0.0])}
+    assert underread_bound(p, _doubt("unusable"), agree)[0] == p.uncertainty.underread_unusable
+    assert underread_bound(p, [], agree) == (0.0, None)
+
+
+def _ar1(rng, n, r):
+    x = np.zeros(n)
+    x[0] = rng.normal() / np.sqrt(1 - r**2)
+    for i in range(1, n):
+        x[i] = r * x[i - 1] + rng.normal()
+    return x
+
+
+def test_the_inflation_follows_the_lag1_autocorrelation_of_an_ar1_series():
+    rng = np.random.default_rng(1)
+    for r_true in (0.0, 0.5, 0.8):
+        vif, r = un.ar1_inflation(_ar1(rng, 4000, r_true))
+        assert r == pytest.approx(r_true, abs=0.05) and vif == pytest.approx((1 + r) / (1 - r))
+    assert un.ar1_inflation([1.0, np.nan, 2.0]) == (1.0, 0.0)
+
+
+def test_inflated_deviations_give_the_standard_error_of_an_autocorrelated_mean():
+    """Over many AR(1) series (r = 0.7), the spread of their means is what the bootstrap over one series' rows
+    predicts once its deviations are inflated; over the rows as they are it predicts far less (it counts each
+    pair as independent)."""
+    rng = np.random.default_rng(2)
+    n = 180
+    means, naive, inflated = [], [], []
+    for _ in range(300):
+        x = _ar1(rng, n, 0.7)
+        means.append(x.mean())
+        naive.append(x.std(ddof=1) / np.sqrt(n))
+        y = un.inflate_deviations(x, float(np.sqrt(un.ar1_inflation(x)[0])))
+        inflated.append(y.std(ddof=1) / np.sqrt(n))
+    true_se = float(np.std(means))
+    assert np.median(naive) < 0.6 * true_se
+    assert np.median(inflated) == pytest.approx(true_se, rel=0.15)
+
+
+def test_inflation_keeps_the_mean_and_ignores_nan():
+    a = np.arange(10.0)[:, None] * np.ones((1, 3))
+    a[0, 0] = np.nan
+    b = un.inflate_deviations(a, 2.0)
+    assert np.nanmean(b, axis=0) == pytest.approx(np.nanmean(a, axis=0)) and np.isnan(b[0, 0])
+    assert b[9, 1] - 4.5 == pytest.approx(2 * (9 - 4.5))
+    assert un.inflate_deviations(a, 1.0) is a
+
+
+def test_the_quality_stage_hands_the_runs_stiv_block_to_the_interval(monkeypatch):
+    """run/quality.assess passes the discharge stage's STIV block on, so a doubted run's bound can use it."""
+    seen = {}
+
+    def fake_assess_run(*args, stiv_block=None):
+        seen["stiv"] = stiv_block
+        return None, ql.Quality("good")
+
+    monkeypatch.setattr(stage, "assess_run", fake_assess_run)
+    block = {"disagreement": _dis([0.1, 0.1, 0.1])}
+    q = SimpleNamespace(result=None, geom=None, world_u=None, world_v=None, q_pairs=None, stiv=block)
+    vel = SimpleNamespace(piv=None, frame_stats={})
+    stage.assess(Project(), None, None, None, vel, q, None, [], [])
+    assert seen["stiv"] is block
