@@ -23,10 +23,11 @@ from collections.abc import Callable, Iterator
 
 import numpy as np
 
-from fieldtool.processing import piv_fast
+from fieldtool.processing import piv_fast, surface
 
-#: memory the kept frames may take (bytes): ~430 standardised boxes of 600 x 500 px
-KEEP_BYTES = 256 * 2**20
+#: memory the kept frames may take (bytes): ~110 standardised boxes of 600 x 500 px (float32), the frames of ~55
+#: more pairs (a second round up to about three times the first's 30); at 4K the run's peak stays under 1 GB
+KEEP_BYTES = 128 * 2**20
 
 
 class DecodeCount:
@@ -104,7 +105,7 @@ class KeptFrames:
     def _whole(self, crop: np.ndarray) -> np.ndarray:
         if self.stats is None:  # a fresh array (the round may write into its frames), float32 as built
             return crop.astype(np.float32) if crop.dtype == np.uint8 else crop.copy()
-        out = np.zeros(self.stats.shape, np.float32)
+        out = surface.blank(self.stats.shape)
         x0, y0, x1, y1 = self.stats.box
         out[y0:y1, x0:x1] = crop
         return out
