@@ -25,19 +25,21 @@ import numpy as np
 
 from fieldtool.processing import piv_fast, surface
 
-#: memory the kept frames may take (bytes), less :data:`PER_PX_BYTES` per pixel of the frame (:func:`budget`): at
-#: 720p ~200 standardised boxes of 600 x 500 px (float32)
+#: memory the kept frames may take (bytes) up to 1080p (:func:`budget`): ~200 standardised boxes of 600 x 500 px
 KEEP_BYTES = 256 * 2**20
-#: what the rest of the run holds per pixel of the frame (bytes: decoded frames in flight, the standardised frames'
-#: rows, the decoder's own), given back by the budget: a 4K run keeps ~130 MiB and its peak stays under 1 GB
-PER_PX_BYTES = 16
+#: what the rest of the run holds per pixel of the frame beyond :data:`FREE_PX` (bytes: decoded frames in flight,
+#: the standardised frames' rows, the decoder's own), given back by the budget: a 4K run keeps ~140 MiB and its
+#: peak stays under 1 GB
+PER_PX_BYTES = 20
+#: frame size (px) up to which the kept frames have the whole of KEEP_BYTES (1080p)
+FREE_PX = 1920 * 1080
 
 
 def budget(shape: tuple[int, int] | None) -> int:
     """The kept frames' budget (bytes) for frames of ``shape`` (H, W px): :data:`KEEP_BYTES` less
-    :data:`PER_PX_BYTES` per pixel, at least a quarter of it."""
+    :data:`PER_PX_BYTES` per pixel beyond :data:`FREE_PX`, at least a quarter of it."""
     px = int(shape[0]) * int(shape[1]) if shape is not None else 0
-    return max(KEEP_BYTES // 4, KEEP_BYTES - PER_PX_BYTES * px)
+    return max(KEEP_BYTES // 4, KEEP_BYTES - PER_PX_BYTES * max(0, px - FREE_PX))
 
 
 class DecodeCount:
