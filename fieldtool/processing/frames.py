@@ -9,8 +9,10 @@ from __future__ import annotations
 
 import os
 import re
+from collections import deque
 from collections.abc import Iterator
 from dataclasses import dataclass
+from itertools import islice
 from pathlib import Path
 from typing import NamedTuple
 
@@ -18,6 +20,7 @@ import cv2
 import numpy as np
 
 from fieldtool.errors import InputFileError, ParameterError
+from fieldtool.processing import video_av
 from fieldtool.processing.paths import is_pattern, literal_glob
 
 IMAGE_EXTS = {".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp"}
@@ -145,6 +148,8 @@ class FrameSource:
             if dur > 0 and end_s > dur + 1.0 / max(self.info.fps, 1e-9):
                 raise ParameterError(f"video.end_s: {end_s:g} s is beyond the end of the clip ({dur:.2f} s)")
         self.start_s, self.end_s, self.step = float(start_s), end_s, int(step)
+        self._head: tuple[deque, Iterator[Frame]] | None = None  # see head()
+        self._av: bool | None = None  # PyAV reads the clip as grey (processing/video_av.py); None: not probed
 
     def _probe_video(self) -> ClipInfo:
         if not self.path.exists():
@@ -178,12 +183,46 @@ class FrameSource:
         return max(0, (n + self.step - 1) // self.step)
 
     def __iter__(self) -> Iterator[Frame]:
-        return self._iter_sequence() if self.files is not None else self._iter_video()
+        return self._stream(None)
 
     def iter_wanted(self, want) -> Iterator[Frame]:
         """As iteration, but a frame whose position in the stream (0-based, after the step) fails ``want(k)`` is
         only decoded past (video: grabbed, not retrieved; sequence: not read) and comes with ``image = None``."""
-        return self._iter_sequence(want) if self.files is not None else self._iter_video(want)
+        return self._stream(want)
+
+    def head(self, n: int) -> list[Frame]:
+        """The first ``n`` frames of the range (fewer in a shorter clip). A video's next pass replays them and
+        continues the decoder that read them, so that a look at the first frames (run/clip_check.py) costs no
+        decoding of its own; the frames must not be written into."""
+        if self.files is not None:
+            return list(islice(self._iter_sequence(), n))
+        rest = self._iter_video()
+        got = list(islice(rest, n))
+        self._head = (deque(got), rest)
+        return got
+
+    def _stream(self, want) -> Iterator[Frame]:
+        if self.files is not None:
+            return self._iter_sequence(want)
+        head, self._head = self._head, None
+        return self._iter_video(want) if head is None else self._resumed(*head, want)
+
+    @staticmethod
+    def _resumed(frames: deque, rest: Iterator[Frame], want) -> Iterator[Frame]:
+        """The head's frames (dropped as they go), then the rest of their pass; ``want`` as in iter_wanted."""
+        k = 0
+        try:
+            while frames:
+                f = frames.popleft()
+                yield f if want is None or want(k) else f._replace(image=None)
+                k += 1
+            for f in rest:
+                yield f if want is None or want(k) else f._replace(image=None)
+                k += 1
+        finally:
+            close = getattr(rest, "close", None)
+            if close is not None:
+                close()
 
     def _in_range(self, t: float) -> int:
         """-1 before the range, 0 inside, 1 after."""
@@ -218,15 +257,13 @@ class FrameSource:
     def _iter_video(self, want=None) -> Iterator[Frame]:
         # the run already keeps two cores busy (decoding, standardising, correlating: one thread each); on two
         # cores or fewer the decoder's own threads only compete with them
-        cap = cv2.VideoCapture(str(self.path), cv2.CAP_ANY, [cv2.CAP_PROP_N_THREADS, _DECODER_THREADS])
+        if self._av is None:
+            self._av = video_av.usable(str(self.path), self.shape)
+        clip = video_av.open_clip(str(self.path), _DECODER_THREADS) if self._av else None
+        decoded = self._decoded_cv() if clip is None else ((t, fr, clip.grey) for t, fr in clip.decoded())
         try:
-            i, kept = -1, 0
-            bgr = None  # the decoder's colour frame, one buffer for the clip (only the grey copy leaves)
-            while True:
-                if not cap.grab():
-                    return
-                i += 1
-                t = cap.get(cv2.CAP_PROP_POS_MSEC) / 1000.0
+            kept = 0
+            for i, (t, fr, grey) in enumerate(decoded):
                 where = self._in_range(t)
                 if where < 0:
                     continue
@@ -235,14 +272,35 @@ class FrameSource:
                 if kept % self.step == 0 and want is not None and not want(kept // self.step):
                     yield Frame(i, t, None)
                 elif kept % self.step == 0:
-                    ok, img = cap.retrieve(bgr)
-                    if not ok:
+                    img = grey(fr)
+                    if img is None:
                         return
-                    if img.ndim == 3:
-                        bgr = img
-                        img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
                     yield Frame(i, t, img)
                 kept += 1
+        finally:
+            decoded.close()
+            if clip is not None:
+                clip.close()
+
+    def _decoded_cv(self) -> Iterator:
+        """OpenCV's reader (clips PyAV does not read as grey, processing/video_av.py): (t_s, capture, grey)
+        for every frame grabbed, ``grey(capture)`` its grey frame or None."""
+        cap = cv2.VideoCapture(str(self.path), cv2.CAP_ANY, [cv2.CAP_PROP_N_THREADS, _DECODER_THREADS])
+        bgr = None  # the decoder's colour frame, one buffer for the clip (only the grey copy leaves)
+
+        def grey(c):
+            nonlocal bgr
+            ok, img = c.retrieve(bgr)
+            if not ok:
+                return None
+            if img.ndim == 3:
+                bgr = img
+                img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+            return img
+
+        try:
+            while cap.grab():
+                yield cap.get(cv2.CAP_PROP_POS_MSEC) / 1000.0, cap, grey
         finally:
             cap.release()
 

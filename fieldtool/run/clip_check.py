@@ -8,7 +8,6 @@ and the ensemble's pair count. ``facts()`` is what ``result.json`` reports under
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from itertools import islice
 from typing import Any
 
 import numpy as np
@@ -93,7 +92,7 @@ def check(
     standard and the weak-signal gates are both run on the first frames' pairs and the more self-consistent
     one is kept (:mod:`fieldtool.processing.selfcheck`). ``user_gap``: the user's piv.frame_gap; below the
     denoising window (3 frames) the denoising is left off (pairs would share frames, hence noise)."""
-    got = [f for f in islice(iter(inputs.source), N_FRAMES) if f.image is not None]
+    got = [f for f in inputs.source.head(N_FRAMES) if f.image is not None]  # the run's pass replays them
     frames = [np.asarray(f.image) for f in got]
     default = clip_stats.Gates("standard", SHRINK, MIN_TEXTURE, None, ["too few frames to estimate: default gates"])
     if len(frames) < 3:

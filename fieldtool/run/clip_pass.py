@@ -5,7 +5,7 @@ the clip again: decoding, undistorting and standardising every frame once more f
 a long clip costs more than the correlation. Here round 1's pass (the one the first look, the
 standardisation window and STIV share) also keeps, in memory, the standardised frames that later rounds
 will likely want: the frames of the next pairs in the convergence order (``piv_fast.pair_order``, the order
-the rounds take them in), as many as :data:`KEEP_BYTES` holds. Round 1 then reads the clip to its end, and a
+the rounds take them in), as many as :func:`budget` holds. Round 1 then reads the clip to its end, and a
 later round replays the kept frames instead of decoding. A round that wants a frame not kept (a clip too
 long for the budget) reads the clip again, as before; ``frames_decoded`` in result.json then exceeds
 ``frames_in_range``.
@@ -23,10 +23,23 @@ from collections.abc import Callable, Iterator
 
 import numpy as np
 
-from fieldtool.processing import piv_fast
+from fieldtool.processing import piv_fast, surface
 
-#: memory the kept frames may take (bytes): ~430 standardised boxes of 600 x 500 px
+#: memory the kept frames may take (bytes) up to 1080p (:func:`budget`): ~200 standardised boxes of 600 x 500 px
 KEEP_BYTES = 256 * 2**20
+#: what the rest of the run holds per pixel of the frame beyond :data:`FREE_PX` (bytes: decoded frames in flight,
+#: the standardised frames' rows, the decoder's own), given back by the budget: a 4K run keeps ~140 MiB and its
+#: peak stays under 1 GB
+PER_PX_BYTES = 20
+#: frame size (px) up to which the kept frames have the whole of KEEP_BYTES (1080p)
+FREE_PX = 1920 * 1080
+
+
+def budget(shape: tuple[int, int] | None) -> int:
+    """The kept frames' budget (bytes) for frames of ``shape`` (H, W px): :data:`KEEP_BYTES` less
+    :data:`PER_PX_BYTES` per pixel beyond :data:`FREE_PX`, at least a quarter of it."""
+    px = int(shape[0]) * int(shape[1]) if shape is not None else 0
+    return max(KEEP_BYTES // 4, KEEP_BYTES - PER_PX_BYTES * max(0, px - FREE_PX))
 
 
 class DecodeCount:
@@ -45,9 +58,9 @@ class KeptFrames:
 
     def __init__(self, stats=None, shape: tuple[int, int] | None = None, budget_bytes: int | None = None):
         # stats: processing.surface.SurfaceStats (frames are 0 outside stats.box: the box is kept), or None:
-        # working frames of ``shape`` (H, W), kept whole; budget: KEEP_BYTES by default
+        # working frames of ``shape`` (H, W), kept whole; budget: :func:`budget` of the frame by default
         self.stats, self.shape = stats, shape
-        self.budget = int(KEEP_BYTES if budget_bytes is None else budget_bytes)
+        self.budget = int(budget(shape) if budget_bytes is None else budget_bytes)
         self.keep: frozenset | None = None  # None until planned: every frame built is kept
         self.frames: dict[int, np.ndarray] = {}
         self.times: list[float] = []
@@ -104,7 +117,7 @@ class KeptFrames:
     def _whole(self, crop: np.ndarray) -> np.ndarray:
         if self.stats is None:  # a fresh array (the round may write into its frames), float32 as built
             return crop.astype(np.float32) if crop.dtype == np.uint8 else crop.copy()
-        out = np.zeros(self.stats.shape, np.float32)
+        out = surface.blank(self.stats.shape)
         x0, y0, x1, y1 = self.stats.box
         out[y0:y1, x0:x1] = crop
         return out

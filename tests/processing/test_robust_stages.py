@@ -63,6 +63,20 @@ def test_standardize_keeps_times_order_and_removes_the_static_pattern():
     assert np.all(np.isfinite(stack))
 
 
+def test_blank_frames_are_zeros_and_a_large_one_costs_only_the_pages_written():
+    for shape in ((48, 64), (2160, 3840)):
+        b = surface.blank(shape)
+        assert b.shape == shape and b.dtype == np.float32 and b.flags.writeable and not b.any()
+    with open("/proc/self/statm") as fh:
+        before = int(fh.read().split()[1])
+    frames = [surface.blank((2160, 3840)) for _ in range(4)]  # 33 MB each
+    for f in frames:
+        f[:, 1000:1100] = 1.0  # a narrow box: one 4 KiB page of each row
+    with open("/proc/self/statm") as fh:
+        grown_mb = (int(fh.read().split()[1]) - before) * 4096 / 2**20
+    assert grown_mb < 4 * 14  # the rows' pages only (~8.4 MB a frame), not the whole frames (4 x 33 MB)
+
+
 def test_standardize_short_clip_and_empty():
     rng = np.random.default_rng(2)
     frames = _stream(4, 1.0, rng)

@@ -74,3 +74,10 @@ def test_rounds_decode_each_frame_once_and_match_a_new_pass(scene, monkeypatch, 
     # the replayed frames are those a new pass builds: the same field, the same discharge
     assert np.array_equal(one.piv.u, again.piv.u, equal_nan=True)
     assert one.discharge.discharge_m3s == again.discharge.discharge_m3s
+
+
+def test_budget_shrinks_with_the_frame_size_beyond_1080p():
+    small, hd, fhd, uhd = (clip_pass.budget(s) for s in ((48, 64), (720, 1280), (1080, 1920), (2160, 3840)))
+    assert small == hd == fhd == clip_pass.KEEP_BYTES  # up to 1080p: the whole budget (round 2 replayed as before)
+    assert uhd == clip_pass.KEEP_BYTES - clip_pass.PER_PX_BYTES * (2160 * 3840 - 1920 * 1080) < 150 * 2**20
+    assert clip_pass.budget((20000, 20000)) == clip_pass.KEEP_BYTES // 4

@@ -1,0 +1,115 @@
+"""Grey frames of a video decoded by PyAV (FFmpeg), straight from the decoder's luma plane.
+
+OpenCV's reader converts every decoded frame to BGR and the run converts it back to grey: at 4K that is more
+work than the decoding itself. Here the grey frame is the luma plane (Y) of the decoded 8-bit YUV frame,
+mapped through a 256-entry table built once per clip: the grey level OpenCV gives (FFmpeg's YUV -> BGR24, then
+``cv2.COLOR_BGR2GRAY``) for each Y at the clip's typical chroma (the median U and V of the first frame). For
+grey scenes the frames are then the very frames OpenCV decodes; elsewhere a pixel differs by the colour of its
+chroma from the typical one (a grey level or two in saturated colours).
+
+:func:`open_clip` says whether a clip is read this way (8-bit planar YUV, no rotation in the metadata, the
+same size as OpenCV's first frame, timestamps on every frame); the caller falls back to OpenCV otherwise.
+Times are the frames' presentation times from the stream's start (s), as OpenCV's ``CAP_PROP_POS_MSEC``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+
+import av
+import cv2
+import numpy as np
+
+#: pixel formats of three 8-bit planes, the first the luma the table maps
+LUMA_FORMATS = frozenset({"yuv420p", "yuvj420p", "yuv422p", "yuvj422p", "yuv444p", "yuvj444p", "yuv411p", "yuv440p"})
+
+
+def _plane(p) -> np.ndarray:
+    """A plane of a decoded frame as (H, line size) uint8, a view of the decoder's buffer."""
+    return np.frombuffer(p, np.uint8).reshape(p.height, p.line_size)
+
+
+def _luma(frame) -> np.ndarray:
+    """The Y plane of ``frame`` (H x W uint8, a view of the decoder's buffer)."""
+    p = frame.planes[0]
+    return _plane(p)[:, : p.width]
+
+
+def grey_table(frame) -> np.ndarray:
+    """256 grey levels: FFmpeg's BGR24 of each luma value at the frame's median chroma, then OpenCV's grey."""
+    fmt = frame.format.name
+    probe = av.VideoFrame(256, 16, fmt)
+    probe.color_range = frame.color_range
+    for i, (src, dst) in enumerate(zip(frame.planes, probe.planes, strict=True)):
+        a = _plane(dst)
+        if i == 0:
+            a[:] = 0
+            a[:, :256] = np.arange(256, dtype=np.uint8)
+        else:  # a chroma plane: its median
+            a[:] = np.uint8(np.median(_plane(src)[:, : src.width]))
+    bgr = np.ascontiguousarray(probe.to_ndarray(format="bgr24"), dtype=np.uint8)
+    return cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY)[probe.height // 2, :256].copy()
+
+
+class Clip:
+    """An open clip read by PyAV: ``decoded()`` streams (t_s, frame) from the first frame, ``grey(frame)``
+    converts one (the frames not converted cost their decoding only)."""
+
+    def __init__(self, container, stream):
+        self.container, self.stream = container, stream
+        self.table: np.ndarray | None = None
+
+    def decoded(self) -> Iterator:
+        """(t_s, decoded frame) in presentation order; stops at a frame without a timestamp or one that fails."""
+        st = self.stream
+        t0, tb = st.start_time or 0, float(st.time_base)
+        try:
+            for fr in self.container.decode(st):
+                if fr.pts is None:
+                    return
+                yield float(fr.pts - t0) * tb, fr
+        except av.FFmpegError:  # a cut or corrupt stream: what decoded is the clip, as OpenCV's reader stops
+            return
+
+    def grey(self, frame) -> np.ndarray:
+        """The grey uint8 frame (H x W) of a decoded frame."""
+        if self.table is None:
+            self.table = grey_table(frame)
+        return cv2.LUT(_luma(frame), self.table)
+
+    def close(self) -> None:
+        self.container.close()
+
+
+def usable(path: str, shape: tuple[int, int]) -> bool:
+    """Whether PyAV reads ``path`` as grey here (see the module docstring); ``shape``: (H, W) of OpenCV's first
+    frame, which PyAV's must match (OpenCV turns a clip by its rotation metadata)."""
+    try:
+        with av.open(path) as c:
+            st = c.streams.video[0] if c.streams.video else None
+            if st is None or st.codec_context.pix_fmt not in LUMA_FORMATS:
+                return False
+            first = next(c.decode(st), None)
+            return (
+                first is not None
+                and first.format.name in LUMA_FORMATS
+                and not first.rotation
+                and (first.height, first.width) == tuple(shape)
+                and first.pts is not None
+            )
+    except (av.FFmpegError, OSError, ValueError):
+        return False
+
+
+def open_clip(path: str, threads: int) -> Clip | None:
+    """``path`` opened for grey decoding (:func:`usable` said so), or None when it no longer opens.
+    ``threads``: decoder threads (1: the calling thread only; 0: FFmpeg's choice, all cores)."""
+    try:
+        c = av.open(path)
+    except (av.FFmpegError, OSError, ValueError):
+        return None
+    st = c.streams.video[0]
+    if threads != 1:
+        st.thread_type = "AUTO"
+        st.thread_count = threads
+    return Clip(c, st)

@@ -1,0 +1,67 @@
+"""PyAV's grey frames (processing/video_av.py): the frames and times OpenCV's reader gives, read once per clip."""
+
+import cv2
+import numpy as np
+import pytest
+
+from fieldtool.processing import video_av
+from fieldtool.processing.frames import FrameSource
+
+
+@pytest.fixture
+def textured(tmp_path):
+    """A grey clip with a moving random texture (every grey level, codec noise on top)."""
+    path = tmp_path / "clip.mp4"
+    w = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), 30, (96, 64))
+    tex = np.random.default_rng(0).integers(0, 256, (64, 200), dtype=np.uint8)
+    for i in range(24):
+        g = np.ascontiguousarray(tex[:, 2 * i : 2 * i + 96])
+        w.write(cv2.cvtColor(g, cv2.COLOR_GRAY2BGR))
+    w.release()
+    return path
+
+
+def _opencv(path):
+    cap = cv2.VideoCapture(str(path))
+    out = []
+    while cap.grab():
+        t = cap.get(cv2.CAP_PROP_POS_MSEC) / 1000.0
+        ok, bgr = cap.retrieve()
+        out.append((t, cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY)))
+    cap.release()
+    return out
+
+
+def test_grey_frames_and_times_are_opencvs(textured):
+    src = FrameSource(textured)
+    got = list(src)
+    assert src._av  # read by PyAV, not OpenCV's fallback
+    want = _opencv(textured)
+    assert len(got) == len(want) == 24
+    for f, (t, g) in zip(got, want, strict=True):
+        assert f.t_s == pytest.approx(t, abs=1e-9)
+        np.testing.assert_array_equal(f.image, g)
+
+
+def test_unusable_clip_falls_back(tmp_path, textured):
+    assert not video_av.usable(str(textured), (65, 96))  # another size than OpenCV's: OpenCV reads it
+    assert not video_av.usable(str(tmp_path / "missing.mp4"), (64, 96))
+
+
+def test_head_is_replayed_without_a_second_decode(textured, monkeypatch):
+    src = FrameSource(textured)
+    whole = [(f.t_s, f.image.copy()) for f in src]
+    opened = []
+    orig = video_av.open_clip
+    monkeypatch.setattr(video_av, "open_clip", lambda *a: opened.append(1) or orig(*a))
+    head = src.head(5)
+    assert len(head) == 5 and len(opened) == 1
+    later = list(src.iter_wanted(lambda k: k % 2 == 0))  # the pass after the look continues its decoder
+    assert len(opened) == 1 and len(later) == len(whole)
+    for k, (f, (t, img)) in enumerate(zip(later, whole, strict=True)):
+        assert f.t_s == t
+        if k % 2:
+            assert f.image is None
+        else:
+            np.testing.assert_array_equal(f.image, img)
+    assert len(list(src)) == len(whole) and len(opened) == 2  # a pass after that decodes again
