@@ -35,8 +35,13 @@ class ClipCheck:
     gates: clip_stats.Gates
 
     def params(self, params, standardize: bool):
-        """PIV parameters with the texture gate set (only where the standardisation is on, as before)."""
-        return replace(params, min_texture=self.gates.min_texture) if standardize else params
+        """PIV parameters with the texture gate (and, glints masked, the valid-pair share) set, only where the
+        standardisation is on, as before."""
+        if not standardize:
+            return params
+        g = self.gates
+        mvf = params.min_valid_fraction if g.min_valid_fraction is None else g.min_valid_fraction
+        return replace(params, min_texture=g.min_texture, min_valid_fraction=mvf)
 
     def before(self, frames):
         """Raw frames -> frames with the short-lived glints masked (weak clips with glare only)."""
