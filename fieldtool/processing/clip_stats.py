@@ -9,11 +9,15 @@ clip instead (issue 23). All from a few dozen frames inside the region PIV reads
 - **contrast** (grey levels): how far the tracers stand above the water, per window of ``win`` px: the 99th
   percentile of the frame minus its pixel's temporal median, smoothed by a 1.5 px Gaussian (tracers are
   blobs of several pixels, sensor noise is white), less 2.33 times that smoothed residual's own noise; the
-  median over the windows is reported (a glint column or an empty band does not set it).
+  median over the windows is reported (a glint column or an empty band does not set it: a window whose bright
+  events are isolated in time about as often as independent one-frame flicker would leave them is a glare
+  window, :func:`_isolated_excess`).
 - **cnr**: contrast / noise (dimensionless).
 - **texture** (grey levels): the windows' rms of the smoothed residual (median reported).
 - **glare_fraction**: share of box pixels that are bright (above their median by more than
-  ``GLARE_K`` noise and twice the tracer contrast) in a few of the frames only: specular flicker.
+  ``GLARE_K`` noise and twice the tracer contrast) in a few of the frames only: specular flicker. Where it is
+  set, ``median`` is the glints' background, the median of the frames in which the pixel does not shine
+  (:func:`background`): the per-frame mask (processing/lowlight.py) puts it where a glint shines.
 
 :func:`gates` turns them into the standardisation's soft threshold and the PIV texture gate, and a plan name.
 Pure numpy: no file, no print.
@@ -120,8 +124,14 @@ def estimate(frames, box: tuple[int, int, int, int] | None = None, *, win: int =
                 continue
             cons.append(max(float(np.percentile(blk, 99.0)) - 2.33 * sig_s, 0.0))
             texs.append(float(np.sqrt(np.mean(blk * blk))))
-            fl.append(_isolated_excess(n_iso[r0 : r0 + win, c0 : c0 + win], n_all[r0 : r0 + win, c0 : c0 + win],
-                                       lit[r0 : r0 + win, c0 : c0 + win], n - 2))
+            fl.append(
+                _isolated_excess(
+                    n_iso[r0 : r0 + win, c0 : c0 + win],
+                    n_all[r0 : r0 + win, c0 : c0 + win],
+                    lit[r0 : r0 + win, c0 : c0 + win],
+                    n - 2,
+                )
+            )
     cons_a = np.asarray(cons) if cons else np.zeros(1)
     fl_a = np.asarray(fl) if fl else np.zeros(1)
     clean = fl_a <= GLARE_ISOLATED
