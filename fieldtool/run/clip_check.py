@@ -84,6 +84,7 @@ class ClipCheck:
                 "texture_gray": s.texture,
                 "level_gray": s.level,
                 "glare_fraction": s.glare_fraction,
+                "glint_threshold_gray": s.glint_threshold,  # max(GLARE_K x noise, 2 x contrast): masked above it
                 "window_contrast_p10_p90": list(s.contrast_spread),
             },
             "gates": self.gates.to_dict(),
