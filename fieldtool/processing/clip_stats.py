@@ -9,11 +9,15 @@ clip instead (issue 23). All from a few dozen frames inside the region PIV reads
 - **contrast** (grey levels): how far the tracers stand above the water, per window of ``win`` px: the 99th
   percentile of the frame minus its pixel's temporal median, smoothed by a 1.5 px Gaussian (tracers are
   blobs of several pixels, sensor noise is white), less 2.33 times that smoothed residual's own noise; the
-  median over the windows is reported (a glint column or an empty band does not set it).
+  median over the windows is reported (a glint column or an empty band does not set it: a window whose bright
+  events are isolated in time about as often as independent one-frame flicker would leave them is a glare
+  window, :func:`_isolated_excess`).
 - **cnr**: contrast / noise (dimensionless).
 - **texture** (grey levels): the windows' rms of the smoothed residual (median reported).
 - **glare_fraction**: share of box pixels that are bright (above their median by more than
-  ``GLARE_K`` noise and twice the tracer contrast) in a few of the frames only: specular flicker.
+  ``GLARE_K`` noise and twice the tracer contrast) in a few of the frames only: specular flicker. Where it is
+  set, ``median`` is the glints' background, the median of the frames in which the pixel does not shine
+  (:func:`background`): the per-frame mask (processing/lowlight.py) puts it where a glint shines.
 
 :func:`gates` turns them into the standardisation's soft threshold and the PIV texture gate, and a plan name.
 Pure numpy: no file, no print.
@@ -21,6 +25,7 @@ Pure numpy: no file, no print.
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import asdict, dataclass, field
 from math import erfc, exp, pi, sqrt
 
@@ -36,8 +41,9 @@ GLARE_K = 8.0
 #: weak clips only: above this share of glint candidates, glints are masked frame by frame (in a weak clip the
 #: tracers are faint, so what stands that far above the median is specular)
 GLARE_ON = 0.005
-#: windows where more than this share of the bright events last one frame only are glare windows, left out of the
-#: contrast (tracers light a pixel for several frames)
+#: windows whose bright events are isolated in time at more than this share of what independent one-frame flicker
+#: would isolate (:func:`_isolated_excess`) are glare windows, left out of the contrast (tracers light a pixel for
+#: several frames: they read near 0; a glint field near 1)
 GLARE_ISOLATED = 0.5
 #: share of the clip's frames in which a glint candidate may be bright (short-lived)
 GLARE_DUTY = 0.3
@@ -109,6 +115,7 @@ def estimate(frames, box: tuple[int, int, int, int] | None = None, *, win: int =
     # a pixel in runs of frames: the share of a window's bright events that are isolated in time sets it apart
     iso = flick[1:-1] & ~flick[:-2] & ~flick[2:]
     n_iso, n_all = iso.sum(axis=0), flick[1:-1].sum(axis=0)
+    lit = n_all > 0
     cons, texs, fl = [], [], []
     for r0 in range(0, max(hh - win // 2, 1), win):
         for c0 in range(0, max(ww - win // 2, 1), win):
@@ -118,16 +125,23 @@ def estimate(frames, box: tuple[int, int, int, int] | None = None, *, win: int =
             cons.append(max(float(np.percentile(blk, 99.0)) - 2.33 * sig_s, 0.0))
             texs.append(float(np.sqrt(np.mean(blk * blk))))
             fl.append(
-                float(n_iso[r0 : r0 + win, c0 : c0 + win].sum())
-                / max(float(n_all[r0 : r0 + win, c0 : c0 + win].sum()), 1.0)
+                _isolated_excess(
+                    n_iso[r0 : r0 + win, c0 : c0 + win],
+                    n_all[r0 : r0 + win, c0 : c0 + win],
+                    lit[r0 : r0 + win, c0 : c0 + win],
+                    n - 2,
+                )
             )
     cons_a = np.asarray(cons) if cons else np.zeros(1)
     fl_a = np.asarray(fl) if fl else np.zeros(1)
     clean = fl_a <= GLARE_ISOLATED
     contrast = float(np.median(cons_a[clean] if clean.any() else cons_a))
-    bright = resid > np.maximum(GLARE_K * noise, 2.0 * contrast)
+    thr = max(GLARE_K * noise, 2.0 * contrast)
+    bright = resid > thr
     share = bright.mean(axis=0)
     glare = float(np.mean((share > 0) & (share <= GLARE_DUTY)))
+    if glare > GLARE_ON:  # the glints' background: the median of the frames in which the pixel does not shine
+        med = background(st, bright)
     return ClipStats(
         frames=n,
         noise=noise,
@@ -141,6 +155,28 @@ def estimate(frames, box: tuple[int, int, int, int] | None = None, *, win: int =
         median=med,
         box=(x0, y0, x1, y1),
     )
+
+
+def _isolated_excess(n_iso: np.ndarray, n_all: np.ndarray, lit: np.ndarray, frames: int) -> float:
+    """A window's share of bright events isolated in time, over the share that one-frame events independent from
+    frame to frame would leave isolated, (1 - p)² at their rate p per frame (1: flicker in place, a glint
+    field; tracers light a pixel in runs of frames and read near 0). ``n_iso``, ``n_all``: per pixel, isolated and
+    all bright events; ``lit``: pixels bright at least once; ``frames``: frames counted."""
+    total = float(n_all.sum())
+    if total <= 0:
+        return 0.0
+    p = total / max(float(lit.sum()) * frames, 1.0)
+    return float(n_iso.sum()) / total / max((1.0 - p) ** 2, 1e-3)
+
+
+def background(stack: np.ndarray, bright: np.ndarray) -> np.ndarray:
+    """Per-pixel temporal median of ``stack`` (n, h, w) over the frames in which the pixel is not ``bright``
+    (grey levels): where glints shine in a third of the frames, the plain median is lifted by them. A pixel
+    bright in every frame keeps its plain median."""
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-bright pixels: all-NaN slices
+        bg = np.nanmedian(np.where(bright, np.nan, stack), axis=0)
+    return np.where(np.isfinite(bg), bg, np.median(stack, axis=0)).astype(np.float32)
 
 
 def _blur_gain(sigma_px: float) -> float:
@@ -174,6 +210,7 @@ class Gates:
     denoise_half: int = 0  # > 0: temporal mean over 2 * half + 1 frames (processing/lowlight.py)
     mask_glints: bool = False  # per-frame masking of short-lived specular pixels (processing/lowlight.py)
     variants: list | None = None  # self-check scores of the variants tried (processing/selfcheck.py), if any
+    min_valid_fraction: float | None = None  # PIV's share of valid pairs a node needs (None = the project's)
 
     def to_dict(self) -> dict:
         return {
@@ -183,6 +220,7 @@ class Gates:
             "min_pairs": self.min_pairs,
             "denoise_frames": 2 * self.denoise_half + 1 if self.denoise_half else 1,
             "mask_glints": self.mask_glints,
+            "min_valid_fraction": self.min_valid_fraction,
             "variants": self.variants,
             "reasons": list(self.reasons),
         }
@@ -223,19 +261,24 @@ def gates(
                 f"({stats.noise:.2f}): default gates"
             ],
         )
+    glare = stats.glare_fraction > GLARE_ON
     k = max(0.5 * stats.cnr, 0.0)
-    k = min(k, shrink_default)
+    # glints masked per frame: no soft threshold. It is set against the box's robust spread, and where glints
+    # shine the masked glints' edges raise the local spread: the threshold would erase the faint tracers between
+    # the glints and keep the glints' edges (glare_column: nothing measured inside the column)
+    k = 0.0 if glare else min(k, shrink_default)
     # the default gate is min_texture_default at a residual of soft_threshold_residual(shrink_default) noise
     # sd; keep the gate at the same fraction of the standardised noise, but never above what pure noise
     # keeps at the lower threshold (so tracer windows, which keep more, pass)
     resid = soft_threshold_residual(k)
     std_noise = 0.5  # standardised noise sd where noise dominates: sd / (sd + std_ref), std_ref ~ sd
     mt = min(min_texture_default, 0.5 * resid * std_noise)
-    glare = stats.glare_fraction > GLARE_ON
     why = (
         [
             f"{100 * stats.glare_fraction:.1f} % of the pixels flicker brighter than {stats.glint_threshold:.0f} grey "
-            "levels above their median in a few frames only: masked per frame"
+            "levels above their median in a few frames only: masked per frame, no soft threshold, and a node is "
+            "judged by its ensemble peak, not by its share of valid single pairs (a glint hides part of each "
+            "window in every frame)"
         ]
         if glare
         else []
@@ -254,4 +297,5 @@ def gates(
         ],
         denoise_half=1,
         mask_glints=glare,
+        min_valid_fraction=0.0 if glare else None,
     )

@@ -61,8 +61,9 @@ def score(
 ) -> VariantScore:
     """Consistency of the field of ``frames`` (pre-processed, >= 4, ``dt`` s apart) under ``params``
     (averaging forced to ``mean``: per-pair fields; frame gaps ``gap`` and ``2 * gap``: with a temporal filter,
-    give at least its window so that no pair shares an input frame)."""
-    p = replace(params, averaging="mean", passes=1, search_px=None)
+    give at least its window so that no pair shares an input frame). The passes are the project's: one pass of
+    small windows cannot follow a fast flow over ``2 * gap`` frames, and both variants would score 0."""
+    p = replace(params, averaging="mean", search_px=None)
     fw = _field(frames, dt, replace(p, frame_gap=gap), roi, mask)
     bw = _field(frames, dt, replace(p, frame_gap=2 * gap), roi, mask)
     both = fw.valid & bw.valid & np.isfinite(fw.u) & np.isfinite(bw.u)

@@ -34,8 +34,13 @@ class ClipCheck:
     gates: clip_stats.Gates
 
     def params(self, params, standardize: bool):
-        """PIV parameters with the texture gate set (only where the standardisation is on, as before)."""
-        return replace(params, min_texture=self.gates.min_texture) if standardize else params
+        """PIV parameters with the texture gate (and, glints masked, the valid-pair share) set, only where the
+        standardisation is on, as before."""
+        if not standardize:
+            return params
+        g = self.gates
+        mvf = params.min_valid_fraction if g.min_valid_fraction is None else g.min_valid_fraction
+        return replace(params, min_texture=g.min_texture, min_valid_fraction=mvf)
 
     def before(self, frames):
         """Raw frames -> frames with the short-lived glints masked (weak clips with glare only)."""
@@ -78,6 +83,7 @@ class ClipCheck:
                 "texture_gray": s.texture,
                 "level_gray": s.level,
                 "glare_fraction": s.glare_fraction,
+                "glint_threshold_gray": s.glint_threshold,  # max(GLARE_K x noise, 2 x contrast): masked above it
                 "window_contrast_p10_p90": list(s.contrast_spread),
             },
             "gates": self.gates.to_dict(),
