@@ -189,3 +189,38 @@ def _locate_markers_settled(page, handle, probe=(640.0, 360.0), timeout_s=40.0):
         raise AssertionError(f"the page's clicks never landed where its camera says: {handle.status}")
     finally:
         handle.set_mode(mode)
+
+
+def test_a_conflict_shows_both_values_on_the_page_and_asks(tmp_path, chromium):
+    """The same GCP placed on the page and by another program meanwhile: the page shows both values and
+    asks; its "Put mine back" button saves the page's value."""
+    from playwright.sync_api import sync_playwright
+
+    from fieldtool.project.sync import ProjectSync
+
+    path = _marker_project(tmp_path)
+    picked = []
+    handle = start_viewer(path, port=0, on_pick=lambda f, v: picked.append(v))
+    try:
+        with sync_playwright() as p:
+            browser, page = _page(p, chromium, handle.url)
+            try:
+                assert _wait(lambda: "Next pick" in _body(page), 30), _body(page)[:500]
+                handle._v._stopped.set()  # the viewer's file watch stops: the click's save meets the other value
+                handle._v._watcher.join(timeout=10)
+                handle.set_mode("gcp")
+                ProjectSync(path).set_keys({"ortho.gcp_px": [[5.0, 6.0]]})
+                handle.click(70.0, 64.0)
+                assert handle.conflicts, handle.status
+                question = "Changed here and by another program at once"
+                assert _wait(lambda: question in _body(page), 30), _body(page)[:800]
+                text = _body(page)
+                assert "the file has [5, 6] (kept); yours was [70, 64]" in text, text[:800]
+                page.get_by_role("button", name="Put mine back").click()
+                assert _wait(lambda: load_project(path).ortho.gcp_px == [[70.0, 64.0]], 20), handle.status
+                assert _wait(lambda: question not in _body(page), 20)
+                assert "put yours back" in handle.status and picked[-1] == [[70.0, 64.0]]
+            finally:
+                browser.close()
+    finally:
+        handle.stop()
