@@ -592,7 +592,6 @@ class _Viewer:
                 handle.value = value
             finally:
                 self._syncing = False
-        self._aspect = {}
 
     def show_image(self, kind: str) -> None:
         if kind not in KINDS:
