@@ -122,6 +122,10 @@ def test_click_near_a_demo_target_snaps_to_its_centre(short_scene, tmp_path, chr
     path = tmp_path / "project.toml"
     picked = []
     handle = start_viewer(path, port=0, on_pick=lambda f, v: picked.append(v))
+    said = []  # what the viewer told the operator, and the clicks that reached it: a failure says which was missing
+    set_status, on_ray = handle._v.set_status, handle._v.on_ray
+    handle._v.set_status = lambda text: (said.append(f"{time.time():.2f} status {text[:90]}"), set_status(text))
+    handle._v.on_ray = lambda o, d: (said.append(f"{time.time():.2f} click arrived (mode {handle.mode})"), on_ray(o, d))
     try:
         handle.set_mode("gcp")
         handle._v._act("clear")
@@ -135,10 +139,11 @@ def test_click_near_a_demo_target_snaps_to_its_centre(short_scene, tmp_path, chr
                         if attempt >= 2:  # and after two misses check that the camera has not moved since
                             _camera_settled(page, handle)
                         sx, sy = _screen_of(page, handle, (x + 2.5, y - 2.0))  # a click 3 px beside the centre
+                        said.append(f"{time.time():.2f} test clicks ({sx:.1f}, {sy:.1f}) for ({x:.1f}, {y:.1f})")
                         page.mouse.click(float(sx), float(sy))
                         if _wait(lambda n=n: len(picked) > n, 6):
                             break
-                    assert len(picked) > n, handle.status
+                    assert len(picked) > n, "\n".join(said[-40:])
                     assert "snapped to the target centre" in handle.status
                 assert _wait(lambda: "snapped" in _body(page))  # reported on the page
                 page.screenshot(path=str(tmp_path / "viewer.png"))
