@@ -67,10 +67,12 @@ class Conflict:
     theirs: Any
 
     def text(self) -> str:
-        def show(v):
-            return "(removed)" if v is MISSING or v is None else _short(v)
+        return f"{self.key}: another program saved {shown(self.theirs)} (kept); yours was {shown(self.mine)}"
 
-        return f"{self.key}: another program saved {show(self.theirs)} (kept); yours was {show(self.mine)}"
+
+def shown(v: Any) -> str:
+    """A value of a conflict as an editor shows it: short floats, "(removed)" for a value taken away."""
+    return "(removed)" if v is MISSING or v is None else _short(v)
 
 
 @dataclass

@@ -40,6 +40,7 @@ from urllib.parse import urlsplit
 import viser
 import websockets.asyncio.server as wss
 from websockets.datastructures import Headers
+from websockets.frames import CloseCode
 from websockets.http11 import Request, Response
 
 LOOPBACK_NAMES = ("127.0.0.1", "localhost", "::1")
@@ -216,8 +217,22 @@ def guard_handler(inner: Callable) -> Callable:
             )
             with contextlib.suppress(Exception):
                 await connection.close(1007, "malformed message")
+        finally:
+            _say_if_oversized(connection)
 
     return handler
+
+
+def _say_if_oversized(connection) -> None:
+    """One log line when websockets closed ``connection`` for a message over MAX_MESSAGE_BYTES (close code
+    1009, sent by websockets itself: viser's handler takes that close as an ordinary disconnect, silently)."""
+    close = getattr(getattr(connection, "protocol", None), "close_sent", None)
+    if close is not None and close.code == CloseCode.MESSAGE_TOO_BIG:
+        log_once(
+            "oversized-message",
+            f"fieldtool view: closed a connection that sent a message over {MAX_MESSAGE_BYTES // 2**20} MB "
+            f"(the page sends a few kB; WebSocket close 1009: {close.reason or 'message too big'})",
+        )
 
 
 class OneLineLogger(logging.LoggerAdapter):

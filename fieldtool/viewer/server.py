@@ -41,7 +41,7 @@ from websockets.http11 import Response
 
 from fieldtool.errors import FieldToolError, ParameterError
 from fieldtool.project.model import load_project, project_to_dict
-from fieldtool.project.sync import ProjectSync, SaveResult, set_dotted
+from fieldtool.project.sync import Conflict, ProjectSync, SaveResult, set_dotted, set_path, shown
 from fieldtool.viewer import registry
 from fieldtool.viewer.guard import AccessGuard, install, page_path, ssh_hint
 from fieldtool.viewer.images import FRAME_LIKE, KINDS, Display, lens_of, load_display, load_field
@@ -151,6 +151,16 @@ class ViewerHandle:
         return self._v.pick(np.array([x, y], float))
 
     @property
+    def conflicts(self) -> list[Conflict]:
+        """The conflicts the page is asking about (the same key or point changed here and in the file)."""
+        return list(self._v.conflicts)
+
+    def resolve_conflicts(self, use_mine: bool) -> str:
+        """Answer the page's conflict question as its buttons do: put this viewer's values back
+        (``use_mine``) or keep the file's. Returns the status shown."""
+        return self._v.resolve_conflicts(use_mine)
+
+    @property
     def mode(self) -> str | None:
         return self._v.mode
 
@@ -240,6 +250,11 @@ def start_viewer(
         except OSError as e:
             notes.append(f"the viewer's info file was not written ({e.strerror or e}): a second viewer may start")
     return handle
+
+
+def _under(key: str, field: str) -> bool:
+    """Whether a conflict's key (``ortho.gcp_px[1]``) is the project field ``field`` or inside it."""
+    return key == field or key.startswith((field + "[", field + "."))
 
 
 class _Routes:
@@ -334,6 +349,8 @@ class _Viewer:
         self.states: dict[str, PickState] = {}
         self.field: dict | None = None
         self.status_text = ""
+        self.conflicts: list[Conflict] = []  # asked about on the page (keep the file's / put mine back)
+        self._question: Any = None  # the open question (a viser GuiModalHandle), None when none
         self._overlay: list = []
         self._syncing = False
         self._aspect: dict[int, float] = {}
@@ -440,11 +457,79 @@ class _Viewer:
                 st.load(new)
                 self.states[key] = st
         if res.conflicts:
-            self.set_status("CONFLICT, the file's value kept: " + "; ".join(c.text() for c in res.conflicts[:3]))
+            self.set_status(
+                "CONFLICT, the file's value kept: "
+                + "; ".join(c.text() for c in res.conflicts[:3])
+                + " - the page asks: keep the file's or put yours back"
+            )
+            self._ask_conflicts(res.conflicts)
         elif note and res.theirs_changed:
             self.set_status(f"updated from {self.path.name}: {', '.join(res.theirs_changed[:4])}")
         self.update_checklist()
         self.redraw()
+
+    def _ask_conflicts(self, conflicts: list[Conflict]) -> None:
+        """The file's values were kept (``project.sync``): show both values on every open page and ask, as
+        the TUI does: keep the file's, or put this viewer's back. A new conflict while asking joins the question."""
+        with self._lock:
+            keys = {c.key for c in conflicts}
+            pending = [c for c in self.conflicts if c.key not in keys] + list(conflicts)
+            self._close_question()
+            self.conflicts = pending
+            gui = self.server.gui
+            lines = [
+                f"- `{c.key}`: the file has **{shown(c.theirs)}** (kept); yours was **{shown(c.mine)}**"
+                for c in pending[:8]
+            ]
+            if len(pending) > 8:
+                lines.append(f"- ... and {len(pending) - 8} more")
+            self._question = modal = gui.add_modal("Changed here and by another program at once")
+            with modal:
+                gui.add_markdown(
+                    "\n".join(lines) + "\n\nThe file's value is kept (the other program saved it first and shows it)."
+                )
+                keep = gui.add_button("Keep the file's")
+                mine = gui.add_button("Put mine back", color="orange")
+            keep.on_click(lambda _: self.resolve_conflicts(False))
+            mine.on_click(lambda _: self.resolve_conflicts(True))
+
+    def _close_question(self) -> None:
+        if self._question is not None and not self._question.closed:
+            self._question.close()
+        self._question = None
+
+    def resolve_conflicts(self, use_mine: bool) -> str:
+        """The operator's answer: keep the file's values, or save this viewer's again (they win now: the
+        base has caught up with the file). on_pick is told of each field put back."""
+        res = None
+        with self._lock:
+            conflicts, self.conflicts = self.conflicts, []
+            self._close_question()
+            if not conflicts:
+                return self.status_text
+            keys = ", ".join(c.key for c in conflicts[:4])
+            if not use_mine:
+                msg = f"kept the file's value of {keys}"
+            else:
+                data = project_to_dict(self.project)
+                for c in conflicts:
+                    data = set_path(data, c.key, c.mine)
+                try:
+                    res = self.sync.save(data)
+                except (FieldToolError, OSError) as e:
+                    msg = f"NOT SAVED: yours cannot be put back ({e}); the file's value of {keys} stays"
+                else:
+                    self._take(res)
+                    msg = self.status_text if res.conflicts else f"put yours back: {keys}"
+            self.set_status(msg)
+        if res is not None and res.written and self.on_pick is not None:
+            fields = [m.field for m in MODES.values() if any(_under(c.key, m.field) for c in conflicts)]
+            for f in dict.fromkeys(fields):
+                try:
+                    self.on_pick(f, get_field(self.project, f))
+                except Exception as e:  # noqa: BLE001 - the TUI's callback must not break the viewer
+                    self.set_status(f"{msg} (the TUI was not updated: {e})")
+        return msg
 
     def _watch(self) -> None:
         """Look at the project file twice a second; a change made elsewhere is shown within a second."""
@@ -507,7 +592,6 @@ class _Viewer:
                 handle.value = value
             finally:
                 self._syncing = False
-        self._aspect = {}
 
     def show_image(self, kind: str) -> None:
         if kind not in KINDS:

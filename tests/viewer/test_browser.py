@@ -5,6 +5,7 @@ screenshot of the page, clicks their centres, and checks that the project file h
 pixel coordinates within 1 px. It also checks that the page asks nothing from the internet.
 """
 
+import re
 import time
 
 import cv2
@@ -13,6 +14,7 @@ import pytest
 from chromium_setup import LAUNCH_ARGS, ensure_chromium
 
 from fieldtool.project.model import load_project
+from fieldtool.viewer.mapping import pixel_to_scene
 from fieldtool.viewer.server import start_viewer
 
 pytestmark = pytest.mark.browser
@@ -72,6 +74,65 @@ def _locate_markers(page, timeout_s=30.0):
     raise AssertionError("the four markers did not appear on the page")
 
 
+def _wait(cond, timeout_s=10.0):
+    """Whether ``cond()`` came true within ``timeout_s`` (polled every 50 ms)."""
+    t0 = time.time()
+    while time.time() - t0 < timeout_s:
+        if cond():
+            return True
+        time.sleep(0.05)
+    return False
+
+
+def _screen_of(page, handle, px) -> tuple[float, float]:
+    """Where raw pixel ``px`` is on the page, from the camera the page reported to the server."""
+    client = next(iter(handle._v.server.get_clients().values()))
+    cam = client.camera
+    pos, look, up = (np.asarray(v, float) for v in (cam.position, cam.look_at, cam.up_direction))
+    pt = pixel_to_scene([px], handle._v.plane)[0]
+    f = (look - pos) / np.linalg.norm(look - pos)
+    r = np.cross(f, up)
+    r /= np.linalg.norm(r)
+    u = np.cross(r, f)
+    v = pt - pos
+    t = np.tan(cam.fov / 2)
+    left, top, w, h = page.evaluate(
+        "(() => { const c = [...document.querySelectorAll('canvas')].sort((a, b) => "
+        "b.clientWidth * b.clientHeight - a.clientWidth * a.clientHeight)[0]; "
+        "const r = c.getBoundingClientRect(); return [r.left, r.top, r.width, r.height]; })()"
+    )
+    nx = v @ r / (v @ f) / (t * w / h)
+    ny = v @ u / (v @ f) / t
+    return left + (nx + 1) / 2 * w, top + (1 - ny) / 2 * h
+
+
+def _camera_settled(page, handle, probe=None, timeout_s=60.0):
+    """Wait until a click where ``_screen_of`` puts pixel ``probe`` (default: the image centre) lands there
+    (within 1.5 px: the mouse sits on whole CSS pixels): the page's camera is fitted (the refit once the page has
+    docked its panel included) and the server knows it. Screen positions taken from screenshots before that may
+    be of the camera the page had first. Clicks are probed in view-only mode, where they are reported, not saved."""
+    if probe is None:
+        h, w = handle._v.display.rgb.shape[:2]
+        probe = (w / 2, h / 2)
+    mode = handle.mode
+    handle.set_mode(None)
+    t0 = time.time()
+    try:
+        while time.time() - t0 < timeout_s:
+            if handle._v.server.get_clients():
+                before = handle.status
+                page.mouse.click(*_screen_of(page, handle, probe))
+                if _wait(lambda before=before: handle.status != before and "clicked" in handle.status, 3):
+                    m = re.search(r"clicked \(([-\d.]+), ([-\d.]+)\)", handle.status)
+                    if m and np.hypot(float(m[1]) - probe[0], float(m[2]) - probe[1]) < 1.5:
+                        return
+                handle._v.set_status("")
+            time.sleep(0.2)
+        raise AssertionError(f"the page's clicks never landed where its camera says: {handle.status}")
+    finally:
+        handle.set_mode(mode)
+
+
 def test_four_clicks_in_chromium_store_gcp_pixels(tmp_path, chromium):
     from playwright.sync_api import sync_playwright
 
@@ -95,13 +156,15 @@ def test_four_clicks_in_chromium_store_gcp_pixels(tmp_path, chromium):
                 )
                 page.goto(handle.url)
                 page.wait_for_selector("canvas", timeout=30000)
+                _camera_settled(page, handle)  # the page's final camera, not the one it had before docking its panel
                 screen = _locate_markers(page)
                 for sx, sy in screen:
                     n = len(picked)
                     page.mouse.click(float(sx), float(sy))
                     t0 = time.time()
-                    while len(picked) == n and time.time() - t0 < 10:
+                    while len(picked) == n and time.time() - t0 < 30:
                         time.sleep(0.05)
+                    assert len(picked) > n, handle.status
             finally:
                 browser.close()
     finally:

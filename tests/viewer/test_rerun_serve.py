@@ -20,10 +20,17 @@ from fieldtool.viewer.rerun_log import RerunObserver
 pytestmark = pytest.mark.browser
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+def _free_ports(n: int) -> list[int]:
+    """``n`` different free ports: the sockets are held until all are bound (one closed before the next bind
+    may be handed out again)."""
+    socks = [socket.socket() for _ in range(n)]
+    try:
+        for s in socks:
+            s.bind(("127.0.0.1", 0))
+        return [s.getsockname()[1] for s in socks]
+    finally:
+        for s in socks:
+            s.close()
 
 
 @pytest.fixture(scope="module")
@@ -37,7 +44,7 @@ def chromium():
 def test_served_web_viewer_makes_no_outside_request(chromium):
     from playwright.sync_api import sync_playwright
 
-    grpc, web = _free_port(), _free_port()
+    grpc, web = _free_ports(2)
     obs = RerunObserver("serve", grpc_port=grpc, web_port=web)
     x, y = np.meshgrid(np.arange(4.0) * 16, np.arange(3.0) * 16)
     obs.frame(0, 0.0, np.zeros((48, 64), np.uint8), np.zeros((48, 64), np.float32))

@@ -191,3 +191,38 @@ def test_angle_and_height_edges_are_picked_on_their_own_images(tmp_path):
         assert back.edges_px == []  # the image-method edges are a different field
     finally:
         h.stop()
+
+
+def _conflict(viewer):
+    """The same GCP placed here and, meanwhile, by another program (the viewer's file watch held off so that
+    the click's save meets the other program's value): the file's value is kept and the page asks."""
+    from fieldtool.project.sync import ProjectSync
+
+    viewer._v._stopped.set()  # the file watch stops (the server stays up)
+    viewer._v._watcher.join(timeout=10)
+    viewer.set_mode("gcp")
+    ProjectSync(viewer.path).set_keys({"ortho.gcp_px": [[5.0, 6.0]]})  # the TUI's P1
+    viewer.click(100.0, 50.0)  # the viewer's P1, placed before it saw the TUI's
+    assert [c.key for c in viewer.conflicts] == ["ortho.gcp_px[0]"], viewer.status
+    assert "CONFLICT" in viewer.status and "[5, 6]" in viewer.status and "[100, 50]" in viewer.status
+    assert load_project(viewer.path).ortho.gcp_px == [[5.0, 6.0]]  # the file's value is kept meanwhile
+    assert viewer._v._question is not None and not viewer._v._question.closed  # the page asks
+
+
+def test_a_conflict_asks_and_mine_puts_the_viewers_value_back(viewer):
+    _conflict(viewer)
+    n = len(viewer.events)
+    assert "put yours back" in viewer.resolve_conflicts(True)
+    assert load_project(viewer.path).ortho.gcp_px == [[100.0, 50.0]]
+    assert viewer.events[n:] == [("ortho.gcp_px", [[100.0, 50.0]])]  # the TUI is told
+    assert viewer._v._question is None and viewer.conflicts == []
+    assert viewer._v.states["gcp"].value() == [[100.0, 50.0]]  # and the viewer draws it
+
+
+def test_a_conflict_asks_and_keep_leaves_the_files_value(viewer):
+    _conflict(viewer)
+    n = len(viewer.events)
+    assert "kept the file's value of ortho.gcp_px[0]" in viewer.resolve_conflicts(False)
+    assert load_project(viewer.path).ortho.gcp_px == [[5.0, 6.0]]
+    assert viewer._v.states["gcp"].value() == [[5.0, 6.0]] and viewer.events[n:] == []
+    assert viewer._v._question is None and viewer.conflicts == []
