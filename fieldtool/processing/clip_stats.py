@@ -263,10 +263,13 @@ def gates(
         )
     glare = stats.glare_fraction > GLARE_ON
     k = max(0.5 * stats.cnr, 0.0)
-    # glints masked per frame: no soft threshold. It is set against the box's robust spread, and where glints
-    # shine the masked glints' edges raise the local spread: the threshold would erase the faint tracers between
-    # the glints and keep the glints' edges (glare_column: nothing measured inside the column)
-    k = 0.0 if glare else min(k, shrink_default)
+    # glints masked per frame over faint tracers (cnr below CNR_WEAK): no soft threshold. It is set against the
+    # box's robust spread, and where glints shine the masked glints' edges raise the local spread: the threshold
+    # would erase the faint tracers between the glints and keep the glints' edges (glare_column: nothing measured
+    # inside the column). Where the tracers stand out (a clip sent here by the self-check) the threshold stays:
+    # it is what removes texture fixed in the world, such as standing ripples, which pulls towards zero
+    faint_glare = glare and stats.cnr < CNR_WEAK
+    k = 0.0 if faint_glare else min(k, shrink_default)
     # the default gate is min_texture_default at a residual of soft_threshold_residual(shrink_default) noise
     # sd; keep the gate at the same fraction of the standardised noise, but never above what pure noise
     # keeps at the lower threshold (so tracer windows, which keep more, pass)
@@ -276,9 +279,13 @@ def gates(
     why = (
         [
             f"{100 * stats.glare_fraction:.1f} % of the pixels flicker brighter than {stats.glint_threshold:.0f} grey "
-            "levels above their median in a few frames only: masked per frame, no soft threshold, and a node is "
-            "judged by its ensemble peak, not by its share of valid single pairs (a glint hides part of each "
-            "window in every frame)"
+            "levels above their median in a few frames only: masked per frame"
+            + (
+                ", no soft threshold, and a node is judged by its ensemble peak, not by its share of valid single "
+                "pairs (a glint hides part of each window in every frame)"
+                if faint_glare
+                else ""
+            )
         ]
         if glare
         else []
@@ -291,11 +298,11 @@ def gates(
         why
         + [
             "temporal mean over 3 frames (noise / sqrt(3))",
-            f"tracer contrast {stats.contrast:.1f} grey levels is only {stats.cnr:.1f} x the noise "
-            f"({stats.noise:.2f}, below {CNR_WEAK:g}): soft threshold {k:.2f} sd (default {shrink_default:g}), "
+            f"tracer contrast {stats.contrast:.1f} grey levels is {stats.cnr:.1f} x the noise "
+            f"({stats.noise:.2f}; weak below {CNR_WEAK:g}): soft threshold {k:.2f} sd (default {shrink_default:g}), "
             f"texture gate {mt:.4f} (default {min_texture_default:g}), ensemble over every pair",
         ],
         denoise_half=1,
         mask_glints=glare,
-        min_valid_fraction=0.0 if glare else None,
+        min_valid_fraction=0.0 if faint_glare else None,
     )

@@ -77,6 +77,23 @@ def test_gates_keep_the_defaults_on_a_kind_clip_and_lower_them_in_the_dark():
     assert json.dumps(dark.to_dict())
 
 
+def test_glare_drops_the_soft_threshold_only_over_faint_tracers():
+    """Glints over faint tracers: no soft threshold (it would erase the tracers between the glints). Glints over
+    tracers that stand out, sent to the weak path by the self-check: the threshold stays (it removes texture
+    fixed in the world, e.g. standing ripples, which would pull the velocities towards zero)."""
+
+    def g(cnr):
+        st = cs.ClipStats(
+            frames=20, noise=3.0, contrast=3.0 * cnr, cnr=cnr, texture=5.0, level=40.0, glare_fraction=0.05, windows=12
+        )
+        return cs.gates(st, shrink_default=3.0, min_texture_default=0.05, min_pairs=2, n_frames=240, force="low_light")
+
+    faint, bright = g(4.0), g(9.0)
+    assert faint.plan == bright.plan == "low_light+glare" and faint.mask_glints and bright.mask_glints
+    assert faint.shrink == 0.0 and faint.min_valid_fraction == 0.0
+    assert bright.shrink == 3.0 and bright.min_valid_fraction is None
+
+
 def test_unmeasured_verdict_is_unusable_with_nan_discharge():
     from fieldtool.processing.cross_section import CrossSection
     from fieldtool.run import unmeasured
