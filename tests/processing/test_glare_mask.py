@@ -51,17 +51,6 @@ def _gates(stats):
     return cs.gates(stats, shrink_default=3.0, min_texture_default=0.05, min_pairs=2, n_frames=24)
 
 
-def test_isolated_excess_tells_flicker_from_runs():
-    rng = np.random.default_rng(0)
-    flicker = rng.random((40, 32, 32)) < 0.3  # independent one-frame events, 30 % of the frames
-    runs = np.repeat(rng.random((10, 32, 32)) < 0.3, 4, axis=0)  # the same events lasting 4 frames
-    for b, want in ((flicker, (0.8, 1.2)), (runs, (0.0, 0.2))):
-        iso = b[1:-1] & ~b[:-2] & ~b[2:]
-        n_all = b[1:-1].sum(axis=0)
-        r = cs._isolated_excess(iso.sum(axis=0), n_all, n_all > 0, b.shape[0] - 2)
-        assert want[0] <= r <= want[1]
-
-
 def test_estimates_see_the_glare_and_not_the_glints_as_tracers():
     frames, _ = _stack()
     clean, _ = _stack(glints_per_frame=0)
