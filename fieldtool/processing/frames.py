@@ -201,6 +201,13 @@ class FrameSource:
         self._head = (deque(got), rest)
         return got
 
+    def __getstate__(self) -> dict:
+        """A copy for another process (the figure process gets the run's inputs as a pickle) without the open
+        decoder of :meth:`head`: its iteration starts a pass of its own."""
+        state = self.__dict__.copy()
+        state["_head"] = None
+        return state
+
     def _stream(self, want) -> Iterator[Frame]:
         if self.files is not None:
             return self._iter_sequence(want)

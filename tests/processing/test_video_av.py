@@ -1,5 +1,7 @@
 """PyAV's grey frames (processing/video_av.py): the frames and times OpenCV's reader gives, read once per clip."""
 
+import pickle
+
 import cv2
 import numpy as np
 import pytest
@@ -65,3 +67,13 @@ def test_head_is_replayed_without_a_second_decode(textured, monkeypatch):
         else:
             np.testing.assert_array_equal(f.image, img)
     assert len(list(src)) == len(whole) and len(opened) == 2  # a pass after that decodes again
+
+
+def test_a_source_with_a_head_still_goes_to_the_figure_process(textured):
+    """The run's inputs go to the figure process as a pickle; the head's open decoder stays behind (it made the
+    pickle fail, and the run drew every figure itself)."""
+    src = FrameSource(textured)
+    src.head(3)
+    copy = pickle.loads(pickle.dumps(src))
+    assert len(list(copy)) == 24  # a pass of its own
+    assert len(list(src)) == 24  # the original still replays its head
