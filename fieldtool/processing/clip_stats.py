@@ -68,7 +68,7 @@ class ClipStats:
     @property
     def glint_threshold(self) -> float:
         """Grey levels above the pixel's median beyond which a pixel is a glint candidate."""
-        return max(GLARE_K * self.noise, 2.0 * self.contrast)
+        return glint_threshold(self.noise, self.contrast)
 
     def to_dict(self) -> dict:
         d = {k: v for k, v in asdict(self).items() if k not in ("median", "box")}
@@ -131,8 +131,7 @@ def estimate(frames, box: tuple[int, int, int, int] | None = None, *, win: int =
     fl_a = np.asarray(fl) if fl else np.zeros(1)
     clean = fl_a <= GLARE_ISOLATED
     contrast = float(np.median(cons_a[clean] if clean.any() else cons_a))
-    thr = max(GLARE_K * noise, 2.0 * contrast)
-    bright = resid > thr
+    bright = resid > glint_threshold(noise, contrast)
     share = bright.mean(axis=0)
     glare = float(np.mean((share > 0) & (share <= GLARE_DUTY)))
     if glare > GLARE_ON:  # the glints' background: the median of the frames in which the pixel does not shine
@@ -150,6 +149,12 @@ def estimate(frames, box: tuple[int, int, int, int] | None = None, *, win: int =
         median=med,
         box=(x0, y0, x1, y1),
     )
+
+
+def glint_threshold(noise: float, contrast: float) -> float:
+    """Grey levels above a pixel's median beyond which it is a glint candidate: ``GLARE_K`` times the temporal
+    noise, and twice the tracers' contrast (both grey levels)."""
+    return max(GLARE_K * noise, 2.0 * contrast)
 
 
 def background(stack: np.ndarray, bright: np.ndarray) -> np.ndarray:

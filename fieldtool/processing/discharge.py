@@ -143,6 +143,22 @@ def section_samples(geom: SectionGeometry, x, y, U, V) -> np.ndarray:
     return vn if geom.trusted is None else np.where(geom.trusted, vn, np.nan)
 
 
+def bilinear_cells(x: np.ndarray, y: np.ndarray, pts: np.ndarray):
+    """The grid cell of each point for bilinear interpolation on the regular grid of node centres ``x``, ``y``
+    (ny, nx) px: ``inside`` (pts.shape[:-1]) bool, the points within the grid; for those, in order, the cell's
+    first column and row ``i0``, ``j0`` and the fractions ``ax``, ``ay`` (0..1) towards the next node."""
+    xs, ys = x[0, :], y[:, 0]
+    nx, ny = len(xs), len(ys)
+    px, py = pts[..., 0], pts[..., 1]
+    fx = np.interp(px, xs, np.arange(nx), left=np.nan, right=np.nan) if nx > 1 else np.zeros_like(px)
+    fy = np.interp(py, ys, np.arange(ny), left=np.nan, right=np.nan) if ny > 1 else np.zeros_like(py)
+    inside = np.isfinite(fx) & np.isfinite(fy)
+    fx_i, fy_i = fx[inside], fy[inside]
+    i0 = np.clip(np.floor(fx_i).astype(int), 0, max(nx - 2, 0))
+    j0 = np.clip(np.floor(fy_i).astype(int), 0, max(ny - 2, 0))
+    return inside, i0, j0, fx_i - i0, fy_i - j0
+
+
 def sample_field(
     x: np.ndarray, y: np.ndarray, U: np.ndarray, V: np.ndarray, pts: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -154,26 +170,19 @@ def sample_field(
     ``U``, ``V`` may also be (n, ny, nx), n fields on the same grid, with ``pts`` (n, ..., 2): field i is
     sampled at ``pts[i]``.
     """
-    xs, ys = x[0, :], y[:, 0]
     ny, nx = U.shape[-2:]
-    px, py = pts[..., 0], pts[..., 1]
+    px = pts[..., 0]
     row0 = np.zeros(px.shape, int)  # the first row of each point's field in the stacked (n * ny, nx) grid
     if U.ndim == 3:
         row0 = row0 + (np.arange(len(U)) * ny).reshape((-1,) + (1,) * (px.ndim - 1))
         U, V = U.reshape(-1, nx), V.reshape(-1, nx)
-    fx = np.interp(px, xs, np.arange(nx), left=np.nan, right=np.nan) if nx > 1 else np.zeros_like(px)
-    fy = np.interp(py, ys, np.arange(ny), left=np.nan, right=np.nan) if ny > 1 else np.zeros_like(py)
     out_u = np.full(px.shape, np.nan)
     out_v = np.full(px.shape, np.nan)
-    inside = np.isfinite(fx) & np.isfinite(fy)
-    fx_i, fy_i = fx[inside], fy[inside]
-    i0 = np.clip(np.floor(fx_i).astype(int), 0, max(nx - 2, 0))
-    j0 = np.clip(np.floor(fy_i).astype(int), 0, max(ny - 2, 0))
+    inside, i0, j0, ax, ay = bilinear_cells(x, y, pts)
     r0 = row0[inside]
-    ax, ay = fx_i - i0, fy_i - j0
-    acc_u = np.zeros(len(fx_i))
-    acc_v = np.zeros(len(fx_i))
-    acc_w = np.zeros(len(fx_i))
+    acc_u = np.zeros(len(ax))
+    acc_v = np.zeros(len(ax))
+    acc_w = np.zeros(len(ax))
     for dj, wy in ((0, 1 - ay), (1, ay)):
         for di, wx in ((0, 1 - ax), (1, ax)):
             jj = r0 + np.minimum(j0 + dj, ny - 1)
@@ -185,8 +194,8 @@ def sample_field(
             acc_v += np.where(ok, vv, 0.0) * wgt
             acc_w += wgt
     good = acc_w > 1e-6
-    ru = np.full(len(fx_i), np.nan)
-    rv = np.full(len(fx_i), np.nan)
+    ru = np.full(len(ax), np.nan)
+    rv = np.full(len(ax), np.nan)
     ru[good] = acc_u[good] / acc_w[good]
     rv[good] = acc_v[good] / acc_w[good]
     out_u[inside], out_v[inside] = ru, rv

@@ -13,7 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fieldtool.processing.discharge import SAMPLES_PER_SUB, sample_field
+from fieldtool.processing.discharge import SAMPLES_PER_SUB, bilinear_cells, sample_field
+from fieldtool.processing.ortho import homography_jacobian
 
 
 def apply_homographies(Hs: np.ndarray, pts: np.ndarray) -> np.ndarray:
@@ -52,29 +53,20 @@ def section_draws(points_px: np.ndarray, Hs: np.ndarray, n_sub: int) -> SectionD
 
 def rectify_draws(Hs: np.ndarray, x: np.ndarray, y: np.ndarray, u: np.ndarray, v: np.ndarray):
     """Pixel velocities (px/s) at nodes ``x``, ``y`` (any shape, px) -> world velocities (m/s), (n, *shape)
-    each, under each homography: the Jacobian of :meth:`OrthoMapping.jacobian` applied per draw."""
-    H = Hs.reshape(Hs.shape + (1,) * np.ndim(x))  # broadcast over the nodes
-    w = H[:, 2, 0] * x + H[:, 2, 1] * y + H[:, 2, 2]
-    X = (H[:, 0, 0] * x + H[:, 0, 1] * y + H[:, 0, 2]) / w
-    Y = (H[:, 1, 0] * x + H[:, 1, 1] * y + H[:, 1, 2]) / w
-    U = ((H[:, 0, 0] - X * H[:, 2, 0]) * u + (H[:, 0, 1] - X * H[:, 2, 1]) * v) / w
-    V = ((H[:, 1, 0] - Y * H[:, 2, 0]) * u + (H[:, 1, 1] - Y * H[:, 2, 1]) * v) / w
-    return U, V
+    each, under each homography: :func:`ortho.homography_jacobian` applied per draw."""
+    J = homography_jacobian(Hs.reshape((len(Hs),) + (1,) * np.ndim(x) + (3, 3)), x, y)
+    return J[..., 0, 0] * u + J[..., 0, 1] * v, J[..., 1, 0] * u + J[..., 1, 1] * v
 
 
 def sampled_nodes(x: np.ndarray, y: np.ndarray, pts: np.ndarray) -> np.ndarray:
     """(ny, nx) bool: the grid nodes that the bilinear sampling of :func:`discharge.sample_field` reads for
     the points ``pts`` (..., 2) px; the others need no rectification."""
-    xs, ys = x[0, :], y[:, 0]
+    ny, nx = x.shape
     need = np.zeros(x.shape, bool)
-    fx = np.interp(pts[..., 0], xs, np.arange(len(xs)), left=np.nan, right=np.nan) if len(xs) > 1 else 0 * pts[..., 0]
-    fy = np.interp(pts[..., 1], ys, np.arange(len(ys)), left=np.nan, right=np.nan) if len(ys) > 1 else 0 * pts[..., 1]
-    inside = np.isfinite(fx) & np.isfinite(fy)
-    i0 = np.clip(np.floor(fx[inside]).astype(int), 0, max(len(xs) - 2, 0))
-    j0 = np.clip(np.floor(fy[inside]).astype(int), 0, max(len(ys) - 2, 0))
+    _, i0, j0, _, _ = bilinear_cells(x, y, pts)
     for dj in (0, 1):
         for di in (0, 1):
-            need[np.minimum(j0 + dj, len(ys) - 1), np.minimum(i0 + di, len(xs) - 1)] = True
+            need[np.minimum(j0 + dj, ny - 1), np.minimum(i0 + di, nx - 1)] = True
     return need
 
 

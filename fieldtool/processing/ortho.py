@@ -56,16 +56,7 @@ class OrthoMapping:
 
     def jacobian(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """d(X, Y)/d(x, y) at pixel positions, shape (..., 2, 2), in m/px."""
-        H = self.H
-        w = H[2, 0] * x + H[2, 1] * y + H[2, 2]
-        X = (H[0, 0] * x + H[0, 1] * y + H[0, 2]) / w
-        Y = (H[1, 0] * x + H[1, 1] * y + H[1, 2]) / w
-        J = np.empty(np.shape(x) + (2, 2))
-        J[..., 0, 0] = (H[0, 0] - X * H[2, 0]) / w
-        J[..., 0, 1] = (H[0, 1] - X * H[2, 1]) / w
-        J[..., 1, 0] = (H[1, 0] - Y * H[2, 0]) / w
-        J[..., 1, 1] = (H[1, 1] - Y * H[2, 1]) / w
-        return J
+        return homography_jacobian(self.H, x, y)
 
     def rectify_velocity(
         self, x: np.ndarray, y: np.ndarray, u: np.ndarray, v: np.ndarray
@@ -111,6 +102,21 @@ class OrthoMapping:
         size = (int(np.ceil((x1 - x0) / resolution_m)) + 1, int(np.ceil((y1 - y0) / resolution_m)) + 1)
         out = cv2.warpPerspective(image, A @ self.H, size, flags=cv2.INTER_LINEAR, borderValue=0)
         return out, A
+
+
+def homography_jacobian(H: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """d(X, Y)/d(x, y) (m/px) of the homography ``H`` (3, 3) at pixel positions ``x``, ``y``, shape (..., 2, 2).
+    ``H`` may be a stack (..., 3, 3) whose leading axes broadcast against ``x`` and ``y`` (one homography per
+    Monte Carlo draw)."""
+    w = H[..., 2, 0] * x + H[..., 2, 1] * y + H[..., 2, 2]
+    X = (H[..., 0, 0] * x + H[..., 0, 1] * y + H[..., 0, 2]) / w
+    Y = (H[..., 1, 0] * x + H[..., 1, 1] * y + H[..., 1, 2]) / w
+    J = np.empty(np.shape(w) + (2, 2))
+    J[..., 0, 0] = (H[..., 0, 0] - X * H[..., 2, 0]) / w
+    J[..., 0, 1] = (H[..., 0, 1] - X * H[..., 2, 1]) / w
+    J[..., 1, 0] = (H[..., 1, 0] - Y * H[..., 2, 0]) / w
+    J[..., 1, 1] = (H[..., 1, 1] - Y * H[..., 2, 1]) / w
+    return J
 
 
 def _apply(H: np.ndarray, pts: np.ndarray) -> np.ndarray:

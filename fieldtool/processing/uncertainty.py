@@ -184,7 +184,7 @@ def _finite_or_none(x: float) -> float | None:
 
 
 class _Draw:
-    """One evaluation of Q with chosen inputs perturbed; see :func:`monte_carlo_discharge`."""
+    """Draws of Q with chosen inputs perturbed, many at once (:meth:`draws`); see :func:`monte_carlo_discharge`."""
 
     def __init__(self, m: McModel, sig: McSigmas):
         self.m, self.sig = m, sig
@@ -238,6 +238,7 @@ class _Draw:
     #: sources that move the section's geometry (mapping, level, bed); a draw with none of them reuses the
     #: run's areas, Manning factors and section samples
     GEOMETRY = frozenset({"gcp_pixels", "gcp_distances", "water_level", "cross_section"})
+    _plain: tuple | None = None  # the run's areas, Manning factors, samples and ok, for a draw of none of them
 
     def _geometry(self, active: frozenset[str], n: int, rng: np.random.Generator):
         """Draw the geometric inputs of ``n`` draws and compute, for all of them at once, the subsection
@@ -275,8 +276,10 @@ class _Draw:
         m, sig = self.m, self.sig
         if active & self.GEOMETRY:
             area, law, vn, ok = self._geometry(active, n, rng)
-        else:
-            area, law, vn, ok = self._geometry(frozenset(), 1, rng)
+        else:  # the run's own geometry, computed once for every source that leaves it
+            if self._plain is None:
+                self._plain = self._geometry(frozenset(), 1, rng)
+            area, law, vn, ok = self._plain
             area, vn, ok = (np.repeat(a, n, axis=0) for a in (area, vn, ok))
             law = (np.repeat(law[0], n, axis=0), np.repeat(law[1], n, axis=0))
         n_failed = int(np.sum(~ok))
