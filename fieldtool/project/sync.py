@@ -182,6 +182,14 @@ def set_dotted(data: dict, dotted: str, value: Any) -> dict:
 _PART = re.compile(r"([^.\[\]]+)((?:\[\d+\])*)")
 
 
+def put_mine_back(data: dict, conflicts: list[Conflict]) -> dict:
+    """A copy of the plain dict ``data`` with this editor's value of each conflict set again (the operator's
+    "put mine back", in the TUI and in the viewer)."""
+    for c in conflicts:
+        data = set_path(data, c.key, c.mine)
+    return data
+
+
 def set_path(data: dict, key: str, value: Any) -> dict:
     """A copy of the plain dict ``data`` with ``key`` set, where ``key`` is a Conflict's key: dotted, with
     ``[i]`` for an item of a list (``"ortho.gcp_px[1]"``). MISSING or None removes it (a removed last point)."""

@@ -18,7 +18,7 @@ from textual.worker import Worker, WorkerState
 
 from fieldtool.errors import FieldToolError
 from fieldtool.project.model import project_from_dict, project_to_dict
-from fieldtool.project.sync import Conflict, SaveResult, adopt, set_path
+from fieldtool.project.sync import Conflict, SaveResult, adopt, put_mine_back
 from fieldtool.tui import keys
 from fieldtool.tui.jobs import Job, describe_error
 from fieldtool.tui.screens.base import StepScreen
@@ -194,9 +194,7 @@ class FieldToolApp(App):
                 if isinstance(self.screen, StepScreen):  # rows still holding this window's text show the file's
                     self.screen.show_keys([c.key for c in conflicts])
                 return
-            data = project_to_dict(self.session.project)
-            for c in conflicts:
-                data = set_path(data, c.key, c.mine)
+            data = put_mine_back(project_to_dict(self.session.project), conflicts)
             try:
                 adopt(self.session.project, project_from_dict(data, self.session.project.root))
             except FieldToolError as e:  # this window's text did not make a value: the file's stays

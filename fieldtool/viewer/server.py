@@ -41,7 +41,7 @@ from websockets.http11 import Response
 
 from fieldtool.errors import FieldToolError, ParameterError
 from fieldtool.project.model import load_project, project_to_dict
-from fieldtool.project.sync import Conflict, ProjectSync, SaveResult, set_dotted, set_path, shown
+from fieldtool.project.sync import Conflict, ProjectSync, SaveResult, put_mine_back, set_dotted, shown
 from fieldtool.viewer import registry
 from fieldtool.viewer.guard import AccessGuard, install, page_path, ssh_hint
 from fieldtool.viewer.images import FRAME_LIKE, KINDS, Display, lens_of, load_display, load_field
@@ -511,9 +511,7 @@ class _Viewer:
             if not use_mine:
                 msg = f"kept the file's value of {keys}"
             else:
-                data = project_to_dict(self.project)
-                for c in conflicts:
-                    data = set_path(data, c.key, c.mine)
+                data = put_mine_back(project_to_dict(self.project), conflicts)
                 try:
                     res = self.sync.save(data)
                 except (FieldToolError, OSError) as e:
