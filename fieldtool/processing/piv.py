@@ -73,12 +73,14 @@ from fieldtool.processing.piv_engine import (
     AVERAGING,
     ENGINES,
     PivParams,
+    _chunk_nodes,
     _Engine,
     _find_peaks,
     _guess_at,
     _Level,
     _levels,
     check_params,
+    chunked,
     grid,
     near_nodes,
     set_fft_workers,
@@ -542,11 +544,23 @@ class _Ensemble:
                 wf *= scale
             wf = wf.reshape((-1,) + (1,) * (cross.ndim - 1))
             to_device = getattr(self.engine, "to_device", None)  # GPU engine: weights go to the device
-            cross *= wf if to_device is None else to_device(wf)
-            if self.spec is None:
-                self.spec = cross.copy()
+            if to_device is not None:
+                cross *= to_device(wf)
+                if self.spec is None:
+                    self.spec = cross.copy()
+                else:
+                    self.spec += cross
             else:
-                self.spec += cross
+                if self.spec is None:
+                    self.spec = np.zeros_like(cross)
+                spec = self.spec
+
+                def add_rows(lo: int, hi: int) -> None:  # one pass over each chunk of nodes, in cache
+                    c = cross[lo:hi]
+                    c *= wf[lo:hi]
+                    spec[lo:hi] += c
+
+                chunked(len(cross), _chunk_nodes(cross.shape[1]), add_rows)
             self.wsum += w
             self.wdt += w * dt
             if pred_x is not None:
