@@ -6,6 +6,7 @@ import json
 import os
 import subprocess
 import sys
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -214,3 +215,22 @@ def test_blank_clip_ends_unusable_with_every_file(tmp_path: Path):
     assert res["quality"]["reasons"][0]["code"] == "nothing_measured"
     for f in ("subsections.csv", "mean_field.npz", "vectors.png", "section.png"):
         assert (out / f).exists(), f
+
+
+def test_glint_background_is_the_median_of_the_frames_where_the_pixel_does_not_shine():
+    """clip_stats.background against np.nanmedian of the stack with the bright values taken out; a pixel bright
+    in every frame keeps its plain median."""
+    rng = np.random.default_rng(3)
+    for n in (19, 20):
+        stack = (rng.random((n, 40, 30)) * 200).astype(np.float32)
+        bright = rng.random(stack.shape) < 0.4
+        bright[:, :3, :3] = True  # bright in every frame
+        bright[: n - 1, 5, 5], bright[-1, 5, 5] = True, False  # one frame left
+        with np.errstate(all="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            want = np.nanmedian(np.where(bright, np.nan, stack), axis=0)
+        want = np.where(np.isfinite(want), want, np.median(stack, axis=0))
+        got = cs.background(stack, bright)
+        assert got.dtype == np.float32
+        np.testing.assert_allclose(got, want, rtol=1e-6)
+        assert got[5, 5] == stack[-1, 5, 5]
