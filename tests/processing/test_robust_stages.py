@@ -77,6 +77,28 @@ def test_blank_frames_are_zeros_and_a_large_one_costs_only_the_pages_written():
     assert grown_mb < 4 * 14  # the rows' pages only (~8.4 MB a frame), not the whole frames (4 x 33 MB)
 
 
+def test_standardised_frames_are_read_only_and_recycled_only_when_nothing_refers_to_them():
+    """surface.FramePool: a frame comes back only once no array (the frame or a view of it) is alive; its
+    outside stays 0 because nobody can write into a frame handed out."""
+    for shape in ((48, 64), (2160, 3840)):
+        pool = surface.FramePool(shape, cap=2)
+        box = (10, 20, 30, 40)
+        a = pool.filled(box, lambda v: v.fill(1.0))
+        with pytest.raises(ValueError):
+            a[0, 0] = 5.0  # outside the box: refused, so a recycled frame stays 0 there
+        b = pool.filled(box, lambda v: v.fill(2.0))
+        assert b is not a
+        ida = id(a)
+        view = a[20:25]
+        del a
+        c = pool.filled(box, lambda v: v.fill(3.0))  # a's view lives: not a again (cap 2: a fresh frame)
+        assert id(c) != ida and float(view[0, 10]) == 1.0
+        del view, c
+        d = pool.filled(box, lambda v: v.fill(4.0))
+        assert id(d) == ida  # recycled once nothing referred to it
+        assert float(d.sum()) == 4.0 * 20 * 20 and not d.flags.writeable
+
+
 def test_standardize_short_clip_and_empty():
     rng = np.random.default_rng(2)
     frames = _stream(4, 1.0, rng)
