@@ -75,12 +75,21 @@ class ClipStats:
         return {k: (round(v, 4) if isinstance(v, float) else v) for k, v in d.items()}
 
 
+def median0(stack: np.ndarray) -> np.ndarray:
+    """``np.median(stack, axis=0)`` of finite values, the same numbers, by one sort along the first axis (3x
+    faster than numpy's partition for the few frames of a clip check: 20 frames of 549 x 462 px, 90 -> 29 ms)."""
+    n = len(stack)
+    s = np.sort(stack, axis=0)
+    m = n // 2
+    return s[m] if n % 2 else np.mean(s[m - 1 : m + 1], axis=0)
+
+
 def temporal_noise(stack: np.ndarray) -> np.ndarray:
     """Per-pixel temporal noise sd (grey levels) of ``stack`` (n >= 3, h, w): 1.4826 MAD of the differences
     / sqrt(2)."""
     d = np.diff(stack.astype(np.float32), axis=0)
-    med = np.median(d, axis=0)
-    return 1.4826 * np.median(np.abs(d - med), axis=0) / np.sqrt(2.0)
+    med = median0(d)
+    return 1.4826 * median0(np.abs(d - med)) / np.sqrt(2.0)
 
 
 def estimate(frames, box: tuple[int, int, int, int] | None = None, *, win: int = 64, step: int = 1) -> ClipStats:
@@ -99,7 +108,7 @@ def estimate(frames, box: tuple[int, int, int, int] | None = None, *, win: int =
     n = st.shape[0]
     sig = temporal_noise(st[:, ::step, ::step])
     noise = float(max(np.median(sig), NOISE_FLOOR))
-    med = np.median(st, axis=0)
+    med = median0(st)
     resid = st - med
     sm = np.stack([cv2.GaussianBlur(r, (0, 0), 1.5) for r in resid])
     # the smoothed residual's noise: measured, but never above what the sensor noise alone leaves after the same
@@ -168,7 +177,7 @@ def background(stack: np.ndarray, bright: np.ndarray) -> np.ndarray:
     hi = np.take_along_axis(ordered, np.minimum(k // 2, len(stack) - 1)[None], 0)[0]
     with np.errstate(invalid="ignore"):  # all-bright pixels: inf - inf, replaced below
         bg = (lo.astype(np.float64) + hi) / 2.0
-    return np.where(k > 0, bg, np.median(stack, axis=0)).astype(np.float32)
+    return np.where(k > 0, bg, median0(stack)).astype(np.float32)
 
 
 def _blur_gain(sigma_px: float) -> float:

@@ -234,3 +234,12 @@ def test_glint_background_is_the_median_of_the_frames_where_the_pixel_does_not_s
         assert got.dtype == np.float32
         np.testing.assert_allclose(got, want, rtol=1e-6)
         assert got[5, 5] == stack[-1, 5, 5]
+
+
+def test_median0_is_numpys_median_over_the_first_axis():
+    rng = np.random.default_rng(4)
+    for n in (3, 4, 19, 20):
+        stack = (rng.random((n, 17, 23)) * 255).astype(np.float32)
+        stack[:, 0, 0] = 7.0  # ties
+        got, want = cs.median0(stack), np.median(stack, axis=0)
+        assert got.dtype == want.dtype and np.array_equal(got, want)
