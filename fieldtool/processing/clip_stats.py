@@ -9,8 +9,9 @@ clip instead (issue 23). All from a few dozen frames inside the region PIV reads
 - **contrast** (grey levels): how far the tracers stand above the water, per window of ``win`` px: the 99th
   percentile of the frame minus its pixel's temporal median, smoothed by a 1.5 px Gaussian (tracers are
   blobs of several pixels, sensor noise is white), less 2.33 times that smoothed residual's own noise; the
-  median over the windows is reported (a glint column or an empty band does not set it: a window where most
-  bright events are isolated in time is a glare window).
+  median over the windows is reported (a glint column or an empty band does not set it: a window whose bright
+  events the flow does not carry, found again in the next frame displaced as the window's others are, is a
+  glare window: :func:`carried_share`).
 - **cnr**: contrast / noise (dimensionless).
 - **texture** (grey levels): the windows' rms of the smoothed residual (median reported).
 - **glare_fraction**: share of box pixels that are bright (above their median by more than
@@ -29,6 +30,7 @@ from math import erfc, exp, pi, sqrt
 
 import cv2
 import numpy as np
+from scipy import fft as sp_fft
 
 #: grey levels: the noise never reads below the quantisation's (a codec reproduces static areas exactly)
 NOISE_FLOOR = 0.5
@@ -39,11 +41,17 @@ GLARE_K = 8.0
 #: weak clips only: above this share of glint candidates, glints are masked frame by frame (in a weak clip the
 #: tracers are faint, so what stands that far above the median is specular)
 GLARE_ON = 0.005
-#: windows where more than this share of the bright events last one frame only are glare windows, left out of the
-#: contrast (tracers light a pixel for several frames). Scaling the share by what independent flicker at the
-#: events' rate would isolate also caught the dense glints of glare_column seed 2, but it took fast tracers
-#: (20 px a frame, one frame on a pixel) for glints: fast_1080p without an ROI read 0.8 grey levels of contrast
-GLARE_ISOLATED = 0.5
+#: windows where less than this share of the bright events is carried by the flow (found again in the next frame
+#: at the window's displacement, beyond what frames half the stack apart give there) are glare windows, left out of
+#: the contrast. Tracers are carried (0.5-0.95 measured, below 1 for sub-pixel shifts and noise at the threshold),
+#: glints are not, whether they flicker in place or appear at new places (0.05-0.3). A test on how long a pixel
+#: stays bright took fast tracers (20 px a frame, one frame on a pixel) for glints, and missed dense glints
+GLARE_CARRIED = 0.35
+#: px: the farthest a bright event is looked for in the next frame (half a window of the estimates)
+CARRY_REACH = 32
+#: percentile of a window's smoothed residual that is its contrast: a window whose bright events are fewer than
+#: (100 - this) % of its pixel-frames cannot set it, and is not judged
+CONTRAST_PCT = 99.0
 #: share of the clip's frames in which a glint candidate may be bright (short-lived)
 GLARE_DUTY = 0.3
 
@@ -116,28 +124,20 @@ def estimate(frames, box: tuple[int, int, int, int] | None = None, *, win: int =
     # residual, and would cancel their own contrast: the fast_1080p scene read 0 grey levels of contrast)
     sig_s = float(max(min(np.median(temporal_noise(sm[:, ::step, ::step])), noise * _blur_gain(1.5)), 1e-4))
     hh, ww = med.shape
-    # short-lived bright pixels against the noise alone, per window: a glint column's windows are left out of
-    # the contrast (their glints would read as tracers of 100+ grey levels)
+    # bright events against the noise alone, per window: a glint column's windows are left out of the contrast
+    # (their glints would read as tracers of 100+ grey levels); the flow carries the tracers' events, not the glints'
     flick = resid > GLARE_K * noise
-    # a glint shines in one frame at a place; a tracer (a blob of several px, moving a few px a frame) lights
-    # a pixel in runs of frames: the share of a window's bright events that are isolated in time sets it apart
-    iso = flick[1:-1] & ~flick[:-2] & ~flick[2:]
-    n_iso, n_all = iso.sum(axis=0), flick[1:-1].sum(axis=0)
-    cons, texs, fl = [], [], []
+    cons, texs, carried = [], [], []
     for r0 in range(0, max(hh - win // 2, 1), win):
         for c0 in range(0, max(ww - win // 2, 1), win):
             blk = sm[:, r0 : r0 + win, c0 : c0 + win]
             if blk.size == 0:
                 continue
-            cons.append(max(float(np.percentile(blk, 99.0)) - 2.33 * sig_s, 0.0))
+            cons.append(max(float(np.percentile(blk, CONTRAST_PCT)) - 2.33 * sig_s, 0.0))
             texs.append(float(np.sqrt(np.mean(blk * blk))))
-            fl.append(
-                float(n_iso[r0 : r0 + win, c0 : c0 + win].sum())
-                / max(float(n_all[r0 : r0 + win, c0 : c0 + win].sum()), 1.0)
-            )
+            carried.append(carried_share(flick, (r0, c0, win), CARRY_REACH))
     cons_a = np.asarray(cons) if cons else np.zeros(1)
-    fl_a = np.asarray(fl) if fl else np.zeros(1)
-    clean = fl_a <= GLARE_ISOLATED
+    clean = np.asarray([c is None or c >= GLARE_CARRIED for c in carried] or [True])
     contrast = float(np.median(cons_a[clean] if clean.any() else cons_a))
     bright = resid > glint_threshold(noise, contrast)
     share = bright.mean(axis=0)
@@ -157,6 +157,47 @@ def estimate(frames, box: tuple[int, int, int, int] | None = None, *, win: int =
         median=med,
         box=(x0, y0, x1, y1),
     )
+
+
+def carried_share(events: np.ndarray, window: tuple[int, int, int], reach: int) -> float | None:
+    """Share of a window's bright events that the flow carries: ``events`` (n >= 3, h, w) bool, ``window`` (row,
+    col, size) px, ``reach`` px. The events of frame t (t < n - 1) inside the window are correlated with those
+    of frame t + 1 at every displacement within ``reach`` (summed over t), and with those of frames half the
+    stack away (what stays in place or falls anywhere by chance, measured at each displacement: glints that
+    flicker in place or in a band). At the displacement where the next frame beats the far ones most, the
+    excess over the far frames' hits, divided by what it could be (the events that land inside the frame
+    there, less the far frames' hits): about 1 for tracers the flow carries (a sub-pixel shift and noise at the
+    threshold lose some), about 0 for glints. None where the events are fewer than (100 - ``CONTRAST_PCT``) % of
+    the window's pixel-frames (they do not set its contrast)."""
+    n, h, w = events.shape
+    r0, c0, win = window
+    a = events[:-1, r0 : r0 + win, c0 : c0 + win]
+    e = float(np.count_nonzero(a))
+    if n < 3 or e <= (1.0 - CONTRAST_PCT / 100.0) * a.size:
+        return None
+    wh, ww = a.shape[1:]
+    s0, s1 = wh + 2 * reach, ww + 2 * reach
+    ys, xs = r0 - reach, c0 - reach  # the window grown by ``reach``, zero outside the frame
+    y0, x0, y1, x1 = max(ys, 0), max(xs, 0), min(r0 + wh + reach, h), min(c0 + ww + reach, w)
+    pad = np.zeros((n - 1, s0, s1), np.float32)
+    pad[:, :wh, :ww] = a
+    fa = np.conj(sp_fft.rfft2(pad, workers=1))
+    inside = np.zeros((s0, s1), np.float32)
+    inside[y0 - ys : y1 - ys, x0 - xs : x1 - xs] = 1.0
+
+    def hits(f_b: np.ndarray) -> np.ndarray:  # hits[dy + reach, dx + reach]: sum_t,p a_t[p] b_t[p + d]
+        return sp_fft.irfft2(f_b, s=(s0, s1), workers=1)[: 2 * reach + 1, : 2 * reach + 1]
+
+    def partner(idx: np.ndarray) -> np.ndarray:
+        b = np.zeros((n - 1, s0, s1), np.float32)
+        b[:, y0 - ys : y1 - ys, x0 - xs : x1 - xs] = events[idx, y0:y1, x0:x1]
+        return hits((fa * sp_fft.rfft2(b, workers=1)).sum(axis=0))
+
+    t = np.arange(n - 1)
+    near, far = partner(t + 1), partner((t + 1 + n // 2) % n)
+    room = hits(fa.sum(axis=0) * sp_fft.rfft2(inside, workers=1))  # events whose displaced place is in the frame
+    k = np.unravel_index(int(np.argmax(near - far)), near.shape)
+    return float(max(near[k] - far[k], 0.0) / max(room[k] - far[k], 1.0))
 
 
 def glint_threshold(noise: float, contrast: float) -> float:
