@@ -91,7 +91,12 @@ def fft_side(n: int) -> int:
 
 
 def first_look(
-    frames: Iterable[tuple[float, np.ndarray]], params: piv.PivParams, roi=None, mask: np.ndarray | None = None
+    frames: Iterable[tuple[float, np.ndarray]],
+    params: piv.PivParams,
+    roi=None,
+    mask: np.ndarray | None = None,
+    gap: int = 1,
+    weak: bool = False,
 ) -> tuple[Plan, Iterator[tuple[float, np.ndarray]]]:
     """Look at the first :data:`LOOK_PAIRS` pairs and plan the frame gap and search area.
 
@@ -100,6 +105,13 @@ def first_look(
     frames : (t_s, image) stream, as ``piv.analyze`` takes it.
     params : the run's PIV parameters (their first-pass window is the one planned for).
     roi, mask : as ``piv.analyze``.
+    gap : frames between the images of a looked pair (>= 1). Frames averaged over a window of frames
+        (``processing.lowlight``) share input frames, hence noise, with their neighbours up to that window:
+        pairs closer than it correlate the shared noise at zero displacement (the look read 0.05 px per frame
+        for 3 px). Displacements are reported per frame whatever the gap.
+    weak : single pairs are at the noise (the clip check's weak-signal plan): the look's ensemble field, where
+        most of its nodes have one, is the first guess of the run's first pass whatever its frame gap, so that
+        every pair's windows start from the ensemble's displacement rather than from a single pair's noise.
 
     Returns
     -------
@@ -107,20 +119,21 @@ def first_look(
     frames : the same stream, from its first frame (the frames looked at are replayed).
     """
     it = iter(frames)
-    head = list(itertools.islice(it, LOOK_PAIRS + 1))
+    gap = max(int(gap), 1)
+    head = list(itertools.islice(it, LOOK_PAIRS + gap))
     replay = itertools.chain(head, it)
     w0 = params.window_px * 2 ** (params.passes - 1)
-    plan = Plan(frame_gap=1, search_px=None, chosen="auto", pairs_looked=max(len(head) - 1, 0))
-    if len(head) < 3:
+    plan = Plan(frame_gap=1, search_px=None, chosen="auto", pairs_looked=max(len(head) - gap, 0))
+    if len(head) < gap + 2:
         return plan, replay
     look = replace(
-        params, passes=1, window_px=w0, overlap_px=w0 // 2, search_px=None, averaging="ensemble", frame_gap=1
+        params, passes=1, window_px=w0, overlap_px=w0 // 2, search_px=None, averaging="ensemble", frame_gap=gap
     )
     try:
         res = piv.analyze(head, look, roi=roi, mask=mask)
     except Exception:  # noqa: BLE001 (a first look that fails leaves the defaults; the run reports its own error)
         return plan, replay
-    dt = float(np.median(res.dt_s)) if res.dt_s is not None and len(res.dt_s) else 0.0
+    dt = float(np.median(res.dt_s)) / gap if res.dt_s is not None and len(res.dt_s) else 0.0  # s per frame
     d = (
         np.hypot(res.u, res.v)[res.valid & ~res.replaced] * dt
         if res.replaced is not None
@@ -135,11 +148,10 @@ def first_look(
     plan.frame_gap, plan.search_px = choose(plan.slow_px_per_frame, plan.fast_px_per_frame, w0)
     ok = res.valid & np.isfinite(res.u) & np.isfinite(res.v)
     if (
-        plan.search_px is not None
-        and plan.frame_gap == 1
+        (weak or (plan.search_px is not None and plan.frame_gap == 1))
         and ok.mean() >= GUESS_MIN_VALID
-        and plan.fast_px_per_frame <= GUESS_MAX_FRACTION * w0
+        and plan.fast_px_per_frame * gap <= GUESS_MAX_FRACTION * w0  # the look's pairs: within its windows
     ):
         du, dv = fill_all(np.where(ok, res.u * dt, np.nan), np.where(ok, res.v * dt, np.nan))
-        plan.guess = (res.x[0].copy(), res.y[:, 0].copy(), du, dv)  # search_px stays the fallback
+        plan.guess = (res.x[0].copy(), res.y[:, 0].copy(), du, dv)  # px per frame; search_px stays the fallback
     return plan, replay

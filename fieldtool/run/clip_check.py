@@ -62,6 +62,11 @@ class ClipCheck:
         h = self.gates.denoise_half
         return replace(params, frame_gap=max(int(params.frame_gap), 2 * h + 1)) if h else params
 
+    @property
+    def weak(self) -> bool:
+        """Single pairs are at the noise: the weak-signal plan (ensemble over every pair)."""
+        return self.gates.min_pairs is not None
+
     def min_pairs(self, project_min_pairs: int) -> int:
         return max(project_min_pairs, self.gates.min_pairs or 0)
 

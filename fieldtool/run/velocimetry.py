@@ -221,14 +221,22 @@ class _Streams:
         set ``piv.frame_gap``; returns the frames, the looked ones included."""
         project, params = self.project, self.params
         if project.piv.frame_gap is None:
-            plan, frames = planning.first_look(frames, params, self.s.roi, self.s.mask)
+            clip = self.s.clip
+            # denoised frames are looked at and paired beyond their averaging window; where single pairs are at
+            # the noise, every pair starts from the look's ensemble field (processing/planning.py)
+            plan, frames = planning.first_look(
+                frames, params, self.s.roi, self.s.mask, gap=clip.gap(params).frame_gap, weak=clip.weak
+            )
             if params.search_px is not None or params.engine != "fieldtool":  # the user's search area, or an
                 plan.guess = None  # engine that cannot move its windows: the wider search area instead
             if plan.guess is not None:
                 plan.search_px = None  # the first pass starts from the look's field
             self.params = replace(params, frame_gap=plan.frame_gap, search_px=params.search_px or plan.search_px)
-            self.params = self.s.clip.gap(self.params)  # denoised frames are paired beyond their averaging window
+            self.params = clip.gap(self.params)
             plan.frame_gap = self.params.frame_gap
+            if plan.guess is not None:  # the look's field is per frame; the first pass moves windows per pair
+                xg, yg, du, dv = plan.guess
+                plan.guess = (xg, yg, du * plan.frame_gap, dv * plan.frame_gap)
             if plan.frame_gap > 1 or plan.search_px or plan.guess is not None:
                 self.warnings.append(
                     f"piv: from a first look at {plan.pairs_looked} pairs (slow nodes {plan.slow_px_per_frame:.1f}, "
