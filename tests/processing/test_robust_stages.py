@@ -268,3 +268,25 @@ def test_fast_flow_first_pass_starts_from_the_first_look():
     # flow beyond GUESS_MAX_FRACTION of the window: the search area is widened instead
     plan2, _ = planning.first_look(iter(_stream(24, 14.0, np.random.default_rng(9))), params)
     assert plan2.guess is None and (plan2.search_px or 0) > 32
+
+
+def test_first_look_at_denoised_frames_pairs_them_beyond_the_averaging_window():
+    """Frames averaged over 3 share noise with their neighbours: consecutive ones correlate it at zero
+    displacement, and a look at them reads a fraction of the 2 px per frame. Looked at 3 frames apart (the
+    averaging window) it reads the flow per frame; in the weak-signal plan its ensemble field is the first guess
+    (px per frame) whatever the frame gap."""
+    from fieldtool.processing import lowlight
+
+    rng = np.random.default_rng(10)
+    frames = _stream(16, 2.0, rng, tracer_gain=0.3)
+    frames = [(t, f + 20.0 * rng.standard_normal(f.shape).astype(np.float32)) for t, f in frames]
+    den = list(lowlight.temporal_mean(frames, 1))
+    params = replace_params(passes=2, window_px=16, overlap_px=8)
+    near, _ = planning.first_look(iter(den), params)
+    assert near.fast_px_per_frame < 0.5  # the shared noise's zero peak
+    plan, replay = planning.first_look(iter(den), params, gap=3, weak=True)
+    assert plan.fast_px_per_frame == pytest.approx(2.0, abs=0.3) and plan.pairs_looked == planning.LOOK_PAIRS
+    assert plan.guess is not None and float(np.median(plan.guess[2])) == pytest.approx(2.0, abs=0.3)
+    assert len(list(replay)) == 16
+    strong, _ = planning.first_look(iter(den), params, gap=3)  # not weak: no guess where the search suffices
+    assert strong.guess is None and strong.search_px is None
