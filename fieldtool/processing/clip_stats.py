@@ -161,17 +161,18 @@ def estimate(frames, box: tuple[int, int, int, int] | None = None, *, win: int =
 
 def carried_share(events: np.ndarray, window: tuple[int, int, int], reach: int) -> float | None:
     """Share of a window's bright events that the flow carries: ``events`` (n >= 3, h, w) bool, ``window`` (row,
-    col, size) px, ``reach`` px. The events of frame t (t < n - 1) inside the window are correlated with those
-    of frame t + 1 at every displacement within ``reach`` (summed over t), and with those of frames half the
-    stack away (what stays in place or falls anywhere by chance, measured at each displacement: glints that
-    flicker in place or in a band). At the displacement where the next frame beats the far ones most, the
-    excess over the far frames' hits, divided by what it could be (the events that land inside the frame
-    there, less the far frames' hits): about 1 for tracers the flow carries (a sub-pixel shift and noise at the
-    threshold lose some), about 0 for glints. None where the events are fewer than (100 - ``CONTRAST_PCT``) % of
-    the window's pixel-frames (they do not set its contrast)."""
+    col, size) px, ``reach`` px. The events of every other frame t (t < n - 1) inside the window are correlated
+    with those of frame t + 1 at every displacement within ``reach`` (summed over t), and with those of frames
+    about half the stack away (what stays in place or falls anywhere by chance, measured at each displacement:
+    glints that flicker in place or in a band). At the displacement where the next frame beats the far ones
+    most, the excess over the far frames' hits, divided by what it could be (the events that land inside the
+    frame there, less the far frames' hits): about 1 for tracers the flow carries (a sub-pixel shift and noise
+    at the threshold lose some), about 0 for glints. None where the events are fewer than
+    (100 - ``CONTRAST_PCT``) % of the window's pixel-frames (they do not set its contrast)."""
     n, h, w = events.shape
     r0, c0, win = window
-    a = events[:-1, r0 : r0 + win, c0 : c0 + win]
+    t = np.arange(0, n - 1, 2)  # every other pair: half the transforms, and the far frames are the near ones
+    a = events[t, r0 : r0 + win, c0 : c0 + win]
     e = float(np.count_nonzero(a))
     if n < 3 or e <= (1.0 - CONTRAST_PCT / 100.0) * a.size:
         return None
@@ -179,22 +180,23 @@ def carried_share(events: np.ndarray, window: tuple[int, int, int], reach: int) 
     s0, s1 = wh + 2 * reach, ww + 2 * reach
     ys, xs = r0 - reach, c0 - reach  # the window grown by ``reach``, zero outside the frame
     y0, x0, y1, x1 = max(ys, 0), max(xs, 0), min(r0 + wh + reach, h), min(c0 + ww + reach, w)
-    pad = np.zeros((n - 1, s0, s1), np.float32)
+    pad = np.zeros((len(t), s0, s1), np.float32)
     pad[:, :wh, :ww] = a
     fa = np.conj(sp_fft.rfft2(pad, workers=1))
+    near_i, far_i = t + 1, (t + 1 + 2 * (n // 4)) % n
+    frames = np.unique(np.concatenate([near_i, far_i]))
+    grown = np.zeros((len(frames), s0, s1), np.float32)
+    grown[:, y0 - ys : y1 - ys, x0 - xs : x1 - xs] = events[frames, y0:y1, x0:x1]
+    fb = sp_fft.rfft2(grown, workers=1)
+    at = {int(f): k for k, f in enumerate(frames)}
     inside = np.zeros((s0, s1), np.float32)
     inside[y0 - ys : y1 - ys, x0 - xs : x1 - xs] = 1.0
 
-    def hits(f_b: np.ndarray) -> np.ndarray:  # hits[dy + reach, dx + reach]: sum_t,p a_t[p] b_t[p + d]
-        return sp_fft.irfft2(f_b, s=(s0, s1), workers=1)[: 2 * reach + 1, : 2 * reach + 1]
+    def hits(spec: np.ndarray) -> np.ndarray:  # hits[dy + reach, dx + reach] = sum over t, p of a_t[p] b_t[p + d]
+        return sp_fft.irfft2(spec, s=(s0, s1), workers=1)[: 2 * reach + 1, : 2 * reach + 1]
 
-    def partner(idx: np.ndarray) -> np.ndarray:
-        b = np.zeros((n - 1, s0, s1), np.float32)
-        b[:, y0 - ys : y1 - ys, x0 - xs : x1 - xs] = events[idx, y0:y1, x0:x1]
-        return hits((fa * sp_fft.rfft2(b, workers=1)).sum(axis=0))
-
-    t = np.arange(n - 1)
-    near, far = partner(t + 1), partner((t + 1 + n // 2) % n)
+    near = hits((fa * fb[[at[int(f)] for f in near_i]]).sum(axis=0))
+    far = hits((fa * fb[[at[int(f)] for f in far_i]]).sum(axis=0))
     room = hits(fa.sum(axis=0) * sp_fft.rfft2(inside, workers=1))  # events whose displaced place is in the frame
     k = np.unravel_index(int(np.argmax(near - far)), near.shape)
     return float(max(near[k] - far[k], 0.0) / max(room[k] - far[k], 1.0))
