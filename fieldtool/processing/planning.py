@@ -10,7 +10,9 @@ fast for the window at one frame needs a larger first-pass search area, or a fir
 field (its grid is the first pass'), by which the first pass moves each B window (``piv.analyze(first_guess=)``),
 so that its search area stays the window. The first guess is used when at least :data:`GUESS_MIN_VALID` of the
 look's nodes have a vector and the fast nodes move at most :data:`GUESS_MAX_FRACTION` of the window (the look
-correlates windows of the first pass' size, which wrap beyond half of it); else the search area is widened.
+correlates windows of the first pass' size, which wrap beyond half of it); else the search area is widened. In
+the weak-signal plan (single pairs at the noise) the look's field is the first guess whatever the speed, and
+frames averaged over a window of frames are looked at that window apart (closer ones share noise).
 
 The frames looked at are kept and replayed, so the stream is read once.
 """
