@@ -129,7 +129,7 @@ class FramePool:
     """
 
     def __init__(self, shape: tuple[int, int], cap: int = 12):
-        self.shape, self.cap = tuple(shape), cap
+        self.shape, self.cap = (int(shape[0]), int(shape[1])), cap
         self._frames: list[tuple[np.ndarray, int]] = []  # (frame, its reference count when only the pool holds it)
 
     def get(self) -> np.ndarray:
