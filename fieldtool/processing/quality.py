@@ -90,6 +90,9 @@ class Evidence:
     discharge_m3s: float
     subsection_depth_m: np.ndarray | None = None  # (n,) mean depth of each subsection (m)
     valid_fraction_section: float | None = None  # mean over the section's sample points (0..1)
+    #: the PIV judged its nodes by their ensemble peak, not by their share of valid single pairs
+    #: (``PivParams.min_valid_fraction`` 0: the faint-glare plan, where a glint hides part of every window)
+    ensemble_judged: bool = False
     displacement_px: float | None = None  # 95th percentile of |displacement| per frame along the section
     median_displacement_px: float | None = None
     #: with a first guess (``piv.analyze(first_guess=)``): 95th percentile of |displacement - first guess| per
@@ -145,12 +148,15 @@ def check_valid_fraction(ev: Evidence, th: Thresholds) -> list[Reason]:
     if sev is None:
         return []
     limit = th.valid_fraction_unusable if sev == "unusable" else th.valid_fraction_doubtful
+    why = "poor seeding, glare or too strong filters"
+    if ev.ensemble_judged and sev == "unusable":  # few single pairs are expected: the ensemble is the measurement
+        sev, why = "doubtful", "the nodes were judged by their ensemble peak, as the clip's glare asked"
     return [
         Reason(
             "valid_fraction",
             sev,
             f"along the section only {100 * vf:.0f} % of the frame pairs gave a valid vector (limit "
-            f"{100 * limit:.0f} %): poor seeding, glare or too strong filters",
+            f"{100 * limit:.0f} %): {why}",
             vf,
             limit,
         )

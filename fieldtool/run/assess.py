@@ -191,6 +191,7 @@ def assess_run(project, inputs, level, mapping, geom, res, U, V, dres, q_pairs, 
         first_window_px=first,
         search_px=p.search_px or first,
         q_pairs_m3s=q_pairs,
+        ensemble_judged=p.averaging == "ensemble" and p.min_valid_fraction == 0,
         **ql.section_evidence(
             geom.sample_img,
             geom.normal,

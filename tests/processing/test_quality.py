@@ -331,3 +331,13 @@ def test_doubted_velocities_widen_the_interval_upward_only():
     lo, hi = r.ci95_m3s
     assert lo == pytest.approx(8.925, rel=0.02) and hi == pytest.approx(2 * 8.925, rel=0.05)
     assert {b["source"]: b["share"] for b in r.budget}["velocity_sampling"] == pytest.approx(1.0)
+
+
+def test_few_valid_single_pairs_are_only_doubtful_where_the_nodes_were_judged_by_their_ensemble():
+    """The faint-glare plan (min_valid_fraction 0) expects few valid single pairs: alone they make the run
+    doubtful, not unusable; elsewhere the same fraction is unusable."""
+    th = ql.Thresholds()
+    plain = ql.check_valid_fraction(_ev(np.full(5, 1.0), valid_fraction_section=0.06), th)
+    judged = ql.check_valid_fraction(_ev(np.full(5, 1.0), valid_fraction_section=0.06, ensemble_judged=True), th)
+    assert [r.severity for r in plain] == ["unusable"]
+    assert [r.severity for r in judged] == ["doubtful"] and "ensemble peak" in judged[0].message
