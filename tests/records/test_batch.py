@@ -35,33 +35,27 @@ def test_read_levels(tmp_path):
 
 
 @pytest.fixture(scope="module")
-def three_scenes(tmp_path_factory):
+def three_scenes(rendered):
     """Three short demo scenes (one per preset) and their discharges from separate run_project calls."""
     from fieldtool.project.model import load_project
     from fieldtool.run.pipeline import run_project
-    from fieldtool.synthetic import presets, render_scene
 
-    root = tmp_path_factory.mktemp("three")
     out = []
     for name in ("oblique", "nadir", "far_bank"):
-        truth = render_scene(presets.get(name, duration_s=0.5, seed=11), root / name)
+        truth = rendered(name, duration_s=0.5, seed=11)
         q = run_project(load_project(truth.project_path)).discharge.discharge_m3s
         out.append((truth.project_path, q))
     return out
 
 
 @pytest.mark.slow
-def test_batch_on_local_dask_cluster_matches_single_runs(three_scenes, tmp_path):
-    distributed = pytest.importorskip("distributed")
+def test_batch_on_local_dask_cluster_matches_single_runs(three_scenes, local_cluster, tmp_path):
     paths = [p for p, _ in three_scenes]
     items = plan_projects(paths, out_root=tmp_path / "out", site="synthetic")
-    with distributed.LocalCluster(
-        n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1", protocol="tcp", dashboard_address=None
-    ) as cluster:
-        assert cluster.scheduler_address.startswith("tcp://127.0.0.1:")
-        with History(tmp_path / "h.sqlite") as hist:
-            res = run_batch(items, history=hist, scheduler=cluster.scheduler_address)
-            rows = hist.query(site="synthetic")
+    assert local_cluster.scheduler_address.startswith("tcp://127.0.0.1:")
+    with History(tmp_path / "h.sqlite") as hist:
+        res = run_batch(items, history=hist, scheduler=local_cluster.scheduler_address)
+        rows = hist.query(site="synthetic")
     assert res.executor.startswith("dask tcp://")
     assert not res.failed, [r.error for r in res.failed]
     for (_, q), r in zip(three_scenes, res.results, strict=True):
