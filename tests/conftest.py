@@ -45,17 +45,6 @@ def rendered(tmp_path_factory):
     return get
 
 
-@pytest.fixture(scope="session")
-def local_cluster():
-    """A Dask LocalCluster of two single-threaded worker processes on the loopback, started once for the tests
-    that hand work to one (tests/records: batch and station)."""
-    distributed = pytest.importorskip("distributed")
-    with distributed.LocalCluster(
-        n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1", protocol="tcp", dashboard_address=None
-    ) as cluster:
-        yield cluster
-
-
 @pytest.fixture
 def scene(short_scene, tmp_path):
     """A copy of the short scene's files in this test's own folder (its outputs and edits stay there)."""

@@ -49,13 +49,17 @@ def three_scenes(rendered):
 
 
 @pytest.mark.slow
-def test_batch_on_local_dask_cluster_matches_single_runs(three_scenes, local_cluster, tmp_path):
+def test_batch_on_local_dask_cluster_matches_single_runs(three_scenes, tmp_path):
+    distributed = pytest.importorskip("distributed")
     paths = [p for p, _ in three_scenes]
     items = plan_projects(paths, out_root=tmp_path / "out", site="synthetic")
-    assert local_cluster.scheduler_address.startswith("tcp://127.0.0.1:")
-    with History(tmp_path / "h.sqlite") as hist:
-        res = run_batch(items, history=hist, scheduler=local_cluster.scheduler_address)
-        rows = hist.query(site="synthetic")
+    with distributed.LocalCluster(
+        n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1", protocol="tcp", dashboard_address=None
+    ) as cluster:
+        assert cluster.scheduler_address.startswith("tcp://127.0.0.1:")
+        with History(tmp_path / "h.sqlite") as hist:
+            res = run_batch(items, history=hist, scheduler=cluster.scheduler_address)
+            rows = hist.query(site="synthetic")
     assert res.executor.startswith("dask tcp://")
     assert not res.failed, [r.error for r in res.failed]
     for (_, q), r in zip(three_scenes, res.results, strict=True):

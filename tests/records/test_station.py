@@ -354,18 +354,22 @@ def test_clips_dropped_at_once_in_process_with_a_broken_one(station_site, tmp_pa
 
 
 @pytest.mark.slow
-def test_clips_dropped_at_once_on_a_local_dask_cluster(station_site, local_cluster, tmp_path):
+def test_clips_dropped_at_once_on_a_local_dask_cluster(station_site, tmp_path):
+    distributed = pytest.importorskip("distributed")
     inc, db = tmp_path / "in", tmp_path / "h.sqlite"
     inc.mkdir()
     names = _drop(inc, station_site["clip"], 4)
-    address = local_cluster.scheduler_address
-    r = subprocess.run(
-        _args(station_site, inc, db, "--dask", address, "--stable-s", "0.3", "--exit-when-idle", "1.5"),
-        capture_output=True,
-        text=True,
-        env=_env(),
-        timeout=RUN_S,
-    )
+    with distributed.LocalCluster(
+        n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1", protocol="tcp", dashboard_address=None
+    ) as cluster:
+        address = cluster.scheduler_address
+        r = subprocess.run(
+            _args(station_site, inc, db, "--dask", address, "--stable-s", "0.3", "--exit-when-idle", "1.5"),
+            capture_output=True,
+            text=True,
+            env=_env(),
+            timeout=RUN_S,
+        )
     assert r.returncode == 0, r.stderr + r.stdout
     assert f"Dask {address}" in r.stdout
     _check_outputs(db, inc, inc / "fieldtool_station", names)
