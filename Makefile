@@ -12,14 +12,18 @@ $(BIN)/python:
 	$(PY) -m venv $(VENV)
 	$(BIN)/pip install -q --upgrade pip
 
+# fieldtool is byte-compiled here as pip does for an installed package (its modules' start-up without compiling;
+# the dependencies' are compiled by pip: with PYTHONDONTWRITEBYTECODE set, nothing is cached on first import)
 $(BASE): $(BIN)/python pyproject.toml
 	$(BIN)/pip install -q -e .
-	$(BIN)/python -m compileall -q fieldtool  # as pip does for an installed package: start-up without compiling
+	$(BIN)/python -m compileall -q fieldtool
 	touch $(BASE)
 
-$(DEV): $(BASE)
+# one install (one resolve, one editable build) of the package with its dev extras; the base is then in place too
+$(DEV): $(BIN)/python pyproject.toml
 	$(BIN)/pip install -q -e '.[dev]'
-	touch $(DEV)
+	$(BIN)/python -m compileall -q fieldtool
+	touch $(BASE) $(DEV)
 
 demo: $(BASE)
 	$(BIN)/fieldtool demo --out demo_out

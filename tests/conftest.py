@@ -28,6 +28,23 @@ def short_scene(tmp_path_factory):
     return truth
 
 
+@pytest.fixture(scope="session")
+def rendered(tmp_path_factory):
+    """``rendered(name, **overrides)``: the preset's scene (its truth), rendered once per session for each
+    (name, overrides). Shared: a test runs it into a folder of its own and never writes into the scene's."""
+    from fieldtool.synthetic import presets, render_scene
+
+    cache = {}
+
+    def get(name, **overrides):
+        key = (name, tuple(sorted(overrides.items())))
+        if key not in cache:
+            cache[key] = render_scene(presets.get(name, **overrides), tmp_path_factory.mktemp(f"rendered_{name}"))
+        return cache[key]
+
+    return get
+
+
 @pytest.fixture
 def scene(short_scene, tmp_path):
     """A copy of the short scene's files in this test's own folder (its outputs and edits stay there)."""

@@ -7,15 +7,14 @@ import pytest
 
 from fieldtool.project.model import load_project
 from fieldtool.run.pipeline import run_project
-from fieldtool.synthetic import presets, render_scene
 
 SCENES = ["oblique", "nadir", "far_bank"]
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("name", SCENES)
-def test_discharge_within_3_percent(name, tmp_path):
-    truth = render_scene(presets.get(name, duration_s=2.0), tmp_path / "scene")
+def test_discharge_within_3_percent(name, rendered, tmp_path):
+    truth = rendered(name, duration_s=2.0)
     result = run_project(load_project(truth.project_path), tmp_path / "out")
     q = result.discharge.discharge_m3s
     err = (q - truth.discharge_m3s) / truth.discharge_m3s
@@ -26,9 +25,9 @@ def test_discharge_within_3_percent(name, tmp_path):
     assert summary["discharge_p05_m3s"] <= summary["discharge_p95_m3s"]
 
 
-@pytest.fixture(scope="module")
-def nadir_scene(tmp_path_factory):
-    return render_scene(presets.get("nadir", duration_s=2.0), tmp_path_factory.mktemp("nadir"))
+@pytest.fixture
+def nadir_scene(rendered):
+    return rendered("nadir", duration_s=2.0)
 
 
 @pytest.mark.slow

@@ -13,7 +13,7 @@ def _err(result, truth):
 
 
 @pytest.mark.slow
-def test_stabilisation_recovers_discharge_of_shaky_scene(tmp_path):
+def test_stabilisation_recovers_discharge_of_shaky_scene(rendered, tmp_path):
     truth = render_scene(presets.get("oblique", duration_s=2.0, shake=True), tmp_path / "scene")
     proj = load_project(truth.project_path)
     assert proj.stabilize.enabled
@@ -25,7 +25,7 @@ def test_stabilisation_recovers_discharge_of_shaky_scene(tmp_path):
     # without the step the drift of the view biases the field: that is why the step exists
     assert abs(_err(raw, truth)) > 0.10
     # and the stabilised result agrees with the same scene filmed without shake
-    calm = render_scene(presets.get("oblique", duration_s=2.0), tmp_path / "calm")
+    calm = rendered("oblique", duration_s=2.0)
     ref = run_project(load_project(calm.project_path), None)
     assert stab.discharge.discharge_m3s == pytest.approx(ref.discharge.discharge_m3s, rel=0.03)
 

@@ -127,8 +127,20 @@ def test_a_timeout_kills_the_process_and_the_child_drawing_for_it(scene, own_tmp
             time.sleep(120)
         return real(*a, **k)
 
+    real_answer = prerender._Process.answer
+
+    def answer_once_hung(self, k):
+        """The input figures (and matplotlib's import) get the default timeout; once the velocity figures are
+        handed over, wait for their child to hang, then time the wait out after a second."""
+        if self.n_jobs >= 2:
+            t0 = time.monotonic()
+            while not pid_file.exists() and time.monotonic() - t0 < 60:
+                time.sleep(0.01)
+            monkeypatch.setattr(prerender, "TIMEOUT_S", 1.0)
+        return real_answer(self, k)
+
     monkeypatch.setattr(plots, "plot_vectors", hangs_outside_the_run)
-    monkeypatch.setattr(prerender, "TIMEOUT_S", 8.0)  # the input figures (and matplotlib's import) come first
+    monkeypatch.setattr(prerender._Process, "answer", answer_once_hung)
     res = run_project(load_project(scene / "project.toml"), scene / "out")
     _check_outputs(scene / "out", res)
     hung = int(pid_file.read_text())

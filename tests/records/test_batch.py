@@ -35,16 +35,14 @@ def test_read_levels(tmp_path):
 
 
 @pytest.fixture(scope="module")
-def three_scenes(tmp_path_factory):
+def three_scenes(rendered):
     """Three short demo scenes (one per preset) and their discharges from separate run_project calls."""
     from fieldtool.project.model import load_project
     from fieldtool.run.pipeline import run_project
-    from fieldtool.synthetic import presets, render_scene
 
-    root = tmp_path_factory.mktemp("three")
     out = []
     for name in ("oblique", "nadir", "far_bank"):
-        truth = render_scene(presets.get(name, duration_s=0.5, seed=11), root / name)
+        truth = rendered(name, duration_s=0.5, seed=11)
         q = run_project(load_project(truth.project_path)).discharge.discharge_m3s
         out.append((truth.project_path, q))
     return out

@@ -25,13 +25,12 @@ RUN_S = 240  # the longest any station run here may take
 
 
 @pytest.fixture(scope="module")
-def station_site(tmp_path_factory):
-    """A site made from a short oblique render; its video (a clip) and its true level."""
+def station_site(rendered, tmp_path_factory):
+    """A site made from a short oblique render (test_batch's); its video (a clip) and its true level."""
     from fieldtool.project.model import load_project
-    from fieldtool.synthetic import presets, render_scene
 
     root = tmp_path_factory.mktemp("station")
-    truth = render_scene(presets.get("oblique", duration_s=0.5, seed=11), root / "scene")
+    truth = rendered("oblique", duration_s=0.5, seed=11)
     p = load_project(truth.project_path)
     p.uncertainty.n_draws = 60  # the interval's draws: fewer, as the test only needs one
     create_site("cam1", p, root / "sites")
@@ -363,25 +362,16 @@ def test_clips_dropped_at_once_on_a_local_dask_cluster(station_site, tmp_path):
     with distributed.LocalCluster(
         n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1", protocol="tcp", dashboard_address=None
     ) as cluster:
+        address = cluster.scheduler_address
         r = subprocess.run(
-            _args(
-                station_site,
-                inc,
-                db,
-                "--dask",
-                cluster.scheduler_address,
-                "--stable-s",
-                "0.3",
-                "--exit-when-idle",
-                "1.5",
-            ),
+            _args(station_site, inc, db, "--dask", address, "--stable-s", "0.3", "--exit-when-idle", "1.5"),
             capture_output=True,
             text=True,
             env=_env(),
             timeout=RUN_S,
         )
     assert r.returncode == 0, r.stderr + r.stdout
-    assert f"Dask {cluster.scheduler_address}" in r.stdout
+    assert f"Dask {address}" in r.stdout
     _check_outputs(db, inc, inc / "fieldtool_station", names)
 
 

@@ -31,13 +31,9 @@ SIZE = (80, 24)
 
 
 @pytest.fixture(scope="module")
-def demo_scene(tmp_path_factory):
-    """The demo ('oblique') scene rendered for 1 s (30 frames) instead of 5 s."""
-    from fieldtool.synthetic import presets, render_scene
-
-    out = tmp_path_factory.mktemp("demo") / "scene"
-    render_scene(presets.get("oblique", duration_s=1.0), out)
-    return out
+def demo_scene(short_scene):
+    """The demo ('oblique') scene, 1.2 s (36 frames) instead of 5 s: the session's short scene (never written to)."""
+    return short_scene.project_path.parent
 
 
 @pytest.fixture
@@ -179,7 +175,7 @@ def test_cancel_during_piv_keeps_the_ui_and_writes_no_result(project_path, monke
     async def run():
         p = load_project(project_path)
         p.step = "piv"
-        p.video.end_s = None  # the whole 1 s clip
+        p.video.end_s = None  # the whole 1.2 s clip
         save_project(p, project_path)
         app = FieldToolApp(project_path)
         async with app.run_test(size=SIZE) as pilot:
