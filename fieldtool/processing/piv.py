@@ -62,6 +62,8 @@ from __future__ import annotations
 import warnings
 from collections import deque
 from collections.abc import Callable, Iterable, Sized
+from concurrent.futures import Future, ThreadPoolExecutor
+from contextlib import nullcontext
 from dataclasses import dataclass
 
 import numpy as np
@@ -107,6 +109,8 @@ REVISION = 2
 #: 2 * ENSEMBLE_PAIRS). k = pairs // ENSEMBLE_PAIRS when ``frames`` has a length; for a stream of unknown length
 #: k starts at 1 and doubles (every other kept pair dropped) each time 2 * ENSEMBLE_PAIRS pairs are kept.
 ENSEMBLE_PAIRS = 30
+#: the CPU engine prepares the next frame's spectra on a thread of its own while a pair is correlated
+_PREP_AHEAD = True
 
 
 @dataclass
@@ -330,36 +334,38 @@ class _PairLoop:
         return engine.prepare(img, as_a=k in wanted, as_b=k - gap in wanted)
 
     def run(self, it, first, t_prev, cancel, progress, on_pair) -> int:
-        """Read the frames after ``first``; returns the number of pairs passed (correlated or skipped)."""
-        wanted, gap, total, shape = self.wanted, self.gap, self.total, self.shape
+        """Read the frames after ``first``; returns the number of pairs passed (correlated or skipped).
+
+        With the CPU engine a frame's spectra are prepared on a thread of their own while the pair before it is
+        correlated (one frame ahead: the correlation's chunks and the validation leave a core idle otherwise)."""
+        wanted, gap, shape = self.wanted, self.gap, self.shape
         last_wanted = max(wanted) if wanted else -1
-        history = deque([(self.prep(0, first), float(t_prev))], maxlen=gap)  # the last `gap` frames, oldest first
+        self.history = deque([(self.prep(0, first), float(t_prev))], maxlen=gap)  # the last `gap` frames
+        self.i = 0
         t_last = float(t_prev)
-        i = 0
-        for i_frame, (t, img) in enumerate(it, start=1):
-            if wanted is not None and i_frame - gap > last_wanted:  # hook of ``select``: no selected pair left
-                break
-            if cancel is not None and cancel():
-                raise Cancelled(f"PIV cancelled by the user after {i} pairs")
-            if wanted is None:
-                img = _check_frame(i_frame, img, shape)
-            t = float(t)
-            if not t > t_last:
-                raise InputFileError(
-                    f"frames: timestamps must increase; frame {i_frame} is at {t:.6f} s after {t_last:.6f} s"
-                )
-            t_last = t
-            cur = self.prep(i_frame, img)
-            if len(history) < gap:  # the first frames only fill the history
-                history.append((cur, t))
-                continue
-            prev, t_prev = history[0]
-            if wanted is None or i in wanted:  # else the hook of ``select``: this pair is skipped
-                self.pair(i, prev, cur, t_prev, t, cancel, on_pair)
-            i += 1
-            if progress is not None:
-                progress(i, total)
-            history.append((cur, t))
+        ahead = _PREP_AHEAD and type(self.engine) is _Engine
+        with ThreadPoolExecutor(1, thread_name_prefix="piv-prep") if ahead else nullcontext() as prep_pool:
+            pending = None  # (position, t_s, spectra or their future) of the frame read last
+            for i_frame, (t, img) in enumerate(it, start=1):
+                if wanted is not None and i_frame - gap > last_wanted:  # hook of ``select``: no selected pair left
+                    break
+                if cancel is not None and cancel():
+                    raise Cancelled(f"PIV cancelled by the user after {self.i} pairs")
+                if wanted is None:
+                    img = _check_frame(i_frame, img, shape)
+                t = float(t)
+                if not t > t_last:
+                    raise InputFileError(
+                        f"frames: timestamps must increase; frame {i_frame} is at {t:.6f} s after {t_last:.6f} s"
+                    )
+                t_last = t
+                cur = prep_pool.submit(self.prep, i_frame, img) if prep_pool is not None else self.prep(i_frame, img)
+                if pending is not None:
+                    self._next(*pending, cancel, progress, on_pair)
+                pending = (i_frame, t, cur)
+            if pending is not None:
+                self._next(*pending, cancel, progress, on_pair)
+        i = self.i
         if i == 0:
             if gap > 1:
                 raise ParameterError(
@@ -372,6 +378,22 @@ class _PairLoop:
                 "video.start_s / video.end_s or lower video.step"
             )
         return i
+
+    def _next(self, i_frame: int, t: float, cur, cancel, progress, on_pair) -> None:
+        """Frame ``i_frame`` (its spectra, or their future) joins the history; the pair it ends is correlated."""
+        if isinstance(cur, Future):
+            cur = cur.result()
+        history = self.history
+        if len(history) < self.gap:  # the first frames only fill the history
+            history.append((cur, t))
+            return
+        prev, t_prev = history[0]
+        if self.wanted is None or self.i in self.wanted:  # else the hook of ``select``: this pair is skipped
+            self.pair(self.i, prev, cur, t_prev, t, cancel, on_pair)
+        self.i += 1
+        if progress is not None:
+            progress(self.i, self.total)
+        history.append((cur, t))
 
     def pair(self, i: int, prev, cur, t_prev: float, t: float, cancel, on_pair) -> None:
         """Correlate pair ``i`` (frames at ``t_prev`` and ``t`` s); its vectors (px/s) join ``per_pair``."""
