@@ -117,6 +117,24 @@ def blank(shape: tuple[int, int]) -> np.ndarray:
     return np.ndarray(shape, np.float32, buffer=mmap.mmap(-1, n))  # its views' base is this array
 
 
+#: at most this many frames pooled, and (:func:`pool_cap`) at most ``POOL_BYTES`` of their resident memory
+POOL_FRAMES = 12
+POOL_BYTES = 48 * 2**20
+
+
+def pool_cap(shape: tuple[int, int], box: tuple[int, int, int, int]) -> int:
+    """Frames a :class:`FramePool` keeps for frames of ``shape`` (H, W) standardised in ``box``: what a frame
+    holds in memory is the whole frame below :data:`BLANK_MAP_BYTES`, else the 4 KiB pages of the box's rows
+    (a 4K frame with a 388 px wide box: 8 MB, so 5 frames)."""
+    h, w = int(shape[0]), int(shape[1])
+    x0, y0, x1, y1 = box
+    if h * w * 4 < BLANK_MAP_BYTES:
+        held = h * w * 4
+    else:
+        held = (y1 - y0) * ((((x1 - x0) * 4 + 4095) // 4096) + 1) * 4096
+    return max(2, min(POOL_FRAMES, POOL_BYTES // max(held, 1)))
+
+
 class FramePool:
     """Whole standardised frames (float32, 0 outside the box) recycled once nothing refers to them.
 
@@ -128,7 +146,7 @@ class FramePool:
     frame is a fresh one, left to the garbage collector.
     """
 
-    def __init__(self, shape: tuple[int, int], cap: int = 12):
+    def __init__(self, shape: tuple[int, int], cap: int = POOL_FRAMES):
         self.shape, self.cap = (int(shape[0]), int(shape[1])), cap
         self._frames: list[tuple[np.ndarray, int]] = []  # (frame, its reference count when only the pool holds it)
 
@@ -163,7 +181,7 @@ def _frames(crops: Iterator[tuple[float, np.ndarray]], stats: SurfaceStats, want
             yield t, None
             continue
         assert stats.shape is not None and stats.box is not None  # set from the first frame, before any crop
-        pool = pool or FramePool(stats.shape)
+        pool = pool or FramePool(stats.shape, pool_cap(stats.shape, stats.box))
         yield t, pool.filled(stats.box, lambda v, c=c: np.copyto(v, c))
 
 
@@ -211,7 +229,7 @@ def _recentre(frames: Iterator[tuple[float, np.ndarray]], stats: SurfaceStats, h
         k_out += 1
         if want is not None and not want(k_out - 1):
             return t, None
-        pool = pool or FramePool(stats.shape)
+        pool = pool or FramePool(stats.shape, pool_cap(stats.shape, stats.box))
         if stats.static:
             return t, pool.filled(stats.box, lambda v: np.copyto(v, c16))
         mean = np.multiply(st.s1, np.float32(1.0 / len(buf)), out=st.mean)

@@ -28,9 +28,9 @@ from fieldtool.processing import piv_fast, surface
 #: memory the kept frames may take (bytes) up to 1080p (:func:`budget`): ~200 standardised boxes of 600 x 500 px
 KEEP_BYTES = 256 * 2**20
 #: what the rest of the run holds per pixel of the frame beyond :data:`FREE_PX` (bytes: decoded frames in flight,
-#: the standardised frames' rows, the decoder's own), given back by the budget: a 4K run keeps ~140 MiB and its
-#: peak stays under 1 GB
-PER_PX_BYTES = 20
+#: the standardised frames' rows and their pool, the decoder's own), given back by the budget: a 4K run keeps
+#: ~90 MiB and its peak stays under 1 GB
+PER_PX_BYTES = 28
 #: frame size (px) up to which the kept frames have the whole of KEEP_BYTES (1080p)
 FREE_PX = 1920 * 1080
 
