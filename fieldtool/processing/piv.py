@@ -109,8 +109,6 @@ REVISION = 2
 #: 2 * ENSEMBLE_PAIRS). k = pairs // ENSEMBLE_PAIRS when ``frames`` has a length; for a stream of unknown length
 #: k starts at 1 and doubles (every other kept pair dropped) each time 2 * ENSEMBLE_PAIRS pairs are kept.
 ENSEMBLE_PAIRS = 30
-#: the CPU engine prepares the next frame's spectra on a thread of its own while a pair is correlated
-_PREP_AHEAD = True
 
 
 @dataclass
@@ -343,7 +341,7 @@ class _PairLoop:
         self.history = deque([(self.prep(0, first), float(t_prev))], maxlen=gap)  # the last `gap` frames
         self.i = 0
         t_last = float(t_prev)
-        ahead = _PREP_AHEAD and type(self.engine) is _Engine
+        ahead = type(self.engine) is _Engine  # the GPU and OpenPIV engines prepare in the calling thread
         with ThreadPoolExecutor(1, thread_name_prefix="piv-prep") if ahead else nullcontext() as prep_pool:
             pending = None  # (position, t_s, spectra or their future) of the frame read last
             for i_frame, (t, img) in enumerate(it, start=1):

@@ -717,7 +717,7 @@ class _Engine:
                 cross,
                 scale,
                 lv,
-                act if full is not None else None,
+                act,
                 full,
                 with_peaks,
                 keep,
@@ -767,7 +767,7 @@ class _Engine:
         second: bool,
     ) -> _Peaks | None:
         """``cross`` = conj(A) * B, and (``with_peaks``) the peaks of its correlation planes, in chunks of nodes
-        on the engine's threads (:func:`chunked`). ``full``: the cross-spectra also go to rows ``act`` of it.
+        on the engine's threads (:func:`chunked`). ``full`` (or None): the cross-spectra also go to its rows ``act``.
         ``keep``: ``cross`` must survive the inverse FFT (a chunk transforms a copy); else it is overwritten.
         ``blank0``: the block around zero displacement is blanked on every plane (piv_peaks' module doc)."""
 
