@@ -12,6 +12,7 @@ import re
 from collections import deque
 from collections.abc import Iterator
 from dataclasses import dataclass
+from functools import partial
 from itertools import islice
 from pathlib import Path
 from typing import NamedTuple
@@ -22,6 +23,9 @@ import numpy as np
 from fieldtool.errors import InputFileError, ParameterError
 from fieldtool.processing import video_av
 from fieldtool.processing.paths import is_pattern, literal_glob
+
+#: (x0, y0, x1, y1) px, a box of the frame
+Box = tuple[int, int, int, int]
 
 IMAGE_EXTS = {".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp"}
 
@@ -48,6 +52,15 @@ class ClipInfo:
     n_frames: int  # as claimed by the container (may exceed what decodes)
     duration_s: float
     is_sequence: bool
+
+
+def _inside(region: Box | None, outer: Box | None) -> bool:
+    """Whether frames right inside ``outer`` (None: everywhere) are right inside ``region`` (None: everywhere)."""
+    if outer is None:
+        return True
+    if region is None:
+        return False
+    return outer[0] <= region[0] and outer[1] <= region[1] and region[2] <= outer[2] and region[3] <= outer[3]
 
 
 def _natural_key(p: Path):
@@ -148,7 +161,7 @@ class FrameSource:
             if dur > 0 and end_s > dur + 1.0 / max(self.info.fps, 1e-9):
                 raise ParameterError(f"video.end_s: {end_s:g} s is beyond the end of the clip ({dur:.2f} s)")
         self.start_s, self.end_s, self.step = float(start_s), end_s, int(step)
-        self._head: tuple[deque, Iterator[Frame]] | None = None  # see head()
+        self._head: tuple[deque, Iterator[Frame], Box | None] | None = None  # see head()
         self._av: bool | None = None  # PyAV reads the clip as grey (processing/video_av.py); None: not probed
 
     def _probe_video(self) -> ClipInfo:
@@ -185,20 +198,23 @@ class FrameSource:
     def __iter__(self) -> Iterator[Frame]:
         return self._stream(None)
 
-    def iter_wanted(self, want) -> Iterator[Frame]:
+    def iter_wanted(self, want, region: Box | None = None) -> Iterator[Frame]:
         """As iteration, but a frame whose position in the stream (0-based, after the step) fails ``want(k)`` is
-        only decoded past (video: grabbed, not retrieved; sequence: not read) and comes with ``image = None``."""
-        return self._stream(want)
+        only decoded past (video: grabbed, not retrieved; sequence: not read) and comes with ``image = None``.
+        ``region`` (x0, y0, x1, y1 px): the frames are right inside it only, read-only, and may be 0 outside
+        (PyAV converts only the region to grey; processing/video_av.py)."""
+        return self._stream(want, region)
 
-    def head(self, n: int) -> list[Frame]:
+    def head(self, n: int, region: Box | None = None) -> list[Frame]:
         """The first ``n`` frames of the range (fewer in a shorter clip). A video's next pass replays them and
         continues the decoder that read them, so that a look at the first frames (run/clip_check.py) costs no
-        decoding of its own; the frames must not be written into."""
+        decoding of its own; the frames must not be written into. ``region`` as in :meth:`iter_wanted`: the
+        next pass continues this one only if it asks for a region inside this one."""
         if self.files is not None:
             return list(islice(self._iter_sequence(), n))
-        rest = self._iter_video()
+        rest = self._iter_video(region=region)
         got = list(islice(rest, n))
-        self._head = (deque(got), rest)
+        self._head = (deque(got), rest, region)
         return got
 
     def __getstate__(self) -> dict:
@@ -208,11 +224,15 @@ class FrameSource:
         state["_head"] = None
         return state
 
-    def _stream(self, want) -> Iterator[Frame]:
+    def _stream(self, want, region: Box | None = None) -> Iterator[Frame]:
         if self.files is not None:
             return self._iter_sequence(want)
         head, self._head = self._head, None
-        return self._iter_video(want) if head is None else self._resumed(*head, want)
+        if head is not None and _inside(region, head[2]):
+            return self._resumed(head[0], head[1], want)
+        if head is not None:
+            head[1].close()
+        return self._iter_video(want, region)
 
     @staticmethod
     def _resumed(frames: deque, rest: Iterator[Frame], want) -> Iterator[Frame]:
@@ -261,13 +281,17 @@ class FrameSource:
                 yield Frame(i, t, img)
             kept += 1
 
-    def _iter_video(self, want=None) -> Iterator[Frame]:
+    def _iter_video(self, want=None, region: Box | None = None) -> Iterator[Frame]:
         # the run already keeps two cores busy (decoding, standardising, correlating: one thread each); on two
         # cores or fewer the decoder's own threads only compete with them
         if self._av is None:
             self._av = video_av.usable(str(self.path), self.shape)
         clip = video_av.open_clip(str(self.path), _DECODER_THREADS) if self._av else None
-        decoded = self._decoded_cv() if clip is None else ((t, fr, clip.grey) for t, fr in clip.decoded())
+        if clip is None:
+            decoded = self._decoded_cv()
+        else:  # region: only the box a consumer reads is converted (video_av.Clip.grey)
+            grey_of = partial(clip.grey, region=region)
+            decoded = ((t, fr, grey_of) for t, fr in clip.decoded())
         try:
             kept = 0
             for i, (t, fr, grey) in enumerate(decoded):

@@ -201,6 +201,13 @@ class StiAccumulator:
             self._crop = (slice(y0, y1), slice(x0, x1), mx - np.float32(x0), my - np.float32(y0), shape)
         return self._crop
 
+    def box(self, shape: tuple[int, int]) -> tuple[int, int, int, int] | None:
+        """(x0, y0, x1, y1) px: the box of a frame of ``shape`` that :meth:`add` reads; None without lines."""
+        if not len(self.lines):
+            return None
+        rs, cs = self._cropped(shape)[:2]
+        return cs.start, rs.start, cs.stop, rs.stop
+
     def add(self, t_s: float, frame: np.ndarray) -> None:
         """Sample one working frame (gray, any dtype) taken at ``t_s`` seconds. Only the lines' box is read (and
         converted to float32)."""

@@ -21,14 +21,14 @@ frames after they went in.
 
 from __future__ import annotations
 
-import mmap
-import sys
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
+
+from fieldtool.processing.framepool import FramePool, pool_cap
 
 #: frames on each side of the centred window (30 fps: about 1 s in all)
 HALF_WINDOW = 15
@@ -102,77 +102,6 @@ def standardize(
     return _frames(crops, stats, want)
 
 
-#: a blank frame of at least this many bytes is mapped from the kernel's zero pages (:func:`blank`)
-BLANK_MAP_BYTES = 4 * 2**20
-
-
-def blank(shape: tuple[int, int]) -> np.ndarray:
-    """A float32 frame of zeros, for a standardised box: a large one is an anonymous memory map, whose pages
-    cost memory and time only where the box is written (numpy's ``zeros`` asks for huge pages from 4 MiB on,
-    and a 2 MiB page is zeroed and kept whole for the box's few pixels in each of its rows: at 4K, a frame took
-    33 MB and 8 ms for a box of 3 MB)."""
-    n = int(np.prod(shape)) * 4
-    if n < BLANK_MAP_BYTES:
-        return np.zeros(shape, np.float32)
-    return np.ndarray(shape, np.float32, buffer=mmap.mmap(-1, n))  # its views' base is this array
-
-
-#: at most this many frames pooled, and (:func:`pool_cap`) at most ``POOL_BYTES`` of their resident memory
-POOL_FRAMES = 12
-POOL_BYTES = 48 * 2**20
-
-
-def pool_cap(shape: tuple[int, int], box: tuple[int, int, int, int]) -> int:
-    """Frames a :class:`FramePool` keeps for frames of ``shape`` (H, W) standardised in ``box``: what a frame
-    holds in memory is the whole frame below :data:`BLANK_MAP_BYTES`, else the 4 KiB pages of the box's rows
-    (a 4K frame with a 388 px wide box: 8 MB, so 5 frames)."""
-    h, w = int(shape[0]), int(shape[1])
-    x0, y0, x1, y1 = box
-    if h * w * 4 < BLANK_MAP_BYTES:
-        held = h * w * 4
-    else:
-        held = (y1 - y0) * ((((x1 - x0) * 4 + 4095) // 4096) + 1) * 4096
-    return max(2, min(POOL_FRAMES, POOL_BYTES // max(held, 1)))
-
-
-class FramePool:
-    """Whole standardised frames (float32, 0 outside the box) recycled once nothing refers to them.
-
-    A fresh :func:`blank` frame costs its pages each time (at 4K, 8.9 ms against 1.2 ms to rewrite the box of a
-    frame used before). A frame handed out is read-only, so nothing can write outside its box (where a
-    recycled frame must stay 0): a consumer that tried would fail loudly. A frame is free again when nothing
-    refers to it any more: its CPython reference count (every view of it holds one, as its ``base``) is back to
-    what the pool alone holds. Up to ``cap`` frames are pooled; beyond that a
-    frame is a fresh one, left to the garbage collector.
-    """
-
-    def __init__(self, shape: tuple[int, int], cap: int = POOL_FRAMES):
-        self.shape, self.cap = (int(shape[0]), int(shape[1])), cap
-        self._frames: list[tuple[np.ndarray, int]] = []  # (frame, its reference count when only the pool holds it)
-
-    def get(self) -> np.ndarray:
-        """A writable frame, 0 outside the box (what the box holds is the caller's to overwrite)."""
-        for frame, rest in self._frames:
-            if sys.getrefcount(frame) == rest:
-                frame.flags.writeable = True
-                return frame
-        frame = blank(self.shape)
-        assert frame.base is None or not isinstance(frame.base, np.ndarray)  # it owns its memory: views count
-        if len(self._frames) < self.cap:
-            self._frames.append((frame, 0))
-            rest = sys.getrefcount(frame)  # the references the loop above holds: the list's tuple, the local
-            self._frames[-1] = (frame, rest)
-        return frame
-
-    def filled(self, box: tuple[int, int, int, int], write) -> np.ndarray:
-        """A read-only frame whose box (x0, y0, x1, y1 px) ``write(view)`` has filled."""
-        out = self.get()
-        x0, y0, x1, y1 = box
-        write(out[y0:y1, x0:x1])
-        out.flags.writeable = False
-        return out
-
-
 def _frames(crops: Iterator[tuple[float, np.ndarray]], stats: SurfaceStats, want) -> Iterator:
     """Whole frames (0 outside the box, read-only, recycled: :class:`FramePool`) from the box crops."""
     pool = None
@@ -208,7 +137,7 @@ def _recentre(frames: Iterator[tuple[float, np.ndarray]], stats: SurfaceStats, h
     n_win = 2 * half + 1
     buf: deque = deque()
     times: deque = deque()
-    st = _Sums()
+    st = _Sums(squares=False)
     dtype = None
     k_out = 0
     pool: FramePool | None = None
@@ -338,35 +267,43 @@ _RESUM_EVERY = 256
 
 
 class _Sums:
-    """Running per-pixel sums of I and I² over the window (float32, recomputed every ``_RESUM_EVERY`` updates)."""
+    """Running per-pixel sums of I and I² over the window (float32, recomputed every ``_RESUM_EVERY`` updates);
+    ``squares=False``: of I only (the recentring needs the mean alone)."""
 
-    def __init__(self):
+    def __init__(self, squares=True):
         self.s1 = self.s2 = self.tmp = self.mean = self.sd = None
+        self.squares = squares
         self.updates = 0
 
     def add(self, c: np.ndarray) -> None:
         """Add a crop (uint8, float32 or float16)."""
         if self.s1 is None:
-            self.s1, self.s2, self.tmp, self.mean, self.sd = (np.zeros(c.shape, np.float32) for _ in range(5))
+            self.s1, self.mean = np.zeros(c.shape, np.float32), np.zeros(c.shape, np.float32)
+            if self.squares:
+                self.s2, self.tmp, self.sd = (np.zeros(c.shape, np.float32) for _ in range(3))
         if c.dtype == np.float16:  # OpenCV has no float16 sums
             np.add(self.s1, c, out=self.s1)
-            np.multiply(c, c, out=self.tmp, dtype=np.float32)
-            self.s2 += self.tmp
+            if self.squares:
+                np.multiply(c, c, out=self.tmp, dtype=np.float32)
+                self.s2 += self.tmp
         else:  # one pass each, where numpy takes three
             cv2.accumulate(c, self.s1)
-            cv2.accumulateSquare(c, self.s2)
+            if self.squares:
+                cv2.accumulateSquare(c, self.s2)
         self.updates += 1
 
     def remove(self, c16: np.ndarray) -> None:
         np.subtract(self.s1, c16, out=self.s1)
-        np.multiply(c16, c16, out=self.tmp, dtype=np.float32)
-        self.s2 -= self.tmp
+        if self.squares:
+            np.multiply(c16, c16, out=self.tmp, dtype=np.float32)
+            self.s2 -= self.tmp
         self.updates += 1
 
     def reset(self, buf) -> None:
         """The sums computed again from the window's crops (running float32 sums drift)."""
         self.s1[:] = 0
-        self.s2[:] = 0
+        if self.squares:
+            self.s2[:] = 0
         for c in buf:
             self.add(c)
         self.updates = 0

@@ -20,6 +20,8 @@ import av
 import cv2
 import numpy as np
 
+from fieldtool.processing.framepool import FramePool, pool_cap
+
 #: pixel formats of three 8-bit planes, the first the luma the table maps
 LUMA_FORMATS = frozenset({"yuv420p", "yuvj420p", "yuv422p", "yuvj422p", "yuv444p", "yuvj444p", "yuv411p", "yuv440p"})
 
@@ -53,11 +55,13 @@ def grey_table(frame) -> np.ndarray:
 
 class Clip:
     """An open clip read by PyAV: ``decoded()`` streams (t_s, frame) from the first frame, ``grey(frame)``
-    converts one (the frames not converted cost their decoding only)."""
+    converts one (the frames not converted cost their decoding only), ``grey(frame, region)`` only the region
+    a consumer reads."""
 
     def __init__(self, container, stream):
         self.container, self.stream = container, stream
         self.table: np.ndarray | None = None
+        self._pool: FramePool | None = None  # whole frames for grey(frame, region), 0 outside the region
 
     def decoded(self) -> Iterator:
         """(t_s, decoded frame) in presentation order; stops at a frame without a timestamp or one that fails."""
@@ -71,11 +75,21 @@ class Clip:
         except av.FFmpegError:  # a cut or corrupt stream: what decoded is the clip, as OpenCV's reader stops
             return
 
-    def grey(self, frame) -> np.ndarray:
-        """The grey uint8 frame (H x W) of a decoded frame."""
+    def grey(self, frame, region: tuple[int, int, int, int] | None = None) -> np.ndarray:
+        """The grey uint8 frame (H x W) of a decoded frame. ``region`` (x0, y0, x1, y1 px): only that box is
+        converted, and the frame is 0 outside it, read-only and recycled (:class:`FramePool`): at 4K the
+        section's box is a tenth of the frame, and the lookup of the whole frame cost more than the box's
+        standardisation."""
         if self.table is None:
             self.table = grey_table(frame)
-        return cv2.LUT(_luma(frame), self.table)
+        if region is None:
+            return cv2.LUT(_luma(frame), self.table)
+        x0, y0, x1, y1 = region
+        if self._pool is None or self._pool.shape != (frame.height, frame.width):
+            shape = (frame.height, frame.width)
+            self._pool = FramePool(shape, pool_cap(shape, region, 1), np.uint8)
+        luma = _luma(frame)[y0:y1, x0:x1]
+        return self._pool.filled(region, lambda v: cv2.LUT(luma, self.table, dst=v))
 
     def close(self) -> None:
         self.container.close()

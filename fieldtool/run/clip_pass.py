@@ -23,7 +23,7 @@ from collections.abc import Callable, Iterator
 
 import numpy as np
 
-from fieldtool.processing import piv_fast, surface
+from fieldtool.processing import framepool, piv_fast
 
 #: memory the kept frames may take (bytes) up to 1080p (:func:`budget`): ~200 standardised boxes of 600 x 500 px
 KEEP_BYTES = 256 * 2**20
@@ -117,7 +117,7 @@ class KeptFrames:
     def _whole(self, crop: np.ndarray) -> np.ndarray:
         if self.stats is None:  # a fresh array (the round may write into its frames), float32 as built
             return crop.astype(np.float32) if crop.dtype == np.uint8 else crop.copy()
-        out = surface.blank(self.stats.shape)
+        out = framepool.blank(self.stats.shape)
         x0, y0, x1, y1 = self.stats.box
         out[y0:y1, x0:x1] = crop
         return out

@@ -23,6 +23,17 @@ from fieldtool.run.inputs import Inputs
 from fieldtool.run.observer import Guarded, Progress
 
 
+def in_region_ok(project: Project, inputs: Inputs, observer: Guarded | None) -> bool:
+    """Whether raw frames may be converted only in the box their consumers read: no step reads the whole
+    frame (the lens model, the stabilisation, filters, a live observer, which logs frames)."""
+    return (
+        inputs.lens is None
+        and not project.stabilize.enabled
+        and not project.filters
+        and not (observer is not None and observer.active)
+    )
+
+
 def working_frames(
     project: Project,
     inputs: Inputs,
@@ -34,6 +45,7 @@ def working_frames(
     want: Callable[[int], bool] | None = None,
     raw: bool = False,
     count: DecodeCount | None = None,
+    region: tuple[int, int, int, int] | None = None,
 ) -> Iterator[tuple[float, np.ndarray]]:
     """Stream (t_s, float32 working frame): undistorted, stabilised, filtered.
 
@@ -44,7 +56,11 @@ def working_frames(
     (the fast path's rounds need only their own pairs' frames). Ignored with stabilisation, which tracks every
     frame, and with a filter stack marked ``temporal``.
 
-    ``count``: every frame the decoder delivers is counted in ``count.frames`` (a filter's prepass too)."""
+    ``count``: every frame the decoder delivers is counted in ``count.frames`` (a filter's prepass too).
+
+    ``region`` (x0, y0, x1, y1 px), with ``raw``: the consumers read only this box, so the decoder converts only
+    it (the frames are 0 outside it, read-only; processing/frames.py). Ignored where a step reads the whole
+    frame: the lens model, the stabilisation, filters, a live observer (it logs frames)."""
     # filters work inside the ROI only (thesis 9.2.7): banks and sky do not set their statistics
     stack = FilterStack.from_config(project.filters, roi=roi_and_mask(project, inputs)[0]) if project.filters else None
     every = observer is not None and observer.wants_every_frame()  # the overlay video draws every frame
@@ -52,10 +68,11 @@ def working_frames(
         want = None
     stabilizer = None
     total = inputs.source.estimated_count()
+    region = region if raw and in_region_ok(project, inputs, observer) else None
 
     def corrected() -> Iterator[tuple[int, float, np.ndarray]]:
         nonlocal stabilizer
-        for fr in inputs.source if want is None else inputs.source.iter_wanted(want):
+        for fr in inputs.source if want is None and region is None else inputs.source.iter_wanted(want, region):
             if count is not None:
                 count.frames += 1
             img = fr.image

@@ -66,5 +66,10 @@ class Guarded:
             self.failed = True
             self.warnings.append(f"live logging stopped: {type(e).__name__}: {e}")
 
+    @property
+    def active(self) -> bool:
+        """An observer is attached and has not failed."""
+        return self.obs is not None and not self.failed
+
     def wants_every_frame(self) -> bool:
         return self.obs is not None and not self.failed and bool(getattr(self.obs, "wants_every_frame", bool)())

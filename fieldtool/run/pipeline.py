@@ -92,7 +92,7 @@ def _run_project(
     lap("level_and_ortho")
 
     placed = geometry.place_sections(project, inputs, level.level_m, mapping, extra)
-    setup = velocimetry.setup(project, inputs, mapping, placed, warnings)
+    setup = velocimetry.setup(project, inputs, mapping, placed, warnings, obs)
     pairs = discharge.PairDischarge(mapping, inputs.cross_section, level.level_m, project.section.alpha)
     overlay_stage.bind(overlay, inputs, mapping, placed.geom)
     obs("geometry", pairs.on(placed.geom))

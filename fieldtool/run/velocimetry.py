@@ -65,6 +65,16 @@ def piv_region(project: Project, inputs: Inputs, params, roi, segments) -> tuple
     return piv_fast.section_band(inputs.shape, segments, margin, roi, min_side_px=side)
 
 
+def read_region(shape: tuple[int, int], box, margin: int, stiv_run) -> tuple[int, int, int, int] | None:
+    """(x0, y0, x1, y1) px: what the raw frames of a standardised stream are read in, the standardisation's
+    box (the PIV's ``box`` grown by ``margin``) and STIV's lines; None: the whole frame."""
+    x0, y0, x1, y1 = surface._box(shape, box, margin)
+    lines = stiv_run.acc.box(shape) if stiv_run is not None else None
+    if lines is not None:
+        x0, y0, x1, y1 = min(x0, lines[0]), min(y0, lines[1]), max(x1, lines[2]), max(y1, lines[3])
+    return None if (x0, y0, x1, y1) == (0, 0, shape[1], shape[0]) else (x0, y0, x1, y1)
+
+
 @dataclass
 class PivSetup:
     """What the PIV needs besides the frames. ``roi`` is the box it correlates (working px, None = the whole
@@ -82,8 +92,11 @@ class PivSetup:
     clip: clip_check.ClipCheck  # the clip's noise and contrast and the gates set from them (issue 23)
 
 
-def setup(project: Project, inputs: Inputs, mapping, sections: Sections, warnings: list[str]) -> PivSetup:
-    """The PIV's parameters, box and speed limit, and STIV's lines (see :class:`PivSetup`)."""
+def setup(
+    project: Project, inputs: Inputs, mapping, sections: Sections, warnings: list[str], obs: Guarded | None = None
+) -> PivSetup:
+    """The PIV's parameters, box and speed limit, and STIV's lines (see :class:`PivSetup`). ``obs``: the run's
+    observer (a live one sees whole frames, so the first frames are converted whole for it)."""
     roi, mask = sections.roi, sections.mask
     stiv_run = stiv_stage.start(project, mapping, sections.geom, inputs.shape, roi, mask)
     params = piv_params(project)
@@ -100,8 +113,11 @@ def setup(project: Project, inputs: Inputs, mapping, sections: Sections, warning
     box = piv_region(project, inputs, params, roi, sections.segments)
     # the clip's noise and contrast where the PIV correlates (the section's band: the water, not the banks and
     # sky of a whole frame, whose windows would outvote it), and the texture gate set from them
+    region = None
+    if standardize and frames_mod.in_region_ok(project, inputs, obs):
+        region = read_region(inputs.shape, box, max(64, params.search_px or 0), stiv_run)
     clip = clip_check.check(
-        inputs, box if box is not None else roi, n_clip, params, mask, standardize, project.piv.frame_gap
+        inputs, box if box is not None else roi, n_clip, params, mask, standardize, project.piv.frame_gap, region
     )
     params = clip.params(params, standardize)  # min_texture only: the box does not depend on it
     near = None
@@ -167,6 +183,7 @@ class _Streams:
         frame of its time window: then every frame is decoded and ``want`` only chooses the standardised frames
         that are built). ``tap``: STIV samples its lines from this stream."""
         project, s = self.project, self.s
+        margin = max(64, self.params.search_px or 0)
         want_std = want
         if s.standardize:  # every frame enters the standardisation's window; only the wanted ones are built
             want = None
@@ -183,6 +200,7 @@ class _Streams:
             want=want,
             raw=s.standardize,  # the standardisation converts its box only
             count=self.count,
+            region=read_region(self.inputs.shape, s.roi, margin, s.stiv_run) if s.standardize else None,
         )
         if tap and s.stiv_run is not None:  # STIV samples its lines from the same stream (one decode)
             frames = s.stiv_run.tap(frames)
@@ -195,7 +213,7 @@ class _Streams:
             frames = surface.standardize(
                 decoded,
                 s.roi,
-                margin=max(64, self.params.search_px or 0),
+                margin=margin,
                 half=surface.HALF_WINDOW,
                 shrink=s.clip.gates.shrink,
                 stats=self.surface_stats,

@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
-from fieldtool.processing import piv, planning, robust, surface
+from fieldtool.processing import framepool, piv, planning, robust, surface
 
 FPS = 30.0
 
@@ -65,11 +65,11 @@ def test_standardize_keeps_times_order_and_removes_the_static_pattern():
 
 def test_blank_frames_are_zeros_and_a_large_one_costs_only_the_pages_written():
     for shape in ((48, 64), (2160, 3840)):
-        b = surface.blank(shape)
+        b = framepool.blank(shape)
         assert b.shape == shape and b.dtype == np.float32 and b.flags.writeable and not b.any()
     with open("/proc/self/statm") as fh:
         before = int(fh.read().split()[1])
-    frames = [surface.blank((2160, 3840)) for _ in range(4)]  # 33 MB each
+    frames = [framepool.blank((2160, 3840)) for _ in range(4)]  # 33 MB each
     for f in frames:
         f[:, 1000:1100] = 1.0  # a narrow box: one 4 KiB page of each row
     with open("/proc/self/statm") as fh:
@@ -78,10 +78,10 @@ def test_blank_frames_are_zeros_and_a_large_one_costs_only_the_pages_written():
 
 
 def test_standardised_frames_are_read_only_and_recycled_only_when_nothing_refers_to_them():
-    """surface.FramePool: a frame comes back only once no array (the frame or a view of it) is alive; its
+    """framepool.FramePool: a frame comes back only once no array (the frame or a view of it) is alive; its
     outside stays 0 because nobody can write into a frame handed out."""
     for shape in ((48, 64), (2160, 3840)):
-        pool = surface.FramePool(shape, cap=2)
+        pool = framepool.FramePool(shape, cap=2)
         box = (10, 20, 30, 40)
         a = pool.filled(box, lambda v: v.fill(1.0))
         with pytest.raises(ValueError):

@@ -77,3 +77,40 @@ def test_a_source_with_a_head_still_goes_to_the_figure_process(textured):
     copy = pickle.loads(pickle.dumps(src))
     assert len(list(copy)) == 24  # a pass of its own
     assert len(list(src)) == 24  # the original still replays its head
+
+
+def test_frames_read_in_a_region_are_right_there_and_zero_elsewhere(textured):
+    """``iter_wanted(want, region)``: only the region is converted to grey (the run's standardisation box and
+    STIV's lines at 4K are a tenth of the frame); outside it the frame is 0, and nobody can write into it."""
+    whole = [f.image.copy() for f in FrameSource(textured)]
+    region = (10, 20, 50, 44)
+    x0, y0, x1, y1 = region
+    got = list(FrameSource(textured).iter_wanted(None, region))
+    assert len(got) == len(whole)
+    for f, img in zip(got, whole, strict=True):
+        np.testing.assert_array_equal(f.image[y0:y1, x0:x1], img[y0:y1, x0:x1])
+        outside = f.image.copy()
+        outside[y0:y1, x0:x1] = 0
+        assert not outside.any() and img[:y0].any()  # the frame had texture there, the region's frame has none
+        with pytest.raises(ValueError):
+            f.image[0, 0] = 1  # read-only: a recycled frame stays 0 outside its region
+
+
+def test_a_head_read_in_a_region_is_replayed_only_for_a_region_inside_it(textured, monkeypatch):
+    """The clip check's look at the first frames and the run's pass share one decode when they read the same
+    box; a pass that wants more of the frame than the look converted decodes again (frames are never
+    handed out wrong)."""
+    whole = [f.image.copy() for f in FrameSource(textured)]
+    opened = []
+    orig = video_av.open_clip
+    monkeypatch.setattr(video_av, "open_clip", lambda *a: opened.append(1) or orig(*a))
+    src = FrameSource(textured)
+    src.head(5, (10, 20, 50, 44))
+    inner = list(src.iter_wanted(None, (12, 22, 40, 40)))
+    assert len(opened) == 1 and len(inner) == len(whole)
+    np.testing.assert_array_equal(inner[3].image[22:40, 12:40], whole[3][22:40, 12:40])
+    src.head(5, (10, 20, 50, 44))
+    full = list(src)  # the whole frame: a pass of its own
+    assert len(opened) == 3
+    for f, img in zip(full, whole, strict=True):
+        np.testing.assert_array_equal(f.image, img)

@@ -6,9 +6,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from fieldtool.processing import video_av
+from fieldtool.processing.frames import FrameSource
 from fieldtool.processing.surface import SurfaceStats
 from fieldtool.project.model import load_project
 from fieldtool.run import clip_pass
+from fieldtool.run import frames as frames_mod
 from fieldtool.run.pipeline import run_project
 
 
@@ -74,6 +77,32 @@ def test_rounds_decode_each_frame_once_and_match_a_new_pass(scene, monkeypatch, 
     # the replayed frames are those a new pass builds: the same field, the same discharge
     assert np.array_equal(one.piv.u, again.piv.u, equal_nan=True)
     assert one.discharge.discharge_m3s == again.discharge.discharge_m3s
+
+
+def test_frames_converted_only_in_the_read_region_give_the_whole_frames_field(scene, monkeypatch):
+    """The run converts only the box its consumers read (the standardisation's and STIV's lines): the same
+    field, STIV and discharge as from whole frames, and one decode of the clip."""
+    proj = load_project(scene / "project.toml")
+    regions = []
+    orig = video_av.Clip.grey
+    monkeypatch.setattr(
+        video_av.Clip, "grey", lambda self, fr, region=None: regions.append(region) or orig(self, fr, region)
+    )
+    boxed = run_project(proj, None)
+    read = {r for r in regions if r is not None}
+    assert len(read) == 1 and None not in regions  # every frame of the run's pass read in one box
+    x0, y0, x1, y1 = read.pop()
+    h, w = FrameSource(scene / proj.video.path).shape
+    assert (x1 - x0) * (y1 - y0) < 0.8 * h * w  # less than the frame
+    assert boxed.summary()["piv_sampling"]["frames_decoded"] == 36
+    monkeypatch.setattr(frames_mod, "in_region_ok", lambda *a: False)
+    regions.clear()
+    whole = run_project(proj, None)
+    assert set(regions) == {None}
+    assert np.array_equal(boxed.piv.u, whole.piv.u, equal_nan=True)
+    assert boxed.discharge.discharge_m3s == whole.discharge.discharge_m3s
+    untimed = lambda r: {k: v for k, v in r.summary()["stiv"].items() if k != "seconds"}  # noqa: E731
+    assert untimed(boxed) == untimed(whole)
 
 
 def test_budget_shrinks_with_the_frame_size_beyond_1080p():
