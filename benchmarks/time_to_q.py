@@ -17,7 +17,11 @@ waits for them), in turn within every repeat (alternating runs), medians over th
 * ``pyorc``: ``benchmarks/peers/pyorc_run.py`` in its own virtual environment ``benchmarks/.peers-venv``
   (created here with the pinned versions in PEERS; never the project's venv), pyorc's API recipe with the same
   GCPs, level, velocity index and cross-section, a bounding box of +-3 m around the section (as the ROI of the
-  generated project), ``resolution`` 0.02 m and ``window_size`` 16 (pyorc's defaults are 0.05 m / 10 px).
+  generated project), at its most accurate setting of the last ``--sweep`` (``peer_settings.json``: resolution
+  0.01-0.05 m x window 10-32 px; without a sweep 0.03 m / 32 px, the issue's).
+* ``thesis (OpenPIV rust)``: ``benchmarks/peers/openpiv_thesis.py``, the thesis' method (single pass, nearest
+  vector) on OpenPIV with its Rust backend, at its most accurate window and s2n threshold of the sweep.
+* ``decode only (PyAV)``: ``benchmarks/peers/decode_floor.py``, every frame decoded with all threads: the floor.
 * once per clip, not alternated (it is the slow reference): fieldtool full frame, every pair
   (``region = "full"``, ``all_pairs = true``): "today's full-frame all-pairs result" of the issue
   (``--no-reference`` leaves it out).
