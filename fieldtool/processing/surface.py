@@ -65,11 +65,21 @@ def _box(shape: tuple[int, int], roi, margin: int) -> tuple[int, int, int, int]:
     )
 
 
+#: px the processed box reaches beyond the ROI, at least (:func:`margin_for`)
+MARGIN = 64
+
+
+def margin_for(search_px: int | None) -> int:
+    """px the standardisation's box reaches beyond the PIV's box: :data:`MARGIN`, or the first pass' search
+    area (``PivParams.search_px``) where it is larger."""
+    return max(MARGIN, int(search_px or 0))
+
+
 def standardize(
     frames: Iterable[tuple[float, np.ndarray]],
     roi=None,
     *,
-    margin: int = 64,
+    margin: int = MARGIN,
     half: int = HALF_WINDOW,
     shrink: float = SHRINK,
     stats: SurfaceStats | None = None,
@@ -151,10 +161,9 @@ def _recentre(frames: Iterator[tuple[float, np.ndarray]], stats: SurfaceStats, h
         times.append(t)
 
     def emit(c16, t):
-        nonlocal k_out
+        nonlocal k_out, pool
         if st.updates >= _RESUM_EVERY:
             st.reset(buf)
-        nonlocal pool
         k_out += 1
         if want is not None and not want(k_out - 1):
             return t, None

@@ -62,6 +62,7 @@ class Clip:
         self.container, self.stream = container, stream
         self.table: np.ndarray | None = None
         self._pool: FramePool | None = None  # whole frames for grey(frame, region), 0 outside the region
+        self._pool_key: tuple | None = None  # ((H, W), region) the pool's frames were made for
 
     def decoded(self) -> Iterator:
         """(t_s, decoded frame) in presentation order; stops at a frame without a timestamp or one that fails."""
@@ -85,9 +86,9 @@ class Clip:
         if region is None:
             return cv2.LUT(_luma(frame), self.table)
         x0, y0, x1, y1 = region
-        if self._pool is None or self._pool.shape != (frame.height, frame.width):
-            shape = (frame.height, frame.width)
-            self._pool = FramePool(shape, pool_cap(shape, region, 1), np.uint8)
+        shape = (frame.height, frame.width)
+        if self._pool is None or self._pool_key != (shape, region):  # a recycled frame is 0 outside its own region
+            self._pool, self._pool_key = FramePool(shape, pool_cap(shape, region, 1), np.uint8), (shape, region)
         luma = _luma(frame)[y0:y1, x0:x1]
         return self._pool.filled(region, lambda v: cv2.LUT(luma, self.table, dst=v))
 

@@ -72,4 +72,4 @@ class Guarded:
         return self.obs is not None and not self.failed
 
     def wants_every_frame(self) -> bool:
-        return self.obs is not None and not self.failed and bool(getattr(self.obs, "wants_every_frame", bool)())
+        return self.active and bool(getattr(self.obs, "wants_every_frame", bool)())

@@ -115,7 +115,7 @@ def setup(
     # sky of a whole frame, whose windows would outvote it), and the texture gate set from them
     region = None
     if standardize and frames_mod.in_region_ok(project, inputs, obs):
-        region = read_region(inputs.shape, box, max(64, params.search_px or 0), stiv_run)
+        region = read_region(inputs.shape, box, surface.margin_for(params.search_px), stiv_run)
     clip = clip_check.check(
         inputs, box if box is not None else roi, n_clip, params, mask, standardize, project.piv.frame_gap, region
     )
@@ -183,7 +183,7 @@ class _Streams:
         frame of its time window: then every frame is decoded and ``want`` only chooses the standardised frames
         that are built). ``tap``: STIV samples its lines from this stream."""
         project, s = self.project, self.s
-        margin = max(64, self.params.search_px or 0)
+        margin = surface.margin_for(self.params.search_px)
         want_std = want
         if s.standardize:  # every frame enters the standardisation's window; only the wanted ones are built
             want = None
@@ -340,7 +340,7 @@ def _rounds(project: Project, st: _Streams, n_exp: int, pair_q, on_pair, fast: d
     h, w = st.inputs.shape
     # the box of a kept frame: the standardisation's (processing.surface: the PIV's box grown by the search area
     # set before the plan, as round 1 standardises), else the whole frame
-    box = surface._box((h, w), s.roi, max(64, s.params.search_px or 0)) if s.standardize else (0, 0, w, h)
+    box = surface._box((h, w), s.roi, surface.margin_for(s.params.search_px)) if s.standardize else (0, 0, w, h)
     # whole working frames without filters hold whole grey levels: kept as uint8 (clip_pass.KeptFrames._stored)
     bytes_px = 1 if not s.standardize and not project.filters else 4
     min_pairs = s.clip.min_pairs(project.piv.min_pairs)  # weak clips average more pairs (run/clip_check.py)

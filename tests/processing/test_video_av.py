@@ -114,3 +114,26 @@ def test_a_head_read_in_a_region_is_replayed_only_for_a_region_inside_it(texture
     assert len(opened) == 3
     for f, img in zip(full, whole, strict=True):
         np.testing.assert_array_equal(f.image, img)
+
+
+def test_one_clip_read_in_two_regions_gives_frames_zero_outside_each(textured):
+    """A recycled frame is 0 outside the region it was made for: a clip asked for another region hands out
+    frames of their own, never one that still holds the first region's grey levels."""
+    clip = video_av.open_clip(str(textured), 1)
+    try:
+        a, b = (10, 20, 50, 44), (60, 0, 90, 30)
+        held = []
+        for k, (_, fr) in enumerate(clip.decoded()):
+            region = a if k < 6 else b
+            img = clip.grey(fr, region)
+            outside = img.copy()
+            outside[region[1] : region[3], region[0] : region[2]] = 0
+            assert not outside.any(), k
+            if k < 6:
+                del img  # frames of region a go back to their pool
+            else:
+                held.append(img)
+            if k == 11:
+                break
+    finally:
+        clip.close()
