@@ -685,7 +685,8 @@ class _Viewer:
                     " - NOT snapped: no checker target found near the click (a small or far target); placed "
                     "where clicked: zoom in (mouse wheel) to place it on the centre, or Undo"
                 )
-        return self._commit(spec, state, msg)
+            msg, saved = self._save_state(spec, state, msg)
+        return self._tell_tui(spec, saved, msg)
 
     def _act(self, action: str) -> str:
         with self._lock:
@@ -702,25 +703,32 @@ class _Viewer:
                 fresh = spec.make(axes=getattr(state, "axes", None))
                 self.states[self.mode] = state = fresh
                 msg = f"{spec.label} cleared"
-        return self._commit(spec, state, msg)
+            msg, saved = self._save_state(spec, state, msg)
+        return self._tell_tui(spec, saved, msg)
 
-    def _commit(self, spec, state: PickState, msg: str) -> str:
+    def _save_state(self, spec, state: PickState, msg: str) -> tuple[str, bool]:
+        """Save the pick mode's value (the caller holds the lock from its change of ``state`` on: a reload of the
+        file in between would leave ``state`` with the file's old values of the other points, and the save would
+        put them back as this viewer's). Returns (status message, whether the file was written)."""
         value = state.value()
         saved = False
-        with self._lock:
-            if value is not ...:
-                try:
-                    mine = set_dotted(project_to_dict(self.project), spec.field, value)
-                    res = self.sync.save(mine)  # merged per point with what the TUI saved meanwhile
-                    saved = res.written
-                    self._take(res)
-                    if res.conflicts:
-                        msg = self.status_text
-                except (FieldToolError, OSError) as e:
-                    msg = f"NOT SAVED: {e}"
-            self.set_status(msg)
-            self.update_checklist()
-            self.redraw()
+        if value is not ...:
+            try:
+                mine = set_dotted(project_to_dict(self.project), spec.field, value)
+                res = self.sync.save(mine)  # merged per point with what the TUI saved meanwhile
+                saved = res.written
+                self._take(res)
+                if res.conflicts:
+                    msg = self.status_text
+            except (FieldToolError, OSError) as e:
+                msg = f"NOT SAVED: {e}"
+        self.set_status(msg)
+        self.update_checklist()
+        self.redraw()
+        return msg, saved
+
+    def _tell_tui(self, spec, saved: bool, msg: str) -> str:
+        """Tell the TUI of a saved pick (outside the lock: its callback may call back into the viewer)."""
         if saved and self.on_pick is not None:
             try:
                 self.on_pick(spec.field, get_field(self.project, spec.field))

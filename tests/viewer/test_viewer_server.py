@@ -226,3 +226,36 @@ def test_a_conflict_asks_and_keep_leaves_the_files_value(viewer):
     assert load_project(viewer.path).ortho.gcp_px == [[5.0, 6.0]]
     assert viewer._v.states["gcp"].value() == [[5.0, 6.0]] and viewer.events[n:] == []
     assert viewer._v._question is None and viewer.conflicts == []
+
+
+def test_a_reload_while_a_pick_is_saved_puts_back_none_of_the_other_editors_points(viewer, monkeypatch):
+    """The TUI moves P2 while the viewer saves its P4, and the viewer's file watch takes the TUI's save in at
+    that moment: the pick's save still holds the viewer's lock, so the reload waits, and the save merges the
+    TUI's P2 (the viewer put its old P2 back when the reload ran between the click and the save: 4 of 50 edits
+    lost in tests/tui/test_two_editors.py under load)."""
+    import sys
+
+    from fieldtool.project.sync import ProjectSync
+
+    viewer._v._stopped.set()  # the file watch stops: this test calls reload itself, at the worst moment
+    viewer._v._watcher.join(timeout=10)
+    viewer.set_mode("gcp")
+    for px in ((10.0, 10.0), (50.0, 10.0), (50.0, 50.0)):
+        viewer.click(*px)
+    state_cls = type(viewer._v.states["gcp"])
+    orig = state_cls.value
+    waited = []
+
+    def value(self):
+        if sys._getframe(1).f_code.co_name == "_save_state" and not waited:  # the pick's save reads its value
+            ProjectSync(viewer.path).set_keys({"ortho.gcp_px": [[10.0, 10.0], [70.0, 20.0], [50.0, 50.0]]})
+            t = threading.Thread(target=viewer._v.reload)
+            t.start()
+            t.join(timeout=0.5)
+            waited.append(t.is_alive())  # still waiting for the lock
+        return orig(self)
+
+    monkeypatch.setattr(state_cls, "value", value)
+    viewer.click(10.0, 50.0)
+    assert load_project(viewer.path).ortho.gcp_px == [[10.0, 10.0], [70.0, 20.0], [50.0, 50.0], [10.0, 50.0]]
+    assert waited == [True]
