@@ -24,7 +24,8 @@ def main() -> int:
     args = ap.parse_args()
     env = dict(os.environ, FIELDTOOL_TWO_EDITORS_EDITS=str(args.edits),
                PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]))
-    cmd = [sys.executable, "-m", "pytest", "-q", "-x", str(ROOT / "tests" / "test_two_editors.py"), "-k", "fifty"]
+    test = ROOT / "tests" / "tui" / "test_two_editors.py"
+    cmd = [sys.executable, "-m", "pytest", "-q", "-x", str(test), "-k", "fifty"]
     out = subprocess.run(cmd, env=env, cwd=ROOT, check=False)
     print(f"{args.edits} interleaved edits of the TUI and a viewer process: "
           f"{'none lost' if out.returncode == 0 else 'EDITS LOST or a check failed (see above)'}")
