@@ -149,8 +149,8 @@ def preview_frame(args: argparse.Namespace) -> int:
     inputs = load_inputs(project)
     if project.filters and any(f.get("name") == "background" for f in project.filters):
         _, frame = next(iter(working_frames(project, inputs)))  # background needs the whole clip
-        # the stubs want an array for dst; OpenCV takes None (a new array)
-        out = cv2.normalize(frame, None, 0, 255, cv2.NORM_MINMAX).astype("uint8")  # type: ignore[call-overload]
+        # older stubs want an array for dst (OpenCV takes None: a new array); newer ones accept it
+        out = cv2.normalize(frame, None, 0, 255, cv2.NORM_MINMAX).astype("uint8")  # type: ignore[call-overload, unused-ignore]
     else:
         first = next(iter(inputs.source)).image
         if inputs.lens is not None:

@@ -246,9 +246,9 @@ def _standardize(frames, roi, *, margin: int, half: int, shrink: float, stats: S
             tau = float(np.float32(shrink * 1.4826 * np.median(np.abs(o[::4, ::4]))))
             if mag is None:
                 mag = np.empty_like(o)
-            # the stubs take arrays only; OpenCV takes a scalar as the second operand
-            cv2.max(o, -tau, dst=mag)  # type: ignore[call-overload]
-            cv2.min(mag, tau, dst=mag)  # type: ignore[call-overload]
+            # older stubs take arrays only (OpenCV takes a scalar as the second operand); newer ones accept it
+            cv2.max(o, -tau, dst=mag)  # type: ignore[call-overload, unused-ignore]
+            cv2.min(mag, tau, dst=mag)  # type: ignore[call-overload, unused-ignore]
             cv2.subtract(o, mag, dst=o)
         return t, o
 

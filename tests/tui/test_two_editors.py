@@ -282,3 +282,29 @@ def test_a_field_being_typed_in_is_not_overwritten_by_another_programs_change(tm
             assert _pt(row.text()) == [50.0, 60.0] and load_project(path).ortho.gcp_px[0] == [50.0, 60.0]
 
     asyncio.run(run())
+
+
+def test_a_value_shown_from_the_file_is_not_stored_back_over_a_later_edit(tmp_path):
+    """The TUI shows another program's P4 (in P4's row and in the row of the whole list), and P2 is typed before
+    those rows' messages were handled: the list row's text (P2's old value) must not be stored over the edit."""
+    from fieldtool.project.sync import ProjectSync
+
+    path = _project(tmp_path)
+
+    async def run():
+        app = FieldToolApp(path)
+        async with app.run_test(size=(80, 24)) as pilot:
+            await pilot.pause()
+            other = ProjectSync(path)
+            p = other.load()
+            p.ortho.gcp_px[3] = [12.0, 199.0]
+            other.save(p)
+            app.watch_file()  # the TUI looks at the file now: the rows showing P4 get the new text
+            _row(app, 1).control.value = "93, 41"
+            await pilot.pause()
+            await pilot.pause()
+            want = [P[0], [93.0, 41.0], P[2], [12.0, 199.0]]
+            assert app.session.project.ortho.gcp_px == want
+            assert load_project(path).ortho.gcp_px == want
+
+    asyncio.run(run())

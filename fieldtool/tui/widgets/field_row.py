@@ -116,11 +116,16 @@ class FieldRow(Vertical):
         self.refresh_error()
 
     def set_text(self, text: str) -> None:
-        """Put ``text`` in the input as if typed (viewer picks)."""
+        """Show ``text``, the project's value of this row (set elsewhere: a viewer pick, another program's save),
+        in the input. No Input.Changed is posted: that message is handled later, and storing the text then
+        would put this value back over an edit made in between (a list row shown after the viewer's pick,
+        stored after P2 was typed, took P2's old value back)."""
         ctl = self.control
         if isinstance(ctl, Input):
-            ctl.value = text
+            with self.prevent(Input.Changed):
+                ctl.value = text
             ctl.cursor_position = len(text)
+            self._text_error = None
 
     def text(self) -> str:
         ctl = self.control
