@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 from fieldtool.project.model import load_project, save_project
+from fieldtool.project.sync import ProjectSync
 from fieldtool.tui.app import FieldToolApp
 from fieldtool.tui.widgets.field_row import FieldRow
 from fieldtool.viewer.registry import info_path, running_viewer
@@ -91,6 +92,14 @@ class Child:
 
 def _row(app, i):
     return next(r for r in app.screen.query(FieldRow) if r.field.key == f"ortho.gcp_px[{i}]")
+
+
+def _saved_elsewhere(path, i, point):
+    """Another program (its own ProjectSync) saves GCP ``i`` of the project file as ``point``."""
+    other = ProjectSync(path)
+    p = other.load()
+    p.ortho.gcp_px[i] = point
+    other.save(p)
 
 
 def _pt(text):
@@ -227,7 +236,6 @@ def test_tui_refuses_a_read_only_file_and_keeps_its_mode(tmp_path):
 
 
 def test_a_true_conflict_keeps_the_files_value_and_asks(tmp_path):
-    from fieldtool.project.sync import ProjectSync
     from fieldtool.tui.screens.conflict import ConflictScreen
 
     path = _project(tmp_path)
@@ -237,10 +245,7 @@ def test_a_true_conflict_keeps_the_files_value_and_asks(tmp_path):
         async with app.run_test(size=(80, 24)) as pilot:
             await pilot.pause()
             # another program saves P1, and P1 is typed here before the TUI looked at the file again
-            other = ProjectSync(path)
-            p = other.load()
-            p.ortho.gcp_px[0] = [50.0, 60.0]
-            other.save(p)
+            _saved_elsewhere(path, 0, [50.0, 60.0])
             _row(app, 0).control.value = "7, 8"
             await pilot.pause()
             assert isinstance(app.screen, ConflictScreen)
@@ -256,7 +261,6 @@ def test_a_true_conflict_keeps_the_files_value_and_asks(tmp_path):
 
 
 def test_a_field_being_typed_in_is_not_overwritten_by_another_programs_change(tmp_path):
-    from fieldtool.project.sync import ProjectSync
     from fieldtool.tui.screens.conflict import ConflictScreen
 
     path = _project(tmp_path)
@@ -269,10 +273,7 @@ def test_a_field_being_typed_in_is_not_overwritten_by_another_programs_change(tm
             row.control.focus()
             row.control.value = "7,"  # half typed: not a point yet, nothing stored
             await pilot.pause()
-            other = ProjectSync(path)
-            p = other.load()
-            p.ortho.gcp_px[0] = [50.0, 60.0]
-            other.save(p)
+            _saved_elsewhere(path, 0, [50.0, 60.0])
             await pilot.pause(0.8)  # the TUI looks at the file
             assert isinstance(app.screen, ConflictScreen)
             assert row.text() == "7,"  # the typing is still there
@@ -287,7 +288,6 @@ def test_a_field_being_typed_in_is_not_overwritten_by_another_programs_change(tm
 def test_a_value_shown_from_the_file_is_not_stored_back_over_a_later_edit(tmp_path):
     """The TUI shows another program's P4 (in P4's row and in the row of the whole list), and P2 is typed before
     those rows' messages were handled: the list row's text (P2's old value) must not be stored over the edit."""
-    from fieldtool.project.sync import ProjectSync
 
     path = _project(tmp_path)
 
@@ -295,10 +295,7 @@ def test_a_value_shown_from_the_file_is_not_stored_back_over_a_later_edit(tmp_pa
         app = FieldToolApp(path)
         async with app.run_test(size=(80, 24)) as pilot:
             await pilot.pause()
-            other = ProjectSync(path)
-            p = other.load()
-            p.ortho.gcp_px[3] = [12.0, 199.0]
-            other.save(p)
+            _saved_elsewhere(path, 3, [12.0, 199.0])
             app.watch_file()  # the TUI looks at the file now: the rows showing P4 get the new text
             _row(app, 1).control.value = "93, 41"
             await pilot.pause()
