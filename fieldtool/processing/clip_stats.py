@@ -94,6 +94,12 @@ def median0(stack: np.ndarray) -> np.ndarray:
     return s[m] if n % 2 else np.mean(s[m - 1 : m + 1], axis=0)
 
 
+def _in_bands(n: int, fn) -> list:
+    """``fn(lo, hi)`` over ``range(n)`` in four bands on the engine's threads (``piv_engine.chunked``: in order,
+    in the calling thread where the engine has one thread). Not to be called from inside a chunked function."""
+    return piv_engine.chunked(n, max(1, -(-n // 4)), fn)
+
+
 def sort0(stack: np.ndarray) -> np.ndarray:
     """``np.sort(stack, axis=0)``, the same array, sorted in bands of rows on the engine's threads (NumPy's sort
     releases the GIL)."""
@@ -105,7 +111,7 @@ def sort0(stack: np.ndarray) -> np.ndarray:
     def band(lo: int, hi: int) -> None:
         out[:, lo:hi] = np.sort(stack[:, lo:hi], axis=0)
 
-    piv_engine.chunked(rows, -(-rows // 4), band)
+    _in_bands(rows, band)
     return out
 
 
@@ -165,7 +171,7 @@ def estimate(frames, box: tuple[int, int, int, int] | None = None, *, win: int =
         return out
 
     # the windows on the engine's threads (their FFTs and sorts release the GIL), in order: the same values
-    per = [v for part in piv_engine.chunked(len(corners), max(1, -(-len(corners) // 4)), windows) for v in part]
+    per = [v for part in _in_bands(len(corners), windows) for v in part]
     cons = [v[0] for v in per]
     texs = [v[1] for v in per]
     carried = [v[2] for v in per]
