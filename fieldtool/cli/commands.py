@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import argparse
 
+from fieldtool.cli.main import load_measure  # the core, lazily: only when calibrate or preview runs
+
 
 def _corners(text: str) -> tuple[int, int]:
     try:
@@ -14,20 +16,12 @@ def _corners(text: str) -> tuple[int, int]:
     return a, b
 
 
-def _measure():
-    """cli.measure, lazy: imported when calibrate or preview runs, so that the core (numpy, OpenCV, the pipeline;
-    about 0.5 s) stays out of the parser that every `fieldtool ...` builds."""
-    from fieldtool.cli import measure
-
-    return measure
-
-
 def cmd_calibrate(args: argparse.Namespace) -> int:
-    return _measure().calibrate(args)
+    return load_measure().calibrate(args)
 
 
 def cmd_preview(args: argparse.Namespace) -> int:
-    return _measure().preview_frame(args)
+    return load_measure().preview_frame(args)
 
 
 def register(sub) -> None:

@@ -33,9 +33,10 @@ EXTENSIONS = (
 BUG_REPORT = "please report it with the command line and the output of the same command with --debug"
 
 
-def _measure():
-    """cli.measure, lazy: the one import of the core by the command line. The pipeline (numpy, OpenCV, SciPy,
-    about 0.5 s) loads only for a command that measures, and `fieldtool run` forks its figure process first."""
+def load_measure():
+    """cli.measure, lazy: the one import of the core by the command line (here and in cli.commands). The
+    pipeline (numpy, OpenCV, SciPy, about 0.5 s) loads only for a command that measures, and `fieldtool run`
+    forks its figure process first."""
     from fieldtool.cli import measure
 
     return measure
@@ -43,7 +44,7 @@ def _measure():
 
 def cmd_run(args: argparse.Namespace) -> int:
     prerender.start()  # the figure process imports matplotlib on the idle core while this one imports the rest
-    return _measure().run(args)
+    return load_measure().run(args)
 
 
 def cmd_demo(args: argparse.Namespace) -> int:

@@ -16,7 +16,6 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from scipy.optimize import least_squares
 
 from fieldtool.errors import GeometryError, ParameterError
 
@@ -297,6 +296,8 @@ def fit_lens(
 
     q0 = np.r_[best[1], 0.0] if with_k2 else best[1]
     scale = np.r_[best[1][0], 0.1, np.ones(6), [0.1] if with_k2 else []]
+    from scipy.optimize import least_squares  # lazy: scipy.optimize costs 0.2-0.3 s to import; only a lens fit
+
     sol = least_squares(resid, q0, x_scale=scale, method="lm")
     q = sol.x
     r = resid(q).reshape(-1, 2)

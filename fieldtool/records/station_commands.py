@@ -9,7 +9,6 @@ import sys
 from pathlib import Path
 
 from fieldtool.errors import InputFileError, ParameterError
-from fieldtool.records import station as st
 from fieldtool.records.commands import _add_db, _add_sites
 from fieldtool.records.history import History, resolve_db_path
 from fieldtool.records.sites import load_site, sites_dir
@@ -28,7 +27,16 @@ def _print(line: str) -> None:
     print(line, flush=True)
 
 
+def _station():
+    """records.station, lazy: it imports the whole run (numpy, OpenCV, SciPy), which building the command line's
+    parser (every command's options, `fieldtool run` included) must not wait for."""
+    from fieldtool.records import station
+
+    return station
+
+
 def cmd_station(args) -> int:
+    st = _station()
     words = list(args.words)
     action = words.pop(0) if len(words) == 2 and words[0] in ACTIONS else "watch"
     if len(words) != 1:
@@ -74,6 +82,7 @@ def cmd_station(args) -> int:
 
 
 def _status(site: str, incoming: Path, db: Path) -> int:
+    st = _station()
     if not db.exists():
         print(f"no history yet ({db}): nothing measured", file=sys.stderr)
         rows = st.StationStatus(

@@ -24,13 +24,19 @@ from pathlib import Path
 
 import netCDF4
 import numpy as np
-from scipy.spatial import Delaunay, cKDTree
 
 from fieldtool import __version__
 from fieldtool.project.model import atomic_path
 from fieldtool.writers.geotiff import cf_grid_mapping, crs_of
 
 MAX_CELLS = 300  # per side: the PIV grid has far fewer nodes; a finer grid only costs time
+
+
+def _spatial():
+    """scipy.spatial, lazy: 0.05-0.1 s off the run's start (run.outputs imports it in a thread during the PIV)."""
+    import scipy.spatial
+
+    return scipy.spatial
 
 
 def regular_grid(XY: np.ndarray, values: list[np.ndarray], max_cells: int = MAX_CELLS):
@@ -45,7 +51,7 @@ def regular_grid(XY: np.ndarray, values: list[np.ndarray], max_cells: int = MAX_
     -------
     x (nx,), y (ny,) cell centres (m, ascending), cell size (m), list of (ny, nx) arrays (NaN = no data)
     """
-    tree = cKDTree(XY)
+    tree = _spatial().cKDTree(XY)
     d, _ = tree.query(XY, k=2)
     dx = float(np.median(d[:, 1])) if len(XY) > 1 else 1.0
     lo, hi = XY.min(axis=0), XY.max(axis=0)
@@ -74,7 +80,7 @@ def _linear_on_triangles(XY: np.ndarray, V: np.ndarray, pts: np.ndarray) -> np.n
     """Piecewise-linear interpolation on the Delaunay triangles of ``XY`` (N, 2) of values ``V`` (N, k) at ``pts``
     (M, 2); NaN outside the hull. What ``scipy.interpolate.LinearNDInterpolator`` computes (tests/test_outputs_std.py
     compares them), without importing scipy.interpolate, which imports scipy.optimize (0.3-0.5 s of a run)."""
-    tri = Delaunay(XY)
+    tri = _spatial().Delaunay(XY)
     s = tri.find_simplex(pts)
     inside = np.maximum(s, 0)  # any triangle for the points outside: their values are set to NaN below
     T = tri.transform[inside]

@@ -108,3 +108,27 @@ def test_section_picked_right_to_left_is_swapped(short_scene):
     swapped = run_project(proj, None)
     assert swapped.section.swapped and any("swapped" in w for w in swapped.warnings)
     assert swapped.discharge.discharge_m3s == pytest.approx(ref.discharge.discharge_m3s, rel=1e-9)
+
+
+def test_the_parser_leaves_scipy_and_the_pipeline_out():
+    """Every `fieldtool ...` builds the parser: SciPy, the run's pipeline and the station's records (0.6-0.8 s of
+    imports together) load only for the command that needs them."""
+    heavy = ("scipy", "matplotlib", "fieldtool.run.pipeline", "fieldtool.records.station", "textual", "viser")
+    code = (
+        "import sys; from fieldtool.cli.main import build_parser; build_parser(); "
+        f"print([m for m in {heavy!r} if m in sys.modules])"
+    )
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert r.stdout.strip() == "[]", r.stdout + r.stderr
+
+
+def test_a_run_imports_neither_scipy_optimize_nor_scipy_spatial_at_its_start():
+    """`fieldtool run` imports the pipeline before its first frame: scipy.optimize (a lens fit, the angle-and-height
+    level) and scipy.spatial (the NetCDF grid, written at the end) cost 0.3 s there and load only when used."""
+    heavy = ("scipy.optimize", "scipy.spatial", "scipy.interpolate")
+    code = (
+        "import sys; import fieldtool.cli.measure, fieldtool.run.pipeline, fieldtool.run.outputs; "
+        f"print([m for m in {heavy!r} if m in sys.modules])"
+    )
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert r.stdout.strip() == "[]", r.stdout + r.stderr
