@@ -18,7 +18,7 @@ waits for them), in turn within every repeat (alternating runs), medians over th
   (created here with the pinned versions in PEERS; never the project's venv), pyorc's API recipe with the same
   GCPs, level, velocity index and cross-section, a bounding box of +-3 m around the section (as the ROI of the
   generated project), at its most accurate setting of the last ``--sweep`` (``peer_settings.json``: resolution
-  0.01-0.05 m x window 10-32 px; without a sweep 0.03 m / 32 px, the issue's).
+  0.01-0.08 m x window 10-64 px; without a sweep 0.03 m / 32 px, the issue's).
 * ``thesis (OpenPIV rust)``: ``benchmarks/peers/openpiv_thesis.py``, the thesis' method (single pass, nearest
   vector) on OpenPIV with its Rust backend, at its most accurate window and s2n threshold of the sweep.
 * ``decode only (PyAV)``: ``benchmarks/peers/decode_floor.py``, every frame decoded with all threads: the floor.
@@ -53,9 +53,10 @@ PEERS_VENV = HERE / ".peers-venv"
 PEERS = ["pyopenrivercam==0.9.10", "ffpiv==0.2.1", "openpiv==0.26.1", "openpiv-rust==0.26.1", "av==18.1.0"]
 # pyorc's main settings as a competent user sweeps them (resolution m, window px): the most accurate on the sweep
 # clip is used on every clip (``--sweep`` measures it and writes SETTINGS; without it the last sweep's is used)
-PYORC_SWEEP = [(r, w) for r in (0.01, 0.02, 0.03, 0.05) for w in (10, 16, 24, 32)]
+# (stop 34: the grid reaches past 0.05 m / 32 px, the most accurate of the smaller grid, which sat on its corner)
+PYORC_SWEEP = [(r, w) for r in (0.01, 0.02, 0.03, 0.05, 0.08) for w in (10, 16, 24, 32, 48, 64)]
 # the thesis' method on OpenPIV's Rust backend: window px (overlap half of it) and peak-to-peak s2n threshold
-THESIS_SWEEP = [(w, s) for w in (16, 24, 32, 48, 64) for s in (0.0, 1.05, 1.2)]
+THESIS_SWEEP = [(w, s) for w in (16, 24, 32, 48, 64) for s in (0.0, 1.05, 1.2, 1.4)]
 SETTINGS = HERE / "peer_settings.json"
 
 

@@ -13,9 +13,32 @@ import pytest
 
 HERE = Path(__file__).resolve().parent
 SHARED_DATA = HERE.parent / ".." / "shared" / "data"
+#: tests that wait on wall-clock time (a browser's page, a server's answer, a process killed at a moment, two
+#: editors interleaving): ``make test`` runs them alone after the rest, which runs on every core (pytest-xdist),
+#: so that no other test's load stretches their waits. Folders and files relative to tests/.
+SERIAL = (
+    "tui/test_tui_app.py",
+    "tui/test_two_editors.py",
+    "viewer/test_viewer_hardening.py",
+    "viewer/test_viewer_security.py",
+    "viewer/test_viewer_server.py",
+    "viewer/test_rerun_log.py",
+    "run/test_outputs_safety.py",
+    "run/test_overlay.py",
+    "records/test_station.py",
+)
+
 for _folder in sorted(HERE.iterdir()):
     if _folder.is_dir() and not _folder.name.startswith(("_", ".")) and str(_folder) not in sys.path:
         sys.path.append(str(_folder))
+
+
+def pytest_collection_modifyitems(config, items):
+    """Mark the :data:`SERIAL` tests (and every browser test) ``serial``."""
+    for item in items:
+        rel = Path(str(item.fspath)).resolve().relative_to(HERE).as_posix()
+        if item.get_closest_marker("browser") or any(rel.startswith(s) for s in SERIAL):
+            item.add_marker(pytest.mark.serial)
 
 
 @pytest.fixture(scope="session")
