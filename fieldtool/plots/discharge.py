@@ -13,12 +13,22 @@ from matplotlib.figure import Figure
 
 from fieldtool.project.model import atomic_write_bytes
 
+#: margins around a figure's axes (inches: left, right, bottom, top), room for the tick labels, axis labels and
+#: title at matplotlib's default sizes. Fixed, not a layout engine: the constrained layout measured every tick
+#: label twice before the figure was drawn, about half of a figure's time (a run waits for its velocity figures
+#: at its end; 720p, medians of 5 alternating processes: vectors 0.28 -> 0.19 s, rectified 0.21 -> 0.17 s,
+#: section 0.22 -> 0.14 s, profile 0.14 -> 0.10 s, gcp 0.25 -> 0.17 s)
+MARGINS_IN = (0.85, 0.25, 0.6, 0.45)
 
-def _figure(dpi: float = 100, **kwargs) -> Figure:
-    """A figure on its own Agg canvas: no pyplot state, safe in worker threads and processes. Its constrained
-    layout trims the margins."""
-    fig = Figure(layout="constrained", dpi=dpi, **kwargs)
+
+def _figure(dpi: float = 100, margins: tuple[float, float, float, float] = MARGINS_IN, **kwargs) -> Figure:
+    """A figure on its own Agg canvas: no pyplot state, safe in worker threads and processes. Its axes fill it
+    but for ``margins`` (inches: left, right, bottom, top; see :data:`MARGINS_IN`)."""
+    fig = Figure(dpi=dpi, **kwargs)
     FigureCanvasAgg(fig)
+    w, h = fig.get_size_inches()
+    left, right, bottom, top = margins
+    fig.subplots_adjust(left=left / w, right=1 - right / w, bottom=bottom / h, top=1 - top / h)
     return fig
 
 
@@ -53,7 +63,7 @@ def plot_vectors(path: Path, first_bgr: np.ndarray, result, inputs) -> Path:
     p = result.piv
     rgb = _working_rgb(first_bgr, inputs)
     speed = np.hypot(result.world_u, result.world_v)
-    fig = _figure(figsize=(10, 10 * rgb.shape[0] / rgb.shape[1]))
+    fig = _figure(figsize=(10, 10 * rgb.shape[0] / rgb.shape[1]), margins=(0.85, 0.1, 0.6, 0.45))
     ax = fig.subplots()
     h, w = rgb.shape[:2]
     _show(ax, rgb, (-0.5, w - 0.5, h - 0.5, -0.5))

@@ -46,7 +46,7 @@ def plot_level(path, cs: CrossSection, result: LevelResult, dem_profile: dict | 
         "image": "image method",
     }.get(result.method, result.method)
     if prof:
-        ax0, ax1, ax2 = fig.subplots(3, 1, gridspec_kw={"height_ratios": [1.2, 1, 1]})
+        ax0, ax1, ax2 = fig.subplots(3, 1, gridspec_kw={"height_ratios": [1.2, 1, 1], "hspace": 0.4})
     else:
         ax0 = fig.subplots(1, 1)
     _section_axes(ax0, cs, result)
