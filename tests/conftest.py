@@ -15,7 +15,7 @@ HERE = Path(__file__).resolve().parent
 SHARED_DATA = HERE.parent / ".." / "shared" / "data"
 #: tests that wait on wall-clock time (a browser's page, a server's answer, a process killed at a moment, two
 #: editors interleaving): ``make test`` runs them alone after the rest, which runs on every core (pytest-xdist),
-#: so that no other test's load stretches their waits. Folders and files relative to tests/.
+#: so that no other test's load stretches their waits. Files relative to tests/.
 SERIAL = (
     "tui/test_tui_app.py",
     "tui/test_two_editors.py",
@@ -36,8 +36,8 @@ for _folder in sorted(HERE.iterdir()):
 def pytest_collection_modifyitems(config, items):
     """Mark the :data:`SERIAL` tests (and every browser test) ``serial``."""
     for item in items:
-        rel = Path(str(item.fspath)).resolve().relative_to(HERE).as_posix()
-        if item.get_closest_marker("browser") or any(rel.startswith(s) for s in SERIAL):
+        rel = item.path.resolve().relative_to(HERE).as_posix()
+        if item.get_closest_marker("browser") or rel in SERIAL:
             item.add_marker(pytest.mark.serial)
 
 

@@ -63,7 +63,8 @@ def plot_vectors(path: Path, first_bgr: np.ndarray, result, inputs) -> Path:
     p = result.piv
     rgb = _working_rgb(first_bgr, inputs)
     speed = np.hypot(result.world_u, result.world_v)
-    fig = _figure(figsize=(10, 10 * rgb.shape[0] / rgb.shape[1]), margins=(0.85, 0.1, 0.6, 0.45))
+    left, _, bottom, top = MARGINS_IN  # the colour bar and its label take their room from the axes' own width
+    fig = _figure(figsize=(10, 10 * rgb.shape[0] / rgb.shape[1]), margins=(left, 0.1, bottom, top))
     ax = fig.subplots()
     h, w = rgb.shape[:2]
     _show(ax, rgb, (-0.5, w - 0.5, h - 0.5, -0.5))
