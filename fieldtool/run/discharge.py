@@ -77,7 +77,8 @@ def compute_discharge(
     pairs: PairDischarge,
     warnings: list[str],
 ) -> Discharge:
-    """The main section's discharge from the velocimetry (see the module's docstring)."""
+    """The main section's discharge from the PIV field (see the module's docstring); STIV is added by
+    :func:`add_stiv`."""
     cs, sec, res = inputs.cross_section, project.section, vel.piv
     U, V = mapping.rectify_velocity(res.x, res.y, res.u, res.v)
     v_sub = dq.subsection_velocity(geom, res.x, res.y, U, V)
@@ -116,7 +117,20 @@ def compute_discharge(
                 f"{int(rejected.sum())} subsection(s) went upstream while the section goes downstream "
                 "(wind ripples, standing waves or glints); rejected and filled from their neighbours"
             )
-    stiv_block, dres = stiv_stage.finish(setup.stiv_run, project, geom, cs, level_m, dres, res, U, V)
-    robust_facts["filled_subsections"] = [int(i) for i in np.flatnonzero(dres.velocity_filled)]
-    robust_facts["filled_width_share"] = robust.width_share(dres.station_from, dres.station_to, dres.velocity_filled)
-    return Discharge(dres, geom, U, V, pairs.of_pairs(res, geom), stiv_block, robust_facts)
+    return Discharge(dres, geom, U, V, pairs.of_pairs(res, geom), None, robust_facts)
+
+
+def add_stiv(
+    q: Discharge, project: Project, inputs: Inputs, level_m: float, setup: PivSetup, vel: Velocimetry
+) -> Discharge:
+    """STIV beside PIV on the main section (``q.stiv``), the discharge of ``section.velocity_source`` (``q.result``
+    is the PIV's for "piv"), and the filled subsections' facts (``q.robust``)."""
+    if q.unmeasured is not None:
+        return q
+    q.stiv, q.result = stiv_stage.finish(
+        setup.stiv_run, project, q.geom, inputs.cross_section, level_m, q.result, vel.piv, q.world_u, q.world_v
+    )
+    dres = q.result
+    q.robust["filled_subsections"] = [int(i) for i in np.flatnonzero(dres.velocity_filled)]
+    q.robust["filled_width_share"] = robust.width_share(dres.station_from, dres.station_to, dres.velocity_filled)
+    return q

@@ -118,8 +118,15 @@ def _run_project(
 
     obs("stage", "discharge")
     q = discharge.compute_discharge(project, inputs, level.level_m, mapping, placed.geom, setup, vel, pairs, warnings)
+    # the velocity figures are drawn during STIV's analysis (they show the PIV's field and discharge) and the
+    # Monte Carlo; after STIV where the discharge is STIV's or the combined one
+    piv_q = project.section.velocity_source == "piv"
+    if piv_q:
+        outputs.prerender_velocity(prerendered, inputs, mapping, vel, q)
+    q = discharge.add_stiv(q, project, inputs, level.level_m, setup, vel)
     lap("discharge")
-    outputs.prerender_velocity(prerendered, inputs, mapping, vel, q)  # drawn during the Monte Carlo
+    if not piv_q:
+        outputs.prerender_velocity(prerendered, inputs, mapping, vel, q)
     verdict = quality.judge(project, inputs, level, mapping, vel, q, pairs, extra, warnings)
     lap("uncertainty_and_quality")
 

@@ -97,7 +97,8 @@ class SharedFirstRound:
     def __call__(self, want=None):
         if self.first is None:
             replay = self.kept.replay(want) if self.kept is not None and want is not None else None
-            return replay if replay is not None else self.stream(want=want)  # a new pass when a frame was not kept
+            # what round 1 kept, through the rest of the stream (the standardisation), or a new pass of the clip
+            return self.stream(want=want, source=replay) if replay is not None else self.stream(want=want)
         self.round1_want[0] = want
         frames, self.first = piv_fast.Prefetched(self.first, self.reader.close), None
         return frames

@@ -11,7 +11,7 @@ field from the output folder's PIV cache (run/piv_cache.py) when only the geomet
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -177,34 +177,44 @@ class _Streams:
         self.surface_stats = surface.SurfaceStats() if s.standardize else None
         self.decoded: list[float] = []
         self.count = clip_pass.DecodeCount()
+        # px the standardisation's box reaches beyond the PIV's, for every stream of the run (the first pass'
+        # search area set before the plan): the rounds standardise the same box, replayed or read again
+        self.margin = surface.margin_for(s.params.search_px)
 
-    def stream(self, want=None, tap: bool = False):
+    def stream(self, want=None, tap: bool = False, keep: clip_pass.KeptFrames | None = None, source=None):
         """The frames PIV reads: working frames, duplicate count, stationary-pattern removal (which needs every
         frame of its time window: then every frame is decoded and ``want`` only chooses the standardised frames
-        that are built). ``tap``: STIV samples its lines from this stream."""
+        that are built). ``tap``: STIV samples its lines from this stream. ``keep``: what enters the
+        standardisation is kept for later rounds (run/clip_pass.py); ``source``: a replay of it, read instead of
+        the clip."""
         project, s = self.project, self.s
-        margin = surface.margin_for(self.params.search_px)
+        margin = self.margin
         want_std = want
         if s.standardize:  # every frame enters the standardisation's window; only the wanted ones are built
             want = None
         elif tap and s.stiv_run is not None:  # STIV samples every frame of the stream it taps
             want = None
-        # a frame ``want`` refuses comes with image None
-        frames: Iterator[tuple[float, np.ndarray | None]] = frames_mod.working_frames(
-            project,
-            self.inputs,
-            self.cancel,
-            self.obs,
-            self.stab if project.stabilize.enabled else None,
-            self.progress,
-            want=want,
-            raw=s.standardize,  # the standardisation converts its box only
-            count=self.count,
-            region=read_region(self.inputs.shape, s.roi, margin, s.stiv_run) if s.standardize else None,
-        )
-        if tap and s.stiv_run is not None:  # STIV samples its lines from the same stream (one decode)
-            frames = s.stiv_run.tap(frames)
-        frames = frames_mod.count_identical(self._tracked(frames), self.frame_stats)
+        if source is not None:
+            frames = source
+        else:
+            # a frame ``want`` refuses comes with image None
+            frames = frames_mod.working_frames(
+                project,
+                self.inputs,
+                self.cancel,
+                self.obs,
+                self.stab if project.stabilize.enabled else None,
+                self.progress,
+                want=want,
+                raw=s.standardize,  # the standardisation converts its box only
+                count=self.count,
+                region=read_region(self.inputs.shape, s.roi, margin, s.stiv_run) if s.standardize else None,
+            )
+            if tap and s.stiv_run is not None:  # STIV samples its lines from the same stream (one decode)
+                frames = s.stiv_run.tap(frames)
+            frames = frames_mod.count_identical(self._tracked(frames), self.frame_stats)
+        if keep is not None:
+            frames = keep.keeping(frames)
         if s.standardize:
             assert self.surface_stats is not None  # made in __init__ when standardising
             self.surface_stats.frames = 0  # each round of the fast path standardises the clip again: count one pass
@@ -221,6 +231,10 @@ class _Streams:
             )
             frames = s.clip.after(frames, want_std)  # weak clips: the glints masked (before) and the temporal mean
         return frames
+
+    def std_box(self) -> tuple[int, int, int, int]:
+        """The standardisation's box (x0, y0, x1, y1 px): the PIV's box grown by :attr:`margin`."""
+        return surface._box(self.inputs.shape, self.s.roi, self.margin)
 
     @property
     def guess(self):
@@ -329,24 +343,23 @@ def _rounds(project: Project, st: _Streams, n_exp: int, pair_q, on_pair, fast: d
     stream the first look started (its want is set when round 1 begins); that pass also keeps the frames later
     rounds will want (run/clip_pass.py), and STIV samples its lines from it."""
     s = st.s
-    kept = clip_pass.KeptFrames(st.surface_stats if s.standardize else None, st.inputs.shape)
+    # what enters the standardisation is kept for the later rounds: every frame's raw box, or without the
+    # standardisation the working frames of the likely next pairs (run/clip_pass.py)
+    kept = clip_pass.KeptFrames(st.inputs.shape, st.std_box() if s.standardize else None)
     round1_want: list = [None]
     reader1 = piv_fast.prefetch(
-        kept.keeping(st.stream(want=lambda k: round1_want[0] is None or round1_want[0](k) or kept.wants(k), tap=True))
+        st.stream(want=lambda k: round1_want[0] is None or round1_want[0](k) or kept.wants(k), tap=True, keep=kept)
     )
     make_frames = piv_rounds.SharedFirstRound(st.stream, reader1, st.plan_pairs(reader1), round1_want, kept)
     params = st.params
     gap = max(1, int(params.frame_gap))
-    h, w = st.inputs.shape
-    # the box of a kept frame: the standardisation's (processing.surface: the PIV's box grown by the search area
-    # set before the plan, as round 1 standardises), else the whole frame
-    box = surface._box((h, w), s.roi, surface.margin_for(s.params.search_px)) if s.standardize else (0, 0, w, h)
-    # whole working frames without filters hold whole grey levels: kept as uint8 (clip_pass.KeptFrames._stored)
-    bytes_px = 1 if not s.standardize and not project.filters else 4
+    # raw boxes as decoded are uint8 and whole working frames without filters hold whole grey levels (kept as
+    # uint8, clip_pass.KeptFrames._stored); a filter's frames are float32
+    bytes_px = 4 if project.filters else 1
     min_pairs = s.clip.min_pairs(project.piv.min_pairs)  # weak clips average more pairs (run/clip_check.py)
-    kept.plan(n_exp - gap, min(max(int(min_pairs), 2), n_exp - gap), gap, box, bytes_px)
-    assert kept.keep is not None  # kept.plan sets it
-    drain = s.stiv_run is not None or len(kept.keep) > 1  # the pass reaches the clip's end
+    kept.plan(n_exp, n_exp - gap, min(max(int(min_pairs), 2), n_exp - gap), gap, bytes_px)
+    # the pass reaches the clip's end: for STIV, and for what is kept
+    drain = s.stiv_run is not None or (kept.raw and not kept.full) or len(kept.keep or ()) > 1
     try:
         if n_exp - gap >= 2:
             res, conv = piv_rounds.run_piv_fast(

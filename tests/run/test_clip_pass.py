@@ -8,7 +8,6 @@ import pytest
 
 from fieldtool.processing import video_av
 from fieldtool.processing.frames import FrameSource
-from fieldtool.processing.surface import SurfaceStats
 from fieldtool.project.model import load_project
 from fieldtool.run import clip_pass
 from fieldtool.run import frames as frames_mod
@@ -25,14 +24,38 @@ def _stream(n: int, shape=(40, 60), box=(10, 5, 50, 30)):
         yield 0.1 * k, img
 
 
-def _stats(shape=(40, 60), box=(10, 5, 50, 30)) -> SurfaceStats:
-    return SurfaceStats(frames=0, box=box, shape=shape)
+def test_raw_boxes_replay_every_frame_as_the_standardisation_read_it():
+    """With the standardisation, every frame's raw box is kept and replayed whole (0 outside the box), for the
+    standardisation to run on again."""
+    frames = list(_stream(12))
+    kept = clip_pass.KeptFrames((40, 60), (10, 5, 50, 30))
+    kept.plan(n_frames=12, n_pairs_total=11, first_round=2, gap=1, bytes_per_px=4)
+    assert not kept.wants(3)  # nothing to build for the keeping
+    got = list(kept.keeping(iter(frames)))
+    assert [t for t, _ in got] == [t for t, _ in frames]  # the stream passes unchanged
+    replay = list(kept.replay(lambda k: k == 3))  # every frame, whatever the round wants: the window needs them
+    assert len(replay) == 12
+    for k, (t, img) in enumerate(replay):
+        assert t == frames[k][0]
+        assert np.array_equal(img, frames[k][1]) and not img.flags.writeable
+
+
+def test_raw_boxes_all_or_none():
+    box = (10, 5, 50, 30)
+    kept = clip_pass.KeptFrames((40, 60), box, budget_bytes=11 * 40 * 25 * 4)  # 11 boxes of float32
+    kept.plan(n_frames=12, n_pairs_total=11, first_round=2, gap=1, bytes_per_px=4)
+    assert kept.full and kept.replay(lambda k: True) is None  # the clip does not fit: nothing kept
+    kept = clip_pass.KeptFrames((40, 60), box, budget_bytes=11 * 40 * 25 * 4)
+    kept.plan(n_frames=10, n_pairs_total=9, first_round=2, gap=1, bytes_per_px=4)  # the container says 10
+    assert not kept.full
+    list(kept.keeping(_stream(12)))  # but 12 come: dropped when the budget ran out
+    assert kept.full and not kept.frames and kept.replay(lambda k: True) is None
 
 
 def test_replay_gives_the_kept_frames_and_none_where_not_wanted():
     frames = list(_stream(12))
-    kept = clip_pass.KeptFrames(_stats())
-    kept.plan(n_pairs_total=11, first_round=2, gap=1, box=(10, 5, 50, 30))
+    kept = clip_pass.KeptFrames((40, 60))
+    kept.plan(n_frames=12, n_pairs_total=11, first_round=2, gap=1, bytes_per_px=4)
     got = list(kept.keeping(iter(frames)))
     assert [t for t, _ in got] == [t for t, _ in frames]  # the stream passes unchanged
     want = {k for k in range(12) if kept.wants(k)}
@@ -41,14 +64,14 @@ def test_replay_gives_the_kept_frames_and_none_where_not_wanted():
     for k, (t, img) in enumerate(replay):
         assert t == frames[k][0]
         if k in want:
-            assert np.array_equal(img, frames[k][1])  # the same array a new pass would build
+            assert np.array_equal(img, frames[k][1]) and img.flags.writeable  # a fresh frame, as a new pass builds
         else:
             assert img is None
 
 
 def test_replay_refuses_a_frame_not_kept_and_an_unfinished_pass():
-    kept = clip_pass.KeptFrames(_stats(), budget_bytes=3 * 40 * 25 * 4)  # three boxes
-    kept.plan(n_pairs_total=11, first_round=0, gap=1, box=(10, 5, 50, 30))
+    kept = clip_pass.KeptFrames((40, 60), budget_bytes=3 * 40 * 60 * 4)  # three frames
+    kept.plan(n_frames=12, n_pairs_total=11, first_round=0, gap=1, bytes_per_px=4)
     assert sum(kept.wants(k) for k in range(12)) <= 3 + 1  # the budget, and position 0
     it = kept.keeping(_stream(12))
     next(it)
