@@ -334,10 +334,18 @@ class _Sums:
         self.updates += 1
 
     def remove(self, c16: np.ndarray) -> None:
-        np.subtract(self.s1, c16, out=self.s1)
-        if self.squares:
-            np.multiply(c16, c16, out=self.tmp, dtype=np.float32)
-            self.s2 -= self.tmp
+        """Take a crop out (as it was added). uint8 crops by OpenCV (the same float32 numbers: its square is
+        exact, each difference rounded once, in a third of numpy's time for the mixed types)."""
+        if c16.dtype == np.uint8:
+            cv2.subtract(self.s1, c16, dst=self.s1, dtype=cv2.CV_32F)
+            if self.squares:
+                cv2.multiply(c16, c16, dst=self.tmp, dtype=cv2.CV_32F)
+                self.s2 -= self.tmp
+        else:
+            np.subtract(self.s1, c16, out=self.s1)
+            if self.squares:
+                np.multiply(c16, c16, out=self.tmp, dtype=np.float32)
+                self.s2 -= self.tmp
         self.updates += 1
 
     def reset(self, buf) -> None:
@@ -356,5 +364,5 @@ class _Sums:
         np.multiply(self.s2, np.float32(1.0 / n), out=var)
         np.multiply(mean, mean, out=self.tmp)
         var -= self.tmp
-        np.maximum(var, 0.0, out=var)
-        return mean, np.sqrt(var, out=var)
+        cv2.max(var, 0.0, dst=var)  # type: ignore[call-overload, unused-ignore]
+        return mean, cv2.sqrt(var, dst=var)  # correctly rounded, as numpy's (both 4x numpy's speed here)
