@@ -540,6 +540,7 @@ class _Engine:
             self.mask_crop = None
         self._maps: dict = {}
         self._bufs: dict = {}
+        self._strips: dict = {}  # level -> the deformed crop's rectangles its active windows read (_deform_strips)
         # per pass, the flat indices (row-major) of the only nodes correlated (None = all): the final pass of a
         # multi-pass run skips the nodes whose window centre is masked (earlier passes keep them: they build the
         # predictor of the others); with ``near`` every pass skips the nodes beyond its distance of the section
@@ -647,7 +648,53 @@ class _Engine:
                 np.arange(ox, ox + ww, dtype=np.float32), np.arange(oy, oy + hh, dtype=np.float32)
             )
         px, py = self._maps[k]
-        return cv2.remap(img, px + dense[..., 0], py + dense[..., 1], _DEFORM_INTERP, borderMode=cv2.BORDER_REPLICATE)
+        strips = self._deform_strips(k)
+        if strips is None:
+            mx, my = px + dense[..., 0], py + dense[..., 1]
+            return cv2.remap(img, mx, my, _DEFORM_INTERP, borderMode=cv2.BORDER_REPLICATE)
+        # only what level k's active windows read (the nodes near the sections): each output pixel of a remap is
+        # its own interpolation at its map position, so these pixels are those of the whole remap; the rest of
+        # the crop is never read (its windows are not correlated) and stays 0
+        out = self._bufs.get(("deform", k))
+        if out is None:
+            out = self._bufs[("deform", k)] = np.zeros((hh, ww), np.float32)
+        for r0, r1, c0, c1 in strips:
+            d = dense[r0:r1, c0:c1]
+            out[r0:r1, c0:c1] = cv2.remap(
+                img,
+                px[r0:r1, c0:c1] + d[..., 0],
+                py[r0:r1, c0:c1] + d[..., 1],
+                _DEFORM_INTERP,
+                borderMode=cv2.BORDER_REPLICATE,
+            )
+        return out
+
+    def _deform_strips(self, k: int) -> list[tuple[int, int, int, int]] | None:
+        """The rectangles (row0, row1, col0, col1 px of level k's crop) that its active windows cover: runs of
+        rows whose active windows span the same columns; None when every window is active. Fixed per engine."""
+        if k in self._strips:
+            return self._strips[k]
+        act, lv = self.act[k], self.levels[k]
+        strips = None
+        if act is not None:
+            hh = lv.step * (lv.ny - 1) + lv.w
+            lo, hi = np.full(hh, np.iinfo(np.int64).max), np.full(hh, -1)
+            rows, cols = act // lv.nx, act % lv.nx
+            for j in np.unique(rows):
+                c = cols[rows == j]
+                r = slice(int(j) * lv.step, int(j) * lv.step + lv.w)
+                lo[r] = np.minimum(lo[r], int(c.min()) * lv.step)
+                hi[r] = np.maximum(hi[r], int(c.max()) * lv.step + lv.w)
+            strips, r0 = [], 0
+            while r0 < hh:
+                r1 = r0 + 1
+                while r1 < hh and lo[r1] == lo[r0] and hi[r1] == hi[r0]:
+                    r1 += 1
+                if hi[r0] >= 0:
+                    strips.append((r0, r1, int(lo[r0]), int(hi[r0])))
+                r0 = r1
+        self._strips[k] = strips
+        return strips
 
     def _node_predictor(self, k: int, du: np.ndarray, dv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Interpolate a level k-1 field (ny, nx) at the node centres of level k (bicubic, edges replicated)."""

@@ -123,3 +123,33 @@ def test_search_area_spectra_only_for_the_frames_that_need_them(monkeypatch):
     np.testing.assert_array_equal(res.u_pairs, every.u_pairs)
     np.testing.assert_array_equal(res.u, every.u)
     assert np.isfinite(res.u).mean() > 0.8
+
+
+def test_deforming_only_what_the_near_nodes_read_gives_the_same_field(monkeypatch):
+    """With ``near``, the second pass deforms frame B only in the rectangles its active windows cover
+    (``_Engine._deform_strips``): the field is the one of deforming the whole crop, bit for bit."""
+    from fieldtool.processing.piv_fast import node_reach_px
+
+    frames = particle_clip(rankine, n_frames=5, seed=4)
+    h, w = frames[0][1].shape
+    params = PivParams(window_px=16, overlap_px=8, passes=2)
+    seg = np.array([[40.0, 30.0], [w - 60.0, h - 40.0]])  # a diagonal section: a band of active nodes
+    near = ([seg], node_reach_px(16, 8, 2))
+    share: list = []  # per call, the share of the level's crop the strips cover
+    orig = piv_engine._Engine._deform_strips
+
+    def spy(self, k):
+        got = orig(self, k)
+        lv = self.levels[k]
+        whole = (lv.step * (lv.ny - 1) + lv.w) * (lv.step * (lv.nx - 1) + lv.w)
+        share.append(1.0 if got is None else sum((r1 - r0) * (c1 - c0) for r0, r1, c0, c1 in got) / whole)
+        return got
+
+    monkeypatch.setattr(piv_engine._Engine, "_deform_strips", spy)
+    part = analyze(frames, params, near=near)
+    assert share and max(share) < 0.9  # the second pass deformed less than its crop
+    monkeypatch.setattr(piv_engine._Engine, "_deform_strips", lambda self, k: None)  # the whole crop, as before
+    whole = analyze(frames, params, near=near)
+    np.testing.assert_array_equal(part.u, whole.u)
+    np.testing.assert_array_equal(part.v, whole.v)
+    np.testing.assert_array_equal(part.u_pairs, whole.u_pairs)
