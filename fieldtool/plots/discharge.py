@@ -86,7 +86,7 @@ def plot_vectors(path: Path, first_bgr: np.ndarray, result, inputs) -> Path:
     sp = result.section.p_img
     ax.plot(sp[:, 0], sp[:, 1], "r-", lw=2)
     ax.text(sp[0, 0], sp[0, 1], " P1 (left edge)", color="r")
-    ax.set_title(f"Q = {result.discharge.discharge_m3s:.3f} m³/s, mean velocity field (image pixels)")
+    ax.set_title(f"Q = {result.discharge.discharge_m3s:.3f} m³/s, mean velocity field (image pixels)", y=1.0)
     ax.set_xlabel("x (px)")
     ax.set_ylabel("y (px)")
     return _save(fig, path)
@@ -126,7 +126,7 @@ def plot_rectified(path: Path, first_bgr: np.ndarray, result, inputs) -> Path:
     ax.set_ylim(bounds[2], bounds[3])
     ax.set_xlabel("X (m)")
     ax.set_ylabel("Y (m)")
-    ax.set_title("Orthorectified first frame, surface velocity (m/s)")
+    ax.set_title("Orthorectified first frame, surface velocity (m/s)", y=1.0)
     return _save(fig, path)
 
 
@@ -140,7 +140,7 @@ def plot_section(path: Path, cs, result) -> Path:
     colors = np.where(d.velocity_filled, "tab:orange", "tab:blue")
     ax1.bar(mid, d.surface_velocity_ms, width=np.diff(np.r_[d.station_from, d.station_to[-1]]) * 0.9, color=colors)
     ax1.set_ylabel("surface velocity (m/s)")
-    ax1.set_title(f"Q = {d.discharge_m3s:.3f} m³/s   alpha = {d.alpha:.2f}   (orange: filled from a neighbour)")
+    ax1.set_title(f"Q = {d.discharge_m3s:.3f} m³/s   alpha = {d.alpha:.2f}   (orange: filled from a neighbour)", y=1.0)
     ax2.plot(cs.station, cs.elevation, "k-", lw=1.5, label="bed")
     ss, depth = cs.wet_polyline(level)
     ax2.fill_between(ss, level - depth, level, where=depth > 0, color="tab:blue", alpha=0.3, label="wetted area")

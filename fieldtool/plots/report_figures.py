@@ -56,7 +56,7 @@ def write_profile(out: Path, result) -> tuple[str, str]:
     ax.axhline(0, color="0.6", lw=0.8)
     ax.set_xlabel("station (m, left bank → right bank)")
     ax.set_ylabel("surface velocity (m/s)")
-    ax.set_title("Surface velocity along the section")
+    ax.set_title("Surface velocity along the section", y=1.0)
     ax.legend(loc="best", fontsize=8)
     ax.grid(alpha=0.3)
     return "section_profile.csv", _save(fig, out / "profile.png").name
@@ -134,7 +134,7 @@ def write_gcp(out: Path, project, result, inputs) -> str | None:
         )
     ax.set_xlim(-0.5, w - 0.5)
     ax.set_ylim(h - 0.5, -0.5)
-    ax.set_title(f"Ground control points ({o.method}); RMS residual {1000 * result.mapping.residual_m:.1f} mm")
+    ax.set_title(f"Ground control points ({o.method}); RMS residual {1000 * result.mapping.residual_m:.1f} mm", y=1.0)
     ax.set_xlabel("x (px)")
     ax.set_ylabel("y (px)")
     return _save(fig, out / "gcp.png").name

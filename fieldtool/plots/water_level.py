@@ -50,7 +50,7 @@ def plot_level(path, cs: CrossSection, result: LevelResult, dem_profile: dict | 
     else:
         ax0 = fig.subplots(1, 1)
     _section_axes(ax0, cs, result)
-    ax0.set_title(f"Water level — {title}: {result.level_m:.3f} m, width {result.width_m:.3f} m")
+    ax0.set_title(f"Water level — {title}: {result.level_m:.3f} m, width {result.width_m:.3f} m", y=1.0)
     ax0.legend(loc="lower right", fontsize=8)
     if prof:
         st = np.asarray(prof["station_m"])
