@@ -90,6 +90,8 @@ def _run_project(
     obs("stage", "water_level")
     level, mapping = geometry.level_and_mapping(project, inputs)
     lap("level_and_ortho")
+    # the input figures are drawn while the PIV is set up (its look at the clip leaves a core partly idle)
+    prerendered = outputs.start_prerender(project, inputs, level, mapping, out_dir, ends)
 
     placed = geometry.place_sections(project, inputs, level.level_m, mapping, extra)
     setup = velocimetry.setup(project, inputs, mapping, placed, warnings, obs)
@@ -97,7 +99,6 @@ def _run_project(
     overlay_stage.bind(overlay, inputs, mapping, placed.geom)
     obs("geometry", pairs.on(placed.geom))
     obs("stage", "piv")
-    prerendered = outputs.start_prerender(project, inputs, level, mapping, out_dir, ends)  # figures during the PIV
     # the pixel-space field is reused when only the mapping, level, section or alpha changed (not while
     # streaming to an observer, who wants to see the frames and pairs)
     cache_dir = Path(out_dir) if out_dir is not None and observer is None else None
