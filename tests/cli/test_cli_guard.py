@@ -112,3 +112,22 @@ def test_levels_file_encodings_and_delimiters(tmp_path):
     p.write_text("video,water_level_m\na.mp4,nan\n")
     with pytest.raises(InputFileError, match="line 2"):
         read_levels(p)
+
+
+def test_progress_is_written_at_most_every_tenth_of_a_second_and_its_last_count(capsys, monkeypatch):
+    """The run's stages report every frame; the line is rewritten at most every PROGRESS_EVERY_S within a stage,
+    and always for a new stage and for the stage's last count."""
+    from fieldtool.cli import console, measure
+
+    clock = [100.0]
+    monkeypatch.setattr(measure.time, "monotonic", lambda: clock[0])
+    monkeypatch.setattr(console, "_is_tty", lambda: True)
+    monkeypatch.setattr(measure, "_last_progress", {"stage": None, "t": 0.0})
+    for k in range(1, 241):  # 240 frames in 0.24 s
+        measure._print_progress("frames", k, 240)
+        clock[0] += 0.001
+    measure._print_progress("pairs", 1, 30)  # a new stage at once
+    written = [s for s in capsys.readouterr().err.split("\r") if s.strip()]
+    assert written[0].strip() == "frames: 1/240" and written[-2].strip() == "frames: 240/240"
+    assert written[-1].strip() == "pairs: 1/30"
+    assert len(written) <= 5  # 1, ~101, ~201, 240, pairs
