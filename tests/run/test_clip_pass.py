@@ -133,3 +133,21 @@ def test_budget_shrinks_with_the_frame_size_beyond_1080p():
     assert small == hd == fhd == clip_pass.KEEP_BYTES  # up to 1080p: the whole budget (round 2 replayed as before)
     assert uhd == clip_pass.KEEP_BYTES - clip_pass.PER_PX_BYTES * (2160 * 3840 - 1920 * 1080) < 150 * 2**20
     assert clip_pass.budget((20000, 20000)) == clip_pass.KEEP_BYTES // 4
+
+
+def test_decoding_in_a_thread_of_its_own_gives_the_same_field(scene, monkeypatch):
+    """Where decoding the frame costs more than standardising its box (a 4K clip, a narrow band), the decoding
+    runs in a thread of its own: the same field and discharge, one decode of the clip."""
+    from fieldtool.run import velocimetry
+
+    assert velocimetry.decode_bound((2160, 3840), (1726, 88, 2114, 2072))  # 4K, the section's band: 388 px wide
+    assert not velocimetry.decode_bound((720, 1280), (503, 12, 1093, 689))  # 720p: 45 % of the frame
+    proj = load_project(scene / "project.toml")
+    one = run_project(proj, None)
+    calls = []
+    monkeypatch.setattr(velocimetry, "decode_bound", lambda shape, box: calls.append(box) or True)
+    split = run_project(proj, None)
+    assert calls  # the run asked, and split its reading
+    assert split.summary()["piv_sampling"]["frames_decoded"] == one.summary()["piv_sampling"]["frames_decoded"]
+    assert np.array_equal(one.piv.u, split.piv.u, equal_nan=True)
+    assert one.discharge.discharge_m3s == split.discharge.discharge_m3s
