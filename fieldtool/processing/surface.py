@@ -148,7 +148,7 @@ def _recentre(
     linear, and a pattern that flickers in place between two levels would otherwise come back with a mean of
     its own (E[(z_a)(z_b)] > 0 at zero displacement). ``frames`` are the box crops of :func:`_standardize`;
     each crop the window lets go is handed back to ``spare``, where :func:`_standardize` writes a later one
-    (a fresh crop would cost its pages again: 0.4 of a crop's 1 ms at 720p)."""
+    (a fresh crop would cost its pages again)."""
     n_win = 2 * half + 1
     buf: deque = deque()
     times: deque = deque()
