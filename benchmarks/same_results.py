@@ -8,7 +8,9 @@ folder (a ``piv_cache.npz`` left in the output folder would be reused and hide a
 
 runs the fieldtool that PYTHONPATH (or the environment) gives; reads ``BASELINE/<scene>/scene/project.toml`` and ``BASELINE/<scene>/results/result.json``; prints one line
 per scene (``same`` or the differing keys, dotted paths, with both values) and exits 1 when any differs.
-``--tolerance`` (relative, default 0) lets numbers differ by that much (for changes that are meant to move
+``--make SCENES_DIR`` writes the baseline instead, with the fieldtool PYTHONPATH gives (a worktree of the commit
+before: ``PYTHONPATH=/tmp/before python benchmarks/same_results.py --make /tmp/unseen_scenes --baseline
+/tmp/sr_base <scenes>``). ``--tolerance`` (relative, default 0) lets numbers differ by that much (for changes that are meant to move
 the results slightly); the differences are still printed, with their relative size.
 """
 
@@ -18,6 +20,7 @@ import argparse
 import json
 import math
 import os
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -68,8 +71,19 @@ def main(argv: list[str] | None = None) -> int:
                     "<scene>/results/result.json")
     ap.add_argument("--keep", help="write each run to KEEP/<scene> instead of a temporary folder")
     ap.add_argument("--tolerance", type=float, default=0.0, help="relative difference allowed in numbers")
+    ap.add_argument("--make", metavar="SCENES_DIR", help="make the baseline instead: BASELINE/<scene>/scene links to "
+                    "SCENES_DIR/<scene> and BASELINE/<scene>/results is this fieldtool's run of it")
     args = ap.parse_args(argv)
     base = Path(args.baseline)
+    if args.make:
+        for scene in args.scenes:
+            (base / scene).mkdir(parents=True, exist_ok=True)
+            link = base / scene / "scene"
+            if not link.exists():
+                link.symlink_to(Path(args.make).resolve() / scene)
+            shutil.rmtree(base / scene / "results", ignore_errors=True)
+            print(f"{scene}: baseline made (exit {run_scene(link / 'project.toml', base / scene / 'results')})")
+        return 0
     bad = 0
     for scene in args.scenes:
         want = json.loads((base / scene / "results" / "result.json").read_text())
