@@ -29,21 +29,10 @@ from fieldtool.run.inputs import load_inputs
 from fieldtool.run.outdir import check_out
 from fieldtool.run.pipeline import run_project
 
-#: seconds between two progress updates of one stage (the stages report every frame: 240 a clip of 8 s)
-PROGRESS_EVERY_S = 0.1
-_last_progress: dict = {"stage": None, "t": 0.0}
-
 
 def _print_progress(stage: str, done: int, total: int) -> None:
-    """The progress line, at most every :data:`PROGRESS_EVERY_S` within a stage, and its last count."""
-    if not total:
-        return
-    now = time.monotonic()
-    last = _last_progress
-    if stage == last["stage"] and done < total and now - last["t"] < PROGRESS_EVERY_S:
-        return
-    last.update(stage=stage, t=now)
-    progress_line(f"{stage}: {done}/{total}")
+    if total:
+        progress_line(f"{stage}: {done}/{total}")
 
 
 def run(args: argparse.Namespace) -> int:
