@@ -11,6 +11,8 @@ while the run starts (imports, inputs, mapping). So the figures are drawn in a p
   - the input figures (``gcp.png``, ``water_level.png``) as soon as the mapping and the level exist;
   - the velocity figures (``vectors.png``, ``rectified.png``, ``section.png``, ``profile.png`` with
     ``section_profile.csv``) when the discharge is known, drawn while the parent runs the Monte Carlo.
+* Between the two, a third job imports the modules whose classes the velocity figures' job holds (the PIV's
+  result, the discharge's), so that unpickling it at the run's end imports nothing (0.14 s at 720p, measured).
 * A job's arguments go to the process as a pickle in a private temporary folder. The process writes its files
   there and answers each job on a pipe with what it wrote.
 
@@ -22,6 +24,7 @@ exit) and removes its folder.
 
 from __future__ import annotations
 
+import importlib
 import os
 import pickle
 import selectors
@@ -195,7 +198,14 @@ def _serve(jobs_fd: int, answers_fd: int, folder: Path) -> None:
             out = folder / f"job{k}"
             out.mkdir()
             draws: tuple[tuple[str, Callable[[], object]], ...]  # (file name, draw it) per figure of the job
-            if kind == "inputs":
+            if kind == "warm":  # nothing drawn: the imports of a job to come
+                for module in args:
+                    try:
+                        importlib.import_module(module)
+                    except Exception:  # noqa: BLE001 - a speed-up only: the job that needs it imports it
+                        pass
+                draws = ()
+            elif kind == "inputs":
                 project, inputs, level, mapping = args
                 result = SimpleNamespace(mapping=mapping, level=level)
                 draws = (
@@ -268,11 +278,14 @@ def _draw_in_two(draws, out: Path) -> dict[str, str]:
 class Prerender:
     """The run's figures, drawn in the figure process. :meth:`file` gives a file's bytes (or None)."""
 
-    def __init__(self, project, inputs, level, mapping):
+    def __init__(self, project, inputs, level, mapping, warm: tuple[type, ...] = ()):
+        """Start drawing the input figures; ``warm``: classes the velocity figures' job will hold, their modules
+        imported by the process once the input figures are drawn."""
         self._proc = _take()
         self._jobs: dict[str, int] = {}
         if self._proc is not None:
             self._submit("inputs", (project, inputs, level, mapping), INPUT_FILES)
+            self._submit("warm", tuple(sorted({c.__module__ for c in warm})), ())
 
     @property
     def active(self) -> bool:

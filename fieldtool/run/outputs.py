@@ -21,6 +21,9 @@ import numpy as np
 
 from fieldtool.errors import FieldToolError
 from fieldtool.plots import prerender
+from fieldtool.processing.discharge import DischargeResult
+from fieldtool.processing.piv import PivResult
+from fieldtool.processing.piv_engine import PivParams
 from fieldtool.project.model import Project, atomic_write_bytes, project_to_dict
 from fieldtool.run import outdir, overlay_stage, stiv_stage
 from fieldtool.run.discharge import Discharge
@@ -161,7 +164,7 @@ def start_prerender(project: Project, inputs: Inputs, level, mapping, out_dir, e
     ``out_dir``; ``ends`` (a contextlib.ExitStack) closes it when the run ends. None without an output folder."""
     if out_dir is None:
         return None
-    prerendered = prerender.Prerender(project, inputs, level, mapping)
+    prerendered = prerender.Prerender(project, inputs, level, mapping, warm=(PivResult, DischargeResult, PivParams))
     ends.callback(prerendered.close)
     return prerendered
 
