@@ -293,7 +293,7 @@ class Prerender:
         return self._proc is not None and self._proc.alive
 
     def _submit(self, kind: str, args: tuple, names: tuple[str, ...]) -> None:
-        k = self._proc.submit(kind, args)
+        k = self._proc.submit(kind, args) if self._proc is not None else None
         if k is not None:
             self._jobs.update(dict.fromkeys(names, k))
 

@@ -1,5 +1,6 @@
 """The CLI: bad input gets one clear message naming the file or key, exit code 2, no traceback."""
 
+import json
 import shutil
 import subprocess
 import sys
@@ -90,6 +91,37 @@ def test_missing_project_via_subprocess(tmp_path):
         [sys.executable, "-m", "fieldtool.cli.main", "run", str(tmp_path / "none.toml")], capture_output=True, text=True
     )
     assert res.returncode == 2 and "project file not found" in res.stderr and "Traceback" not in res.stderr
+
+
+@pytest.mark.parametrize("case", ["good", "rerun", "bad"])
+def test_run_as_the_program_leaves_at_once_after_its_exit_handlers(short_scene, tmp_path, case):
+    """`fieldtool run` ends with os._exit after the exit handlers (cli.main._leave): the handlers still run, its
+    output is all there and flushed (a rerun recording complete), the exit code is the command's; called as a
+    function, main returns."""
+    good = case != "bad"
+    flag = tmp_path / "handler-ran"
+    project = short_scene.project_path if good else tmp_path / "none.toml"
+    extra = ["--rerun", "save"] if case == "rerun" else []
+    code = (
+        "import atexit, sys; from fieldtool.cli import main; "
+        f"atexit.register(lambda: open({str(flag)!r}, 'w').write('ran')); "
+        f"sys.argv = ['fieldtool', 'run', {str(project)!r}, '--out', {str(tmp_path / 'out')!r}, *{extra!r}]; "
+        "main.main(); print('not reached')"
+    )
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert flag.read_text() == "ran"
+    assert "not reached" not in r.stdout
+    if good:
+        assert r.returncode == 0, r.stderr
+        assert any(line.startswith("quality") for line in r.stdout.splitlines()), r.stdout  # late lines, flushed
+        assert json.loads((tmp_path / "out" / "result.json").read_text())["discharge_m3s"] > 0
+        if case == "rerun":  # the recording's last entity, logged at the run's end, is in the file
+            from rerun.chunk import RrdReader
+
+            paths = {ch.entity_path for ch in RrdReader(tmp_path / "out" / "run.rrd").stream()}
+            assert "/discharge/final_m3s" in paths, sorted(paths)
+    else:
+        assert r.returncode == 2 and "project file not found" in r.stderr
 
 
 def test_init_refuses_to_overwrite(tmp_path, capsys):
