@@ -171,7 +171,7 @@ def _leave(code: int) -> None:
     files, a rerun recording, temporary folders: ``atexit``), stdout and stderr are flushed, then ``os._exit``
     skips freeing every module and object one by one (:data:`LEAVE_AT_ONCE`). The thread pools' workers are idle
     by then (the run joined its work)."""
-    atexit._run_exitfuncs()  # CPython's own call at exit, public in the module since 3.0
+    atexit._run_exitfuncs()  # CPython's own call at exit (underscored, not public; in the module since 3.0)
     for stream in (sys.stdout, sys.stderr):
         try:
             stream.flush()

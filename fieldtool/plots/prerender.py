@@ -285,7 +285,8 @@ class Prerender:
         self._jobs: dict[str, int] = {}
         if self._proc is not None:
             self._submit("inputs", (project, inputs, level, mapping), INPUT_FILES)
-            self._submit("warm", tuple(sorted({c.__module__ for c in warm})), ())
+            if warm:
+                self._submit("warm", tuple(sorted({c.__module__ for c in warm})), ())
 
     @property
     def active(self) -> bool:
