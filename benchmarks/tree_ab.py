@@ -2,6 +2,7 @@
 
     git worktree add /tmp/before <commit>
     .venv/bin/python benchmarks/tree_ab.py --before /tmp/before --after . --runs 5 PROJECT [PROJECT ...]
+    .venv/bin/python benchmarks/tree_ab.py --before . --before-env OPENCV_THREAD_POOL_ACTIVE_WAIT_MAIN=10000 PROJECT
 
 Each run is ``python -m fieldtool.cli.main run PROJECT --out <fresh folder>`` in a process of its own with
 ``PYTHONPATH=<tree>`` (interpreter start and imports included), the trees alternating, after both were
@@ -9,6 +10,10 @@ byte-compiled (as pip does for an installed package: a tree without bytecode wou
 run). The CPU seconds are the process' and its children's (user + system); the peak is the largest resident set
 of the process or a child. The load average is printed before and after: only the ratio within one call carries.
 The discharge of each tree's last run is printed too (the same when a change keeps the numbers).
+``--before-env KEY=VALUE`` (repeatable) sets a variable for the "before" runs only: one tree against itself with
+a setting of the environment changed (stop 37: fieldtool/__init__.py's OpenCV pool defaults,
+``--before-env OPENCV_THREAD_POOL_ACTIVE_WAIT_WORKER=2000 --before-env OPENCV_THREAD_POOL_ACTIVE_WAIT_MAIN=10000``,
+OpenCV's own defaults).
 """
 
 from __future__ import annotations
@@ -27,10 +32,10 @@ from pathlib import Path
 import numpy as np
 
 
-def run(tree: Path, project: Path) -> dict:
+def run(tree: Path, project: Path, extra_env: dict[str, str] | None = None) -> dict:
     out = Path(tempfile.mkdtemp(prefix="tree_ab_"))
     shutil.rmtree(out)
-    env = dict(os.environ, PYTHONPATH=str(tree))
+    env = dict(os.environ, PYTHONPATH=str(tree), **(extra_env or {}))
     t0 = time.perf_counter()
     p = subprocess.Popen(
         [sys.executable, "-m", "fieldtool.cli.main", "run", str(project), "--out", str(out)],
@@ -56,7 +61,9 @@ def main() -> int:
     ap.add_argument("--before", type=Path, required=True, help="the tree before (a git worktree)")
     ap.add_argument("--after", type=Path, default=Path("."), help="the tree after (default: this one)")
     ap.add_argument("--runs", type=int, default=5)
+    ap.add_argument("--before-env", action="append", default=[], metavar="KEY=VALUE", help="for the before runs")
     a = ap.parse_args()
+    envs = {"before": dict(kv.split("=", 1) for kv in a.before_env), "after": {}}
     trees = {"before": a.before.resolve(), "after": a.after.resolve()}
     for t in trees.values():
         compileall.compile_dir(str(t / "fieldtool"), quiet=1)
@@ -65,7 +72,7 @@ def main() -> int:
         got: dict[str, list] = {k: [] for k in trees}
         for _ in range(a.runs):
             for name, tree in trees.items():
-                got[name].append(run(tree, project.resolve()))
+                got[name].append(run(tree, project.resolve(), envs[name]))
         print(
             f"\n== {project} ({a.runs} alternating runs; load average {load0:.2f} before, "
             f"{os.getloadavg()[0]:.2f} after)"
@@ -78,7 +85,8 @@ def main() -> int:
             peak = max(r["mib"] for r in rs)
             q = rs[-1]["q"]
             print(f"{name:7s} wall {med[name]:6.2f} s ({walls})  CPU {cpu:6.2f} s  peak {peak:5.0f} MiB  Q {q}")
-        print(f"after / before: {med['after'] / med['before']:.3f} in wall time")
+        note = f" (before with {' '.join(a.before_env)})" if a.before_env else ""
+        print(f"after / before: {med['after'] / med['before']:.3f} in wall time{note}")
     return 0
 
 
