@@ -13,9 +13,9 @@ if not _os.environ.get("FIELDTOOL_DEBUG"):
 # solves), and the run's own threads keep the cores busy. One thread (unless the user sets it): about 0.2 s less
 # CPU on a 1080p run, the spinning gone. Read by OpenBLAS when numpy/scipy load it, so only before they import.
 _os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
-# OpenCV's pool threads spin (sched_yield) after each parallel call, waiting for the next one: at 720p 0.1-0.2 s of
-# CPU (perf) taken from the run's decoding and standardising on two cores. They sleep at once instead (read when cv2
-# loads; benchmarks/tree_ab.py --before-env compares). Wall time within the noise (+-1 %), CPU -0.05 to -0.3 s.
+# OpenCV's pool threads spin (sched_yield) after each parallel call, waiting for the next one: at 720p 0.2 s of CPU
+# (perf) taken from the run's decoding and standardising on two cores. They sleep at once instead (read when cv2
+# loads; benchmarks/tree_ab.py --before-env compares): CPU -0.2 to -0.45 s a run, wall time within the noise.
 _os.environ.setdefault("OPENCV_THREAD_POOL_ACTIVE_WAIT_WORKER", "0")
 _os.environ.setdefault("OPENCV_THREAD_POOL_ACTIVE_WAIT_MAIN", "0")
 # matplotlib's own two lines when HOME is unwritable: a folder of this user's own instead (fieldtool.mplconfig)
