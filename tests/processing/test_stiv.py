@@ -35,6 +35,22 @@ def test_fft_recovers_slope_both_directions(p):
     assert conf > 0.5
 
 
+@pytest.mark.parametrize("shape", [(40, 17), (61, 32), (90, 9)])
+def test_autocorrelation_is_the_direct_sums_at_every_lag_read(shape):
+    """The FFT's padding keeps every lag read (0..K rows, -half..half samples) free of the circular wrap: each
+    equals its sum of products computed directly (too little padding would add the wrapped lags' products)."""
+    T, S = shape
+    a = np.random.default_rng(T * S).normal(size=shape)
+    K, half = T // 2, S // 2
+    R = stiv._autocorrelation(a, K, half)
+    assert R.shape == (K + 1, 2 * half + 1)
+    for k in range(K + 1):
+        for m in range(-half, half + 1):
+            x, y = a[: T - k], a[k:]
+            d = np.sum(x[:, max(0, -m) : S - max(0, m)] * y[:, max(0, m) : S - max(0, -m)])
+            assert R[k, m + half] == pytest.approx(d, rel=1e-4, abs=1e-3 * np.sum(a * a) / (T * S))
+
+
 def test_tensor_good_at_slow_streaks_biased_at_fast_ones():
     dt, ds = 1 / 30, 0.01
     t = np.arange(120) * dt
