@@ -39,6 +39,7 @@ import scipy.fft as sfft
 from scipy.ndimage import uniform_filter1d
 
 from fieldtool.errors import ParameterError
+from fieldtool.processing import piv_engine
 from fieldtool.processing.ortho import OrthoMapping
 
 METHODS = ("fft", "tensor")
@@ -465,11 +466,15 @@ def line_velocities(
     c = np.zeros(len(acc.lines))
     if len(acc.rows) < 4:
         return v, c
-    for k, ln in enumerate(acc.lines):
-        if only is not None and not only[k]:
-            continue
-        sti, t = acc.sti(k)
-        v[k], c[k] = sti_velocity(sti, t, ln.ds_m, method, max_lag_s)
+    todo = [k for k in range(len(acc.lines)) if only is None or only[k]]
+
+    def lines(lo: int, hi: int) -> None:  # each line on its own: the same numbers in any order
+        for k in todo[lo:hi]:
+            sti, t = acc.sti(k)
+            v[k], c[k] = sti_velocity(sti, t, acc.lines[k].ds_m, method, max_lag_s)
+
+    # on the engine's threads (the FFTs, sorts and filters release the GIL): a long clip's lines at the run's end
+    piv_engine.chunked(len(todo), max(1, -(-len(todo) // 2)), lines)
     return v, c
 
 

@@ -282,3 +282,26 @@ def test_longest_run_is_the_first_longest_stretch_of_true():
             ok = rng.random(n) < rng.random()
             assert _longest_run(ok) == by_hand(ok)
     assert _longest_run(np.array([True, True, False, True, True])) == (0, 2)
+
+
+def test_lines_on_the_engines_threads_give_the_numbers_of_one_thread(monkeypatch):
+    """The lines are analysed in two chunks on the engine's threads: each line's velocity and confidence are those
+    of the lines analysed one after the other in the calling thread, line for line (none swapped, none lost)."""
+    from fieldtool.processing import piv_engine
+
+    mapping = ortho.from_scale(M_PER_PX)
+    pw = mapping.image_to_world(np.array([[160.0, 10.0], [160.0, 190.0]]))
+    lines = stiv.build_lines(pw, np.array([1.0, 0.0]), mapping, 5, length_m=1.6, lines_per_sub=2, image_shape=(H, W))
+    acc = stiv.StiAccumulator(lines)
+    for t_s, img in plane_frames(lambda y: 40.0 + 0.5 * y, n=40):
+        acc.add(t_s, img)
+    only = np.ones(len(lines), bool)
+    only[3] = False
+    got = {}
+    for workers in (1, 2):
+        monkeypatch.setattr(piv_engine, "_WORKERS", workers)
+        got[workers] = stiv.line_velocities(acc, "fft", only=only)
+    assert np.isfinite(got[2][0][only]).all() and np.isnan(got[2][0][3]) and got[2][1][3] == 0
+    assert len(set(np.round(got[2][0][only], 6))) > 3  # lines of different speeds: a swap would show
+    np.testing.assert_array_equal(got[1][0], got[2][0])
+    np.testing.assert_array_equal(got[1][1], got[2][1])
