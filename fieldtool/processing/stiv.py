@@ -163,6 +163,17 @@ def _longest_run(ok: np.ndarray) -> tuple[int, int]:
     return int(starts[k]), int(ends[k])
 
 
+def _mean_f16(rows: np.ndarray) -> np.ndarray:
+    """``rows.mean(axis=0).astype(np.float16)`` for a (k, n) float32 array, the same numbers (NumPy sums the rows
+    of an axis-0 mean in order, then divides in float32; OpenCV's conversion to float16 rounds to nearest even, as
+    NumPy's), in a fifth of the time: NumPy's float16 conversion is done in software, element by element."""
+    acc = rows[0].copy()
+    for r in rows[1:]:
+        cv2.add(acc, r, dst=acc)
+    cv2.divide(acc, float(len(rows)), dst=acc)
+    return cv2.multiply(acc, 1.0, dtype=cv2.CV_16F).ravel()
+
+
 class StiAccumulator:
     """Builds the space-time images of ``lines`` one frame at a time (only the samples are kept, as
     float16: frames x samples x 2 bytes, never the frames)."""
@@ -218,7 +229,7 @@ class StiAccumulator:
         img = frame[rs, cs].astype(np.float32)
         row = cv2.remap(img, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         row = row.ravel()[: self.width * self.n].reshape(self.width, self.n)
-        self.rows.append(row.mean(axis=0).astype(np.float16))
+        self.rows.append(_mean_f16(row))
         self.times.append(float(t_s))
 
     def tap(self, frames):

@@ -305,3 +305,16 @@ def test_lines_on_the_engines_threads_give_the_numbers_of_one_thread(monkeypatch
     assert len(set(np.round(got[2][0][only], 6))) > 3  # lines of different speeds: a swap would show
     np.testing.assert_array_equal(got[1][0], got[2][0])
     np.testing.assert_array_equal(got[1][1], got[2][1])
+
+
+@pytest.mark.parametrize("k", [1, 2, 3, 5])
+def test_line_mean_in_float16_is_numpys_to_the_bit(k):
+    """The sampled lines' mean over their width, stored as float16 (StiAccumulator.add): the numbers of
+    ``mean(axis=0).astype(float16)``, on values spread over float16's range and on its rounding ties."""
+    rng = np.random.default_rng(k)
+    rows = (rng.normal(0, 1, (k, 70_001)) * 10.0 ** rng.uniform(-3, 4.5, (1, 70_001))).astype(np.float32)
+    rows[:, :1024] = np.arange(2049, 4096, 2, dtype=np.float32)  # odd: halfway between float16 neighbours there
+    want = rows.mean(axis=0).astype(np.float16)
+    got = stiv._mean_f16(rows)
+    assert got.dtype == np.float16 and got.shape == want.shape
+    assert np.array_equal(got.view(np.uint16), want.view(np.uint16))
