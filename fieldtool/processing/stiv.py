@@ -170,7 +170,7 @@ def _mean_f16(rows: np.ndarray) -> np.ndarray:
     acc = rows[0].copy()
     for r in rows[1:]:
         cv2.add(acc, r, dst=acc)
-    cv2.divide(acc, float(len(rows)), dst=acc)
+    cv2.divide(acc, float(len(rows)), dst=acc)  # type: ignore[call-overload, unused-ignore]
     return cv2.multiply(acc, 1.0, dtype=cv2.CV_16F).ravel()
 
 
