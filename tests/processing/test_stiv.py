@@ -7,7 +7,7 @@ import cv2
 import numpy as np
 import pytest
 
-from fieldtool.processing import ortho, stiv
+from fieldtool.processing import ortho, piv_engine, stiv
 
 
 def synthetic_sti(
@@ -287,8 +287,6 @@ def test_longest_run_is_the_first_longest_stretch_of_true():
 def test_lines_on_the_engines_threads_give_the_numbers_of_one_thread(monkeypatch):
     """The lines are analysed in two chunks on the engine's threads: each line's velocity and confidence are those
     of the lines analysed one after the other in the calling thread, line for line (none swapped, none lost)."""
-    from fieldtool.processing import piv_engine
-
     mapping = ortho.from_scale(M_PER_PX)
     pw = mapping.image_to_world(np.array([[160.0, 10.0], [160.0, 190.0]]))
     lines = stiv.build_lines(pw, np.array([1.0, 0.0]), mapping, 5, length_m=1.6, lines_per_sub=2, image_shape=(H, W))
