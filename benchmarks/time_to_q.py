@@ -2,7 +2,7 @@
 
     .venv/bin/python benchmarks/time_to_q.py                       # 720p 8 s + 1080p 30 s (+ fast_1080p), 3 runs
     .venv/bin/python benchmarks/time_to_q.py --clips 720p --repeats 5
-    .venv/bin/python benchmarks/time_to_q.py --engines             # engine table: fieldtool, OpenPIV, ffpiv
+    .venv/bin/python benchmarks/time_to_q.py --engines             # engine table: fieldtool, OpenPIV, ffpiv, RIVeR
     .venv/bin/python benchmarks/time_to_q.py --profile             # cProfile top entries, 720p, before/after
 
 Clips (rendered once into --root by the generator, exact truth from ``River.truth()``): the ``oblique`` scene
@@ -30,6 +30,11 @@ Printed per clip: median wall time and every run's, the ratio pyorc / fieldtool 
 the per-run ratios), each discharge and its error against the truth, the difference in percentage points
 between fieldtool's default and its full-frame all-pairs error, pairs used, the peak resident memory of each
 process (``wait4``'s ru_maxrss) and the load average before and after. Not part of the test run.
+
+``--engines``: pairs/s on the same 1920x1080 pairs (window 32, overlap 16): fieldtool's engine, OpenPIV 0.26 (its
+SciPy and Rust backends), ffpiv, and RIVeR's engine (``peers/river_rate.py`` in ``benchmarks/.river-venv``, pinned
+``river-cli``: RIVeR 3.x's Python port of PIVlab's ``piv_FFTmulti``, one pair a run). RIVeR's end-to-end workflow
+(frames written as JPEG files, its GUI's section and matrix files) is not driven here.
 """
 
 from __future__ import annotations
@@ -58,6 +63,10 @@ PYORC_SWEEP = [(r, w) for r in (0.01, 0.02, 0.03, 0.05, 0.08) for w in (10, 16, 
 # the thesis' method on OpenPIV's Rust backend: window px (overlap half of it) and peak-to-peak s2n threshold
 THESIS_SWEEP = [(w, s) for w in (16, 24, 32, 48, 64) for s in (0.0, 1.05, 1.2, 1.4)]
 SETTINGS = HERE / "peer_settings.json"
+# RIVeR's Python engine (river-cli, a port of PIVlab's piv_FFTmulti) in a venv of its own: it pins its own
+# OpenCV, SciPy < 1.14, numba and pyFFTW
+RIVER_VENV = HERE / ".river-venv"
+RIVER = ["river-cli==3.7.0"]
 
 
 # --------------------------------------------------------------------------------------------- clips
@@ -159,13 +168,13 @@ def best_settings() -> dict:
 # --------------------------------------------------------------------------------------------- processes
 
 
-def peers_python() -> Path:
-    """The peers' venv interpreter; created with the pinned PEERS on first use."""
-    py = PEERS_VENV / "bin" / "python"
+def peers_python(venv: Path = PEERS_VENV, pins: list[str] = PEERS) -> Path:
+    """A peers' venv interpreter (the peers' or RIVeR's); created with its pinned packages on first use."""
+    py = venv / "bin" / "python"
     if not py.is_file():
-        print(f"creating {PEERS_VENV} with {' '.join(PEERS)} (once)")
-        subprocess.run([sys.executable, "-m", "venv", str(PEERS_VENV)], check=True)
-        subprocess.run([str(py), "-m", "pip", "install", "-q", *PEERS], check=True)
+        print(f"creating {venv} with {' '.join(pins)} (once)")
+        subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True)
+        subprocess.run([str(py), "-m", "pip", "install", "-q", *pins], check=True)
     return py
 
 
@@ -290,7 +299,7 @@ def end_to_end(cs: list[dict], repeats: int, with_pyorc: bool, scratch: Path, re
 
 
 def engines(runs: int, n_pairs: int, ens_pairs: int, scratch: Path) -> None:
-    """pairs/s on 1920x1080 frames, window 32 / overlap 16: fieldtool, OpenPIV, ffpiv (alternating runs)."""
+    """pairs/s on 1920x1080 frames, window 32 / overlap 16: fieldtool, OpenPIV, ffpiv, RIVeR (alternating runs)."""
     sys.path.insert(0, str(HERE))
     import piv_vs_openpiv as pvo
 
@@ -304,9 +313,12 @@ def engines(runs: int, n_pairs: int, ens_pairs: int, scratch: Path) -> None:
     times = {name: [] for name, _, _ in table}
     times["ffpiv (numba) single pass"] = []
     rust = {"OpenPIV rust single pass": "single_pairs_per_s", "OpenPIV rust windef 64->32": "two_pass_pairs_per_s"}
-    for name in rust:
+    river = {"RIVeR piv_fftmulti 32->32": "same_window_pairs_per_s",
+             "RIVeR piv_fftmulti 64->32": "two_pass_pairs_per_s"}
+    for name in (*rust, *river):
         times[name] = []
     py = peers_python()
+    river_py = peers_python(RIVER_VENV, RIVER)
     for _ in range(runs):
         for name, fn, which in table:
             t0 = time.perf_counter()
@@ -320,17 +332,26 @@ def engines(runs: int, n_pairs: int, ens_pairs: int, scratch: Path) -> None:
         rates = json.loads(out.strip().splitlines()[-1])
         for name, key in rust.items():
             times[name].append(rates[key])
+        # RIVeR: one pair a run (its 32 -> 32 call takes tens of seconds a pair on 1080p: river_rate.py says why)
+        out = subprocess.run([str(river_py), str(HERE / "peers" / "river_rate.py"), str(stack), "1"],
+                             capture_output=True, text=True, check=True).stdout
+        rates = json.loads(out.strip().splitlines()[-1])
+        for name, key in river.items():
+            times[name].append(rates[key])
     print(f"\nEngines: 1920x1080, window 32, overlap 16, {n_pairs} pairs per call ({ens_pairs} for the ensemble), "
           f"{runs} alternating runs, {os.cpu_count()} cores, load average {os.getloadavg()[0]:.2f} at the end")
     print(f"{'engine':36s} {'median pairs/s':>14s} {'runs':>28s} {'vs fieldtool single':>20s}")
     base = float(np.median(times["fieldtool single pass (mean)"]))
     for name, v in times.items():
         m = float(np.median(v))
-        print(f"{name:36s} {m:14.2f} {' '.join(f'{x:.2f}' for x in v):>28s} {m / base:19.2f}x")
+        print(f"{name:36s} {m:14.3g} {' '.join(f'{x:.3g}' for x in v):>28s} {m / base:19.3g}x")
     for ours_name, peer in (("fieldtool single pass (mean)", "OpenPIV rust single pass"),
-                            ("fieldtool 2 passes 64->32 (mean)", "OpenPIV rust windef 64->32")):
+                            ("fieldtool 2 passes 64->32 (mean)", "OpenPIV rust windef 64->32"),
+                            ("fieldtool 2 passes 64->32 (mean)", "RIVeR piv_fftmulti 64->32")):
         if ours_name in times and times[peer]:
-            print(f"{ours_name} / {peer}: {np.median(times[ours_name]) / np.median(times[peer]):.2f}x")
+            per_run = np.median(np.array(times[ours_name]) / np.array(times[peer]))
+            print(f"{ours_name} / {peer}: {np.median(times[ours_name]) / np.median(times[peer]):.2f}x (ratio of "
+                  f"medians), {per_run:.2f}x (median of per-run ratios)")
 
 
 # --------------------------------------------------------------------------------------------- profile
