@@ -4,6 +4,7 @@
     .venv/bin/python benchmarks/time_to_q.py --clips 720p --repeats 5
     .venv/bin/python benchmarks/time_to_q.py --engines             # engine table: fieldtool, OpenPIV, ffpiv, RIVeR
     .venv/bin/python benchmarks/time_to_q.py --profile             # cProfile top entries, 720p, before/after
+    .venv/bin/python benchmarks/time_to_q.py --clips 720p_8s --sweep --sweep-peers river --river   # RIVeR too
 
 Clips (rendered once into --root by the generator, exact truth from ``River.truth()``): the ``oblique`` scene
 at 1280x720 for 8 s, the same at 1920x1080 for 30 s, and helper robust's ``fast_1080p`` hard preset when
@@ -33,8 +34,12 @@ process (``wait4``'s ru_maxrss) and the load average before and after. Not part 
 
 ``--engines``: pairs/s on the same 1920x1080 pairs (window 32, overlap 16): fieldtool's engine, OpenPIV 0.26 (its
 SciPy and Rust backends), ffpiv, and RIVeR's engine (``peers/river_rate.py`` in ``benchmarks/.river-venv``, pinned
-``river-cli``: RIVeR 3.x's Python port of PIVlab's ``piv_FFTmulti``, one pair a run). RIVeR's end-to-end workflow
-(frames written as JPEG files, its GUI's section and matrix files) is not driven here.
+``river-cli``: RIVeR 3.x's Python port of PIVlab's ``piv_FFTmulti``, one pair a run).
+
+``--river``: RIVeR end to end as a contestant too (``peers/river_run.py`` in ``benchmarks/.river-venv``: its own
+workflow, every frame written as a JPEG file, its PIV on every consecutive pair of the project's ROI, its section
+and discharge; at the most accurate interrogation area of ``--sweep --sweep-peers river``). Slow: left out by
+default.
 """
 
 from __future__ import annotations
@@ -67,6 +72,8 @@ SETTINGS = HERE / "peer_settings.json"
 # OpenCV, SciPy < 1.14, numba and pyFFTW
 RIVER_VENV = HERE / ".river-venv"
 RIVER = ["river-cli==3.7.0"]
+# RIVeR's main setting, its interrogation area (px; its second pass takes half of it): RIVeR's default is 128
+RIVER_SWEEP = [32, 64, 96, 128, 192]
 
 
 # --------------------------------------------------------------------------------------------- clips
@@ -156,13 +163,36 @@ def thesis_job(c: dict, setting: tuple[int, float]) -> Path:
     return path
 
 
+def river_job(c: dict, ia: int) -> Path:
+    """The job file of peers/river_run.py at interrogation area ``ia`` px: what a RIVeR user enters for this clip
+    (the 4 GCPs on the water plane, the generated project's ROI as its bbox, the section's two water edges and
+    its bathymetry, the level, alpha)."""
+    import tomllib
+
+    d, spec, tr = c["dir"], c["spec"], c["truth"]
+    r = spec.river
+    proj = tomllib.loads((d / "project.toml").read_text())
+    x0, y0, x1, y1 = (int(v) for v in proj["roi"]["rect_px"])
+    cs = np.loadtxt(d / "cross_section.csv", delimiter=",", skiprows=1)
+    xs = float(r.x_section_m)
+    job = {"video": str(d / spec.video_name), "n_frames": int(tr["n_frames"]), "fps": float(tr["fps"]),
+           "gcp_px": proj["ortho"]["gcp_px"], "gcp_xy_m": [g[:2] for g in tr["gcp_world_m"]],
+           "bbox_px": [x0, y0, x1 - x0, y1 - y0], "bathymetry": [[float(s), float(z)] for s, z in cs],
+           "edges_en_m": [[xs, float(r.y_left_edge)], [xs, float(r.y_right_edge)]],
+           "level_m": float(tr["water_level_m"]), "alpha": float(proj["section"].get("alpha") or 0.85),
+           "interrogation_area_px": int(ia)}
+    path = d / f"river_job_{ia}.json"
+    path.write_text(json.dumps(job))
+    return path
+
+
 def best_settings() -> dict:
     """The peers' most accurate settings from the last ``--sweep`` (else pyorc's 0.03 m / 32 px, the issue's
     sweep, and the thesis' window 32 with no s2n threshold)."""
     if SETTINGS.is_file():
         s = json.loads(SETTINGS.read_text())
-        return {"pyorc": tuple(s["pyorc"]), "thesis": tuple(s["thesis"])}
-    return {"pyorc": (0.03, 32), "thesis": (32, 0.0)}
+        return {"pyorc": tuple(s["pyorc"]), "thesis": tuple(s["thesis"]), "river": int(s.get("river", 128))}
+    return {"pyorc": (0.03, 32), "thesis": (32, 0.0), "river": 128}
 
 
 # --------------------------------------------------------------------------------------------- processes
@@ -206,19 +236,25 @@ def run_fieldtool(toml: Path, scratch: Path) -> dict:
 
 
 def run_peer(script: str, job: Path) -> dict:
-    """One run of a peer's script in the peers' venv (pyorc_run.py, openpiv_thesis.py, decode_floor.py)."""
-    wall, mem, text, cpu = timed([str(peers_python()), str(HERE / "peers" / script), str(job)])
+    """One run of a peer's script in its venv (pyorc_run.py, openpiv_thesis.py, decode_floor.py in the peers';
+    river_run.py in RIVeR's)."""
+    py = peers_python(RIVER_VENV, RIVER) if script.startswith("river") else peers_python()
+    wall, mem, text, cpu = timed([str(py), str(HERE / "peers" / script), str(job)])
     res = json.loads(text.strip().splitlines()[-1])
     return {"s": wall, "cpu": cpu, "mib": mem, "q": res.get("discharge_m3s"), "pairs": res.get("pairs"),
             "frames": res.get("frames")}
 
 
-def sweep(c: dict) -> None:
-    """Each peer's main settings on one clip; the most accurate (smallest |error|) is written to SETTINGS."""
+def sweep(c: dict, peers: list[str]) -> None:
+    """The main settings of each of ``peers`` (pyorc, thesis, river) on one clip; the most accurate (smallest
+    |error|) is written to SETTINGS, beside the other peers' settings already there."""
     truth = c["truth"]["discharge_m3s"]
-    best = {}
-    for name, script, grid, job in (("pyorc", "pyorc_run.py", PYORC_SWEEP, pyorc_job),
-                                    ("thesis", "openpiv_thesis.py", THESIS_SWEEP, thesis_job)):
+    best = json.loads(SETTINGS.read_text()) if SETTINGS.is_file() else {}
+    grids = {"pyorc": ("pyorc_run.py", PYORC_SWEEP, pyorc_job),
+             "thesis": ("openpiv_thesis.py", THESIS_SWEEP, thesis_job),
+             "river": ("river_run.py", RIVER_SWEEP, river_job)}
+    for name in peers:
+        script, grid, job = grids[name]
         print(f"\n== sweep of {name} on {c['name']} (true Q {truth:.4f} m³/s)")
         rows = []
         for setting in grid:
@@ -238,7 +274,8 @@ def sweep(c: dict) -> None:
     SETTINGS.write_text(json.dumps({**best, "clip": c["name"]}))
 
 
-def end_to_end(cs: list[dict], repeats: int, with_pyorc: bool, scratch: Path, reference: bool = True) -> None:
+def end_to_end(cs: list[dict], repeats: int, with_pyorc: bool, scratch: Path, reference: bool = True,
+               river: bool = False) -> None:
     # fieldtool's modules byte-compiled first, as pip does for an installed package (pyorc's are): an editable
     # install where PYTHONDONTWRITEBYTECODE is set would otherwise compile about 50 modules on every run (0.1 s)
     import compileall
@@ -251,9 +288,12 @@ def end_to_end(cs: list[dict], repeats: int, with_pyorc: bool, scratch: Path, re
         jobs = {"pyorc": ("pyorc_run.py", pyorc_job(c, best["pyorc"])),
                 "thesis (OpenPIV rust)": ("openpiv_thesis.py", thesis_job(c, best["thesis"])),
                 "decode only (PyAV)": ("decode_floor.py", c["dir"] / c["spec"].video_name)}
+        if river:  # RIVeR's own workflow: every frame written as a JPEG file, then its PIV on every pair (slow)
+            jobs["RIVeR"] = ("river_run.py", river_job(c, best["river"]))
         load0 = os.getloadavg()
         ref = run_fieldtool(c["dir"] / "full_all.toml", scratch) if reference else None
-        runs = {"fieldtool": [], "pyorc": [], "thesis (OpenPIV rust)": [], "decode only (PyAV)": []}
+        runs: dict[str, list] = {"fieldtool": [], "pyorc": [], "thesis (OpenPIV rust)": [], "decode only (PyAV)": []}
+        runs.update({"RIVeR": []} if river else {})
         for _ in range(repeats):  # alternating: each repeat runs each contestant once, in turn
             runs["fieldtool"].append(run_fieldtool(c["dir"] / "noroi.toml", scratch))
             if with_pyorc:
@@ -264,7 +304,8 @@ def end_to_end(cs: list[dict], repeats: int, with_pyorc: bool, scratch: Path, re
               f"{os.cpu_count()} cores, load average {load0[0]:.2f} before, {load1[0]:.2f} after")
         print(f"peer settings (most accurate of the sweep on {json.loads(SETTINGS.read_text())['clip'] if SETTINGS.is_file() else 'the issue'}): "
               f"pyorc resolution {best['pyorc'][0]} m, window {best['pyorc'][1]} px; thesis window "
-              f"{best['thesis'][0]} px, overlap {best['thesis'][0] // 2} px, s2n {best['thesis'][1]}")
+              f"{best['thesis'][0]} px, overlap {best['thesis'][0] // 2} px, s2n {best['thesis'][1]}"
+              + (f"; RIVeR interrogation area {best['river']} -> {best['river'] // 2} px" if river else ""))
         print(f"{'contestant':34s} {'median s':>9s} {'runs s':>26s} {'CPU s':>7s} {'Q m³/s':>9s} {'error %':>8s} "
               f"{'pairs':>6s} {'peak MiB':>9s}")
         rows = ([("fieldtool full frame, all pairs", [ref])] if ref else []) + [(k, v) for k, v in runs.items() if v]
@@ -283,8 +324,8 @@ def end_to_end(cs: list[dict], repeats: int, with_pyorc: bool, scratch: Path, re
                   f"error")
         print(f"fieldtool default: {med['fieldtool']:.2f} s for a {c['truth']['n_frames'] / c['truth']['fps']:.0f} s "
               f"clip")
-        for peer in ("pyorc", "thesis (OpenPIV rust)"):
-            if runs[peer]:
+        for peer in ("pyorc", "thesis (OpenPIV rust)", "RIVeR"):
+            if runs.get(peer):
                 per = np.median([p["s"] / f["s"] for p, f in zip(runs[peer], runs["fieldtool"])])
                 cpu_ratio = np.median([r["cpu"] for r in runs[peer]]) / np.median([r["cpu"] for r in runs["fieldtool"]])
                 print(f"{peer} / fieldtool: {med[peer] / med['fieldtool']:.2f}x (ratio of medians), "
@@ -387,6 +428,8 @@ def main() -> None:
     ap.add_argument("--root", default=os.path.join(tempfile.gettempdir(), "ft_time_to_q"), help="clip folder")
     ap.add_argument("--clips", default="720p_8s,1080p_30s,fast_1080p,4k_drone")
     ap.add_argument("--sweep", action="store_true", help="sweep the peers' settings on the first clip first")
+    ap.add_argument("--sweep-peers", default="pyorc,thesis", help="the peers --sweep sweeps (pyorc, thesis, river)")
+    ap.add_argument("--river", action="store_true", help="RIVeR's own workflow as a contestant too (slow)")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--no-pyorc", action="store_true", help="fieldtool only")
     ap.add_argument("--no-reference", action="store_true", help="without the full-frame all-pairs fieldtool run")
@@ -408,8 +451,8 @@ def main() -> None:
             profile(cs[0], 25)
             return
         if args.sweep:
-            sweep(cs[0])
-        end_to_end(cs, args.repeats, not args.no_pyorc, scratch, reference=not args.no_reference)
+            sweep(cs[0], args.sweep_peers.split(","))
+        end_to_end(cs, args.repeats, not args.no_pyorc, scratch, reference=not args.no_reference, river=args.river)
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
 
