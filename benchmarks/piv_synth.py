@@ -70,3 +70,15 @@ def rankine(xc: float, yc: float, rc: float = 60.0, vmax: float = 3.5):
 
     f.__name__ = f"rankine(rc={rc:g}, vmax={vmax:g} px)"
     return f
+
+
+def accuracy_cases(h: int, w: int) -> list:
+    """The 8 accuracy cases of the engine tables (piv_vs_openpiv.py, peers/river_accuracy.py) on an h x w frame:
+    (displacement, particles per pixel, particle diameter px); case k is rendered with seed 100 + k."""
+    cases = []
+    for dens, diam in [(0.03, 2.5), (0.01, 2.5), (0.03, 4.0), (0.005, 2.0)]:
+        cases.append((uniform(2.35, -1.15), dens, diam))
+    for dens, diam in [(0.03, 2.5), (0.01, 3.0)]:
+        cases.append((shear(h), dens, diam))
+        cases.append((rankine(w / 2, h / 2, rc=60, vmax=3.5), dens, diam))
+    return cases

@@ -162,12 +162,7 @@ ACC_ENGINES = [
 
 def accuracy():
     h, w = 384, 512
-    cases = []
-    for dens, diam in [(0.03, 2.5), (0.01, 2.5), (0.03, 4.0), (0.005, 2.0)]:
-        cases.append((syn.uniform(2.35, -1.15), dens, diam))
-    for dens, diam in [(0.03, 2.5), (0.01, 3.0)]:
-        cases.append((syn.shear(h), dens, diam))
-        cases.append((syn.rankine(w / 2, h / 2, rc=60, vmax=3.5), dens, diam))
+    cases = syn.accuracy_cases(h, w)
     print(f"\nAccuracy: {w}x{h}, window 32, overlap 16, 3 frames (2 pairs) per case; bias = mean error of u, v (px); "
           "RMS of the vector error (px); valid share")
     head = f"{'case':30s} {'ppp':>6s} {'d px':>5s}"

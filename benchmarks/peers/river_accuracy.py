@@ -26,21 +26,11 @@ CONFIGS = {
 }
 
 
-def cases():
-    out = []
-    for dens, diam in [(0.03, 2.5), (0.01, 2.5), (0.03, 4.0), (0.005, 2.0)]:
-        out.append((syn.uniform(2.35, -1.15), dens, diam))
-    for dens, diam in [(0.03, 2.5), (0.01, 3.0)]:
-        out.append((syn.shear(H), dens, diam))
-        out.append((syn.rankine(W / 2, H / 2, rc=60, vmax=3.5), dens, diam))
-    return out
-
-
 def main():
     mask = np.ones((H, W), np.uint8)
     worst = dict.fromkeys(CONFIGS, 0.0)
     print(f"{'case':30s} {'ppp':>6s} {'d px':>5s}" + "".join(f" | {n:>24s}" for n in CONFIGS))
-    for k, (disp, dens, diam) in enumerate(cases()):
+    for k, (disp, dens, diam) in enumerate(syn.accuracy_cases(H, W)):
         frames = syn.clip(disp, H, W, n_frames=3, density=dens, diameter=diam, seed=100 + k, dt=1.0)
         line = f"{disp.__name__:30s} {dens:6.3f} {diam:5.1f}"
         for name, kw in CONFIGS.items():
