@@ -292,8 +292,7 @@ def end_to_end(cs: list[dict], repeats: int, with_pyorc: bool, scratch: Path, re
             jobs["RIVeR"] = ("river_run.py", river_job(c, best["river"]))
         load0 = os.getloadavg()
         ref = run_fieldtool(c["dir"] / "full_all.toml", scratch) if reference else None
-        runs: dict[str, list] = {"fieldtool": [], "pyorc": [], "thesis (OpenPIV rust)": [], "decode only (PyAV)": []}
-        runs.update({"RIVeR": []} if river else {})
+        runs: dict[str, list] = {"fieldtool": [], **{name: [] for name in jobs}}
         for _ in range(repeats):  # alternating: each repeat runs each contestant once, in turn
             runs["fieldtool"].append(run_fieldtool(c["dir"] / "noroi.toml", scratch))
             if with_pyorc:
@@ -354,8 +353,7 @@ def engines(runs: int, n_pairs: int, ens_pairs: int, scratch: Path) -> None:
     times = {name: [] for name, _, _ in table}
     times["ffpiv (numba) single pass"] = []
     rust = {"OpenPIV rust single pass": "single_pairs_per_s", "OpenPIV rust windef 64->32": "two_pass_pairs_per_s"}
-    river = {"RIVeR piv_fftmulti 32->32": "same_window_pairs_per_s",
-             "RIVeR piv_fftmulti 64->32": "two_pass_pairs_per_s"}
+    river = {"RIVeR piv_fftmulti 32->32": "32->32", "RIVeR piv_fftmulti 64->32": "64->32"}
     for name in (*rust, *river):
         times[name] = []
     py = peers_python()

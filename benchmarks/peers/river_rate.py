@@ -6,10 +6,10 @@ Python port of PIVlab 2.6's ``piv_FFTmulti``), called as RIVeR's own ``piv_loop`
 the whole frame as the bbox ``[x, y, width, height]``, its default filters: standard deviation, median test,
 inpainting, smoothing):
 
-- ``same_window_pairs_per_s``: window 32, step 16, ``multipass=False``. RIVeR's function always runs a second
+- ``32->32``: window 32, step 16, ``multipass=False``. RIVeR's function always runs a second
   pass over the deformed second image; without multipass that pass keeps the first window (32 -> 32). RIVeR has
   no single-pass call.
-- ``two_pass_pairs_per_s``: window 64 then 32 (``multipass=True``, ``interrogation_area_2=32``), step 32 then 16.
+- ``64->32``: window 64 then 32 (``multipass=True``, ``interrogation_area_2=32``), step 32 then 16.
 
 A warm-up call on a 256 x 256 crop of the first pair first (numba compiles its functions then; not counted).
 
@@ -25,27 +25,28 @@ import time
 import numpy as np
 from river.core.piv_fftmulti import piv_fftmulti
 
-imgs = np.load(sys.argv[1])
-if len(sys.argv) > 2:
-    imgs = imgs[: int(sys.argv[2]) + 1]
-h, w = imgs.shape[1:]
-mask = np.ones((h, w), np.uint8)
-bbox = [0, 0, w, h]
+#: RIVeR's two calls (keyword arguments of ``piv_fftmulti``), also those of peers/river_accuracy.py
+CONFIGS = {
+    "32->32": dict(interrogation_area_1=32, interrogation_area_2=32, multipass=False, step=16),
+    "64->32": dict(interrogation_area_1=64, interrogation_area_2=32, multipass=True, step=32),
+}
 
 
-def same_window(a, b, m=mask, box=bbox):
-    piv_fftmulti(a, b, mask=m, bbox=box, interrogation_area_1=32, interrogation_area_2=32, multipass=False, step=16)
+def main():
+    imgs = np.load(sys.argv[1])
+    if len(sys.argv) > 2:
+        imgs = imgs[: int(sys.argv[2]) + 1]
+    h, w = imgs.shape[1:]
+    mask = np.ones((h, w), np.uint8)
+    out = {"pairs": len(imgs) - 1}
+    for name, kw in CONFIGS.items():
+        piv_fftmulti(imgs[0][:256, :256], imgs[1][:256, :256], mask=mask[:256, :256], bbox=[0, 0, 256, 256], **kw)
+        t0 = time.perf_counter()  # after the warm-up on a crop above (numba compiles its functions then)
+        for a, b in zip(imgs[:-1], imgs[1:], strict=True):
+            piv_fftmulti(a, b, mask=mask, bbox=[0, 0, w, h], **kw)
+        out[name] = (len(imgs) - 1) / (time.perf_counter() - t0)
+    print(json.dumps(out))
 
 
-def two(a, b, m=mask, box=bbox):
-    piv_fftmulti(a, b, mask=m, bbox=box, interrogation_area_1=64, interrogation_area_2=32, multipass=True, step=32)
-
-
-out = {"pairs": len(imgs) - 1}
-for name, fn in (("same_window_pairs_per_s", same_window), ("two_pass_pairs_per_s", two)):
-    fn(imgs[0][:256, :256], imgs[1][:256, :256], mask[:256, :256], [0, 0, 256, 256])  # warm-up (numba)
-    t0 = time.perf_counter()
-    for a, b in zip(imgs[:-1], imgs[1:], strict=True):
-        fn(a, b)
-    out[name] = (len(imgs) - 1) / (time.perf_counter() - t0)
-print(json.dumps(out))
+if __name__ == "__main__":
+    main()

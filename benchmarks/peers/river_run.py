@@ -29,6 +29,8 @@ from river.core.coordinate_transform import oblique_view_transformation_matrix  
 from river.core.piv_pipeline import run_analyze_all  # noqa: E402
 from river.core.video_to_frames import video_to_frames  # noqa: E402
 
+#: stations along the section where RIVeR samples the velocity (the 15 subsections of fieldtool's projects)
+NUM_STATIONS = 15
 job = json.loads(Path(sys.argv[1]).read_text())
 px, xy = np.asarray(job["gcp_px"], float), np.asarray(job["gcp_xy_m"], float)
 
@@ -81,7 +83,7 @@ with tempfile.TemporaryDirectory(prefix="river_") as tmp:
             None,
             list(job["bbox_px"]),
             interrogation_area_1=ia,
-            interrogation_area_2=ia // 2 if job.get("multipass", True) else ia,
+            interrogation_area_2=ia // 2,
         )
         bath = work / "bathymetry.csv"
         bath.write_text("station,stage\n" + "".join(f"{s},{z}\n" for s, z in job["bathymetry"]))
@@ -96,7 +98,7 @@ with tempfile.TemporaryDirectory(prefix="river_") as tmp:
                 "left_station": 0.0,
                 "level": float(job["level_m"]),
                 "alpha": float(job["alpha"]),
-                "num_stations": int(job.get("num_stations", 15)),
+                "num_stations": NUM_STATIONS,
                 "rw_length": math.hypot(er - el, nr - nl),
             }
         }
