@@ -9,7 +9,7 @@ Per clip (the clips of ``time_to_q.py``, rendered there once), in alternating ru
 * pyorc at its most accurate setting (``peer_settings.json``) and the decode-only floor, as ``time_to_q.py``
   runs them (their CPU: the process and its children).
 
-Printed: wall s; the run's CPU s and the figures' CPU s; the floor's wall and CPU s; and two bounds on this host
+Printed: wall s; the run's CPU s and the figures' CPU s; the floor's wall and CPU s; and a bound on this host
 (``os.cpu_count()`` cores). A process cannot finish in less wall time than its CPU over the cores, so
 ``run CPU / cores`` is the fastest wall time the run's work allows, even were the figures free and every stage
 perfectly parallel; ``pyorc wall / that`` is the best pyorc ratio without cutting the run's work. Where that
@@ -46,12 +46,10 @@ runpy.run_module("fieldtool.cli.main", run_name="__main__")
 
 
 def run_fieldtool(toml: Path, scratch: Path) -> dict:
-    out = Path(tempfile.mkdtemp(dir=scratch))
-    env = dict(os.environ, PYTHONPATH=str(ttq.REPO))
-    wall, _, text, _ = ttq.timed([sys.executable, "-c", WRAPPER, "run", str(toml), "--out", str(out)], env)
-    cpu = json.loads(next(line for line in text.splitlines() if line.startswith("CPU "))[4:])
-    q = json.loads((out / "result.json").read_text())["discharge_m3s"]
-    return {"s": wall, "run_cpu": cpu["run"], "fig_cpu": cpu["children"], "q": q}
+    """time_to_q.py's run, through WRAPPER: its wall time and discharge, the run's CPU and the figures'."""
+    r = ttq.run_fieldtool(toml, scratch, launcher=("-c", WRAPPER))
+    cpu = json.loads(next(line for line in r["stdout"].splitlines() if line.startswith("CPU "))[4:])
+    return {**r, "run_cpu": cpu["run"], "fig_cpu": cpu["children"]}
 
 
 def main() -> None:

@@ -225,14 +225,16 @@ def timed(cmd: list[str], env: dict | None = None) -> tuple[float, int, str, flo
     return wall, int(ru.ru_maxrss / 1024), text, ru.ru_utime + ru.ru_stime
 
 
-def run_fieldtool(toml: Path, scratch: Path) -> dict:
+def run_fieldtool(toml: Path, scratch: Path, launcher: tuple[str, ...] = ("-m", "fieldtool.cli.main")) -> dict:
+    """One ``fieldtool run`` with the defaults; ``launcher``: the interpreter's arguments before the CLI's
+    (cpu_budget.py's wrapper reports the run's CPU apart from its children's on stdout, returned as "stdout")."""
     out = Path(tempfile.mkdtemp(dir=scratch))
     env = dict(os.environ, PYTHONPATH=str(REPO))
-    wall, mem, _, cpu = timed([sys.executable, "-m", "fieldtool.cli.main", "run", str(toml), "--out", str(out)], env)
+    wall, mem, text, cpu = timed([sys.executable, *launcher, "run", str(toml), "--out", str(out)], env)
     res = json.loads((out / "result.json").read_text())
     shutil.rmtree(out, ignore_errors=True)
     return {"s": wall, "cpu": cpu, "mib": mem, "q": res["discharge_m3s"], "pairs": res.get("pairs_used"),
-            "converged": res.get("converged"), "piv_s": res["timings_s"].get("frames_and_piv")}
+            "converged": res.get("converged"), "piv_s": res["timings_s"].get("frames_and_piv"), "stdout": text}
 
 
 def run_peer(script: str, job: Path) -> dict:
