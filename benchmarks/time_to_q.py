@@ -29,7 +29,8 @@ waits for them), in turn within every repeat (alternating runs), medians over th
 
 Printed per clip: median wall time and every run's, the ratio pyorc / fieldtool (ratio of medians and median of
 the per-run ratios), each discharge and its error against the truth, the difference in percentage points
-between fieldtool's default and its full-frame all-pairs error, pairs used, the peak resident memory of each
+between fieldtool's default and its full-frame all-pairs error, pairs used, fieldtool's frames decoded against the
+frames in its range (result.json ``piv_sampling``; "no Q" where a contestant gave none), the peak resident memory of each
 process (``wait4``'s ru_maxrss) and the load average before and after. Not part of the test run.
 
 ``--engines``: pairs/s on the same 1920x1080 pairs (window 32, overlap 16): fieldtool's engine, OpenPIV 0.26 (its
@@ -234,7 +235,8 @@ def run_fieldtool(toml: Path, scratch: Path, launcher: tuple[str, ...] = ("-m", 
     res = json.loads((out / "result.json").read_text())
     shutil.rmtree(out, ignore_errors=True)
     return {"s": wall, "cpu": cpu, "mib": mem, "q": res["discharge_m3s"], "pairs": res.get("pairs_used"),
-            "converged": res.get("converged"), "piv_s": res["timings_s"].get("frames_and_piv"), "stdout": text}
+            "converged": res.get("converged"), "piv_s": res["timings_s"].get("frames_and_piv"), "stdout": text,
+            "frames": tuple(res.get("piv_sampling", {}).get(k) for k in ("frames_decoded", "frames_in_range"))}
 
 
 def run_peer(script: str, job: Path) -> dict:
@@ -317,14 +319,17 @@ def end_to_end(cs: list[dict], repeats: int, with_pyorc: bool, scratch: Path, re
             med[name] = float(np.median(t))
             pairs = rs[-1]["pairs"]
             cpu = float(np.median([r["cpu"] for r in rs]))
-            print(f"{name:34s} {med[name]:9.2f} {' '.join(f'{v:.1f}' for v in t):>26s} {cpu:7.1f} {q:9.4f} {err(q):+8.2f} "
+            # a contestant without a discharge (the floor; a peer with no valid vector) shows none, not nan
+            qs, es = (f"{q:9.4f}", f"{err(q):+8.2f}") if np.isfinite(q) else (f"{'-':>9s}", f"{'no Q':>8s}")
+            print(f"{name:34s} {med[name]:9.2f} {' '.join(f'{v:.1f}' for v in t):>26s} {cpu:7.1f} {qs} {es} "
                   f"{'' if pairs is None else pairs:>6} {max(r['mib'] for r in rs):9d}")
         fq = float(np.median([r["q"] for r in runs["fieldtool"]]))
         if ref:
             print(f"fieldtool default vs full frame all pairs: {err(fq) - err(ref['q']):+.2f} percentage points of "
                   f"error")
+        decoded = sorted({r["frames"] for r in runs["fieldtool"]})
         print(f"fieldtool default: {med['fieldtool']:.2f} s for a {c['truth']['n_frames'] / c['truth']['fps']:.0f} s "
-              f"clip")
+              f"clip; frames decoded / in range: {', '.join(f'{d} / {n}' for d, n in decoded)}")
         for peer in ("pyorc", "thesis (OpenPIV rust)", "RIVeR"):
             if runs.get(peer):
                 per = np.median([p["s"] / f["s"] for p, f in zip(runs[peer], runs["fieldtool"])])
