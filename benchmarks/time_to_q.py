@@ -30,8 +30,8 @@ waits for them), in turn within every repeat (alternating runs), medians over th
 Printed per clip: median wall time and every run's, the ratio pyorc / fieldtool (ratio of medians and median of
 the per-run ratios), each discharge and its error against the truth, the difference in percentage points
 between fieldtool's default and its full-frame all-pairs error, pairs used, fieldtool's frames decoded against the
-frames in its range (result.json ``piv_sampling``; "no Q" where a contestant gave none), the peak resident memory of each
-process (``wait4``'s ru_maxrss) and the load average before and after. Not part of the test run.
+frames in its range (result.json ``piv_sampling``; "no Q" where a contestant gave none), the peak resident memory
+of each process (``wait4``'s ru_maxrss) and the load average before and after. Not part of the test run.
 
 ``--engines``: pairs/s on the same 1920x1080 pairs (window 32, overlap 16): fieldtool's engine, OpenPIV 0.26 (its
 SciPy and Rust backends), ffpiv, and RIVeR's engine (``peers/river_rate.py`` in ``benchmarks/.river-venv``, pinned
