@@ -327,7 +327,7 @@ def end_to_end(cs: list[dict], repeats: int, with_pyorc: bool, scratch: Path, re
         if ref:
             print(f"fieldtool default vs full frame all pairs: {err(fq) - err(ref['q']):+.2f} percentage points of "
                   f"error")
-        decoded = sorted({r["frames"] for r in runs["fieldtool"]})
+        decoded = dict.fromkeys(r["frames"] for r in runs["fieldtool"])  # the runs' distinct counts, in order
         print(f"fieldtool default: {med['fieldtool']:.2f} s for a {c['truth']['n_frames'] / c['truth']['fps']:.0f} s "
               f"clip; frames decoded / in range: {', '.join(f'{d} / {n}' for d, n in decoded)}")
         for peer in ("pyorc", "thesis (OpenPIV rust)", "RIVeR"):
