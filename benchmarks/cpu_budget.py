@@ -14,6 +14,14 @@ Printed: wall s; the run's CPU s and the figures' CPU s; the floor's wall and CP
 ``run CPU / cores`` is the fastest wall time the run's work allows, even were the figures free and every stage
 perfectly parallel; ``pyorc wall / that`` is the best pyorc ratio without cutting the run's work. Where that
 bound is below 3, ≥ 3× pyorc needs less CPU in the run (decoding, standardising, correlating), not more overlap.
+
+``--ablate``: what two of the defaults cost, the figures (every PNG of the run, drawn in its figure process) and
+STIV's cross-check (``[stiv] enabled``), in alternating runs of four variants of the same project (default, no STIV,
+no figures, neither) beside pyorc: wall s, CPU s (the run and its children) and pyorc / variant per clip. Neither
+changes the discharge (STIV only checks the PIV unless ``[section] velocity_source`` says otherwise); the figures
+are left out by NO_FIGURES below, in the benchmark's process only: fieldtool has no such switch.
+
+    PYTHONPATH=. .venv/bin/python benchmarks/cpu_budget.py --ablate --clips 720p_8s,fast_1080p --repeats 5
 """
 
 from __future__ import annotations
@@ -45,9 +53,23 @@ runpy.run_module("fieldtool.cli.main", run_name="__main__")
 """
 
 
-def run_fieldtool(toml: Path, scratch: Path) -> dict:
-    """time_to_q.py's run, through WRAPPER: its wall time and discharge, the run's CPU and the figures'."""
-    r = ttq.run_fieldtool(toml, scratch, launcher=("-c", WRAPPER))
+# --ablate's run without figures: no figure process, and none of the run's figures drawn in its own process
+NO_FIGURES = """
+import types
+from fieldtool.plots import prerender
+from fieldtool.run import outputs
+import fieldtool.writers as writers
+prerender.start = lambda: None
+outputs.start_prerender = lambda *a, **k: None
+outputs._write_figures = lambda *a, **k: None
+writers._figures = lambda: types.SimpleNamespace(write_profile=lambda *a: (None, None), write_gcp=lambda *a: None)
+"""
+
+
+def run_fieldtool(toml: Path, scratch: Path, figures: bool = True) -> dict:
+    """time_to_q.py's run, through WRAPPER: its wall time and discharge, the run's CPU and the figures'.
+    ``figures=False``: through NO_FIGURES too (``--ablate``)."""
+    r = ttq.run_fieldtool(toml, scratch, launcher=("-c", WRAPPER if figures else NO_FIGURES + WRAPPER))
     cpu = json.loads(next(line for line in r["stdout"].splitlines() if line.startswith("CPU "))[4:])
     return {**r, "run_cpu": cpu["run"], "fig_cpu": cpu["children"]}
 
@@ -57,7 +79,11 @@ def main() -> None:
     ap.add_argument("--root", default=os.path.join(tempfile.gettempdir(), "ft_time_to_q"), help="clip folder")
     ap.add_argument("--clips", default="720p_8s,1080p_30s,fast_1080p,4k_drone")
     ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--ablate", action="store_true", help="the cost of the figures and of STIV (see above)")
     args = ap.parse_args()
+    if args.ablate:
+        ablate(Path(args.root), args.clips.split(","), args.repeats)
+        return
     import compileall
 
     compileall.compile_dir(str(ttq.REPO / "fieldtool"), quiet=1)  # as time_to_q.py: an installed package's pyc
@@ -108,6 +134,55 @@ def main() -> None:
             f"{r['floor_s']:.2f} ({r['floor_cpu']:.2f}) | {r['pyorc_s']:.2f} | {r['pyorc_s'] / r['ft_s']:.2f}× | "
             f"{r['bound_s']:.2f} | {r['pyorc_s'] / r['bound_s']:.2f}× |"
         )
+
+
+#: --ablate's variants: (name, STIV on, figures on)
+VARIANTS = (("default", True, True), ("no STIV", False, True), ("no figures", True, False), ("neither", False, False))
+
+
+def no_stiv(toml: Path) -> Path:
+    """A copy of ``toml`` beside it with ``[stiv] enabled = false`` (tomlkit: the rest as written)."""
+    import tomlkit
+
+    doc = tomlkit.parse(toml.read_text())
+    doc["stiv"]["enabled"] = False  # type: ignore[index]
+    out = toml.with_name("noroi_nostiv.toml")
+    out.write_text(tomlkit.dumps(doc))
+    return out
+
+
+def ablate(root: Path, names: list[str], repeats: int) -> None:
+    """The four VARIANTS and pyorc, alternating, per clip; a table of medians."""
+    best = ttq.best_settings()
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="cpu_budget_") as tmp:
+        scratch = Path(tmp)
+        for c in ttq.clips(root, names):
+            tomls = {True: c["dir"] / "noroi.toml", False: no_stiv(c["dir"] / "noroi.toml")}
+            job = ttq.pyorc_job(c, best["pyorc"])
+            runs: dict[str, list[dict]] = {v[0]: [] for v in VARIANTS} | {"pyorc": []}
+            for _ in range(repeats):  # alternating
+                for name, stiv_on, figures in VARIANTS:
+                    runs[name].append(run_fieldtool(tomls[stiv_on], scratch, figures=figures))
+                runs["pyorc"].append(ttq.run_peer("pyorc_run.py", job))
+            py = float(np.median([r["s"] for r in runs["pyorc"]]))
+            for name, *_ in VARIANTS:
+                rs = runs[name]
+                wall = float(np.median([r["s"] for r in rs]))
+                cpu = float(np.median([r["run_cpu"] + r["fig_cpu"] for r in rs]))
+                qs = sorted({round(r["q"], 6) for r in rs})
+                rows.append((c["name"], name, wall, cpu, py, qs))
+                print(f"{c['name']} {name}: " + " ".join(f"{r['s']:.2f}" for r in rs) + f" s; Q {qs}")
+            print(f"{c['name']} pyorc: " + " ".join(f"{r['s']:.2f}" for r in runs["pyorc"]) + " s")
+    print(
+        f"\nThe cost of the figures and of STIV, {os.cpu_count()} cores, {repeats} alternating runs, medians, load "
+        f"average {os.getloadavg()[0]:.2f} at the end; pyorc at {best['pyorc'][0]} m / {best['pyorc'][1]} px"
+    )
+    print("| clip | variant | wall s | CPU s (with children) | pyorc s | pyorc / variant | Q m³/s |")
+    print("|---|---|---|---|---|---|---|")
+    for clip, name, wall, cpu, py, qs in rows:
+        q = ", ".join(f"{x:.4f}" for x in qs)
+        print(f"| {clip} | {name} | {wall:.2f} | {cpu:.2f} | {py:.2f} | {py / wall:.2f}× | {q} |")
 
 
 if __name__ == "__main__":

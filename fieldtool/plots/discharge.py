@@ -51,10 +51,14 @@ def _working_rgb(first_bgr: np.ndarray, inputs) -> np.ndarray:
 
 
 def _show(ax, rgb: np.ndarray, extent, max_side_px: int = 1000) -> None:
-    """imshow of an image already shrunk to about the figure's resolution (the same extent)."""
+    """imshow of an image already shrunk to about the figure's resolution (the same extent). A uint8 RGB image
+    goes in as opaque RGBA: matplotlib stacks an RGB image's alpha as float64 and resamples the whole image in
+    float64, an RGBA one in float32; the same pixels in the PNG, 10-15 % less of an image figure's time."""
     scale = max_side_px / max(rgb.shape[:2])
     if scale < 1:
         rgb = cv2.resize(rgb, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+    if rgb.dtype == np.uint8 and rgb.ndim == 3 and rgb.shape[2] == 3:
+        rgb = cv2.cvtColor(rgb, cv2.COLOR_RGB2RGBA)
     ax.imshow(rgb, extent=extent, interpolation="nearest")
 
 
