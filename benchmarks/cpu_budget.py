@@ -27,6 +27,7 @@ are left out by NO_FIGURES below, in the benchmark's process only: fieldtool has
 from __future__ import annotations
 
 import argparse
+import compileall
 import json
 import os
 import sys
@@ -35,6 +36,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import tomlkit
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
@@ -81,12 +83,10 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--ablate", action="store_true", help="the cost of the figures and of STIV (see above)")
     args = ap.parse_args()
+    compileall.compile_dir(str(ttq.REPO / "fieldtool"), quiet=1)  # as time_to_q.py: an installed package's pyc
     if args.ablate:
         ablate(Path(args.root), args.clips.split(","), args.repeats)
         return
-    import compileall
-
-    compileall.compile_dir(str(ttq.REPO / "fieldtool"), quiet=1)  # as time_to_q.py: an installed package's pyc
     cores = os.cpu_count() or 1
     rows = []
     best = ttq.best_settings()
@@ -142,8 +142,6 @@ VARIANTS = (("default", True, True), ("no STIV", False, True), ("no figures", Tr
 
 def no_stiv(toml: Path) -> Path:
     """A copy of ``toml`` beside it with ``[stiv] enabled = false`` (tomlkit: the rest as written)."""
-    import tomlkit
-
     doc = tomlkit.parse(toml.read_text())
     doc["stiv"]["enabled"] = False  # type: ignore[index]
     out = toml.with_name("noroi_nostiv.toml")
