@@ -144,7 +144,7 @@ def no_stiv(toml: Path) -> Path:
     """A copy of ``toml`` beside it with ``[stiv] enabled = false`` (tomlkit: the rest as written)."""
     doc = tomlkit.parse(toml.read_text())
     doc["stiv"]["enabled"] = False  # type: ignore[index]
-    out = toml.with_name("noroi_nostiv.toml")
+    out = toml.with_name(f"{toml.stem}_nostiv.toml")
     out.write_text(tomlkit.dumps(doc))
     return out
 
