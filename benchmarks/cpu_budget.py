@@ -22,6 +22,13 @@ changes the discharge (STIV only checks the PIV unless ``[section] velocity_sour
 are left out by NO_FIGURES below, in the benchmark's process only: fieldtool has no such switch.
 
     PYTHONPATH=. .venv/bin/python benchmarks/cpu_budget.py --ablate --clips 720p_8s,fast_1080p --repeats 5
+
+``--trees A,B``: the four variants of each source tree, all alternating (each row named by its tree's folder).
+Stop 47 ran this repository against a worktree with stop 46's decoding ahead (``experiments/decode_ahead.diff``,
+not landed), to see whether decoding ahead pays once the figures leave the second core free:
+
+    git worktree add /tmp/ahead HEAD && git -C /tmp/ahead apply benchmarks/experiments/decode_ahead.diff
+    PYTHONPATH=. .venv/bin/python benchmarks/cpu_budget.py --ablate --trees .,/tmp/ahead --clips 720p_8s,fast_1080p
 """
 
 from __future__ import annotations
@@ -68,10 +75,11 @@ writers._figures = lambda: types.SimpleNamespace(write_profile=lambda *a: (None,
 """
 
 
-def run_fieldtool(toml: Path, scratch: Path, figures: bool = True) -> dict:
+def run_fieldtool(toml: Path, scratch: Path, figures: bool = True, tree: Path | None = None) -> dict:
     """time_to_q.py's run, through WRAPPER: its wall time and discharge, the run's CPU and the figures'.
-    ``figures=False``: through NO_FIGURES too (``--ablate``)."""
-    r = ttq.run_fieldtool(toml, scratch, launcher=("-c", WRAPPER if figures else NO_FIGURES + WRAPPER))
+    ``figures=False``: through NO_FIGURES too (``--ablate``); ``tree``: the source tree run (this repository's)."""
+    launcher = ("-c", WRAPPER if figures else NO_FIGURES + WRAPPER)
+    r = ttq.run_fieldtool(toml, scratch, launcher=launcher, tree=tree)
     cpu = json.loads(next(line for line in r["stdout"].splitlines() if line.startswith("CPU "))[4:])
     return {**r, "run_cpu": cpu["run"], "fig_cpu": cpu["children"]}
 
@@ -82,10 +90,13 @@ def main() -> None:
     ap.add_argument("--clips", default="720p_8s,1080p_30s,fast_1080p,4k_drone")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--ablate", action="store_true", help="the cost of the figures and of STIV (see above)")
+    ap.add_argument("--trees", default="", help="--ablate: source trees to alternate, comma-separated (see above)")
     args = ap.parse_args()
-    compileall.compile_dir(str(ttq.REPO / "fieldtool"), quiet=1)  # as time_to_q.py: an installed package's pyc
+    trees = [Path(t).resolve() for t in args.trees.split(",") if t] or None
+    for tree in trees or [ttq.REPO]:  # as time_to_q.py: an installed package's pyc
+        compileall.compile_dir(str(tree / "fieldtool"), quiet=1)
     if args.ablate:
-        ablate(Path(args.root), args.clips.split(","), args.repeats)
+        ablate(Path(args.root), args.clips.split(","), args.repeats, trees)
         return
     cores = os.cpu_count() or 1
     rows = []
@@ -149,8 +160,9 @@ def no_stiv(toml: Path) -> Path:
     return out
 
 
-def ablate(root: Path, names: list[str], repeats: int) -> None:
-    """The four VARIANTS and pyorc, alternating, per clip; a table of medians."""
+def ablate(root: Path, names: list[str], repeats: int, trees: list[Path] | None = None) -> None:
+    """The four VARIANTS and pyorc, alternating, per clip; a table of medians. ``trees``: source trees of
+    fieldtool (``PYTHONPATH``) whose variants alternate too (default: this repository's)."""
     best = ttq.best_settings()
     rows = []
     with tempfile.TemporaryDirectory(prefix="cpu_budget_") as tmp:
@@ -158,13 +170,15 @@ def ablate(root: Path, names: list[str], repeats: int) -> None:
         for c in ttq.clips(root, names):
             tomls = {True: c["dir"] / "noroi.toml", False: no_stiv(c["dir"] / "noroi.toml")}
             job = ttq.pyorc_job(c, best["pyorc"])
-            runs: dict[str, list[dict]] = {v[0]: [] for v in VARIANTS} | {"pyorc": []}
+            label = {t: (f"{t.name} " if len(trees or ()) > 1 else "") for t in trees or [ttq.REPO]}
+            variants = [(label[t] + name, t, stiv_on, figures) for t in label for name, stiv_on, figures in VARIANTS]
+            runs: dict[str, list[dict]] = {v[0]: [] for v in variants} | {"pyorc": []}
             for _ in range(repeats):  # alternating
-                for name, stiv_on, figures in VARIANTS:
-                    runs[name].append(run_fieldtool(tomls[stiv_on], scratch, figures=figures))
+                for name, tree, stiv_on, figures in variants:
+                    runs[name].append(run_fieldtool(tomls[stiv_on], scratch, figures=figures, tree=tree))
                 runs["pyorc"].append(ttq.run_peer("pyorc_run.py", job))
             py = float(np.median([r["s"] for r in runs["pyorc"]]))
-            for name, *_ in VARIANTS:
+            for name, *_ in variants:
                 rs = runs[name]
                 wall = float(np.median([r["s"] for r in rs]))
                 cpu = float(np.median([r["run_cpu"] + r["fig_cpu"] for r in rs]))

@@ -209,12 +209,13 @@ def peers_python(venv: Path = PEERS_VENV, pins: list[str] = PEERS) -> Path:
     return py
 
 
-def timed(cmd: list[str], env: dict | None = None) -> tuple[float, int, str, float]:
-    """Run ``cmd``; (wall s, peak resident memory MiB of that process, stdout, CPU s of that process and its
+def timed(cmd: list[str], env: dict | None = None, cwd: Path = REPO) -> tuple[float, int, str, float]:
+    """Run ``cmd`` in ``cwd`` (a ``-c`` launcher imports fieldtool from there first); (wall s, peak resident
+    memory MiB of that process, stdout, CPU s of that process and its
     threads: user + system, which a shared machine's load inflates far less than the wall time)."""
     t0 = time.perf_counter()
     with tempfile.TemporaryFile() as out, tempfile.TemporaryFile() as err:
-        p = subprocess.Popen(cmd, stdout=out, stderr=err, env=env, cwd=REPO)
+        p = subprocess.Popen(cmd, stdout=out, stderr=err, env=env, cwd=cwd)
         _, status, ru = os.wait4(p.pid, 0)
         wall = time.perf_counter() - t0
         p.returncode = os.waitstatus_to_exitcode(status)
@@ -226,12 +227,15 @@ def timed(cmd: list[str], env: dict | None = None) -> tuple[float, int, str, flo
     return wall, int(ru.ru_maxrss / 1024), text, ru.ru_utime + ru.ru_stime
 
 
-def run_fieldtool(toml: Path, scratch: Path, launcher: tuple[str, ...] = ("-m", "fieldtool.cli.main")) -> dict:
+def run_fieldtool(
+    toml: Path, scratch: Path, launcher: tuple[str, ...] = ("-m", "fieldtool.cli.main"), tree: Path | None = None
+) -> dict:
     """One ``fieldtool run`` with the defaults; ``launcher``: the interpreter's arguments before the CLI's
-    (cpu_budget.py's wrapper reports the run's CPU apart from its children's on stdout, returned as "stdout")."""
+    (cpu_budget.py's wrapper reports the run's CPU apart from its children's on stdout, returned as "stdout");
+    ``tree``: the source tree run (this repository's by default; cpu_budget.py --trees)."""
     out = Path(tempfile.mkdtemp(dir=scratch))
-    env = dict(os.environ, PYTHONPATH=str(REPO))
-    wall, mem, text, cpu = timed([sys.executable, *launcher, "run", str(toml), "--out", str(out)], env)
+    env = dict(os.environ, PYTHONPATH=str(tree or REPO))
+    wall, mem, text, cpu = timed([sys.executable, *launcher, "run", str(toml), "--out", str(out)], env, tree or REPO)
     res = json.loads((out / "result.json").read_text())
     shutil.rmtree(out, ignore_errors=True)
     return {"s": wall, "cpu": cpu, "mib": mem, "q": res["discharge_m3s"], "pairs": res.get("pairs_used"),
