@@ -170,7 +170,11 @@ def ablate(root: Path, names: list[str], repeats: int, trees: list[Path] | None 
         for c in ttq.clips(root, names):
             tomls = {True: c["dir"] / "noroi.toml", False: no_stiv(c["dir"] / "noroi.toml")}
             job = ttq.pyorc_job(c, best["pyorc"])
-            label = {t: (f"{t.name} " if len(trees or ()) > 1 else "") for t in trees or [ttq.REPO]}
+            named = [t.name for t in trees or []]  # rows named by the trees' folders, or their paths where alike
+            label = {
+                t: f"{t.name if named.count(t.name) == 1 else t} " if len(named) > 1 else ""
+                for t in trees or [ttq.REPO]
+            }
             variants = [(label[t] + name, t, stiv_on, figures) for t in label for name, stiv_on, figures in VARIANTS]
             runs: dict[str, list[dict]] = {v[0]: [] for v in variants} | {"pyorc": []}
             for _ in range(repeats):  # alternating

@@ -211,8 +211,8 @@ def peers_python(venv: Path = PEERS_VENV, pins: list[str] = PEERS) -> Path:
 
 def timed(cmd: list[str], env: dict | None = None, cwd: Path = REPO) -> tuple[float, int, str, float]:
     """Run ``cmd`` in ``cwd`` (a ``-c`` launcher imports fieldtool from there first); (wall s, peak resident
-    memory MiB of that process, stdout, CPU s of that process and its
-    threads: user + system, which a shared machine's load inflates far less than the wall time)."""
+    memory MiB of that process, stdout, CPU s of that process and its threads: user + system, which a shared
+    machine's load inflates far less than the wall time)."""
     t0 = time.perf_counter()
     with tempfile.TemporaryFile() as out, tempfile.TemporaryFile() as err:
         p = subprocess.Popen(cmd, stdout=out, stderr=err, env=env, cwd=cwd)
