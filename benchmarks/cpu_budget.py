@@ -75,7 +75,7 @@ writers._figures = lambda: types.SimpleNamespace(write_profile=lambda *a: (None,
 """
 
 
-def run_fieldtool(toml: Path, scratch: Path, figures: bool = True, tree: Path | None = None) -> dict:
+def run_fieldtool(toml: Path, scratch: Path, figures: bool = True, tree: Path = ttq.REPO) -> dict:
     """time_to_q.py's run, through WRAPPER: its wall time and discharge, the run's CPU and the figures'.
     ``figures=False``: through NO_FIGURES too (``--ablate``); ``tree``: the source tree run (this repository's)."""
     launcher = ("-c", WRAPPER if figures else NO_FIGURES + WRAPPER)
@@ -165,17 +165,14 @@ def ablate(root: Path, names: list[str], repeats: int, trees: list[Path] | None 
     fieldtool (``PYTHONPATH``) whose variants alternate too (default: this repository's)."""
     best = ttq.best_settings()
     rows = []
+    named = [t.name for t in trees or []]  # rows named by the trees' folders, or their paths where alike
+    label = {t: f"{t.name if named.count(t.name) == 1 else t} " if len(named) > 1 else "" for t in trees or [ttq.REPO]}
+    variants = [(label[t] + name, t, stiv_on, figures) for t in label for name, stiv_on, figures in VARIANTS]
     with tempfile.TemporaryDirectory(prefix="cpu_budget_") as tmp:
         scratch = Path(tmp)
         for c in ttq.clips(root, names):
             tomls = {True: c["dir"] / "noroi.toml", False: no_stiv(c["dir"] / "noroi.toml")}
             job = ttq.pyorc_job(c, best["pyorc"])
-            named = [t.name for t in trees or []]  # rows named by the trees' folders, or their paths where alike
-            label = {
-                t: f"{t.name if named.count(t.name) == 1 else t} " if len(named) > 1 else ""
-                for t in trees or [ttq.REPO]
-            }
-            variants = [(label[t] + name, t, stiv_on, figures) for t in label for name, stiv_on, figures in VARIANTS]
             runs: dict[str, list[dict]] = {v[0]: [] for v in variants} | {"pyorc": []}
             for _ in range(repeats):  # alternating
                 for name, tree, stiv_on, figures in variants:

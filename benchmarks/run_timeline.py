@@ -3,7 +3,8 @@
     PYTHONPATH=. .venv/bin/python benchmarks/run_timeline.py /tmp/ft_time_to_q/720p_8s/noroi.toml
 
 The project (any; time_to_q.py's clips are rendered under /tmp/ft_time_to_q) runs once, in a process of its own
-and a session of its own, with the defaults. Printed:
+and a session of its own, with the defaults, into a temporary folder removed afterwards (``--tree``: another source
+tree's code, run from its own folder). Printed:
 
 * the stage marks, from wrappers around the run's stages in that process (when each starts, s after this script
   started the process, and its own s): the imports, STIV's lines, the clip check, the first look, the pass
@@ -112,22 +113,26 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("project", type=Path)
     ap.add_argument("--every", type=float, default=0.1, help="s between samples")
+    ap.add_argument("--tree", type=Path, default=HERE.parent, help="the source tree run (this repository's)")
     args = ap.parse_args()
-    out = Path(tempfile.mkdtemp(prefix="run_timeline_")) / "out"
-    env = dict(os.environ, PYTHONPATH=os.environ.get("PYTHONPATH", str(HERE.parent)))
-    cmd = [sys.executable, "-c", WRAPPER, "run", str(args.project), "--out", str(out)]
+    tree = args.tree.resolve()
     t0 = time.time()
-    env["RUN_TIMELINE_T0"] = repr(t0)
-    p = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env, start_new_session=True)
-    err: list[bytes] = []
-    reader = threading.Thread(target=lambda: err.extend(p.stderr or []), daemon=True)
-    reader.start()
-    samples = []
-    while p.poll() is None:
-        samples.append((time.time() - t0, session_threads(p.pid)))
-        time.sleep(args.every)
-    wall = time.time() - t0
-    reader.join(5)
+    # run from the tree's folder: a -c launcher imports fieldtool from the working directory before PYTHONPATH
+    env = dict(os.environ, PYTHONPATH=str(tree), RUN_TIMELINE_T0=repr(t0))
+    with tempfile.TemporaryDirectory(prefix="run_timeline_") as tmp:
+        cmd = [sys.executable, "-c", WRAPPER, "run", str(args.project.resolve()), "--out", str(Path(tmp) / "out")]
+        p = subprocess.Popen(
+            cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env, cwd=tree, start_new_session=True
+        )
+        err: list[bytes] = []
+        reader = threading.Thread(target=lambda: err.extend(p.stderr or []), daemon=True)
+        reader.start()
+        samples = []
+        while p.poll() is None:
+            samples.append((time.time() - t0, session_threads(p.pid)))
+            time.sleep(args.every)
+        wall = time.time() - t0
+        reader.join(5)
     text = b"".join(err).decode(errors="replace")
     line = next((x for x in text.splitlines() if x.startswith("TIMELINE ")), None)
     if line is None:

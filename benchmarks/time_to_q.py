@@ -228,14 +228,14 @@ def timed(cmd: list[str], env: dict | None = None, cwd: Path = REPO) -> tuple[fl
 
 
 def run_fieldtool(
-    toml: Path, scratch: Path, launcher: tuple[str, ...] = ("-m", "fieldtool.cli.main"), tree: Path | None = None
+    toml: Path, scratch: Path, launcher: tuple[str, ...] = ("-m", "fieldtool.cli.main"), tree: Path = REPO
 ) -> dict:
     """One ``fieldtool run`` with the defaults; ``launcher``: the interpreter's arguments before the CLI's
     (cpu_budget.py's wrapper reports the run's CPU apart from its children's on stdout, returned as "stdout");
     ``tree``: the source tree run (this repository's by default; cpu_budget.py --trees)."""
     out = Path(tempfile.mkdtemp(dir=scratch))
-    env = dict(os.environ, PYTHONPATH=str(tree or REPO))
-    wall, mem, text, cpu = timed([sys.executable, *launcher, "run", str(toml), "--out", str(out)], env, tree or REPO)
+    env = dict(os.environ, PYTHONPATH=str(tree))
+    wall, mem, text, cpu = timed([sys.executable, *launcher, "run", str(toml), "--out", str(out)], env, tree)
     res = json.loads((out / "result.json").read_text())
     shutil.rmtree(out, ignore_errors=True)
     return {"s": wall, "cpu": cpu, "mib": mem, "q": res["discharge_m3s"], "pairs": res.get("pairs_used"),
