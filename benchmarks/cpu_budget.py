@@ -93,6 +93,9 @@ def main() -> None:
     ap.add_argument("--trees", default="", help="--ablate: source trees to alternate, comma-separated (see above)")
     args = ap.parse_args()
     trees = [Path(t).resolve() for t in args.trees.split(",") if t] or None
+    for tree in trees or []:
+        if not (tree / "fieldtool").is_dir():
+            ap.error(f"--trees: {tree}: no fieldtool package there; give checkouts of this repository")
     for tree in trees or [ttq.REPO]:  # as time_to_q.py: an installed package's pyc
         compileall.compile_dir(str(tree / "fieldtool"), quiet=1)
     if args.ablate:
