@@ -10,9 +10,9 @@ Per clip (the clips of ``time_to_q.py``, rendered there once), in alternating ru
   runs them (their CPU: the process and its children).
 
 Printed: wall s; the run's CPU s and the figures' CPU s; the floor's wall and CPU s; and a bound on this host
-(``os.cpu_count()`` cores). A process cannot finish in less wall time than its CPU over the cores, so
-``run CPU / cores`` is the fastest wall time the run's work allows, even were the figures free and every stage
-perfectly parallel; ``pyorc wall / that`` is the best pyorc ratio without cutting the run's work. Where that
+(the cores it may use: ``time_to_q.cores()``). A process cannot finish in less wall time than its CPU over the
+cores, so ``run CPU / cores`` is the fastest wall time the run's work allows, even were the figures free and every
+stage perfectly parallel; ``pyorc wall / that`` is the best pyorc ratio without cutting the run's work. Where that
 bound is below 3, ≥ 3× pyorc needs less CPU in the run (decoding, standardising, correlating), not more overlap.
 
 ``--ablate``: what two of the defaults cost, the figures (every PNG of the run, drawn in its figure process) and
@@ -101,7 +101,7 @@ def main() -> None:
     if args.ablate:
         ablate(Path(args.root), args.clips.split(","), args.repeats, trees)
         return
-    cores = os.cpu_count() or 1
+    cores = ttq.cores()
     rows = []
     best = ttq.best_settings()
     with tempfile.TemporaryDirectory(prefix="cpu_budget_") as tmp:
@@ -191,7 +191,7 @@ def ablate(root: Path, names: list[str], repeats: int, trees: list[Path] | None 
                 print(f"{c['name']} {name}: " + " ".join(f"{r['s']:.2f}" for r in rs) + f" s; Q {qs}")
             print(f"{c['name']} pyorc: " + " ".join(f"{r['s']:.2f}" for r in runs["pyorc"]) + " s")
     print(
-        f"\nThe cost of the figures and of STIV, {os.cpu_count()} cores, {repeats} alternating runs, medians, load "
+        f"\nThe cost of the figures and of STIV, {ttq.cores()} cores, {repeats} alternating runs, medians, load "
         f"average {os.getloadavg()[0]:.2f} at the end; pyorc at {best['pyorc'][0]} m / {best['pyorc'][1]} px"
     )
     print("| clip | variant | wall s | CPU s (with children) | pyorc s | pyorc / variant | Q m³/s |")

@@ -31,6 +31,8 @@ import time
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
+import time_to_q as ttq  # noqa: E402
 
 # the run, in-process: marks around its stages and the name of each thread (by its kernel id), printed at exit
 WRAPPER = r"""
@@ -144,7 +146,7 @@ def main() -> None:
     info = json.loads(line[len("TIMELINE ") :])
     names = {int(k): v for k, v in info["names"].items()}
     print(
-        f"{args.project}: {wall:.2f} s wall, exit {p.returncode}, {os.cpu_count()} cores, load average "
+        f"{args.project}: {wall:.2f} s wall, exit {p.returncode}, {ttq.cores()} cores, load average "
         f"{os.getloadavg()[0]:.2f}\n\n| stage | starts s | takes s |\n|---|---|---|"
     )
     for label, start, took in sorted(info["marks"], key=lambda m: m[1]):

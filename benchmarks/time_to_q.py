@@ -5,6 +5,7 @@
     .venv/bin/python benchmarks/time_to_q.py --engines             # engine table: fieldtool, OpenPIV, ffpiv, RIVeR
     .venv/bin/python benchmarks/time_to_q.py --profile             # cProfile top entries, 720p, before/after
     .venv/bin/python benchmarks/time_to_q.py --clips 720p_8s --sweep --sweep-peers river --river   # RIVeR too
+    .venv/bin/python benchmarks/time_to_q.py --cores 1 --clips 720p_8s,fast_1080p   # every contestant on 1 core
 
 Clips (rendered once into --root by the generator, exact truth from ``River.truth()``): the ``oblique`` scene
 at 1280x720 for 8 s, the same at 1920x1080 for 30 s, and helper robust's ``fast_1080p`` hard preset when
@@ -32,6 +33,10 @@ the per-run ratios), each discharge and its error against the truth, the differe
 between fieldtool's default and its full-frame all-pairs error, pairs used, fieldtool's frames decoded against the
 frames in its range (result.json ``piv_sampling``; "no Q" where a contestant gave none), the peak resident memory
 of each process (``wait4``'s ru_maxrss) and the load average before and after. Not part of the test run.
+
+``--cores N``: this process, and so every contestant it starts, runs on N of the cores it may use (its CPU
+affinity, as ``taskset``): how each contestant's time scales with the cores (2 and 1 here; the header line says
+how many each set had).
 
 ``--engines``: pairs/s on the same 1920x1080 pairs (window 32, overlap 16): fieldtool's engine, OpenPIV 0.26 (its
 SciPy and Rust backends), ffpiv, and RIVeR's engine (``peers/river_rate.py`` in ``benchmarks/.river-venv``, pinned
@@ -75,6 +80,19 @@ RIVER_VENV = HERE / ".river-venv"
 RIVER = ["river-cli==3.7.0"]
 # RIVeR's main setting, its interrogation area (px; its second pass takes half of it): RIVeR's default is 128
 RIVER_SWEEP = [32, 64, 96, 128, 192]
+
+
+def cores() -> int:
+    """The cores this process may run on (its affinity: ``--cores``, ``taskset``), which its children inherit."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
+def limit_cores(n: int) -> None:
+    """Run this process and every contestant it starts on the first ``n`` cores it may use (``--cores``)."""
+    allowed = sorted(os.sched_getaffinity(0))
+    if not 1 <= n <= len(allowed):
+        raise ValueError(f"--cores {n}: this machine lets the benchmark use 1 to {len(allowed)} cores")
+    os.sched_setaffinity(0, allowed[:n])
 
 
 # --------------------------------------------------------------------------------------------- clips
@@ -308,7 +326,7 @@ def end_to_end(cs: list[dict], repeats: int, with_pyorc: bool, scratch: Path, re
                     runs[name].append(run_peer(script, job))
         load1 = os.getloadavg()
         print(f"\n== {c['name']}: {c['truth']['n_frames']} frames, true Q {truth:.4f} m³/s; "
-              f"{os.cpu_count()} cores, load average {load0[0]:.2f} before, {load1[0]:.2f} after")
+              f"{cores()} cores, load average {load0[0]:.2f} before, {load1[0]:.2f} after")
         print(f"peer settings (most accurate of the sweep on {json.loads(SETTINGS.read_text())['clip'] if SETTINGS.is_file() else 'the issue'}): "
               f"pyorc resolution {best['pyorc'][0]} m, window {best['pyorc'][1]} px; thesis window "
               f"{best['thesis'][0]} px, overlap {best['thesis'][0] // 2} px, s2n {best['thesis'][1]}"
@@ -389,7 +407,7 @@ def engines(runs: int, n_pairs: int, ens_pairs: int, scratch: Path) -> None:
         for name, key in river.items():
             times[name].append(rates[key])
     print(f"\nEngines: 1920x1080, window 32, overlap 16, {n_pairs} pairs per call ({ens_pairs} for the ensemble), "
-          f"{runs} alternating runs, {os.cpu_count()} cores, load average {os.getloadavg()[0]:.2f} at the end")
+          f"{runs} alternating runs, {cores()} cores, load average {os.getloadavg()[0]:.2f} at the end")
     print(f"{'engine':36s} {'median pairs/s':>14s} {'runs':>28s} {'vs fieldtool single':>20s}")
     base = float(np.median(times["fieldtool single pass (mean)"]))
     for name, v in times.items():
@@ -447,7 +465,13 @@ def main() -> None:
     ap.add_argument("--pairs", type=int, default=4, help="engine table: pairs per call")
     ap.add_argument("--ensemble-pairs", type=int, default=60, help="engine table: pairs of the ensemble clip")
     ap.add_argument("--profile", action="store_true", help="cProfile the first clip, before/after")
+    ap.add_argument("--cores", type=int, help="run every contestant on this many cores only (default: all)")
     args = ap.parse_args()
+    if args.cores is not None:
+        try:
+            limit_cores(args.cores)
+        except ValueError as e:
+            ap.error(str(e))
     root = Path(args.root)
     root.mkdir(parents=True, exist_ok=True)
     scratch = Path(tempfile.mkdtemp(prefix="ttq_"))
