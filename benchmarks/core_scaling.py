@@ -37,7 +37,7 @@ EXTRAPOLATE = (4, 8)
 
 def on_cores(n: int, allowed: list[int], run):
     """``run()`` with this process (and so the child it starts) on the first ``n`` of ``allowed`` cores."""
-    os.sched_setaffinity(0, allowed[:n])
+    ttq.limit_cores(n)
     try:
         return run()
     finally:
@@ -106,9 +106,7 @@ def main() -> None:
         ap.error(f"--cores {args.cores!r}: give whole numbers separated by commas, e.g. 1,2")
     if not counts or any(not 1 <= n <= len(allowed) for n in counts):
         ap.error(f"--cores {args.cores}: this machine lets the benchmark use 1 to {len(allowed)} cores")
-    import compileall
-
-    compileall.compile_dir(str(ttq.REPO / "fieldtool"), quiet=1)  # as time_to_q.py: an installed package's pyc
+    ttq.byte_compile()
     with tempfile.TemporaryDirectory(prefix="core_scaling_") as tmp:
         for c in ttq.clips(Path(args.root), args.clips.split(",")):
             scale(c, sorted(set(counts)), args.repeats, Path(tmp), allowed)

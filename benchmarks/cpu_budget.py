@@ -34,7 +34,6 @@ not landed), to see whether decoding ahead pays once the figures leave the secon
 from __future__ import annotations
 
 import argparse
-import compileall
 import json
 import os
 import sys
@@ -96,8 +95,8 @@ def main() -> None:
     for tree in trees or []:
         if not (tree / "fieldtool").is_dir():
             ap.error(f"--trees: {tree}: no fieldtool package there; give checkouts of this repository")
-    for tree in trees or [ttq.REPO]:  # as time_to_q.py: an installed package's pyc
-        compileall.compile_dir(str(tree / "fieldtool"), quiet=1)
+    for tree in trees or [ttq.REPO]:
+        ttq.byte_compile(tree)
     if args.ablate:
         ablate(Path(args.root), args.clips.split(","), args.repeats, trees)
         return

@@ -51,6 +51,7 @@ default.
 from __future__ import annotations
 
 import argparse
+import compileall
 import json
 import os
 import shutil
@@ -93,6 +94,13 @@ def limit_cores(n: int) -> None:
     if not 1 <= n <= len(allowed):
         raise ValueError(f"--cores {n}: this machine lets the benchmark use 1 to {len(allowed)} cores")
     os.sched_setaffinity(0, allowed[:n])
+
+
+def byte_compile(tree: Path = REPO) -> None:
+    """``tree``'s fieldtool modules byte-compiled before its runs are timed, as pip does for an installed package
+    (pyorc's are): an editable install where PYTHONDONTWRITEBYTECODE is set would otherwise compile about 50
+    modules on every run (0.1 s)."""
+    compileall.compile_dir(str(tree / "fieldtool"), quiet=1)
 
 
 # --------------------------------------------------------------------------------------------- clips
@@ -302,11 +310,7 @@ def sweep(c: dict, peers: list[str]) -> None:
 
 def end_to_end(cs: list[dict], repeats: int, with_pyorc: bool, scratch: Path, reference: bool = True,
                river: bool = False) -> None:
-    # fieldtool's modules byte-compiled first, as pip does for an installed package (pyorc's are): an editable
-    # install where PYTHONDONTWRITEBYTECODE is set would otherwise compile about 50 modules on every run (0.1 s)
-    import compileall
-
-    compileall.compile_dir(str(REPO / "fieldtool"), quiet=1)
+    byte_compile()
     for c in cs:
         truth = c["truth"]["discharge_m3s"]
         err = lambda q: 100.0 * (q / truth - 1.0)  # noqa: E731
