@@ -39,6 +39,7 @@ class Frame(NamedTuple):
     index: int  # position in the clip (0-based, before the step is applied)
     t_s: float  # time from the start of the clip (s)
     image: np.ndarray  # gray uint8, H x W
+    patches: tuple | None = None  # grey uint8 crops of the boxes :meth:`FrameSource.head` was asked for
 
 
 @dataclass(frozen=True)
@@ -205,17 +206,34 @@ class FrameSource:
         (PyAV converts only the region to grey; processing/video_av.py)."""
         return self._stream(want, region)
 
-    def head(self, n: int, region: Box | None = None) -> list[Frame]:
+    def head(self, n: int, region: Box | None = None, patches: list[Box] | None = None) -> list[Frame]:
         """The first ``n`` frames of the range (fewer in a shorter clip). A video's next pass replays them and
         continues the decoder that read them, so that a look at the first frames (run/clip_check.py) costs no
         decoding of its own; the frames must not be written into. ``region`` as in :meth:`iter_wanted`: the
-        next pass continues this one only if it asks for a region inside this one."""
+        next pass continues this one only if it asks for a region inside this one. ``patches``: boxes (x0, y0,
+        x1, y1 px) whose grey crops come with each frame (``Frame.patches``), wherever ``region`` is (the fixed
+        points' patches, run/camera.py). A second call for a region inside the first's and no patches takes
+        the frames the first read, without decoding them again."""
         if self.files is not None:
-            return list(islice(self._iter_sequence(), n))
-        rest = self._iter_video(region=region)
+            return [self._with_patches(f, patches) for f in islice(self._iter_sequence(), n)]
+        held = self._head
+        if held is not None and not patches and _inside(region, held[2]) and len(held[0]) >= n:
+            return list(islice(held[0], n))
+        if held is not None:
+            held[1].close()
+        cell = [tuple(patches)] if patches else [None]
+        rest = self._iter_video(region=region, patches=cell)
         got = list(islice(rest, n))
+        cell[0] = None  # the pass that continues from here reads no patches
         self._head = (deque(got), rest, region)
         return got
+
+    @staticmethod
+    def _with_patches(f: Frame, boxes) -> Frame:
+        """``f`` with the crops of ``boxes`` from its (whole) image."""
+        if not boxes or f.image is None:
+            return f
+        return f._replace(patches=tuple(f.image[y0:y1, x0:x1] for x0, y0, x1, y1 in boxes))
 
     def __getstate__(self) -> dict:
         """A copy for another process (the figure process gets the run's inputs as a pickle) without the open
@@ -281,7 +299,9 @@ class FrameSource:
                 yield Frame(i, t, img)
             kept += 1
 
-    def _iter_video(self, want=None, region: Box | None = None) -> Iterator[Frame]:
+    def _iter_video(self, want=None, region: Box | None = None, patches: list | None = None) -> Iterator[Frame]:
+        """The video's frames in the range; ``patches``: a one-item list holding the boxes whose crops come with
+        each frame while it holds them (None: none), read at every frame."""
         # the run already keeps two cores busy (decoding, standardising, correlating: one thread each); on two
         # cores or fewer the decoder's own threads only compete with them
         if self._av is None:
@@ -292,6 +312,7 @@ class FrameSource:
         else:  # region: only the box a consumer reads is converted (video_av.Clip.grey)
             grey_of = partial(clip.grey, region=region)
             decoded = ((t, fr, grey_of) for t, fr in clip.decoded())
+        boxes = patches if patches is not None else [None]
         try:
             kept = 0
             for i, (t, fr, grey) in enumerate(decoded):
@@ -306,7 +327,12 @@ class FrameSource:
                     img = grey(fr)
                     if img is None:
                         return
-                    yield Frame(i, t, img)
+                    if boxes[0] and clip is not None:
+                        yield Frame(i, t, img, clip.patches(fr, boxes[0]))
+                    elif boxes[0]:  # OpenCV's reader: the whole grey frame
+                        yield self._with_patches(Frame(i, t, img), boxes[0])
+                    else:
+                        yield Frame(i, t, img)
                 kept += 1
         finally:
             decoded.close()

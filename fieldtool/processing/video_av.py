@@ -92,6 +92,13 @@ class Clip:
         luma = _luma(frame)[y0:y1, x0:x1]
         return self._pool.filled(region, lambda v: cv2.LUT(luma, self.table, dst=v))
 
+    def patches(self, frame, boxes) -> tuple[np.ndarray, ...]:
+        """The grey crops (uint8) of ``boxes`` ((x0, y0, x1, y1) px, inside the frame) of a decoded frame."""
+        if self.table is None:
+            self.table = grey_table(frame)
+        luma = _luma(frame)
+        return tuple(cv2.LUT(luma[y0:y1, x0:x1], self.table) for x0, y0, x1, y1 in boxes)
+
     def close(self) -> None:
         self.container.close()
 

@@ -77,6 +77,7 @@ class StabilizeCfg:
     """[stabilize] register every frame on the first using stable features outside the water."""
 
     enabled: bool = False
+    auto: bool = key(True)  # enabled = false: follow the GCPs in the first frames, stabilise on them if the camera moved
     regions_px: list[list[float]] = key(factory=list, unit="px", dim=4, ge=-1e5, le=1e5, max_items=100)  # rectangles [x0, y0, x1, y1]
     water_polygon_px: list[Point] = key(factory=list, unit="px", dim=2, ge=-1e5, le=1e5, max_items=10000)  # or: polygon around the water to exclude
     model: str = key("homography", choices=("homography", "affine"))  # homography | affine

@@ -96,22 +96,21 @@ class ClipCheck:
 
 
 def check(
-    inputs,
+    head,
     roi,
     n_clip: int,
     params=None,
     mask=None,
     standardize: bool = True,
     user_gap: int | None = None,
-    region=None,
 ) -> ClipCheck:
-    """Estimates and gates for the clip of ``inputs`` inside ``roi`` (x0, y0, x1, y1 px of the working frame).
-    Where the estimates are ambiguous (:func:`clip_stats.ambiguous`) and the standardisation is on, the
-    standard and the weak-signal gates are both run on the first frames' pairs and the more self-consistent
-    one is kept (:mod:`fieldtool.processing.selfcheck`). ``user_gap``: the user's piv.frame_gap; below the
-    denoising window (3 frames) the denoising is left off (pairs would share frames, hence noise). ``region``:
-    the box the run's pass reads its frames in (``FrameSource.head``), which holds ``roi`` and its margin."""
-    got = [f for f in inputs.source.head(N_FRAMES, region) if f.image is not None]  # the run's pass replays them
+    """Estimates and gates for the clip whose first :data:`N_FRAMES` frames are ``head`` (``FrameSource.head``,
+    which the run's pass replays) inside ``roi`` (x0, y0, x1, y1 px of the working frame). Where the estimates
+    are ambiguous (:func:`clip_stats.ambiguous`) and the standardisation is on, the standard and the weak-signal
+    gates are both run on the first frames' pairs and the more self-consistent one is kept
+    (:mod:`fieldtool.processing.selfcheck`). ``user_gap``: the user's piv.frame_gap; below the denoising window
+    (3 frames) the denoising is left off (pairs would share frames, hence noise)."""
+    got = [f for f in head if f.image is not None]
     frames = [np.asarray(f.image) for f in got]
     default = clip_stats.Gates("standard", SHRINK, MIN_TEXTURE, None, ["too few frames to estimate: default gates"])
     if len(frames) < 3:

@@ -28,7 +28,7 @@ from pathlib import Path
 from fieldtool.project import sections
 from fieldtool.project.model import Project
 from fieldtool.project.validation import check
-from fieldtool.run import discharge, geometry, outdir, outputs, overlay_stage, quality, velocimetry
+from fieldtool.run import camera, discharge, geometry, outdir, outputs, overlay_stage, quality, velocimetry
 from fieldtool.run.inputs import load_inputs
 from fieldtool.run.observer import Guarded, Observer, Progress
 from fieldtool.run.result import RunResult
@@ -95,6 +95,7 @@ def _run_project(
 
     placed = geometry.place_sections(project, inputs, level.level_m, mapping, extra)
     setup = velocimetry.setup(project, inputs, mapping, placed, warnings, obs)
+    project = setup.project  # stabilised on the GCPs where the camera moved and the user did not (run/camera.py)
     pairs = discharge.PairDischarge(mapping, inputs.cross_section, level.level_m, project.section.alpha)
     overlay_stage.bind(overlay, inputs, mapping, placed.geom)
     obs("geometry", pairs.on(placed.geom))
@@ -102,19 +103,20 @@ def _run_project(
     # the pixel-space field is reused when only the mapping, level, section or alpha changed (not while
     # streaming to an observer, who wants to see the frames and pairs)
     cache_dir = Path(out_dir) if out_dir is not None and observer is None else None
-    vel = velocimetry.measure_velocity(
-        project,
-        inputs,
-        setup,
-        pairs.on(placed.geom),
-        cache_dir,
-        stage.path if stage is not None else None,
-        cancel,
-        obs,
-        progress,
-        warnings,
-        overlay,
-    )
+    with camera.explained(setup.camera):  # a registration the camera check chose, failing later, says so
+        vel = velocimetry.measure_velocity(
+            project,
+            inputs,
+            setup,
+            pairs.on(placed.geom),
+            cache_dir,
+            stage.path if stage is not None else None,
+            cancel,
+            obs,
+            progress,
+            warnings,
+            overlay,
+        )
     lap("frames_and_piv")
 
     obs("stage", "discharge")

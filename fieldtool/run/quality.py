@@ -19,7 +19,7 @@ from fieldtool.processing.uncertainty import McResult
 from fieldtool.project import sections as secs
 from fieldtool.project.model import Project
 from fieldtool.project.sections import SectionSpec
-from fieldtool.run import standard_stage, stiv_stage
+from fieldtool.run import camera, standard_stage, stiv_stage
 from fieldtool.run.assess import assess_run
 from fieldtool.run.discharge import Discharge, PairDischarge
 from fieldtool.run.geometry import build_section
@@ -72,6 +72,7 @@ def assess(
         unc = qual = None
         warnings.append(f"uncertainty and quality not computed ({type(e).__name__}: {e}); please report this")
     stiv_stage.add_reason(qual, q.stiv)  # "PIV and STIV disagree ..." (doubtful)
+    camera.add_reason(qual, q.robust.get("camera"))  # "the camera moved ..." and no registration held (doubtful)
     try:  # the hydrologists' standard uncertainty beside the Monte Carlo (issue 27)
         standard = standard_stage.compute(project, level, mapping, q.geom, res, dres)
     except Exception as e:  # noqa: BLE001 - the discharge and the Monte Carlo are kept; the gap is said

@@ -23,6 +23,7 @@ from fieldtool.processing import piv as piv_mod
 from fieldtool.processing import piv_fast, planning, surface
 from fieldtool.processing.piv import PivParams
 from fieldtool.project.model import Project
+from fieldtool.run import camera as camera_stage
 from fieldtool.run import clip_check, clip_pass, overlay_stage, piv_cache, piv_rounds, stiv_stage
 from fieldtool.run import frames as frames_mod
 from fieldtool.run.geometry import Sections
@@ -108,6 +109,8 @@ class PivSetup:
     max_speed: np.ndarray | None
     stiv_run: stiv_stage.StivRun | None
     clip: clip_check.ClipCheck  # the clip's noise and contrast and the gates set from them (issue 23)
+    project: Project  # the project the run goes on with: stabilised where the camera moved (run/camera.py)
+    camera: camera_stage.Camera  # the camera check
 
 
 def setup(
@@ -129,13 +132,22 @@ def setup(
             "the image are not removed"
         )
     box = piv_region(project, inputs, params, roi, sections.segments)
-    # the clip's noise and contrast where the PIV correlates (the section's band: the water, not the banks and
-    # sky of a whole frame, whose windows would outvote it), and the texture gate set from them
-    region = None
-    if standardize and frames_mod.in_region_ok(project, inputs, obs):
-        region = read_region(inputs.shape, box, surface.margin_for(params.search_px), stiv_run)
+    # the camera check (run/camera.py) follows patches around the GCPs in the clip's first frames; where the
+    # camera moved, the project comes back stabilised, and those frames are read again, whole. Then the clip's
+    # noise and contrast where the PIV correlates (the section's band: the water, not the banks and sky of a
+    # whole frame, whose windows would outvote it), and the texture gate set from them, from the same frames
+    margin = surface.margin_for(params.search_px)
+    patch_boxes = camera_stage.boxes(project, inputs)
+    head = inputs.source.head(
+        clip_check.N_FRAMES, _head_region(project, inputs, obs, standardize, box, margin, stiv_run), patch_boxes
+    )
+    project, cam = camera_stage.check(project, inputs, head, patch_boxes, warnings)
+    if cam.stabilized:
+        head = inputs.source.head(
+            clip_check.N_FRAMES, _head_region(project, inputs, obs, standardize, box, margin, stiv_run)
+        )
     clip = clip_check.check(
-        inputs, box if box is not None else roi, n_clip, params, mask, standardize, project.piv.frame_gap, region
+        head, box if box is not None else roi, n_clip, params, mask, standardize, project.piv.frame_gap
     )
     params = clip.params(params, standardize)  # min_texture only: the box does not depend on it
     near = None
@@ -148,7 +160,14 @@ def setup(
     max_speed = None
     if project.piv.max_velocity_ms is not None:
         max_speed = project.piv.max_velocity_ms / mapping.scale_m_per_px(x, y)
-    return PivSetup(params, bool(standardize), box, roi, mask, near, max_speed, stiv_run, clip)
+    return PivSetup(params, bool(standardize), box, roi, mask, near, max_speed, stiv_run, clip, project, cam)
+
+
+def _head_region(project: Project, inputs: Inputs, obs, standardize: bool, box, margin: int, stiv_run):
+    """The box the first frames are read in (the pass' own, which replays them; None: whole)."""
+    if standardize and frames_mod.in_region_ok(project, inputs, obs):
+        return read_region(inputs.shape, box, margin, stiv_run)
+    return None
 
 
 @dataclass

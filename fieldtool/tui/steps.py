@@ -205,6 +205,15 @@ VIDEO = [
         choices=(("no", False), ("yes", True)),
     ),
     Field(
+        "stabilize.auto",
+        "Check the camera",
+        "",
+        "choice",
+        "when not stabilised: follow the GCPs in the first frames and stabilise on them if the camera moved",
+        choices=(("yes", True), ("no", False)),
+        show=lambda p: not p.stabilize.enabled,
+    ),
+    Field(
         "stabilize.model",
         "Motion model",
         "",

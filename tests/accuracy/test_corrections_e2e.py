@@ -19,11 +19,20 @@ def test_stabilisation_recovers_discharge_of_shaky_scene(rendered, tmp_path):
     assert proj.stabilize.enabled
     stab = run_project(proj, tmp_path / "stab")
     proj.stabilize.enabled = False
+    auto = run_project(proj, None)
+    proj.stabilize.auto = False
     raw = run_project(proj, None)
     assert abs(_err(stab, truth)) < 0.03
     assert stab.stabilization["median_px"] < 0.5
     # without the step the drift of the view biases the field: that is why the step exists
     assert abs(_err(raw, truth)) > 0.10
+    assert raw.robust["camera"] == {"checked": False, "why_not": "stabilize.auto = false: the frames as filmed"}
+    # left to itself (stabilize.auto, the default) the run sees the camera move at the GCPs and stabilises there
+    cam = auto.robust["camera"]
+    assert cam["moved"] and cam["stabilized"] and cam["points_agreeing"] >= 2
+    assert cam["max_shift_px"] > cam["threshold_px"]
+    assert abs(_err(auto, truth)) < 0.03
+    assert any(w.startswith("stabilize: the camera moved") for w in auto.warnings)
     # and the stabilised result agrees with the same scene filmed without shake
     calm = rendered("oblique", duration_s=2.0)
     ref = run_project(load_project(calm.project_path), None)

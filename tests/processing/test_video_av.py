@@ -137,3 +137,30 @@ def test_one_clip_read_in_two_regions_gives_frames_zero_outside_each(textured):
                 break
     finally:
         clip.close()
+
+
+@pytest.mark.parametrize("av_reader", [True, False])
+def test_a_head_brings_the_patches_asked_for_wherever_its_region_is(textured, monkeypatch, av_reader):
+    """``head(n, region, patches)``: the grey crops of the patches (the camera check's boxes around the GCPs, run/
+    camera.py) come with each of the first frames, outside the region too, by PyAV and by OpenCV's reader; the
+    pass that continues the head brings none, and a second look at the head for a region inside it decodes
+    nothing again."""
+    whole = [f.image.copy() for f in FrameSource(textured)]
+    opened = []
+    orig = video_av.open_clip
+    monkeypatch.setattr(video_av, "open_clip", lambda *a: opened.append(1) or orig(*a))
+    src = FrameSource(textured)
+    if not av_reader:
+        src._av = False
+    region, boxes = (10, 20, 50, 44), [(60, 2, 90, 30), (0, 40, 20, 60)]
+    head = src.head(5, region, boxes)
+    assert len(head) == 5
+    for f, img in zip(head, whole[:5], strict=True):
+        assert len(f.patches) == 2
+        for (x0, y0, x1, y1), p in zip(boxes, f.patches, strict=True):
+            np.testing.assert_array_equal(p, img[y0:y1, x0:x1])
+    again = src.head(5, (12, 22, 40, 40))
+    assert [f.t_s for f in again] == [f.t_s for f in head] and len(opened) == (1 if av_reader else 0)
+    rest = list(src.iter_wanted(None, region))
+    assert len(rest) == len(whole) and all(f.patches is None for f in rest[5:])
+    assert len(opened) == (1 if av_reader else 0)  # one decode for the look, the second look and the pass

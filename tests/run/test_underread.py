@@ -130,7 +130,7 @@ def test_the_quality_stage_hands_the_runs_stiv_block_to_the_interval(monkeypatch
 
     monkeypatch.setattr(stage, "assess_run", fake_assess_run)
     block = {"disagreement": _dis([0.1, 0.1, 0.1])}
-    q = SimpleNamespace(result=None, geom=None, world_u=None, world_v=None, q_pairs=None, stiv=block)
+    q = SimpleNamespace(result=None, geom=None, world_u=None, world_v=None, q_pairs=None, stiv=block, robust={})
     vel = SimpleNamespace(piv=None, frame_stats={})
     stage.assess(Project(), None, None, None, vel, q, None, [], [])
     assert seen["stiv"] is block
