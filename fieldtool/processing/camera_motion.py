@@ -6,13 +6,14 @@ as the camera moved against the surface (a handheld oblique clip read -49 %). Th
 definition, so a patch of each frame around each GCP is followed from frame 0: corners found in the patch of
 frame 0 (``cv2.goodFeaturesToTrack``) are tracked into the same patch of every later frame with pyramidal
 Lucas-Kanade (each patch first given frame 0's mean and spread: an exposure step is not motion) and kept where
-tracking back lands on the start; the median of their displacements is the point's shift. Where the points
-agree, their median is the camera's motion.
+tracking back lands on the start; the median of their displacements is the point's shift.
 
-What counts as motion is set by the clip, not by a number of pixels fitted to a preset: the points' tracking
-noise (how far each point strays from the common shift, robust over the frames; px), divided by the root of the
-points that agree, is the noise of the common shift. The camera moved where its largest shift from frame 0 is
-both :data:`SIGNIFICANCE` times that noise and more than :data:`RESOLVED_PX`, what PIV resolves at all.
+What counts as motion is set by the clip, not by a number of pixels fitted to a preset: a point's shift has the
+noise of its corners' scatter about it (a fixed patch's corners move together whatever the camera does), and a
+point stayed put where its largest shift from frame 0 is within :data:`SIGNIFICANCE` times that noise, or within
+:data:`RESOLVED_PX`, what PIV resolves at all. Two points that stayed put say the camera did not move (a moving
+camera moves every fixed point; what moved in the other patches is water or an object); where fewer than two
+stayed and at least two moved, the camera moved, and the moving points' median is its motion.
 
 Units: px of the frames given (x right, y down); pure numpy and OpenCV, no file, no print.
 """
@@ -29,8 +30,6 @@ import numpy as np
 RESOLVED_PX = 0.1
 #: the common shift must exceed this many of its own noise (sd) to count as motion
 SIGNIFICANCE = 5.0
-#: a point agrees with the common shift where it strays from it by at most this many tracking-noise sd
-AGREE_SD = 3.0
 #: corners sought per patch; fewer than MIN_CORNERS followed and the point says nothing for that frame
 MAX_CORNERS = 24
 MIN_CORNERS = 4
@@ -70,17 +69,18 @@ class CameraMotion:
 
     points: int  # points followed (patches with enough corners on frame 0)
     frames: int  # frames looked at, frame 0 included
-    agree: list[int] = field(default_factory=list)  # indices (into the boxes given) of the points that move together
-    shift_px: list[list[float]] = field(default_factory=list)  # the common shift of each frame from frame 0 (dx, dy)
-    max_shift_px: float = 0.0  # the largest common shift from frame 0
-    noise_px: float = 0.0  # one point's tracking noise (sd)
-    threshold_px: float = RESOLVED_PX  # what the largest shift had to exceed to count as motion
+    agree: list[int] = field(default_factory=list)  # indices (into the boxes given) of the points that tell: those
+    # that stayed put (camera still), or those that moved (camera moved)
+    shift_px: list[list[float]] = field(default_factory=list)  # their median shift in each frame from frame 0 (dx, dy)
+    max_shift_px: float = 0.0  # the largest of those shifts
+    noise_px: float = 0.0  # one point's shift noise (sd, the median over points)
+    threshold_px: float = RESOLVED_PX  # the shift beyond which a point moved
     moved: bool = False
 
     def to_dict(self) -> dict:
         return {
             "points": self.points,
-            "points_agreeing": len(self.agree),
+            "points_telling": len(self.agree),
             "frames": self.frames,
             "max_shift_px": round(self.max_shift_px, 3),
             "tracking_noise_px": round(self.noise_px, 4),
@@ -89,29 +89,67 @@ class CameraMotion:
         }
 
 
-def _shifts(ref: np.ndarray, frames: list[np.ndarray]) -> np.ndarray:
-    """(K, 2) median displacement (px) of ``ref``'s corners in each of ``frames`` (NaN where too few follow)."""
-    out = np.full((len(frames), 2), np.nan)
+def _corners(ref: np.ndarray) -> np.ndarray | None:
+    """(n, 1, 2) float32 corners of a patch away from its edge (a moved one stays inside), or None: too few."""
     s = ref.shape[0]
     mask = np.zeros(ref.shape, np.uint8)
-    m = max(_LK_WIN[0], s // 6)  # corners away from the edge, so that a moved one stays inside the patch
+    m = max(_LK_WIN[0], s // 6)
     mask[m:-m, m:-m] = 255
     pts = cv2.goodFeaturesToTrack(ref, MAX_CORNERS, 0.01, 5, mask=mask, blockSize=5)
-    if pts is None or len(pts) < MIN_CORNERS:
-        return out
-    pts = pts.astype(np.float32)
+    return None if pts is None or len(pts) < MIN_CORNERS else pts.astype(np.float32)
+
+
+def _row(patches: list[np.ndarray], gap: int) -> np.ndarray:
+    """The patches side by side in one image, ``gap`` px of 0 between them: one Lucas-Kanade call a frame for
+    every point (half the time of a call per patch); at the pyramid's top the gap keeps the patches apart."""
+    h = max(p.shape[0] for p in patches)
+    out = np.zeros((h, sum(p.shape[1] + gap for p in patches)), np.uint8)
+    x = 0
+    for p in patches:
+        out[: p.shape[0], x : x + p.shape[1]] = p
+        x += p.shape[1] + gap
+    return out
+
+
+def _shifts(patches: list[list[np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
+    """(K - 1, P, 2) median displacement (px) of the corners of point p's patch in frame 0 in each later frame
+    k (NaN where fewer than :data:`MIN_CORNERS` follow), and (K - 1, P) its noise (px): the corners' robust
+    scatter about it over the root of their number (a fixed patch's corners move together, whatever the camera
+    does: their disagreement is the tracking's own)."""
+    refs = patches[0]
+    n_pts, gap = len(refs), 4 * _LK_WIN[0]
+    out = np.full((len(patches) - 1, n_pts, 2), np.nan)
+    noise = np.full((len(patches) - 1, n_pts), np.nan)
+    found, owner, x = [], [], 0
+    for p, ref in enumerate(refs):
+        c = _corners(ref)
+        if c is not None:
+            found.append(c + np.array([x, 0], np.float32))
+            owner.append(np.full(len(c), p))
+        x += ref.shape[1] + gap
+    if not found:
+        return out, noise
+    pts, who = np.concatenate(found), np.concatenate(owner)
+    ref_row = _row(refs, gap)
     crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.005)
-    for k, raw in enumerate(frames):
-        img = _like(raw, ref)
-        nxt, st, _ = cv2.calcOpticalFlowPyrLK(ref, img, pts, None, winSize=_LK_WIN, maxLevel=_LK_LEVELS, criteria=crit)
+    for k, frame in enumerate(patches[1:]):
+        img = _row([_like(raw, ref) for raw, ref in zip(frame, refs, strict=True)], gap)
+        nxt, st, _ = cv2.calcOpticalFlowPyrLK(
+            ref_row, img, pts, None, winSize=_LK_WIN, maxLevel=_LK_LEVELS, criteria=crit
+        )
         back, st2, _ = cv2.calcOpticalFlowPyrLK(
-            img, ref, nxt, None, winSize=_LK_WIN, maxLevel=_LK_LEVELS, criteria=crit
+            img, ref_row, nxt, None, winSize=_LK_WIN, maxLevel=_LK_LEVELS, criteria=crit
         )
         good = (st.ravel() == 1) & (st2.ravel() == 1)
         good &= np.linalg.norm((back - pts).reshape(-1, 2), axis=1) < _FB_MAX_PX
-        if good.sum() >= MIN_CORNERS:
-            out[k] = np.median((nxt - pts).reshape(-1, 2)[good], axis=0)
-    return out
+        moved = (nxt - pts).reshape(-1, 2)
+        for p in range(n_pts):
+            sel = good & (who == p)
+            if sel.sum() >= MIN_CORNERS:
+                out[k, p] = np.median(moved[sel], axis=0)
+                spread = 1.4826 * np.median(np.linalg.norm(moved[sel] - out[k, p], axis=1))
+                noise[k, p] = 1.2533 * spread / np.sqrt(sel.sum())  # the median's sd
+    return out, noise
 
 
 def _like(img: np.ndarray, ref: np.ndarray) -> np.ndarray:
@@ -132,33 +170,33 @@ def measure(patches: list[list[np.ndarray]]) -> CameraMotion:
     n_pts = len(patches[0]) if n_frames else 0
     if n_frames < 3 or n_pts < 2:
         return CameraMotion(points=0, frames=n_frames)
-    d = np.stack([_shifts(patches[0][p], [patches[k][p] for k in range(1, n_frames)]) for p in range(n_pts)], 1)
+    d, sd = _shifts(patches)
     seen = np.isfinite(d).all(axis=2).mean(axis=0) >= 0.5  # (P,) points followed in at least half the frames
     if seen.sum() < 2:
         return CameraMotion(points=int(seen.sum()), frames=n_frames)
     idx = np.flatnonzero(seen)
-    d = d[:, idx]
-    common = _median_of_finite(d)  # (K, 2)
-    stray = np.linalg.norm(d - common[:, None], axis=2)  # (K, P), NaN where a point or the frame says nothing
-    per_point = np.array([np.median(c[np.isfinite(c)]) for c in stray.T])  # (P,): each seen in half the frames
-    noise = float(1.4826 * np.median(per_point))
-    agree = idx[per_point <= AGREE_SD * noise + 1e-9] if noise > 0 else idx
-    if len(agree) < 2:
-        return CameraMotion(points=len(idx), frames=n_frames, noise_px=noise)
-    common = _median_of_finite(d[:, np.isin(idx, agree)])
+    d, sd = d[:, idx], sd[:, idx]
+    noise = float(np.median([np.median(c[np.isfinite(c)]) for c in sd.T]))  # one point's shift noise (px)
+    limit = max(RESOLVED_PX, SIGNIFICANCE * noise)
+    reach = np.array([np.nanmax(np.linalg.norm(d[:, j], axis=1)) for j in range(len(idx))])  # (P,) px
+    still = reach <= limit
+    # two fixed points that stayed put say the camera did not move (a moving camera moves every fixed point):
+    # what moved there is water or an object in a patch. Otherwise the points that moved give the camera's motion
+    group = still if still.sum() >= 2 else ~still
+    if group.sum() < 2:
+        return CameraMotion(points=len(idx), frames=n_frames, noise_px=noise, threshold_px=limit)
+    common = _median_of_finite(d[:, group])
     common = np.where(np.isfinite(common), common, 0.0)
-    mag = np.linalg.norm(common, axis=1)
-    threshold = max(RESOLVED_PX, SIGNIFICANCE * noise / np.sqrt(len(agree)))
-    biggest = float(mag.max()) if len(mag) else 0.0
+    biggest = float(np.linalg.norm(common, axis=1).max())
     return CameraMotion(
         points=len(idx),
         frames=n_frames,
-        agree=[int(i) for i in agree],
+        agree=[int(i) for i in idx[group]],
         shift_px=[[0.0, 0.0]] + [[round(float(x), 3), round(float(y), 3)] for x, y in common],
         max_shift_px=biggest,
         noise_px=noise,
-        threshold_px=float(threshold),
-        moved=biggest > threshold,
+        threshold_px=limit,
+        moved=not still.sum() >= 2,
     )
 
 

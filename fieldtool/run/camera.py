@@ -72,15 +72,15 @@ def check(project: Project, inputs: Inputs, head, patch_boxes, warnings: list[st
     patches = [list(f.patches) for f in head if f.patches is not None]
     motion = camera_motion.measure(patches)
     if motion.points < 2 or len(motion.agree) < 2:
-        return project, Camera(None, "too few GCPs with texture to follow (fewer than two agree)")
+        return project, Camera(None, "too few GCPs with texture to follow (fewer than two stayed put or moved)")
     cam = Camera(motion)
     if not motion.moved:
         return project, cam
     regions = [[float(c) for c in patch_boxes[i]] for i in motion.agree]
     said = (
-        f"the camera moved up to {motion.max_shift_px:.2f} px in the first {motion.frames} frames (seen at "
-        f"{len(motion.agree)} GCPs that move together; tracking noise {motion.noise_px:.3f} px, threshold "
-        f"{motion.threshold_px:.2f} px)"
+        f"the camera moved up to {motion.max_shift_px:.2f} px in the first {motion.frames} frames (at "
+        f"{len(motion.agree)} of the {motion.points} GCPs followed, and fewer than two stayed put; a GCP moved beyond "
+        f"{motion.threshold_px:.2f} px, five times the tracking noise of {motion.noise_px:.3f} px or 0.1 px)"
     )
     try:
         _registers(project, inputs, regions)

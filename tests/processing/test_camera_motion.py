@@ -71,6 +71,28 @@ def test_a_point_on_moving_water_is_left_out_and_does_not_make_a_still_camera_mo
     assert not got.moved
 
 
+def test_two_points_on_water_moving_alike_do_not_make_a_still_camera_move_but_a_moving_one_still_moves():
+    """The far bank's two GCP patches hold water flowing the same way (the 1080p 30 s clip): two points that stayed
+    put say the camera did not move. The same water under a camera that moves: no point stays put."""
+    rng = np.random.default_rng(4)
+    scene, water = _ground(0), _ground(9)
+    boxes = cm.patch_boxes(POINTS, scene.shape, SIDE)
+    for cam_px in (0.0, 1.5):
+        frames = []
+        for k in range(20):
+            dx = cam_px * np.sin(k) if k else 0.0
+            f = _frame(scene, dx, 0.0, rng)
+            w = _frame(water, 0.8 * k + dx, 0.1 * k, rng)
+            for x0, y0, x1, y1 in boxes[2:]:
+                f[y0:y1, x0:x1] = w[y0:y1, x0:x1]
+            frames.append(f)
+        got = cm.measure(_patches(frames, boxes))
+        if cam_px == 0.0:
+            assert not got.moved and sorted(got.agree) == [0, 1] and got.max_shift_px < 0.05
+        else:
+            assert got.moved and got.max_shift_px > 1.0
+
+
 def test_patches_are_only_where_a_whole_one_fits():
     boxes = cm.patch_boxes([[10, 10], [320, 240], [639, 479], [float("nan"), 5]], (480, 640), SIDE)
     assert boxes == [(320 - SIDE // 2, 240 - SIDE // 2, 320 + SIDE // 2, 240 + SIDE // 2)]

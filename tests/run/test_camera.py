@@ -56,7 +56,7 @@ def test_a_camera_that_moved_and_was_not_registered_makes_the_grade_doubtful():
 def test_the_facts_say_what_was_done():
     f = _moved(True).facts()
     assert f["moved"] and f["stabilized"] and f["regions_px"] == [[1.0, 2.0, 3.0, 4.0]]
-    assert f["points_agreeing"] == 3 and f["max_shift_px"] == 2.5 and f["threshold_px"] == 0.6
+    assert f["points_telling"] == 3 and f["max_shift_px"] == 2.5 and f["threshold_px"] == 0.6
 
 
 def test_a_registration_the_check_chose_that_fails_later_says_whose_it_was():
