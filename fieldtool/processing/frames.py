@@ -39,7 +39,6 @@ class Frame(NamedTuple):
     index: int  # position in the clip (0-based, before the step is applied)
     t_s: float  # time from the start of the clip (s)
     image: np.ndarray  # gray uint8, H x W
-    patches: tuple | None = None  # grey uint8 crops of the boxes :meth:`FrameSource.head` was asked for
 
 
 @dataclass(frozen=True)
@@ -164,6 +163,8 @@ class FrameSource:
         self.start_s, self.end_s, self.step = float(start_s), end_s, int(step)
         self._head: tuple[deque, Iterator[Frame], Box | None] | None = None  # see head()
         self._av: bool | None = None  # PyAV reads the clip as grey (processing/video_av.py); None: not probed
+        self._watch: tuple | None = None  # see watch()
+        self.watched: dict[int, tuple[float, tuple]] = {}
 
     def _probe_video(self) -> ClipInfo:
         if not self.path.exists():
@@ -206,40 +207,43 @@ class FrameSource:
         (PyAV converts only the region to grey; processing/video_av.py)."""
         return self._stream(want, region)
 
-    def head(self, n: int, region: Box | None = None, patches: list[Box] | None = None) -> list[Frame]:
+    def head(self, n: int, region: Box | None = None) -> list[Frame]:
         """The first ``n`` frames of the range (fewer in a shorter clip). A video's next pass replays them and
         continues the decoder that read them, so that a look at the first frames (run/clip_check.py) costs no
         decoding of its own; the frames must not be written into. ``region`` as in :meth:`iter_wanted`: the
-        next pass continues this one only if it asks for a region inside this one. ``patches``: boxes (x0, y0,
-        x1, y1 px) whose grey crops come with each frame (``Frame.patches``), wherever ``region`` is (the fixed
-        points' patches, run/camera.py). A second call for a region inside the first's and no patches takes
-        the frames the first read, without decoding them again."""
+        next pass continues this one only if it asks for a region inside this one. A second call for a region
+        inside the first's takes the frames the first read, without decoding them again."""
         if self.files is not None:
-            return [self._with_patches(f, patches) for f in islice(self._iter_sequence(), n)]
+            return list(islice(self._iter_sequence(), n))
         held = self._head
-        if held is not None and not patches and _inside(region, held[2]) and len(held[0]) >= n:
+        if held is not None and _inside(region, held[2]) and len(held[0]) >= n:
             return list(islice(held[0], n))
         if held is not None:
             held[1].close()
-        cell = [tuple(patches)] if patches else [None]
-        rest = self._iter_video(region=region, patches=cell)
+        rest = self._iter_video(region=region)
         got = list(islice(rest, n))
-        cell[0] = None  # the pass that continues from here reads no patches
         self._head = (deque(got), rest, region)
         return got
 
-    @staticmethod
-    def _with_patches(f: Frame, boxes) -> Frame:
-        """``f`` with the crops of ``boxes`` from its (whole) image."""
-        if not boxes or f.image is None:
-            return f
-        return f._replace(patches=tuple(f.image[y0:y1, x0:x1] for x0, y0, x1, y1 in boxes))
+    def watch(self, boxes: list[Box] | None, first: int = 0, every: int = 1) -> None:
+        """From now on, every pass that decodes the frame at stream position k keeps the grey crops (uint8) of
+        ``boxes`` (x0, y0, x1, y1 px, inside the frame) for k < ``first`` and every ``every``-th k after, wherever
+        its region is: ``watched[k] = (t_s, crops)`` (the camera check's patches around the GCPs, run/camera.py;
+        the same crops whichever pass decoded them). None: no more."""
+        self._watch = (tuple(boxes), int(first), max(1, int(every))) if boxes else None
+        self.watched = {}
+
+    def _watched(self, k: int) -> tuple | None:
+        """The boxes to keep at stream position ``k``, or None."""
+        w = self._watch
+        return w[0] if w is not None and (k < w[1] or k % w[2] == 0) else None
 
     def __getstate__(self) -> dict:
         """A copy for another process (the figure process gets the run's inputs as a pickle) without the open
         decoder of :meth:`head`: its iteration starts a pass of its own."""
         state = self.__dict__.copy()
         state["_head"] = None
+        state["_watch"], state["watched"] = None, {}
         return state
 
     def _stream(self, want, region: Box | None = None) -> Iterator[Frame]:
@@ -296,12 +300,13 @@ class FrameSource:
                     raise InputFileError(f"{f}: cannot be read as an image")
                 if img.shape != self.shape:
                     raise InputFileError(f"{f}: size {img.shape[1]}x{img.shape[0]} differs from the first image")
+                boxes = self._watched(kept // self.step)
+                if boxes:
+                    self.watched[kept // self.step] = (t, tuple(img[y0:y1, x0:x1].copy() for x0, y0, x1, y1 in boxes))
                 yield Frame(i, t, img)
             kept += 1
 
-    def _iter_video(self, want=None, region: Box | None = None, patches: list | None = None) -> Iterator[Frame]:
-        """The video's frames in the range; ``patches``: a one-item list holding the boxes whose crops come with
-        each frame while it holds them (None: none), read at every frame."""
+    def _iter_video(self, want=None, region: Box | None = None) -> Iterator[Frame]:
         # the run already keeps two cores busy (decoding, standardising, correlating: one thread each); on two
         # cores or fewer the decoder's own threads only compete with them
         if self._av is None:
@@ -312,7 +317,6 @@ class FrameSource:
         else:  # region: only the box a consumer reads is converted (video_av.Clip.grey)
             grey_of = partial(clip.grey, region=region)
             decoded = ((t, fr, grey_of) for t, fr in clip.decoded())
-        boxes = patches if patches is not None else [None]
         try:
             kept = 0
             for i, (t, fr, grey) in enumerate(decoded):
@@ -321,18 +325,19 @@ class FrameSource:
                     continue
                 if where > 0:
                     return
-                if kept % self.step == 0 and want is not None and not want(kept // self.step):
+                k = kept // self.step
+                boxes = self._watched(k) if kept % self.step == 0 else None
+                if boxes and clip is not None:  # PyAV: the crops of a decoded frame, converted or not
+                    self.watched[k] = (t, clip.patches(fr, boxes))
+                if kept % self.step == 0 and want is not None and not want(k):
                     yield Frame(i, t, None)
                 elif kept % self.step == 0:
                     img = grey(fr)
                     if img is None:
                         return
-                    if boxes[0] and clip is not None:
-                        yield Frame(i, t, img, clip.patches(fr, boxes[0]))
-                    elif boxes[0]:  # OpenCV's reader: the whole grey frame
-                        yield self._with_patches(Frame(i, t, img), boxes[0])
-                    else:
-                        yield Frame(i, t, img)
+                    if boxes and clip is None:  # OpenCV's reader: the whole grey frame
+                        self.watched[k] = (t, tuple(img[y0:y1, x0:x1].copy() for x0, y0, x1, y1 in boxes))
+                    yield Frame(i, t, img)
                 kept += 1
         finally:
             decoded.close()

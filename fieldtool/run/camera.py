@@ -6,14 +6,21 @@ the first :data:`N_FRAMES` frames, the frames the clip check reads anyway (proce
 the camera moved and the user did not ask for stabilisation, the run stabilises on those patches itself
 (processing/stabilize.py, the thesis' regions around the GCPs), once that registration holds on the first
 frames; where it does not hold, the run goes on unstabilised, says why and grades the measurement doubtful.
-``result.json`` reports the check under ``robust.camera``.
+The same patches are then kept for every few frames the run's pass decodes (``FrameSource.watch``: about
+:data:`LATER_FRAMES` of them over the clip). Where the camera was still at first, :func:`later` checks, after the
+pass and in a thread of its own beside the discharge (:class:`Later`), that the GCPs which stayed put still do: a
+tripod bumped halfway through is said in a warning and the verdict (doubtful, ``camera_moved``), with the regions
+to stabilise on. ``result.json`` reports the check under ``robust.camera``.
 """
 
 from __future__ import annotations
 
 import contextlib
+import threading
 from collections.abc import Iterator
 from dataclasses import dataclass, field, replace
+
+import numpy as np
 
 from fieldtool.errors import FieldToolError, GeometryError
 from fieldtool.processing import camera_motion
@@ -22,6 +29,9 @@ from fieldtool.processing.stabilize import Stabilizer
 from fieldtool.project.model import Project
 from fieldtool.run.clip_check import N_FRAMES  # the frames looked at: the clip check's, read once for both
 from fieldtool.run.inputs import Inputs
+
+#: frames of the rest of the clip whose patches are kept for :func:`later` (every few frames, at least every 5th)
+LATER_FRAMES = 24
 
 
 @dataclass
@@ -35,6 +45,8 @@ class Camera:
     stabilized: bool = False
     regions_px: list[list[float]] = field(default_factory=list)
     problem: str | None = None
+    boxes: list = field(default_factory=list)  # the patches followed (raw-frame px), one per GCP that fits
+    later: dict | None = None  # the rest of the clip (:func:`later`)
 
     def facts(self) -> dict:
         out: dict = {"checked": self.motion is not None}
@@ -47,6 +59,8 @@ class Camera:
             out["regions_px"] = self.regions_px
         if self.problem:
             out["problem"] = self.problem
+        if self.later is not None:
+            out["later"] = self.later
         return out
 
 
@@ -59,21 +73,31 @@ def boxes(project: Project, inputs: Inputs) -> list[tuple[int, int, int, int]]:
     return got if len(got) >= 2 else []
 
 
+def watch(project: Project, inputs: Inputs) -> list[tuple[int, int, int, int]]:
+    """:func:`boxes`, and the clip's frames made to keep their crops: the first :data:`N_FRAMES`, then every few
+    (``FrameSource.watch``). Before the first frame is read."""
+    got = boxes(project, inputs)
+    n = inputs.source.estimated_count() or 0
+    inputs.source.watch(got or None, first=N_FRAMES, every=max(5, -(-(n - N_FRAMES) // LATER_FRAMES)))
+    return got
+
+
 def check(project: Project, inputs: Inputs, head, patch_boxes, warnings: list[str]) -> tuple[Project, Camera]:
     """The project to run (stabilised on the GCPs' patches where the camera moved and the registration holds)
-    and the check's :class:`Camera`. ``head``: the clip's first frames as ``FrameSource.head`` gave them with
-    ``patch_boxes`` (:func:`boxes`)."""
+    and the check's :class:`Camera`. ``head``: the clip's first frames (``FrameSource.head``), read after
+    :func:`watch` gave ``patch_boxes``."""
     if project.stabilize.enabled:
         return project, Camera(None, "stabilize.enabled: the user's registration")
     if not project.stabilize.auto:
         return project, Camera(None, "stabilize.auto = false: the frames as filmed")
     if not patch_boxes:
         return project, Camera(None, "fewer than two GCPs lie whole in the frame")
-    patches = [list(f.patches) for f in head if f.patches is not None]
+    seen = inputs.source.watched
+    patches = [list(seen[k][1]) for k in range(len(head)) if k in seen]
     motion = camera_motion.measure(patches)
     if motion.points < 2 or len(motion.agree) < 2:
         return project, Camera(None, "too few GCPs with texture to follow (fewer than two stayed put or moved)")
-    cam = Camera(motion)
+    cam = Camera(motion, boxes=list(patch_boxes))
     if not motion.moved:
         return project, cam
     regions = [[float(c) for c in patch_boxes[i]] for i in motion.agree]
@@ -99,6 +123,65 @@ def check(project: Project, inputs: Inputs, head, patch_boxes, warnings: list[st
     )
     st = replace(project.stabilize, enabled=True, regions_px=regions, water_polygon_px=[])
     return replace(project, stabilize=st), cam
+
+
+def later(cam: Camera, inputs: Inputs, warnings: list[str]) -> None:
+    """After the pass: where the camera was still in the first frames and nothing registered the frames, do the
+    GCPs that stayed put still stay put in the rest of the clip (the patches ``FrameSource.watch`` kept)? Sets
+    ``cam.later``; a camera that moved is said in ``warnings`` and, through the facts, in the verdict."""
+    seen = inputs.source.watched
+    inputs.source.watch(None)
+    m = cam.motion
+    rest = sorted(k for k in seen if k >= N_FRAMES)
+    if m is None or m.moved or cam.stabilized or not rest or 0 not in seen:
+        return
+    keep = list(m.agree)  # the points that stayed put in the first frames
+    patches = [[seen[0][1][i] for i in keep]] + [[seen[k][1][i] for i in keep] for k in rest]
+    after = camera_motion.measure(patches)
+    cam.later = {"frames": len(rest), "checked": after.points >= 2, "moved": bool(after.moved)}
+    if not after.moved:
+        return
+    shifts = [float(np.hypot(d[0], d[1])) for d in after.shift_px[1:]]
+    first = next(j for j, d in enumerate(shifts) if d > after.threshold_px)
+    t0 = float(seen[rest[first]][0])
+    regions = [[float(c) for c in cam.boxes[keep[i]]] for i in after.agree]
+    cam.later.update(
+        from_s=round(t0, 3),
+        max_shift_px=round(after.max_shift_px, 3),
+        threshold_px=round(after.threshold_px, 3),
+        regions_px=regions,
+    )
+    warnings.append(
+        f"stabilize: the camera moved later in the clip: the GCPs that stayed put in the first {m.frames} frames moved "
+        f"by up to {after.max_shift_px:.2f} px from {t0:.2f} s on (beyond {after.threshold_px:.2f} px); the velocities "
+        f"carry it. Set stabilize.enabled = true and stabilize.regions_px = {regions} (patches around those GCPs) "
+        "and run again"
+    )
+
+
+class Later:
+    """:func:`later` in a thread of its own, started after the pass, beside the discharge and STIV's analysis
+    (Lucas-Kanade releases the GIL): 50-100 ms of a run's critical path otherwise. :meth:`join` before the verdict
+    adds its warning and ``robust.camera``, in that order whatever the timing."""
+
+    def __init__(self, cam: Camera, inputs: Inputs):
+        self.cam, self.said = cam, list[str]()
+        self.thread = threading.Thread(target=self._run, args=(inputs,), name="camera-later", daemon=True)
+        self.thread.start()
+
+    def _run(self, inputs: Inputs) -> None:
+        try:
+            later(self.cam, inputs, self.said)
+        except Exception as e:  # noqa: BLE001 - a check beside the measurement: the measurement is kept
+            self.cam.later = {"checked": False}
+            self.said.append(
+                f"camera check of the rest of the clip not done ({type(e).__name__}: {e}); please report this"
+            )
+
+    def join(self, warnings: list[str], robust: dict) -> None:
+        self.thread.join()
+        warnings.extend(self.said)
+        robust["camera"] = self.cam.facts()
 
 
 def _registers(project: Project, inputs: Inputs, regions: list[list[float]]) -> None:
@@ -132,18 +215,25 @@ def explained(cam: Camera) -> Iterator[None]:
 
 
 def add_reason(quality, facts: dict | None) -> None:
-    """The camera moved and the run could not stabilise: a doubtful verdict (a good grade becomes doubtful)."""
-    if quality is None or not facts or not facts.get("moved") or facts.get("stabilized"):
+    """The camera moved and the run could not stabilise, in the first frames or later in the clip: a doubtful
+    verdict (a good grade becomes doubtful)."""
+    if quality is None or not facts:
         return
-    quality.reasons.append(
-        Reason(
-            "camera_moved",
-            "doubtful",
+    late = facts.get("later") or {}
+    if facts.get("moved") and not facts.get("stabilized"):
+        why = (
             f"the camera moved up to {facts['max_shift_px']:.2f} px in the first frames and the frames could not "
-            "be registered on the GCPs: the velocities carry the camera's motion; set [stabilize]",
-            facts["max_shift_px"],
-            facts["threshold_px"],
+            "be registered on the GCPs: the velocities carry the camera's motion; set [stabilize]"
         )
-    )
+        value, limit = facts["max_shift_px"], facts["threshold_px"]
+    elif late.get("moved"):
+        why = (
+            f"the camera moved up to {late['max_shift_px']:.2f} px from {late['from_s']:.2f} s on, after a still "
+            "start: the velocities carry the camera's motion; set [stabilize] (the warning names the regions)"
+        )
+        value, limit = late["max_shift_px"], late["threshold_px"]
+    else:
+        return
+    quality.reasons.append(Reason("camera_moved", "doubtful", why, value, limit))
     if quality.grade == "good":
         quality.grade = "doubtful"

@@ -117,6 +117,7 @@ def _run_project(
             warnings,
             overlay,
         )
+    rest = camera.Later(setup.camera, inputs)  # did the GCPs that stayed put at first stay put in the clip?
     lap("frames_and_piv")
 
     obs("stage", "discharge")
@@ -127,6 +128,7 @@ def _run_project(
     if piv_q:
         outputs.prerender_velocity(prerendered, inputs, mapping, vel, q)
     q = discharge.add_stiv(q, project, inputs, level.level_m, setup, vel)
+    rest.join(warnings, q.robust)  # robust.camera with the rest of the clip, before the verdict reads it
     lap("discharge")
     if not piv_q:
         outputs.prerender_velocity(prerendered, inputs, mapping, vel, q)

@@ -137,9 +137,9 @@ def setup(
     # noise and contrast where the PIV correlates (the section's band: the water, not the banks and sky of a
     # whole frame, whose windows would outvote it), and the texture gate set from them, from the same frames
     margin = surface.margin_for(params.search_px)
-    patch_boxes = camera_stage.boxes(project, inputs)
+    patch_boxes = camera_stage.watch(project, inputs)
     head = inputs.source.head(
-        clip_check.N_FRAMES, _head_region(project, inputs, obs, standardize, box, margin, stiv_run), patch_boxes
+        clip_check.N_FRAMES, _head_region(project, inputs, obs, standardize, box, margin, stiv_run)
     )
     project, cam = camera_stage.check(project, inputs, head, patch_boxes, warnings)
     if cam.stabilized:

@@ -140,11 +140,11 @@ def test_one_clip_read_in_two_regions_gives_frames_zero_outside_each(textured):
 
 
 @pytest.mark.parametrize("av_reader", [True, False])
-def test_a_head_brings_the_patches_asked_for_wherever_its_region_is(textured, monkeypatch, av_reader):
-    """``head(n, region, patches)``: the grey crops of the patches (the camera check's boxes around the GCPs, run/
-    camera.py) come with each of the first frames, outside the region too, by PyAV and by OpenCV's reader; the
-    pass that continues the head brings none, and a second look at the head for a region inside it decodes
-    nothing again."""
+def test_a_watched_clip_keeps_the_patches_of_its_first_frames_then_every_few(textured, monkeypatch, av_reader):
+    """``watch(boxes, first, every)``: every pass keeps the grey crops of the boxes (the camera check's patches
+    around the GCPs, run/camera.py) for the first frames and every few after, outside its region too, by PyAV and
+    by OpenCV's reader; a second look at the head for a region inside it
+    decodes nothing again, and the pass that continues it is the one decode of the clip."""
     whole = [f.image.copy() for f in FrameSource(textured)]
     opened = []
     orig = video_av.open_clip
@@ -153,14 +153,21 @@ def test_a_head_brings_the_patches_asked_for_wherever_its_region_is(textured, mo
     if not av_reader:
         src._av = False
     region, boxes = (10, 20, 50, 44), [(60, 2, 90, 30), (0, 40, 20, 60)]
-    head = src.head(5, region, boxes)
-    assert len(head) == 5
-    for f, img in zip(head, whole[:5], strict=True):
-        assert len(f.patches) == 2
-        for (x0, y0, x1, y1), p in zip(boxes, f.patches, strict=True):
-            np.testing.assert_array_equal(p, img[y0:y1, x0:x1])
+    src.watch(boxes, first=5, every=4)
+    head = src.head(5, region)
+    assert sorted(src.watched) == [0, 1, 2, 3, 4]
     again = src.head(5, (12, 22, 40, 40))
     assert [f.t_s for f in again] == [f.t_s for f in head] and len(opened) == (1 if av_reader else 0)
-    rest = list(src.iter_wanted(None, region))
-    assert len(rest) == len(whole) and all(f.patches is None for f in rest[5:])
-    assert len(opened) == (1 if av_reader else 0)  # one decode for the look, the second look and the pass
+    rest = list(src.iter_wanted(lambda k: k % 3 == 0, region))
+    assert len(rest) == len(whole) and len(opened) == (1 if av_reader else 0)
+    kept = [k for k in range(24) if k < 5 or k % 4 == 0]  # the pass continues the head's decoder: all converted
+    assert sorted(src.watched) == kept
+    for k in kept:
+        t, crops = src.watched[k]
+        assert t == pytest.approx(rest[k].t_s)
+        for (x0, y0, x1, y1), c in zip(boxes, crops, strict=True):
+            np.testing.assert_array_equal(c, whole[k][y0:y1, x0:x1])
+    copy = pickle.loads(pickle.dumps(src))  # the figure process' copy leaves the crops behind
+    assert copy.watched == {} and copy._watch is None
+    src.watch(None)
+    assert src.watched == {} and src._watched(0) is None
