@@ -142,7 +142,7 @@ def later(cam: Camera, inputs: Inputs, warnings: list[str]) -> None:
     if not after.moved:
         return
     shifts = [float(np.hypot(d[0], d[1])) for d in after.shift_px[1:]]
-    first = next(j for j, d in enumerate(shifts) if d > after.threshold_px)
+    first = next((j for j, d in enumerate(shifts) if d > after.threshold_px), 0)  # 0: the points moved apart
     t0 = float(seen[rest[first]][0])
     regions = [[float(c) for c in cam.boxes[keep[i]]] for i in after.agree]
     cam.later.update(
@@ -161,7 +161,7 @@ def later(cam: Camera, inputs: Inputs, warnings: list[str]) -> None:
 
 class Later:
     """:func:`later` in a thread of its own, started after the pass, beside the discharge and STIV's analysis
-    (Lucas-Kanade releases the GIL): 50-100 ms of a run's critical path otherwise. :meth:`join` before the verdict
+    (Lucas-Kanade releases the GIL): 40-80 ms of a run's critical path otherwise. :meth:`join` before the verdict
     adds its warning and ``robust.camera``, in that order whatever the timing."""
 
     def __init__(self, cam: Camera, inputs: Inputs):
