@@ -13,7 +13,8 @@ noise of its corners' scatter about it (a fixed patch's corners move together wh
 point stayed put where its largest shift from frame 0 is within :data:`SIGNIFICANCE` times that noise, or within
 :data:`RESOLVED_PX`, what PIV resolves at all. Two points that stayed put say the camera did not move (a moving
 camera moves every fixed point; what moved in the other patches is water or an object); where fewer than two
-stayed and at least two moved, the camera moved, and the moving points' median is its motion.
+stayed and at least two moved, the camera moved; how far is the median length of the moving points' shifts (a
+roll about the centre moves them apart: the median of their shift vectors would read about 0).
 
 Units: px of the frames given (x right, y down); pure numpy and OpenCV, no file, no print.
 """
@@ -72,7 +73,8 @@ class CameraMotion:
     agree: list[int] = field(default_factory=list)  # indices (into the boxes given) of the points that tell: those
     # that stayed put (camera still), or those that moved (camera moved)
     shift_px: list[list[float]] = field(default_factory=list)  # their median shift in each frame from frame 0 (dx, dy)
-    max_shift_px: float = 0.0  # the largest of those shifts
+    moved_px: list[float] = field(default_factory=list)  # the median of their shifts' lengths in each frame
+    max_shift_px: float = 0.0  # the largest of those lengths
     noise_px: float = 0.0  # one point's shift noise (sd, the median over points)
     threshold_px: float = RESOLVED_PX  # the shift beyond which a point moved
     moved: bool = False
@@ -187,12 +189,19 @@ def measure(patches: list[list[np.ndarray]]) -> CameraMotion:
         return CameraMotion(points=len(idx), frames=n_frames, noise_px=noise, threshold_px=limit)
     common = _median_of_finite(d[:, group])
     common = np.where(np.isfinite(common), common, 0.0)
-    biggest = float(np.linalg.norm(common, axis=1).max())
+    # how far the points moved, frame by frame: the median of their own shifts' lengths (a roll about the centre
+    # moves them apart, and the median of their shift vectors would read about 0)
+    far = [
+        float(np.median(r[np.isfinite(r)])) if np.isfinite(r).any() else 0.0
+        for r in np.linalg.norm(d[:, group], axis=2)
+    ]
+    biggest = max(far)
     return CameraMotion(
         points=len(idx),
         frames=n_frames,
         agree=[int(i) for i in idx[group]],
         shift_px=[[0.0, 0.0]] + [[round(float(x), 3), round(float(y), 3)] for x, y in common],
+        moved_px=[0.0] + [round(v, 3) for v in far],
         max_shift_px=biggest,
         noise_px=noise,
         threshold_px=limit,

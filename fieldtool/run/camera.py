@@ -20,8 +20,6 @@ import threading
 from collections.abc import Iterator
 from dataclasses import dataclass, field, replace
 
-import numpy as np
-
 from fieldtool.errors import FieldToolError, GeometryError
 from fieldtool.processing import camera_motion
 from fieldtool.processing.quality import Reason
@@ -141,8 +139,7 @@ def later(cam: Camera, inputs: Inputs, warnings: list[str]) -> None:
     cam.later = {"frames": len(rest), "checked": after.points >= 2, "moved": bool(after.moved)}
     if not after.moved:
         return
-    shifts = [float(np.hypot(d[0], d[1])) for d in after.shift_px[1:]]
-    first = next((j for j, d in enumerate(shifts) if d > after.threshold_px), 0)  # 0: the points moved apart
+    first = next((j for j, d in enumerate(after.moved_px[1:]) if d > after.threshold_px), 0)
     t0 = float(seen[rest[first]][0])
     regions = [[float(c) for c in cam.boxes[keep[i]]] for i in after.agree]
     cam.later.update(

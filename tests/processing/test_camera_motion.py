@@ -105,3 +105,19 @@ def test_too_few_points_or_frames_say_nothing():
     assert cm.measure(one).points == 0 and not cm.measure(one).moved
     flat = [[np.full((SIDE, SIDE), 90, np.uint8)] * 3 for _ in range(5)]  # nothing to follow
     assert cm.measure(flat).points == 0
+
+
+def test_a_roll_about_the_centre_moves_every_point_and_reads_as_far_as_they_moved():
+    """Points on both sides of the centre move in opposite directions: the median of their shift vectors is about
+    0, the median of their lengths is the motion."""
+    rng, scene = np.random.default_rng(6), _ground()
+    boxes = cm.patch_boxes(POINTS, scene.shape, SIDE)
+    frames = []
+    for k in range(20):
+        m = cv2.getRotationMatrix2D((319.5, 239.5), float(rng.normal(0, 0.1)) if k else 0.0, 1.0)
+        f = cv2.warpAffine(scene, m, (640, 480), flags=cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
+        frames.append(np.clip(f + rng.normal(0, 1.0, f.shape), 0, 255).astype(np.uint8))
+    got = cm.measure(_patches(frames, boxes))
+    assert got.moved and len(got.agree) == 4
+    assert got.max_shift_px > 0.3  # 0.1 degrees at 250-330 px from the centre: 0.4-0.6 px a degree-tenth
+    assert max(np.hypot(*s) for s in got.shift_px) < 0.5 * got.max_shift_px
