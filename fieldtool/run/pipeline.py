@@ -8,7 +8,7 @@ out:
 3. section(s) (run/geometry.py): the main section, ROI and masks -> ``Sections``
 4. frames (run/frames.py): undistorted, stabilised, filtered working frames, streamed
 5. velocimetry (run/velocimetry.py; rounds of pairs in run/piv_rounds.py, cache in run/piv_cache.py, STIV in
-   run/stiv_stage.py) -> ``PivSetup``, ``Velocimetry``
+   run/stiv_stage.py, the camera check at the GCPs in run/camera.py) -> ``PivSetup``, ``Velocimetry``
 6. discharge (run/discharge.py) -> ``Discharge``
 7. quality and uncertainty (run/quality.py, run/assess.py) -> ``Verdict``
 8. outputs (run/outputs.py; figures drawn meanwhile in plots/prerender.py) -> files, :class:`RunResult`
