@@ -29,7 +29,7 @@ import numpy as np
 #: px: the sub-pixel displacement PIV resolves (the engine's RMS error on uniform shifts and shear in
 #: benchmarks/piv_vs_openpiv.py is 0.02-0.07 px): a camera motion below it cannot bias a pair beyond its own noise
 RESOLVED_PX = 0.1
-#: the common shift must exceed this many of its own noise (sd) to count as motion
+#: a point moved where its largest shift from frame 0 exceeds this many of its shift noise (sd), and RESOLVED_PX
 SIGNIFICANCE = 5.0
 #: corners sought per patch; fewer than MIN_CORNERS followed and the point says nothing for that frame
 MAX_CORNERS = 24

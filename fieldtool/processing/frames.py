@@ -63,6 +63,11 @@ def _inside(region: Box | None, outer: Box | None) -> bool:
     return outer[0] <= region[0] and outer[1] <= region[1] and region[2] <= outer[2] and region[3] <= outer[3]
 
 
+def _crops(img: np.ndarray, boxes) -> tuple[np.ndarray, ...]:
+    """Copies of the ``boxes`` (x0, y0, x1, y1 px) of a whole grey frame (``FrameSource.watch``)."""
+    return tuple(img[y0:y1, x0:x1].copy() for x0, y0, x1, y1 in boxes)
+
+
 def _natural_key(p: Path):
     return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", p.name)]
 
@@ -302,7 +307,7 @@ class FrameSource:
                     raise InputFileError(f"{f}: size {img.shape[1]}x{img.shape[0]} differs from the first image")
                 boxes = self._watched(kept // self.step)
                 if boxes:
-                    self.watched[kept // self.step] = (t, tuple(img[y0:y1, x0:x1].copy() for x0, y0, x1, y1 in boxes))
+                    self.watched[kept // self.step] = (t, _crops(img, boxes))
                 yield Frame(i, t, img)
             kept += 1
 
@@ -336,7 +341,7 @@ class FrameSource:
                     if img is None:
                         return
                     if boxes and clip is None:  # OpenCV's reader: the whole grey frame
-                        self.watched[k] = (t, tuple(img[y0:y1, x0:x1].copy() for x0, y0, x1, y1 in boxes))
+                        self.watched[k] = (t, _crops(img, boxes))
                     yield Frame(i, t, img)
                 kept += 1
         finally:

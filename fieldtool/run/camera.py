@@ -23,9 +23,9 @@ from dataclasses import dataclass, field, replace
 from fieldtool.errors import FieldToolError, GeometryError
 from fieldtool.processing import camera_motion
 from fieldtool.processing.quality import Reason
-from fieldtool.processing.stabilize import Stabilizer
 from fieldtool.project.model import Project
 from fieldtool.run.clip_check import N_FRAMES  # the frames looked at: the clip check's, read once for both
+from fieldtool.run.frames import make_stabilizer
 from fieldtool.run.inputs import Inputs
 
 #: frames of the rest of the clip whose patches are kept for :func:`later` (every few frames, at least every 5th)
@@ -99,13 +99,16 @@ def check(project: Project, inputs: Inputs, head, patch_boxes, warnings: list[st
     if not motion.moved:
         return project, cam
     regions = [[float(c) for c in patch_boxes[i]] for i in motion.agree]
+    stabilised = replace(
+        project, stabilize=replace(project.stabilize, enabled=True, regions_px=regions, water_polygon_px=[])
+    )
     said = (
         f"the camera moved up to {motion.max_shift_px:.2f} px in the first {motion.frames} frames (at "
         f"{len(motion.agree)} of the {motion.points} GCPs followed, and fewer than two stayed put; a GCP moved beyond "
         f"{motion.threshold_px:.2f} px, five times the tracking noise of {motion.noise_px:.3f} px or 0.1 px)"
     )
     try:
-        _registers(project, inputs, regions)
+        _registers(stabilised, inputs)
     except FieldToolError as e:
         cam.problem = str(e)
         warnings.append(
@@ -119,8 +122,7 @@ def check(project: Project, inputs: Inputs, head, patch_boxes, warnings: list[st
         f"stabilize: {said}: every frame is registered on patches around those GCPs; set [stabilize] to choose "
         "yourself (stabilize.auto = false keeps the frames as filmed)"
     )
-    st = replace(project.stabilize, enabled=True, regions_px=regions, water_polygon_px=[])
-    return replace(project, stabilize=st), cam
+    return stabilised, cam
 
 
 def later(cam: Camera, inputs: Inputs, warnings: list[str]) -> None:
@@ -181,15 +183,14 @@ class Later:
         robust["camera"] = self.cam.facts()
 
 
-def _registers(project: Project, inputs: Inputs, regions: list[list[float]]) -> None:
-    """Register the clip's first frames (whole, decoded again: the check's were read in the PIV's box) on
-    ``regions`` as the run would; raises what :class:`Stabilizer` raises where it does not hold."""
+def _registers(project: Project, inputs: Inputs) -> None:
+    """Register the clip's first frames (whole, decoded again: the check's were read in the PIV's box) with the
+    ``[stabilize]`` of ``project`` as the run would (run/frames.py); raises what :class:`Stabilizer` raises where
+    it does not hold."""
     imgs = [f.image for f in inputs.source.head(N_FRAMES) if f.image is not None]
     if inputs.lens is not None:
         imgs = [inputs.lens.undistort(i) for i in imgs]
-    working = [inputs.to_working([[r[0], r[1]], [r[2], r[3]]]).ravel().tolist() for r in regions]
-    st = project.stabilize
-    stab = Stabilizer(imgs[0], regions_px=working, model=st.model, max_drift_px=st.max_drift_px)
+    stab = make_stabilizer(project, inputs, imgs[0])
     for img in imgs[1:]:
         stab.register(img)
 

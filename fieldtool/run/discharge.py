@@ -84,8 +84,7 @@ def compute_discharge(
     v_sub = dq.subsection_velocity(geom, res.x, res.y, U, V)
     if unmeasured.nothing_measured(v_sub):  # an unusable verdict (exit 3) with every file, not exit 2 (issue 23)
         dres, qual = unmeasured.verdict(geom, cs, level_m, sec.alpha, setup.clip.facts())
-        facts = {"plan": None, **setup.clip.facts(), "camera": setup.camera.facts()}
-        return Discharge(dres, geom, U, V, np.zeros(0), None, facts, qual)
+        return Discharge(dres, geom, U, V, np.zeros(0), None, {"plan": None, **setup.clip.facts()}, qual)
     dres = dq.compute_discharge(geom, cs, level_m, v_sub, sec.alpha)
     if dres.discharge_m3s < 0:
         # P1/P2 picked right-to-left: swap them so P1 is the left edge, as the stations assume
@@ -99,7 +98,6 @@ def compute_discharge(
         dres = dq.compute_discharge(geom, cs, level_m, v_sub, sec.alpha)
     robust_facts: dict = {"plan": vel.plan.as_dict() if vel.plan is not None else None}
     setup.clip.annotate(robust_facts)  # robust.noise, robust.contrast, robust.gates, robust.plan.preprocessing
-    robust_facts["camera"] = setup.camera.facts()  # the camera check (run/camera.py)
     if vel.surface_stats is not None:
         ss = vel.surface_stats
         robust_facts["stationary_removed"] = {

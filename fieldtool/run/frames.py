@@ -34,6 +34,17 @@ def in_region_ok(project: Project, inputs: Inputs, observer: Guarded | None) -> 
     )
 
 
+def make_stabilizer(project: Project, inputs: Inputs, reference) -> Stabilizer:
+    """The registration of ``[stabilize]`` on its first working frame ``reference`` (undistorted): the regions and
+    the water polygon, picked on raw frames, moved onto the working image."""
+    st = project.stabilize
+    regions = [inputs.to_working([[r[0], r[1]], [r[2], r[3]]]).ravel().tolist() for r in st.regions_px]
+    poly = inputs.to_working(st.water_polygon_px).tolist() if st.water_polygon_px else None
+    return Stabilizer(
+        reference, regions_px=regions or None, water_polygon_px=poly, model=st.model, max_drift_px=st.max_drift_px
+    )
+
+
 def working_frames(
     project: Project,
     inputs: Inputs,
@@ -83,16 +94,7 @@ def working_frames(
                 img = inputs.lens.undistort(img)
             if project.stabilize.enabled:
                 if stabilizer is None:
-                    st = project.stabilize
-                    regions = [inputs.to_working([[r[0], r[1]], [r[2], r[3]]]).ravel().tolist() for r in st.regions_px]
-                    poly = inputs.to_working(st.water_polygon_px).tolist() if st.water_polygon_px else None
-                    stabilizer = Stabilizer(
-                        img,
-                        regions_px=regions or None,
-                        water_polygon_px=poly,
-                        model=st.model,
-                        max_drift_px=st.max_drift_px,
-                    )
+                    stabilizer = make_stabilizer(project, inputs, img)
                 else:
                     img = stabilizer.register(img)
             yield fr.index, fr.t_s, img
