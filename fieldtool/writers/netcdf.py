@@ -266,8 +266,13 @@ def build_dataset(result, project) -> dict:
     return {"dims": {"time": 1, "y": len(y), "x": len(x), "nv": 2}, "vars": variables, "attrs": attrs}
 
 
-def write_mean_field(result, project, inputs, out: Path) -> str:
-    """Write ``mean_field.nc`` into ``out`` (through a temporary file and a rename); returns its name."""
+def write_mean_field(result, project, inputs, out: Path) -> str | None:
+    """Write ``mean_field.nc`` into ``out`` (through a temporary file and a rename); returns its name, or None
+    (and says so in the warnings) where no node has a valid vector: there is no field to grid."""
+    p = result.piv
+    if not (np.asarray(p.valid, bool) & np.isfinite(result.world_u) & np.isfinite(result.world_v)).any():
+        result.warnings.append("mean_field.nc not written: no node has a valid velocity vector")
+        return None
     ds = build_dataset(result, project)
     path = Path(out) / "mean_field.nc"
     with atomic_path(path) as tmp:

@@ -194,3 +194,17 @@ def test_the_grid_interpolation_is_scipys_linear_nd():
     ok = ~np.isnan(ref)
     assert ok.sum() > 300
     np.testing.assert_allclose(ours[ok], ref[ok], rtol=1e-10, atol=1e-10)
+
+
+def test_no_netcdf_where_no_node_has_a_vector(tmp_path):
+    """A measurement with nothing measured (graded unusable) writes no mean_field.nc and says why in one line,
+    instead of the gridding's own error (a 60 fps clip of slow flow before processing/decorrelation.py)."""
+    from types import SimpleNamespace
+
+    from fieldtool.writers.netcdf import write_mean_field
+
+    nan = np.full(4, np.nan)
+    result = SimpleNamespace(piv=SimpleNamespace(valid=np.zeros(4, bool)), world_u=nan, world_v=nan, warnings=[])
+    assert write_mean_field(result, None, None, tmp_path) is None
+    assert result.warnings == ["mean_field.nc not written: no node has a valid velocity vector"]
+    assert not (tmp_path / "mean_field.nc").exists()
