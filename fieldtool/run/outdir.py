@@ -182,7 +182,7 @@ def input_paths(project) -> list[tuple[str, Path]]:
             continue
         table, _, name = k.rpartition(".")
         rel = getattr(getattr(project, table) if table else project, name, "")
-        if rel and isinstance(rel, str):
+        if rel and isinstance(rel, str) and "\x00" not in rel:  # a NUL is no path: the key's check names it
             p = project.resolve(rel)
             out.append((k, _literal_part(p) if not p.exists() else p))
     return out
