@@ -32,7 +32,7 @@ import cv2
 import numpy as np
 from scipy import fft as sp_fft
 
-from fieldtool.processing import piv_engine
+from fieldtool.processing import decorrelation, piv_engine
 
 #: grey levels: the noise never reads below the quantisation's (a codec reproduces static areas exactly)
 NOISE_FLOOR = 0.5
@@ -73,6 +73,8 @@ class ClipStats:
     contrast_spread: tuple[float, float] = field(default=(0.0, 0.0))  # 10th, 90th percentile of window contrast
     median: np.ndarray | None = field(default=None, repr=False)  # per-pixel temporal median of the box (grey levels)
     box: tuple[int, int, int, int] | None = None  # (x0, y0, x1, y1) px the estimates cover
+    #: how many frames the pattern takes to change at a pixel (processing/decorrelation.py), None: unknown
+    decorrelation: decorrelation.Decorrelation | None = None
 
     @property
     def glint_threshold(self) -> float:
@@ -80,7 +82,7 @@ class ClipStats:
         return glint_threshold(self.noise, self.contrast)
 
     def to_dict(self) -> dict:
-        d = {k: v for k, v in asdict(self).items() if k not in ("median", "box")}
+        d = {k: v for k, v in asdict(self).items() if k not in ("median", "box", "decorrelation")}
         d["contrast_spread"] = list(self.contrast_spread)
         return {k: (round(v, 4) if isinstance(v, float) else v) for k, v in d.items()}
 
@@ -195,6 +197,9 @@ def estimate(frames, box: tuple[int, int, int, int] | None = None, *, win: int =
         contrast_spread=(float(np.percentile(cons_a, 10)), float(np.percentile(cons_a, 90))),
         median=med,
         box=(x0, y0, x1, y1),
+        # on the smoothed residual: sensor noise, white in time, weighs less there (a dusk clip's share of
+        # persistent variance 0.12 -> 0.5); every 4th pixel each way is plenty for a handful of sums
+        decorrelation=decorrelation.fit(sm[:, ::4, ::4]),
     )
 
 
@@ -294,10 +299,12 @@ class Gates:
     mask_glints: bool = False  # per-frame masking of short-lived specular pixels (processing/lowlight.py)
     variants: list | None = None  # self-check scores of the variants tried (processing/selfcheck.py), if any
     min_valid_fraction: float | None = None  # PIV's share of valid pairs a node needs (None = the project's)
+    step: int = 1  # every step-th frame of the clip is used (processing/decorrelation.py); 1: every frame
 
     def to_dict(self) -> dict:
         return {
             "plan": self.plan,
+            "frame_step": self.step,
             "shrink": round(self.shrink, 4),
             "min_texture": round(self.min_texture, 5),
             "min_pairs": self.min_pairs,

@@ -230,6 +230,18 @@ class FrameSource:
         self._head = (deque(got), rest, region)
         return got
 
+    def thin(self, factor: int) -> None:
+        """From now on keep every ``factor``-th frame of those kept so far (the step multiplied). The frames
+        :meth:`head` holds are thinned the same way, so the next pass still replays them and continues their
+        decoder (its frames keep their positions in the range: the kept ones are the multiples of the new step)."""
+        factor = int(factor)
+        if factor <= 1:
+            return
+        if self._head is not None:
+            held, rest, region = self._head
+            self._head = (deque(list(held)[::factor]), rest, region)
+        self.step *= factor
+
     def watch(self, boxes: list[Box] | None, first: int = 0, every: int = 1) -> None:
         """From now on, every pass that decodes the frame at stream position k keeps the grey crops (uint8) of
         ``boxes`` (x0, y0, x1, y1 px, inside the frame) for k < ``first`` and every ``every``-th k after, wherever

@@ -45,6 +45,7 @@ class VideoCfg:
     end_s: float | None = key(None, unit="s", gt=0.0, le=1e6)  # last frame used (s); None = to the end
     step: int = key(1, ge=1, le=10000)  # use every step-th frame (1 = all)
     frame_interval_s: float | None = key(None, unit="s", gt=0.0, le=86400.0)  # image sequences only: time between two images (s)
+    auto_step: bool = key(True)  # use every n-th frame where the water's pattern changes little from frame to frame (slow flow, high frame rates); n from the clip
 
 
 @dataclass

@@ -146,9 +146,21 @@ def setup(
         head = inputs.source.head(
             clip_check.N_FRAMES, _head_region(project, inputs, obs, standardize, box, margin, stiv_run)
         )
+    fps = getattr(getattr(inputs.source, "info", None), "fps", 0.0) or 0.0
     clip = clip_check.check(
-        head, box if box is not None else roi, n_clip, params, mask, standardize, project.piv.frame_gap
+        head,
+        box if box is not None else roi,
+        n_clip,
+        params,
+        mask,
+        standardize,
+        project.piv.frame_gap,
+        no_step=_no_step(project),
+        fps=fps / max(inputs.source.step, 1) if fps > 0 else None,
     )
+    if clip.gates.step > 1:  # slow flow or a high frame rate: every n-th frame (processing/decorrelation.py)
+        inputs.source.thin(clip.gates.step)
+        warnings.append(f"video: {clip.gates.reasons[-1]}")
     params = clip.params(params, standardize)  # min_texture only: the box does not depend on it
     near = None
     if project.piv.region == "section" and box is not None:  # in the band's box, only the nodes near the sections
@@ -161,6 +173,17 @@ def setup(
     if project.piv.max_velocity_ms is not None:
         max_speed = project.piv.max_velocity_ms / mapping.scale_m_per_px(x, y)
     return PivSetup(params, bool(standardize), box, roi, mask, near, max_speed, stiv_run, clip, project, cam)
+
+
+def _no_step(project: Project) -> str | None:
+    """Why the run may not use fewer frames than the clip has (None: it may)."""
+    if not project.video.auto_step:
+        return "video.auto_step = false"
+    if project.piv.frame_gap is not None:
+        return "piv.frame_gap is set, in frames of the clip"
+    if project.stabilize.enabled:  # the first frames are looked at unregistered: their change is the camera's too
+        return "the frames are stabilised"
+    return None
 
 
 def _head_region(project: Project, inputs: Inputs, obs, standardize: bool, box, margin: int, stiv_run):

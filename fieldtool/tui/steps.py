@@ -188,6 +188,15 @@ VIDEO = [
         check=at_least(1),
     ),
     Field(
+        "video.auto_step",
+        "Fewer frames if slow",
+        "",
+        "choice",
+        "use every Nth frame on top of that where the water's pattern barely changes between frames (slow flow, "
+        "a high frame rate); N from the clip's first frames",
+        choices=(("yes", True), ("no", False)),
+    ),
+    Field(
         "video.frame_interval_s",
         "Frame interval",
         "s",

@@ -171,3 +171,28 @@ def test_a_watched_clip_keeps_the_patches_of_its_first_frames_then_every_few(tex
     assert copy.watched == {} and copy._watch is None
     src.watch(None)
     assert src.watched == {} and src._watched(0) is None
+
+
+def test_a_thinned_source_replays_every_nth_frame_of_its_head_and_goes_on(textured, monkeypatch):
+    """The run looks at the first frames at the clip's own rate and may then use every n-th frame
+    (``FrameSource.thin``, processing/decorrelation.py): the pass replays the head's frames on the new step and
+    continues their decoder, giving the frames a source made with that step gives, decoded once."""
+    want = [(f.t_s, f.image.copy()) for f in FrameSource(textured, step=3)]
+    opened = []
+    orig = video_av.open_clip
+    monkeypatch.setattr(video_av, "open_clip", lambda *a: opened.append(1) or orig(*a))
+    src = FrameSource(textured)
+    n = src.estimated_count()
+    assert len(src.head(10)) == 10
+    src.thin(3)
+    assert src.step == 3 and src.estimated_count() == -(-n // 3)
+    got = list(src.iter_wanted(lambda k: k != 2))
+    assert len(opened) == 1 and len(got) == len(want) == 8
+    for k, (f, (t, img)) in enumerate(zip(got, want, strict=True)):
+        assert f.t_s == t
+        if k == 2:
+            assert f.image is None
+        else:
+            np.testing.assert_array_equal(f.image, img)
+    src.thin(1)  # no change
+    assert src.step == 3
