@@ -54,7 +54,9 @@ def main() -> int:
                 step = (rob.get("gates") or {}).get("frame_step", "-")
                 tau, tau_s = change.get("tau_frames"), change.get("tau_s")
                 rows.append(r)
-                extra = f" {step!s:>4} {'-' if tau is None else f'{tau:.1f}':>10} {'-' if tau_s is None else f'{tau_s:.2f}':>6}"
+                tau_txt = "-" if tau is None else f"{tau:.1f}"
+                tau_s_txt = "-" if tau_s is None else f"{tau_s:.2f}"
+                extra = f" {step!s:>4} {tau_txt:>10} {tau_s_txt:>6}"
                 print(fmt(r, extra), flush=True)
     n_fail = sum(not r["pass"] for r in rows)
     good = [r for r in rows if r["grade"] == "good"]
