@@ -23,7 +23,7 @@ def moving_pattern(speed_px: float, n: int = 20, size_px: float = 3.0, noise: fl
 
 
 def test_the_time_scales_with_the_speed():
-    """Half the speed, twice the frames to change (the same pattern): the fit is of the pattern's motion,
+    """A quarter of the speed, four times the frames to change (the same pattern): the fit is of the motion,
     not of the few frames looked at (whose mean it models)."""
     fast = decorrelation.fit(moving_pattern(2.0))
     slow = decorrelation.fit(moving_pattern(0.5))
