@@ -19,6 +19,8 @@ from fieldtool.processing.surface import MIN_TEXTURE, SHRINK
 N_FRAMES = 20
 #: the self-check compares pairs this many and twice as many frames apart (beyond the denoising window)
 SELF_GAP = 3
+#: how the reason about the frame step begins (:func:`_frame_step`)
+STEP_LEAD = "the water's pattern takes"
 
 
 def _user_gap(g: clip_stats.Gates, user_gap: int | None) -> clip_stats.Gates:
@@ -62,6 +64,11 @@ class ClipCheck:
         """Pairs of denoised frames share no input frame: frame gap at least the averaging window."""
         h = self.gates.denoise_half
         return replace(params, frame_gap=max(int(params.frame_gap), 2 * h + 1)) if h else params
+
+    @property
+    def step_said(self) -> str | None:
+        """What the check said of the frame step (:func:`_frame_step`), None: nothing."""
+        return next((r for r in self.gates.reasons if r.startswith(STEP_LEAD)), None)
 
     @property
     def weak(self) -> bool:
@@ -172,7 +179,7 @@ def _frame_step(d, n_clip: int, no_step: str | None, fps: float | None) -> tuple
         return 1, None
     secs = f" ({d.tau_frames / fps:.2f} s)" if fps else ""
     seen = (
-        f"the water's pattern takes {d.tau_frames:.1f} frames{secs} to change at a pixel, "
+        f"{STEP_LEAD} {d.tau_frames:.1f} frames{secs} to change at a pixel, "
         f"{d.tau_frames / decorrelation.TAU_FRAMES:.1f} x the {decorrelation.TAU_FRAMES:g} frames the method's "
         "per-frame settings are made for"
     )

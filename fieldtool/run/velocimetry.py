@@ -160,7 +160,7 @@ def setup(
     )
     if clip.gates.step > 1:  # slow flow or a high frame rate: every n-th frame (processing/decorrelation.py)
         inputs.source.thin(clip.gates.step)
-        warnings.append(f"video: {clip.gates.reasons[-1]}")
+        warnings.append(f"video: {clip.step_said}")
     params = clip.params(params, standardize)  # min_texture only: the box does not depend on it
     near = None
     if project.piv.region == "section" and box is not None:  # in the band's box, only the nodes near the sections
