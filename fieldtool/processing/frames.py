@@ -342,13 +342,14 @@ class FrameSource:
                     continue
                 if where > 0:
                     return
-                k = kept // self.step
-                boxes = self._watched(k) if kept % self.step == 0 else None
+                k, off = divmod(kept, self.step)
+                on_step = off == 0
+                boxes = self._watched(k) if on_step else None
                 if boxes and clip is not None:  # PyAV: the crops of a decoded frame, converted or not
                     self.watched[k] = (t, clip.patches(fr, boxes))
-                if kept % self.step == 0 and want is not None and not want(k):
+                if on_step and want is not None and not want(k):
                     yield Frame(i, t, None)
-                elif kept % self.step == 0:
+                elif on_step:
                     img = grey(fr)
                     if img is None:
                         return

@@ -174,9 +174,9 @@ def _frame_step(d, n_clip: int, no_step: str | None, fps: float | None) -> tuple
     """The frame step the water's decorrelation asks for (processing/decorrelation.py) and what to say of it
     (None: nothing, the clip is used frame by frame as filmed). The clip keeps at least the standardisation's
     window of frames."""
-    want = decorrelation.step_for(d, n_clip, 2 * surface.HALF_WINDOW + 1)
-    if d is None or want <= 1 and decorrelation.step_for(d, 0, 1) <= 1:
+    if d is None or decorrelation.step_for(d, 0, 1) <= 1:  # the water's pace asks for no step, whatever the clip
         return 1, None
+    want = decorrelation.step_for(d, n_clip, 2 * surface.HALF_WINDOW + 1)  # what the clip's length allows
     secs = f" ({d.tau_frames / fps:.2f} s)" if fps else ""
     seen = (
         f"{STEP_LEAD} {d.tau_frames:.1f} frames{secs} to change at a pixel, "

@@ -105,11 +105,16 @@ def _flat_attrs(inputs: dict) -> dict:
     return attrs
 
 
+def _valid_nodes(result) -> np.ndarray:
+    """The PIV nodes with a valid vector and a finite world velocity (bool, the nodes' shape)."""
+    return np.asarray(result.piv.valid, bool) & np.isfinite(result.world_u) & np.isfinite(result.world_v)
+
+
 def _grid_field(result) -> tuple:
     """The valid PIV node velocities (m s-1) and valid fractions (1) on a regular grid in the world frame:
     ``(x, y, dx, u, v, valid_fraction, speed)``, x and y the cell centres (m), dx the cell size (m)."""
     p = result.piv
-    ok = np.asarray(p.valid, bool) & np.isfinite(result.world_u) & np.isfinite(result.world_v)
+    ok = _valid_nodes(result)
     XY = result.mapping.image_to_world(np.c_[p.x[ok], p.y[ok]])
     U, V = np.asarray(result.world_u)[ok], np.asarray(result.world_v)[ok]
     vf = np.asarray(p.valid_fraction, float)[ok]
@@ -269,8 +274,7 @@ def build_dataset(result, project) -> dict:
 def write_mean_field(result, project, inputs, out: Path) -> str | None:
     """Write ``mean_field.nc`` into ``out`` (through a temporary file and a rename); returns its name, or None
     (and says so in the warnings) where no node has a valid vector: there is no field to grid."""
-    p = result.piv
-    if not (np.asarray(p.valid, bool) & np.isfinite(result.world_u) & np.isfinite(result.world_v)).any():
+    if not _valid_nodes(result).any():
         result.warnings.append("mean_field.nc not written: no node has a valid velocity vector")
         return None
     ds = build_dataset(result, project)
