@@ -53,8 +53,11 @@ def render(label: str, seed: int, duration: float, d: Path) -> None:
 def run_cli(project: Path, out: Path) -> tuple[int, dict | None, float]:
     shutil.rmtree(out, ignore_errors=True)  # never reuse a PIV cache written by other code
     t0 = time.perf_counter()
-    p = subprocess.run([sys.executable, "-m", "fieldtool.cli", "run", str(project), "--out", str(out)],
-                       stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=os.environ.copy())
+    # run from the scene's folder: ``-m`` puts the working folder first on the path, so a run started in a source
+    # tree would take that tree's fieldtool over PYTHONPATH's (the tree a before/after comparison names)
+    p = subprocess.run([sys.executable, "-m", "fieldtool.cli", "run", str(project.resolve()), "--out",
+                        str(out.resolve())], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                       env=os.environ.copy(), cwd=project.resolve().parent)
     dt = time.perf_counter() - t0
     rj = out / "result.json"
     return p.returncode, (json.loads(rj.read_text()) if rj.exists() and p.returncode != 2 else None), dt

@@ -233,13 +233,20 @@ class FrameSource:
     def thin(self, factor: int) -> None:
         """From now on keep every ``factor``-th frame of those kept so far (the step multiplied). The frames
         :meth:`head` holds are thinned the same way, so the next pass still replays them and continues their
-        decoder (its frames keep their positions in the range: the kept ones are the multiples of the new step)."""
+        decoder (its frames keep their positions in the range: the kept ones are the multiples of the new step).
+        A :meth:`watch` is re-counted in the new step's frames: the patches kept so far at the frames still kept,
+        and its ``first`` and ``every`` divided by ``factor`` (rounded up), so that it keeps as many patches over
+        the clip's seconds as before."""
         factor = int(factor)
         if factor <= 1:
             return
         if self._head is not None:
             held, rest, region = self._head
             self._head = (deque(list(held)[::factor]), rest, region)
+        if self._watch is not None:
+            boxes, first, every = self._watch
+            self._watch = (boxes, -(-first // factor), max(1, -(-every // factor)))
+            self.watched = {k // factor: v for k, v in self.watched.items() if k % factor == 0}
         self.step *= factor
 
     def watch(self, boxes: list[Box] | None, first: int = 0, every: int = 1) -> None:
@@ -249,6 +256,11 @@ class FrameSource:
         the same crops whichever pass decoded them). None: no more."""
         self._watch = (tuple(boxes), int(first), max(1, int(every))) if boxes else None
         self.watched = {}
+
+    @property
+    def watch_first(self) -> int:
+        """The ``first`` of the :meth:`watch` on (in the frames of the current step; 0 when none is)."""
+        return self._watch[1] if self._watch is not None else 0
 
     def _watched(self, k: int) -> tuple | None:
         """The boxes to keep at stream position ``k``, or None."""

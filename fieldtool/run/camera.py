@@ -129,10 +129,10 @@ def later(cam: Camera, inputs: Inputs, warnings: list[str]) -> None:
     """After the pass: where the camera was still in the first frames and nothing registered the frames, do the
     GCPs that stayed put still stay put in the rest of the clip (the patches ``FrameSource.watch`` kept)? Sets
     ``cam.later``; a camera that moved is said in ``warnings`` and, through the facts, in the verdict."""
-    seen = inputs.source.watched
+    seen, first = inputs.source.watched, inputs.source.watch_first  # first: N_FRAMES, or fewer after a step
     inputs.source.watch(None)
     m = cam.motion
-    rest = sorted(k for k in seen if k >= N_FRAMES)
+    rest = sorted(k for k in seen if k >= first)
     if m is None or m.moved or cam.stabilized or not rest or 0 not in seen:
         return
     keep = list(m.agree)  # the points that stayed put in the first frames

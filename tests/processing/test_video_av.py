@@ -196,3 +196,28 @@ def test_a_thinned_source_replays_every_nth_frame_of_its_head_and_goes_on(textur
             np.testing.assert_array_equal(f.image, img)
     src.thin(1)  # no change
     assert src.step == 3
+
+
+@pytest.mark.parametrize("av_reader", [True, False])
+def test_a_thinned_watch_keeps_its_patches_over_the_same_seconds(textured, av_reader):
+    """After ``thin(n)`` the watch counts the new step's frames: the patches of the head's kept frames under their
+    new numbers, then the first and every few re-counted, so the camera's later check (run/camera.py) sees as much
+    of the clip, in seconds, as without the step, and no patch sits under another frame's number."""
+    whole = [(f.t_s, f.image.copy()) for f in FrameSource(textured)]
+    src = FrameSource(textured)
+    if not av_reader:
+        src._av = False
+    boxes = [(60, 2, 90, 30)]
+    src.watch(boxes, first=4, every=5)
+    src.head(8)
+    assert sorted(src.watched) == [0, 1, 2, 3, 5]
+    src.thin(2)
+    assert src.watch_first == 2 and sorted(src.watched) == [0, 1]  # frames 0 and 2
+    list(src)
+    kept = sorted(src.watched)
+    assert kept == [0, 1, 6, 9]  # the head's frames 0 and 2, then every 6th frame after the head: 12, 18
+    for k in kept:
+        t, crops = src.watched[k]
+        assert t == pytest.approx(whole[2 * k][0])
+        np.testing.assert_array_equal(crops[0], whole[2 * k][1][2:30, 60:90])
+

@@ -72,10 +72,11 @@ def test_a_registration_the_check_chose_that_fails_later_says_whose_it_was():
 
 
 class _Source:
-    """What :func:`camera.later` reads of a FrameSource: the watched crops, and watch(None) to stop."""
+    """What :func:`camera.later` reads of a FrameSource: the watched crops, the first frames', and watch(None) to
+    stop."""
 
-    def __init__(self, watched):
-        self.watched = watched
+    def __init__(self, watched, watch_first=20):
+        self.watched, self.watch_first = watched, watch_first
 
     def watch(self, boxes, first=0, every=1):
         assert boxes is None
