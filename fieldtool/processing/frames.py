@@ -3,6 +3,12 @@
 Frames are streamed one at a time as :class:`Frame` (index in the clip, time in seconds, gray
 uint8 image). Times come from the container's timestamps; image sequences use the frame interval
 the user gives. Nothing here keeps more than one frame in memory.
+
+Times are the filming's seconds. A slow-motion or time-lapse clip plays at another rate than it was filmed at: a
+phone filming 240 frames a second writes them 1/30 s apart and the rate it filmed at in the tag
+:data:`CAPTURE_TAG`. :func:`filming_clock` reads it (or ``video.capture_fps``), and every time here, ``start_s``
+and ``end_s`` included, is then the container's time multiplied by ``time_scale`` (= the file's rate / the
+filming rate): a velocity is metres per second of the river's, not of the playback's.
 """
 
 from __future__ import annotations
@@ -17,6 +23,7 @@ from itertools import islice
 from pathlib import Path
 from typing import NamedTuple
 
+import av
 import cv2
 import numpy as np
 
@@ -26,6 +33,12 @@ from fieldtool.processing.paths import is_pattern, literal_glob
 
 #: (x0, y0, x1, y1) px, a box of the frame
 Box = tuple[int, int, int, int]
+
+#: the container tag where a phone writes the rate a slow-motion or time-lapse clip was filmed at (frames/s;
+#: Android's MediaRecorder, in MP4's metadata)
+CAPTURE_TAG = "com.android.capture.fps"
+#: a tagged filming rate within this share of the file's own rate is the file's rate (29.97 against 30)
+SAME_RATE = 0.01
 
 IMAGE_EXTS = {".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp"}
 
@@ -121,6 +134,8 @@ class FrameSource:
     start_s, end_s : time range in seconds (``end_s`` None = to the end).
     step : keep every ``step``-th frame (>= 1).
     frame_interval_s : image sequences only, time between two images (s).
+    capture_fps : videos only, the rate the clip was filmed at (frames/s; None: the file's :data:`CAPTURE_TAG`,
+        else its own rate). ``time_scale`` and ``clock_said`` are :func:`filming_clock`'s.
     """
 
     def __init__(
@@ -130,13 +145,28 @@ class FrameSource:
         end_s: float | None = None,
         step: int = 1,
         frame_interval_s: float | None = None,
+        capture_fps: float | None = None,
     ) -> None:
         self.path = Path(path)
         self.files = sequence_files(self.path)
         if step < 1:
             raise ParameterError(f"video.step: {step} is not allowed; use 1 (every frame) or more")
+        self.time_scale, self.clock_said = 1.0, None
         if self.files is None:
-            self.info = self._probe_video()
+            info = self._probe_video()
+            clock = filming_clock(self.path, info.fps, capture_fps)
+            self.time_scale, self.clock_said = clock.scale, clock.said
+            self.info = (
+                info
+                if clock.scale == 1.0
+                else ClipInfo(
+                    info.path, info.width, info.height, clock.fps, info.n_frames, info.duration_s * clock.scale, False
+                )
+            )
+        elif capture_fps is not None:
+            raise ParameterError(
+                "video.capture_fps: an image sequence's clock is video.frame_interval_s; leave capture_fps unset"
+            )
         else:
             if not self.files:
                 raise InputFileError(f"{self.path}: no images ({', '.join(sorted(IMAGE_EXTS))}) found")
@@ -348,7 +378,9 @@ class FrameSource:
             decoded = ((t, fr, grey_of) for t, fr in clip.decoded())
         try:
             kept = 0
+            scale = self.time_scale
             for i, (t, fr, grey) in enumerate(decoded):
+                t *= scale  # the filming's seconds
                 where = self._in_range(t)
                 if where < 0:
                     continue
@@ -397,8 +429,75 @@ class FrameSource:
             cap.release()
 
 
-def read_color_frame(path: Path | str, t_s: float = 0.0, frame_interval_s: float | None = None) -> np.ndarray:
-    """The BGR frame at (or just after) ``t_s`` seconds, for display and plots."""
+class Clock(NamedTuple):
+    """A video's clock (:func:`filming_clock`): its times multiplied by ``scale`` are the filming's seconds, at
+    ``fps`` frames per second of filming; ``said``: the sentence that says so (None where the scale is 1)."""
+
+    scale: float
+    fps: float
+    said: str | None
+
+
+def filming_clock(path: Path | str, file_fps: float, capture_fps: float | None = None) -> Clock:
+    """The :class:`Clock` of a video whose own rate is ``file_fps`` (frames/s, OpenCV's; FFmpeg's
+    guess from the stream's timestamps where PyAV reads one): the filming's seconds are the file's times the
+    scale. The filming rate is ``capture_fps`` (the key ``video.capture_fps``), else the file's
+    :data:`CAPTURE_TAG` unless it is within :data:`SAME_RATE` of the file's rate; with neither the scale is 1
+    and nothing is said."""
+    tagged, guessed = _clip_rates(path)
+    file_fps = guessed or file_fps
+    rate, where = capture_fps, "video.capture_fps"
+    if rate is None:
+        rate, where = tagged, f"the file's {CAPTURE_TAG} tag"
+        if rate is None or not file_fps > 0 or abs(rate / file_fps - 1.0) <= SAME_RATE:
+            return Clock(1.0, file_fps, None)
+    elif not file_fps > 0:
+        raise ParameterError(
+            f"video.capture_fps: {path} gives no frame rate of its own to set the filming's apart from; leave "
+            "capture_fps unset"
+        )
+    scale = file_fps / rate
+    if scale == 1.0:
+        return Clock(1.0, file_fps, None)
+    kind = "slow motion" if scale < 1 else "time-lapse"
+    return Clock(
+        scale,
+        rate,
+        (
+            f"filmed at {rate:g} frames per second ({where}) and played at {file_fps:g} ({kind}): a frame is "
+            f"1/{rate:g} s of the river's, and the clip's times (video.start_s, video.end_s, the outputs') are the "
+            f"filming's seconds, "
+            f"{scale:g} x the player's"
+        ),
+    )
+
+
+def _clip_rates(path: Path | str) -> tuple[float | None, float | None]:
+    """(the file's :data:`CAPTURE_TAG`, FFmpeg's guess of its video stream's rate), frames/s; None where absent,
+    not a positive number, or unreadable."""
+
+    def positive(v) -> float | None:
+        try:
+            f = float(v)
+        except (TypeError, ValueError, ZeroDivisionError):
+            return None
+        return f if np.isfinite(f) and f > 0 else None
+
+    try:
+        with av.open(str(path), metadata_errors="ignore") as c:
+            video = c.streams.video
+            tags = {**(video[0].metadata if video else {}), **c.metadata}
+            guessed = positive(video[0].guessed_rate) if video else None
+    except (av.error.FFmpegError, OSError, ValueError, UnicodeDecodeError):
+        return None, None
+    return positive(tags.get(CAPTURE_TAG)), guessed
+
+
+def read_color_frame(
+    path: Path | str, t_s: float = 0.0, frame_interval_s: float | None = None, capture_fps: float | None = None
+) -> np.ndarray:
+    """The BGR frame at (or just after) ``t_s`` seconds, for display and plots (a video's seconds are the
+    filming's, as FrameSource's: ``capture_fps`` as there)."""
     path = Path(path)
     files = sequence_files(path)
     if files is not None:
@@ -413,12 +512,13 @@ def read_color_frame(path: Path | str, t_s: float = 0.0, frame_interval_s: float
         raise InputFileError(f"{path}: video not found; check video.path in the project file")
     cap = cv2.VideoCapture(str(path))
     try:
+        scale = filming_clock(path, cap.get(cv2.CAP_PROP_FPS) or 0.0, capture_fps).scale if t_s > 0 else 1.0
         last = None
         while cap.grab():
             ok, img = cap.retrieve()
             if ok:
                 last = img
-            if cap.get(cv2.CAP_PROP_POS_MSEC) / 1000.0 >= t_s - 1e-6:
+            if cap.get(cv2.CAP_PROP_POS_MSEC) / 1000.0 * scale >= t_s - 1e-6:
                 break
     finally:
         cap.release()

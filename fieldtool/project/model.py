@@ -45,6 +45,7 @@ class VideoCfg:
     end_s: float | None = key(None, unit="s", gt=0.0, le=1e6)  # last frame used (s); None = to the end
     step: int = key(1, ge=1, le=10000)  # use every step-th frame (1 = all)
     frame_interval_s: float | None = key(None, unit="s", gt=0.0, le=86400.0)  # image sequences only: time between two images (s)
+    capture_fps: float | None = key(None, unit="1/s", gt=0.0, le=100000.0)  # videos only: the rate the clip was filmed at (slow motion, time-lapse); None = the file's com.android.capture.fps tag, else its own rate
     auto_step: bool = key(True)  # use every n-th frame where the water's pattern changes little from frame to frame (slow flow, high frame rates); n from the clip
 
 

@@ -304,18 +304,20 @@ def frame_size(path: Path, key: str = "video.path") -> tuple[int, int] | str:
 _clip_cache: dict[tuple, str | None] = {}
 
 
-def clip_problem(path: Path, start_s: float, end_s: float | None, step: int, interval: float | None) -> str | None:
+def clip_problem(
+    path: Path, start_s: float, end_s: float | None, step: int, interval: float | None, capture_fps: float | None
+) -> str | None:
     """Why the clip cannot be read over this range ("key: message"), or None; cached on the file's
     size and mtime, so that the TUI may ask on every keystroke."""
     try:
         st = os.stat(path)
-        ck = (str(path), st.st_size, st.st_mtime_ns, start_s, end_s, step, interval)
+        ck = (str(path), st.st_size, st.st_mtime_ns, start_s, end_s, step, interval, capture_fps)
     except OSError:
         ck = None
     if ck is not None and ck in _clip_cache:
         return _clip_cache[ck]
     try:
-        FrameSource(path, start_s, end_s, step, interval)
+        FrameSource(path, start_s, end_s, step, interval, capture_fps)
         res = None
     except FieldToolError as e:
         res = str(e)
@@ -580,9 +582,9 @@ class _Validator:
         if self.ok("video.start_s", "video.end_s") and v.end_s is not None and v.end_s <= v.start_s:
             self.err("video.end_s", f"{v.end_s:g} s must be after video.start_s ({v.start_s:g} s)")
         if self.file("video.path", v.path, "video") and self.ok(
-            "video.start_s", "video.end_s", "video.step", "video.frame_interval_s"
+            "video.start_s", "video.end_s", "video.step", "video.frame_interval_s", "video.capture_fps"
         ):
-            msg = clip_problem(self.p.resolve(v.path), v.start_s, v.end_s, v.step, v.frame_interval_s)
+            msg = clip_problem(self.p.resolve(v.path), v.start_s, v.end_s, v.step, v.frame_interval_s, v.capture_fps)
             if msg:
                 self.from_error(ParameterError(msg), "video.path")
 

@@ -101,7 +101,8 @@ def video_info(project, source) -> dict:
         "recorded_source": where,
         "width_px": int(info.width),
         "height_px": int(info.height),
-        "fps": float(info.fps),
+        "fps": float(info.fps),  # the filming's rate (processing/frames.py filming_clock)
+        "time_scale": float(getattr(source, "time_scale", 1.0)),  # the filming's seconds per second of the file's
         "n_frames": int(info.n_frames),
         "duration_s": float(info.duration_s),
         "is_sequence": bool(info.is_sequence),

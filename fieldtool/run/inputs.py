@@ -62,9 +62,9 @@ def load_inputs(project: Project) -> Inputs:
     msg = path_problem(project.resolve(v.path), "video.path", kind="video")  # a FIFO must not block the open
     if msg:
         raise InputFileError(f"video.path: {msg}")
-    src = FrameSource(project.resolve(v.path), v.start_s, v.end_s, v.step, v.frame_interval_s)
+    src = FrameSource(project.resolve(v.path), v.start_s, v.end_s, v.step, v.frame_interval_s, v.capture_fps)
     lens = None
     if project.calibration.path:
         lens = load_calibration(project.resolve(project.calibration.path))
-    first = read_color_frame(project.resolve(v.path), v.start_s, v.frame_interval_s)
+    first = read_color_frame(project.resolve(v.path), v.start_s, v.frame_interval_s, v.capture_fps)
     return Inputs(cs, src, lens, first)

@@ -85,6 +85,8 @@ def _run_project(
     obs("stage", "inputs")
     check_outputs(project)  # a wrong ortho.crs_epsg stops the run before any work
     inputs = load_inputs(project)
+    if inputs.source.clock_said:  # slow motion or time-lapse (processing/frames.py filming_clock)
+        warnings.append(f"video: {inputs.source.clock_said}")
     lap("inputs")
 
     obs("stage", "water_level")

@@ -47,8 +47,8 @@ def core_check(session, step: str) -> None:
         v = p.video
         if not v.path:
             raise ParameterError("video.path: no video given; set the clip to analyse")
-        src = FrameSource(p.resolve(v.path), v.start_s, v.end_s, v.step, v.frame_interval_s)
-        read_color_frame(p.resolve(v.path), v.start_s, v.frame_interval_s)
+        src = FrameSource(p.resolve(v.path), v.start_s, v.end_s, v.step, v.frame_interval_s, v.capture_fps)
+        read_color_frame(p.resolve(v.path), v.start_s, v.frame_interval_s, v.capture_fps)
         if src.estimated_count() < 2:
             raise ParameterError(
                 "video: the range holds fewer than 2 frames; widen video.start_s .. video.end_s or lower video.step"

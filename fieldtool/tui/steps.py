@@ -188,6 +188,16 @@ VIDEO = [
         check=at_least(1),
     ),
     Field(
+        "video.capture_fps",
+        "Filmed at",
+        "fps",
+        "float",
+        "the rate a slow-motion or time-lapse clip was filmed at; empty = the rate the phone wrote in the file, "
+        "else the file's own",
+        check=positive,
+        placeholder="the file's",
+    ),
+    Field(
         "video.auto_step",
         "Fewer frames if slow",
         "",

@@ -73,7 +73,7 @@ def _first_frame(project: Project) -> np.ndarray:
     v = project.video
     if not v.path:
         raise ParameterError("video.path: no video given; set the clip to analyse")
-    return read_color_frame(project.resolve(v.path), v.start_s, v.frame_interval_s)
+    return read_color_frame(project.resolve(v.path), v.start_s, v.frame_interval_s, v.capture_fps)
 
 
 def lens_of(project: Project):

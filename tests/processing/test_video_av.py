@@ -220,4 +220,3 @@ def test_a_thinned_watch_keeps_its_patches_over_the_same_seconds(textured, av_re
         t, crops = src.watched[k]
         assert t == pytest.approx(whole[2 * k][0])
         np.testing.assert_array_equal(crops[0], whole[2 * k][1][2:30, 60:90])
-
