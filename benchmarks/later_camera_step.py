@@ -62,7 +62,9 @@ def main() -> int:
     ap.add_argument("--workdir", default="/tmp/later_camera")
     ap.add_argument("--results", default="results")
     a = ap.parse_args()
-    print(f"{'scene':<24} {'rc':>3} {'step':>4} {'later frames':>12} {'moved':<6} {'warned':<6} {'grade':<9} {'err %':>7}")
+    print(
+        f"{'scene':<24} {'rc':>3} {'step':>4} {'later frames':>12} {'moved':<6} {'warned':<6} {'grade':<9} {'err %':>7}"
+    )
     missed = 0
     for name in a.scenes.split(","):
         src, dst = Path(a.pace) / name, Path(a.workdir) / name

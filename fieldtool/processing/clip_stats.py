@@ -197,10 +197,13 @@ def estimate(frames, box: tuple[int, int, int, int] | None = None, *, win: int =
         contrast_spread=(float(np.percentile(cons_a, 10)), float(np.percentile(cons_a, 90))),
         median=med,
         box=(x0, y0, x1, y1),
-        # on the smoothed residual: sensor noise, white in time, weighs less there (a dusk clip's share of
-        # persistent variance 0.12 -> 0.5); every 4th pixel each way (more apart in a box of over 1 Mpx: at
-        # most 64k pixels) is plenty for a handful of sums (4 ms at 720p, 8 ms at 4K)
-        decorrelation=decorrelation.fit(sm[:, :: (k := _every(hh * ww)), ::k]),
+        # on the smoothed frames (the smoothed residual and the smoothed median): sensor noise, white in time,
+        # weighs less there (a dusk clip's share of persistent variance 0.12 -> 0.5); whole, so that the fit takes
+        # out an exposure's or a fade's change of every pixel's gain; every 4th pixel each way (more apart in a box
+        # of over 1 Mpx: at most 64k pixels) is plenty for a handful of sums (4 ms at 720p, 8 ms at 4K)
+        decorrelation=decorrelation.fit(
+            sm[:, :: (k := _every(hh * ww)), ::k] + cv2.GaussianBlur(med, (0, 0), 1.5)[::k, ::k]
+        ),
     )
 
 

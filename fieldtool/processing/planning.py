@@ -30,6 +30,9 @@ from fieldtool.processing import piv
 from fieldtool.processing.piv_validate import fill_all
 
 LOOK_PAIRS = 8  # pairs of the first look
+#: looks at most: a look with too few vectors looks at the next pairs (a phone clip's first second: exposure or
+#: focus settling)
+LOOK_TRIES = 3
 SLOW_TARGET_PX = 2.5  # the slow nodes (20th percentile) should move at least this far per pair
 FAST_FRACTION = 0.25  # the fast nodes (95th percentile) move at most this share of the first-pass window per pair
 MAX_GAP = 3
@@ -47,6 +50,7 @@ class Plan:
     slow_px_per_frame: float = float("nan")  # 20th percentile of |d| over the moving nodes
     fast_px_per_frame: float = float("nan")  # 95th percentile
     pairs_looked: int = 0
+    frames_skipped: int = 0  # frames before the look that planned: earlier looks found too few vectors
     #: (xc, yc, dx, dy): the look's displacement per frame (px) on its grid, when the first pass can start from it
     #: (then ``search_px`` is the wider search area that would serve instead: another engine, the user's choice)
     guess: tuple | None = None
@@ -62,6 +66,7 @@ class Plan:
             "slow_px_per_frame": f(self.slow_px_per_frame),
             "fast_px_per_frame": f(self.fast_px_per_frame),
             "pairs_looked": self.pairs_looked,
+            "frames_skipped": self.frames_skipped,
             "first_guess": self.guess is not None,
         }
 
@@ -99,8 +104,14 @@ def first_look(
     mask: np.ndarray | None = None,
     gap: int = 1,
     weak: bool = False,
+    hold_bytes: int | None = None,
 ) -> tuple[Plan, Iterator[tuple[float, np.ndarray]]]:
     """Look at the first :data:`LOOK_PAIRS` pairs and plan the frame gap and search area.
+
+    A look whose field has fewer than 4 moving vectors (the first frames of a phone's clip, dark while the
+    exposure settles or blurred while the focus hunts) looks at the next :data:`LOOK_PAIRS` pairs, up to
+    :data:`LOOK_TRIES` looks and while the frames held for the replay stay within ``hold_bytes`` (None: no
+    limit); ``Plan.frames_skipped`` says how many frames came before the look that planned.
 
     Parameters
     ----------
@@ -114,6 +125,7 @@ def first_look(
     weak : single pairs are at the noise (the clip check's weak-signal plan): the look's ensemble field, where
         most of its nodes have one, is the first guess of the run's first pass whatever its frame gap, so that
         every pair's windows start from the ensemble's displacement rather than from a single pair's noise.
+    hold_bytes : the most the frames held for the replay may take (bytes) before another look is tried.
 
     Returns
     -------
@@ -122,19 +134,42 @@ def first_look(
     """
     it = iter(frames)
     gap = max(int(gap), 1)
-    head = list(itertools.islice(it, LOOK_PAIRS + gap))
-    replay = itertools.chain(head, it)
+    held: list = []
+    plan = Plan(frame_gap=1, search_px=None, chosen="auto")
+    for _ in range(LOOK_TRIES):
+        head = list(itertools.islice(it, LOOK_PAIRS + gap))
+        skipped = len(held)
+        held += head
+        looked = _look(head, params, roi, mask, gap, weak)
+        if looked is not None:
+            plan = looked
+            plan.frames_skipped = skipped
+            break
+        if skipped == 0:
+            plan.pairs_looked = max(len(head) - gap, 0)  # the first look's, as said when none planned
+        if len(head) < LOOK_PAIRS + gap:
+            break
+        if hold_bytes is not None:  # the next look holds as many frames more, of the same size
+            per_frame = sum(getattr(img, "nbytes", 0) for _, img in held) / len(held)
+            if per_frame * (len(held) + LOOK_PAIRS + gap) > hold_bytes:
+                break
+    return plan, itertools.chain(held, it)
+
+
+def _look(head: list, params: piv.PivParams, roi, mask, gap: int, weak: bool) -> Plan | None:
+    """The plan from one look at ``head`` (:func:`first_look`), or None where it finds fewer than 4 moving
+    vectors (or too few frames, or the correlation fails)."""
     w0 = params.window_px * 2 ** (params.passes - 1)
     plan = Plan(frame_gap=1, search_px=None, chosen="auto", pairs_looked=max(len(head) - gap, 0))
     if len(head) < gap + 2:
-        return plan, replay
+        return None
     look = replace(
         params, passes=1, window_px=w0, overlap_px=w0 // 2, search_px=None, averaging="ensemble", frame_gap=gap
     )
     try:
         res = piv.analyze(head, look, roi=roi, mask=mask)
     except Exception:  # noqa: BLE001 (a first look that fails leaves the defaults; the run reports its own error)
-        return plan, replay
+        return None
     dt = float(np.median(res.dt_s)) / gap if res.dt_s is not None and len(res.dt_s) else 0.0  # s per frame
     d = (
         np.hypot(res.u, res.v)[res.valid & ~res.replaced] * dt
@@ -143,7 +178,7 @@ def first_look(
     )
     d = d[np.isfinite(d)]
     if d.size < 4:
-        return plan, replay
+        return None
     moving = d[d >= 0.2 * np.median(d)]
     plan.slow_px_per_frame = float(np.percentile(moving, 20))
     plan.fast_px_per_frame = float(np.percentile(d, 95))
@@ -156,4 +191,4 @@ def first_look(
     ):
         du, dv = fill_all(np.where(ok, res.u * dt, np.nan), np.where(ok, res.v * dt, np.nan))
         plan.guess = (res.x[0].copy(), res.y[:, 0].copy(), du, dv)  # px per frame; search_px stays the fallback
-    return plan, replay
+    return plan

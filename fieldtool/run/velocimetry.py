@@ -319,7 +319,13 @@ class _Streams:
             # denoised frames are looked at and paired beyond their averaging window; where single pairs are at
             # the noise, every pair starts from the look's ensemble field (processing/planning.py)
             plan, frames = planning.first_look(
-                frames, params, self.s.roi, self.s.mask, gap=clip.gap(params).frame_gap, weak=clip.weak
+                frames,
+                params,
+                self.s.roi,
+                self.s.mask,
+                gap=clip.gap(params).frame_gap,
+                weak=clip.weak,
+                hold_bytes=clip_pass.budget(self.inputs.shape),  # the frames held for another look, as kept ones
             )
             if params.search_px is not None or params.engine != "fieldtool":  # the user's search area, or an
                 plan.guess = None  # engine that cannot move its windows: the wider search area instead
@@ -331,10 +337,17 @@ class _Streams:
             if plan.guess is not None:  # the look's field is per frame; the first pass moves windows per pair
                 xg, yg, du, dv = plan.guess
                 plan.guess = (xg, yg, du * plan.frame_gap, dv * plan.frame_gap)
-            if plan.frame_gap > 1 or plan.search_px or plan.guess is not None:
+            if plan.frame_gap > 1 or plan.search_px or plan.guess is not None or plan.frames_skipped:
+                skipped = (
+                    f" (after its first {plan.frames_skipped} frames, which gave too few vectors: a phone's "
+                    "exposure or focus settling?)"
+                    if plan.frames_skipped
+                    else ""
+                )
                 self.warnings.append(
-                    f"piv: from a first look at {plan.pairs_looked} pairs (slow nodes {plan.slow_px_per_frame:.1f}, "
-                    f"fast nodes {plan.fast_px_per_frame:.1f} px per frame) pairs are {plan.frame_gap} frame(s) apart"
+                    f"piv: from a first look at {plan.pairs_looked} pairs{skipped} (slow nodes "
+                    f"{plan.slow_px_per_frame:.1f}, fast nodes {plan.fast_px_per_frame:.1f} px per frame) pairs are "
+                    f"{plan.frame_gap} frame(s) apart"
                     + (f" and the first pass searches {plan.search_px} px" if plan.search_px else "")
                     + (" and the first pass starts from the look's field" if plan.guess is not None else "")
                     + "; set piv.frame_gap (and piv.search_px) to choose yourself"

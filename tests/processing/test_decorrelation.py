@@ -54,3 +54,17 @@ def test_the_step_keeps_enough_frames():
     assert decorrelation.step_for(slow, 40, 31) == 1
     assert decorrelation.fit(np.zeros((20, 8, 8), np.float32)) is None  # nothing changes at all
     assert decorrelation.fit(np.zeros((3, 8, 8), np.float32)) is None  # too few frames
+
+
+def test_an_exposure_or_a_fade_is_not_the_pattern_changing():
+    """Every pixel's gain and offset changing together (a phone's exposure settling over the first frames, a
+    fade from black) leaves the fitted time and step of the pattern as they were: on a fast pattern, no step."""
+    fast = moving_pattern(2.0) + 4.0  # a background: the frames are brightness, not a residual
+    gain = 1.0 + 1.2 * np.exp(-np.arange(20) / 6.0)[:, None, None]
+    fade = np.minimum(np.arange(20) / 10.0, 1.0)[:, None, None] + 0.05
+    plain = decorrelation.fit(fast)
+    assert plain is not None and decorrelation.step_for(plain, 300, 31) == 1
+    for changed in (fast * gain + 30.0 * (gain - 1.0), fast * fade):
+        d = decorrelation.fit(changed)
+        assert d is not None and d.tau_frames == pytest.approx(plain.tau_frames, rel=0.15)
+        assert decorrelation.step_for(d, 300, 31) == 1

@@ -4,6 +4,7 @@ planning, rejection of upstream subsections."""
 from __future__ import annotations
 
 import json
+import math
 
 import cv2
 import numpy as np
@@ -188,6 +189,24 @@ def test_first_look_plans_and_replays_every_frame():
     assert plan.fast_px_per_frame == pytest.approx(1.0, abs=0.15)
     assert plan.frame_gap == planning.MAX_GAP and plan.chosen == "auto"  # 1 px per frame: 2.5 px takes 3 frames
     assert json.dumps(plan.as_dict())
+
+
+def test_a_first_look_at_featureless_first_frames_looks_at_the_next_ones():
+    """A clip whose first frames show nothing (a phone's exposure settling from black): the first look finds no
+    vectors and looks at the next pairs, which plan as a clip without them does; every frame is still replayed.
+    Where holding the frames for another look would pass ``hold_bytes``, it stops at the defaults."""
+    rng = np.random.default_rng(6)
+    frames = _stream(40, 1.0, rng)
+    blank = [(t, np.full_like(img, 40.0)) for t, img in frames[:9]] + frames[9:]
+    plain, _ = planning.first_look(iter(frames[9:]), replace_params(passes=2))
+    plan, replay = planning.first_look(iter(blank), replace_params(passes=2))
+    again = list(replay)
+    assert len(again) == 40 and all(a[0] == b[0] for a, b in zip(again, blank, strict=True))
+    assert plan.frames_skipped == 9 and plan.frame_gap == plain.frame_gap == planning.MAX_GAP
+    assert plan.fast_px_per_frame == pytest.approx(1.0, abs=0.15) and plan.as_dict()["frames_skipped"] == 9
+    tight, replay = planning.first_look(iter(blank), replace_params(passes=2), hold_bytes=10 * frames[0][1].nbytes)
+    assert tight.frames_skipped == 0 and tight.frame_gap == 1 and len(list(replay)) == 40
+    assert math.isnan(tight.fast_px_per_frame) and tight.pairs_looked == 8
 
 
 def test_reject_upstream():
