@@ -206,7 +206,10 @@ class FrameSource:
             raise InputFileError(f"{self.path}: video not found; check video.path in the project file")
         cap = cv2.VideoCapture(str(self.path))
         try:
-            ok, frame = cap.read() if cap.isOpened() else (False, None)
+            ok = cap.grab() if cap.isOpened() else False
+            frame = video_av.deep_frame(str(self.path)) if ok else None  # a 10-bit clip: not OpenCV's BGR
+            if ok and frame is None:
+                ok, frame = cap.retrieve()
             if not ok:
                 raise InputFileError(f"{self.path}: cannot be read as a video (unknown format or corrupt file)")
             fps = cap.get(cv2.CAP_PROP_FPS) or 0.0
@@ -513,7 +516,9 @@ def read_color_frame(
     cap = cv2.VideoCapture(str(path))
     try:
         scale = filming_clock(path, cap.get(cv2.CAP_PROP_FPS) or 0.0, capture_fps).scale if t_s > 0 else 1.0
-        last = None
+        last = video_av.deep_frame(str(path), t_s, scale)  # a 10-bit clip: FFmpeg's BGR, as its grey frames
+        if last is not None:
+            return last
         while cap.grab():
             ok, img = cap.retrieve()
             if ok:

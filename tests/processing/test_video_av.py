@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from fieldtool.processing import video_av
-from fieldtool.processing.frames import FrameSource
+from fieldtool.processing.frames import FrameSource, read_color_frame
 
 
 @pytest.fixture
@@ -220,3 +220,54 @@ def test_a_thinned_watch_keeps_its_patches_over_the_same_seconds(textured, av_re
         t, crops = src.watched[k]
         assert t == pytest.approx(whole[2 * k][0])
         np.testing.assert_array_equal(crops[0], whole[2 * k][1][2:30, 60:90])
+
+
+def _deep_clip(path, codec, fmt, n=12):
+    """A 10-bit clip (``codec``, pixel format ``fmt``) of a moving texture, written by PyAV; None where this
+    FFmpeg has no such encoder."""
+    import av
+
+    try:
+        av.codec.Codec(codec, "w")
+    except av.codec.codec.UnknownCodecError:
+        return None
+    tex = np.random.default_rng(3).integers(0, 256, (64, 140), dtype=np.uint8)
+    with av.open(str(path), "w") as out:
+        st = out.add_stream(codec, rate=30, options={"x265-params": "log-level=error"} if "265" in codec else {})
+        st.width, st.height, st.pix_fmt = 96, 64, fmt
+        for i in range(n):
+            g = np.ascontiguousarray(tex[:, 3 * i : 3 * i + 96])
+            frame = av.VideoFrame.from_ndarray(cv2.cvtColor(g, cv2.COLOR_GRAY2BGR), format="bgr24").reformat(format=fmt)
+            frame.pts = i
+            for pk in st.encode(frame):
+                out.mux(pk)
+        for pk in st.encode():
+            out.mux(pk)
+    return path
+
+
+@pytest.mark.parametrize("codec, fmt, ext", [("libx265", "yuv420p10le", "mp4"), ("prores_ks", "yuv422p10le", "mov")])
+def test_a_ten_bit_clip_is_read_by_pyav_through_a_table_of_its_levels(tmp_path, codec, fmt, ext):
+    """An iPhone's HDR HEVC or a ProRes clip (10-bit planes): read by PyAV, its grey frames FFmpeg's own grey of
+    every frame (a table of 1024 levels), its region the whole frame's box, its colour frame FFmpeg's BGR; OpenCV's
+    BGR of such a frame costs 45 ms a 720p frame (2 s for the first) and saturates the highlights of HLG."""
+    import av
+
+    path = _deep_clip(tmp_path / f"clip.{ext}", codec, fmt)
+    if path is None:
+        pytest.skip(f"no {codec} encoder in this FFmpeg")
+    with av.open(str(path)) as c:
+        want = [f.to_ndarray(format="gray") for f in c.decode(c.streams.video[0])]
+        assert c.streams.video[0].codec_context.pix_fmt == fmt
+    src = FrameSource(path)
+    got = [f.image for f in src]
+    assert src._av and len(got) == len(want) == 12
+    for g, w in zip(got, want, strict=True):
+        assert g.dtype == np.uint8 and np.abs(g.astype(int) - w.astype(int)).max() <= 1
+    box = (10, 8, 70, 50)
+    part = [f.image for f in FrameSource(path).iter_wanted(lambda k: True, box)]
+    np.testing.assert_array_equal(part[5][8:50, 10:70], got[5][8:50, 10:70])
+    with av.open(str(path)) as c:
+        colour = next(c.decode(c.streams.video[0])).to_ndarray(format="bgr24")
+    np.testing.assert_array_equal(read_color_frame(path), colour)
+    assert video_av.deep_frame(str(tmp_path / "none.mp4")) is None
