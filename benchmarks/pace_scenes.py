@@ -1,11 +1,15 @@
-"""Slow flow and high frame rates: error, grade and frame step per view x surface speed x frame rate, defaults.
+"""The water's pace against the frame rate: error, grade and frame step per view x surface speed x frame rate.
 
     PYTHONPATH=. .venv/bin/python benchmarks/pace_scenes.py [--views oblique,nadir,far_bank]
         [--speeds 0.15,0.25,0.5] [--fps 30,60] [--duration 6] [--workdir /tmp/pace_scenes] [--results results]
+    # floods on a station camera: fast water at low frame rates
+    PYTHONPATH=. .venv/bin/python benchmarks/pace_scenes.py --speeds 2,5,7 --fps 5,10 --duration 10 \
+        --workdir /tmp/flood_scenes
 
 Every preset draws a river of 1.2-3.2 m/s at 25-30 fps. These scenes draw the base views with the surface
 velocity at the deepest point set to each speed (``river__u_max_ms``) and filmed at each frame rate, the seed
-varying with the scene. Each is rendered once into WORKDIR/<view>_u<speed>_f<fps>_d<duration>/ (kept) and run
+varying with the scene: slow water at high frame rates (the defaults) moves a fraction of a pixel a frame, fast
+water at low frame rates (a station camera recording 5 or 10 frames a second in a flood) up to a hundred. Each is rendered once into WORKDIR/<view>_u<speed>_f<fps>_d<duration>/ (kept) and run
 through ``fieldtool run`` as ``unseen_scenes.py`` runs its scenes (same columns, same pass rule: a good grade
 must be within 5 %; otherwise the truth inside a 95 % interval no wider than +-25 %), with the frame step the run
 took and the water's decorrelation time it measured (``robust.gates.frame_step``, ``robust.surface_change``).

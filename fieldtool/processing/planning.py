@@ -10,9 +10,12 @@ fast for the window at one frame needs a larger first-pass search area, or a fir
 field (its grid is the first pass'), by which the first pass moves each B window (``piv.analyze(first_guess=)``),
 so that its search area stays the window. The first guess is used when at least :data:`GUESS_MIN_VALID` of the
 look's nodes have a vector and the fast nodes move at most :data:`GUESS_MAX_FRACTION` of the window (the look
-correlates windows of the first pass' size, which wrap beyond half of it); else the search area is widened. In
-the weak-signal plan (single pairs at the noise) the look's field is the first guess whatever the speed, and
-frames averaged over a window of frames are looked at that window apart (closer ones share noise).
+correlates windows of the first pass' size, which wrap beyond half of it). Where the look cannot be trusted (fast
+water at a low frame rate: a flood on a station camera filming 5 frames a second moves 60-90 px a frame), a wide
+look at the frames reduced by 2, searched two windows around, plans instead and gives the first guess; else the
+search area is widened. In the weak-signal plan (single pairs at the noise) the look's field is the first guess
+whatever the speed, and frames averaged over a window of frames are looked at that window apart (closer ones
+share noise).
 
 The frames looked at are kept and replayed, so the stream is read once.
 """
@@ -24,6 +27,7 @@ import math
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, replace
 
+import cv2
 import numpy as np
 
 from fieldtool.processing import piv
@@ -38,6 +42,12 @@ FAST_FRACTION = 0.25  # the fast nodes (95th percentile) move at most this share
 MAX_GAP = 3
 GUESS_MIN_VALID = 0.5  # share of the first look's nodes with a vector needed to use its field as the first guess
 GUESS_MAX_FRACTION = 0.4  # fast nodes beyond this share of the first-pass window: the look's field is not trusted
+#: the wide look (where the first cannot be trusted: fast water at a low frame rate): the frames reduced by this
+#: factor, windows of the first look's footprint, searched this many windows around (displacements up to 2 w0)
+WIDE_REDUCE = 2  # (a far bank's tracers are lost at 4)
+WIDE_REACH = 2.0
+WIDE_NODES = 400  # more windows than this at half overlap (a 4K clip's box): they do not overlap
+WIDE_MIN_VALID = 0.3
 
 
 @dataclass
@@ -51,6 +61,7 @@ class Plan:
     fast_px_per_frame: float = float("nan")  # 95th percentile
     pairs_looked: int = 0
     frames_skipped: int = 0  # frames before the look that planned: earlier looks found too few vectors
+    reduced: int = 1  # the wide look planned: frames reduced by this factor (the first could not see that far)
     #: (xc, yc, dx, dy): the look's displacement per frame (px) on its grid, when the first pass can start from it
     #: (then ``search_px`` is the wider search area that would serve instead: another engine, the user's choice)
     guess: tuple | None = None
@@ -67,6 +78,7 @@ class Plan:
             "fast_px_per_frame": f(self.fast_px_per_frame),
             "pairs_looked": self.pairs_looked,
             "frames_skipped": self.frames_skipped,
+            "look_reduced": self.reduced,
             "first_guess": self.guess is not None,
         }
 
@@ -158,19 +170,80 @@ def first_look(
 
 def _look(head: list, params: piv.PivParams, roi, mask, gap: int, weak: bool) -> Plan | None:
     """The plan from one look at ``head`` (:func:`first_look`), or None where it finds fewer than 4 moving
-    vectors (or too few frames, or the correlation fails)."""
+    vectors (or too few frames, or the correlation fails).
+
+    The look correlates windows of the first pass' side ``w0``, which see displacements up to half of it. Where
+    it cannot be trusted (its fast nodes beyond :data:`GUESS_MAX_FRACTION` of ``w0``, or fewer than
+    :data:`GUESS_MIN_VALID` of its nodes with a vector: fast water at a low frame rate wraps around the windows),
+    the frames are looked at again, reduced by :data:`WIDE_REDUCE` (area averaging) with windows of the same
+    footprint searched :data:`WIDE_REACH` windows around: a wide look that is trusted and sees its fast nodes
+    beyond what the first look can see plans instead, and its field (in full-frame px) is the first pass' first
+    guess."""
+    w0 = params.window_px * 2 ** (params.passes - 1)
+    looked = _look_at(head, params, roi, mask, gap, weak, wide=False)
+    if (
+        looked is not None
+        and looked[1] >= GUESS_MIN_VALID
+        and looked[0].fast_px_per_frame * gap <= GUESS_MAX_FRACTION * w0
+    ):
+        return looked[0]
+    wide = _look_at(head, params, roi, mask, gap, weak, wide=True)
+    if (
+        wide is not None
+        and wide[1] >= WIDE_MIN_VALID
+        and wide[0].guess is not None
+        and wide[0].fast_px_per_frame * gap > GUESS_MAX_FRACTION * w0
+    ):
+        return wide[0]
+    return None if looked is None else looked[0]
+
+
+def _reduced(head: list, roi, mask, f: int) -> tuple[list, tuple | None, np.ndarray | None]:
+    """``head``, its ROI and mask reduced by ``f`` (area averaging; a reduced pixel is masked where most of it
+    is); reduced pixel i covers full-frame pixels f i .. f i + f - 1."""
+    h, w = np.asarray(head[0][1]).shape[:2]
+    nx, ny = w // f, h // f
+    small = [
+        (t, cv2.resize(np.asarray(img)[: ny * f, : nx * f], (nx, ny), interpolation=cv2.INTER_AREA)) for t, img in head
+    ]
+    box = None if roi is None else (roi[0] // f, roi[1] // f, -(-roi[2] // f), -(-roi[3] // f))
+    m = None
+    if mask is not None:
+        m = cv2.resize(mask[: ny * f, : nx * f].astype(np.float32), (nx, ny), interpolation=cv2.INTER_AREA) > 0.5
+    return small, box, m
+
+
+def _look_at(
+    head: list, params: piv.PivParams, roi, mask, gap: int, weak: bool, wide: bool
+) -> tuple[Plan, float] | None:
+    """One look at ``head`` (``wide``: the wide look of :func:`_look`): the plan in full-frame px and the share
+    of its nodes with a vector; None as :func:`_look`."""
     w0 = params.window_px * 2 ** (params.passes - 1)
     plan = Plan(frame_gap=1, search_px=None, chosen="auto", pairs_looked=max(len(head) - gap, 0))
     if len(head) < gap + 2:
         return None
+    f, w, search, reach = 1, w0, None, w0 / 2  # reduction, window and search side (reduced px), reach (full px)
+    if wide:
+        f = WIDE_REDUCE
+        w = max(w0 // f, 8)
+        search = fft_side(w + 2 * math.ceil(WIDE_REACH * w))
+        reach = f * (search - w) / 2
+        head, roi, mask = _reduced(head, roi, mask, f)
+        plan.reduced = f
+    overlap = w // 2
+    if wide:
+        h, wd = head[0][1].shape[:2]
+        x0, y0, x1, y1 = (0, 0, wd, h) if roi is None else roi
+        if ((x1 - x0) // overlap) * ((y1 - y0) // overlap) > WIDE_NODES:
+            overlap = 0
     look = replace(
-        params, passes=1, window_px=w0, overlap_px=w0 // 2, search_px=None, averaging="ensemble", frame_gap=gap
+        params, passes=1, window_px=w, overlap_px=overlap, search_px=search, averaging="ensemble", frame_gap=gap
     )
     try:
         res = piv.analyze(head, look, roi=roi, mask=mask)
     except Exception:  # noqa: BLE001 (a first look that fails leaves the defaults; the run reports its own error)
         return None
-    dt = float(np.median(res.dt_s)) / gap if res.dt_s is not None and len(res.dt_s) else 0.0  # s per frame
+    dt = f * float(np.median(res.dt_s)) / gap if res.dt_s is not None and len(res.dt_s) else 0.0  # s per frame
     d = (
         np.hypot(res.u, res.v)[res.valid & ~res.replaced] * dt
         if res.replaced is not None
@@ -184,11 +257,13 @@ def _look(head: list, params: piv.PivParams, roi, mask, gap: int, weak: bool) ->
     plan.fast_px_per_frame = float(np.percentile(d, 95))
     plan.frame_gap, plan.search_px = choose(plan.slow_px_per_frame, plan.fast_px_per_frame, w0)
     ok = res.valid & np.isfinite(res.u) & np.isfinite(res.v)
+    valid = float(ok.mean())
     if (
         (weak or (plan.search_px is not None and plan.frame_gap == 1))
-        and ok.mean() >= GUESS_MIN_VALID
-        and plan.fast_px_per_frame * gap <= GUESS_MAX_FRACTION * w0  # the look's pairs: within its windows
+        and valid >= (WIDE_MIN_VALID if wide else GUESS_MIN_VALID)
+        and plan.fast_px_per_frame * gap <= 2 * GUESS_MAX_FRACTION * reach  # the look's pairs: within its reach
     ):
         du, dv = fill_all(np.where(ok, res.u * dt, np.nan), np.where(ok, res.v * dt, np.nan))
-        plan.guess = (res.x[0].copy(), res.y[:, 0].copy(), du, dv)  # px per frame; search_px stays the fallback
-    return plan
+        xc, yc = f * res.x[0] + (f - 1) / 2, f * res.y[:, 0] + (f - 1) / 2  # a reduced pixel's centre (full px)
+        plan.guess = (np.array(xc, float), np.array(yc, float), du, dv)  # px per frame; search_px the fallback
+    return plan, valid

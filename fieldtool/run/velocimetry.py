@@ -350,6 +350,12 @@ class _Streams:
                     f"{plan.frame_gap} frame(s) apart"
                     + (f" and the first pass searches {plan.search_px} px" if plan.search_px else "")
                     + (" and the first pass starts from the look's field" if plan.guess is not None else "")
+                    + (
+                        f" (looked at the frames reduced by {plan.reduced}: the water moves further a frame than "
+                        "the first pass' windows see)"
+                        if plan.reduced > 1
+                        else ""
+                    )
                     + "; set piv.frame_gap (and piv.search_px) to choose yourself"
                 )
         else:

@@ -84,3 +84,22 @@ def test_slow_flow_at_a_high_frame_rate_uses_fewer_frames(tmp_path):
     every = run_project(proj, None)
     assert every.robust["gates"]["frame_step"] == 1
     assert every.quality.grade == "unusable" or abs(_err(every, truth)) > 0.05
+
+
+def test_a_flood_at_a_low_frame_rate_is_planned_by_the_wide_look(tmp_path, monkeypatch):
+    """7 m/s filmed at 5 fps from a drone: the water moves ~60 px a frame, and the first look's 64 px windows
+    wrap beyond 32 px (it read a third of it; the run measured nothing). The wide look (frames reduced by 2,
+    searched two windows around) plans, and the run is within 3 %."""
+    from fieldtool.processing import planning
+
+    truth = render_scene(presets.get("nadir", fps=5, duration_s=7.0, river__u_max_ms=7.0), tmp_path / "scene")
+    proj = load_project(truth.project_path)
+    res = run_project(proj, None)
+    plan = res.robust["plan"]
+    assert plan["look_reduced"] == 2 and plan["first_guess"] and plan["fast_px_per_frame"] > 40
+    assert abs(_err(res, truth)) < 0.03 and res.quality.grade != "unusable"
+    assert any("looked at the frames reduced by 2" in w for w in res.warnings)
+    monkeypatch.setattr(planning, "WIDE_MIN_VALID", 1.01)  # the wide look never plans: the first look's plan
+    first = run_project(proj, None)
+    assert first.robust["plan"]["look_reduced"] == 1
+    assert first.quality.grade == "unusable" or abs(_err(first, truth)) > 0.05

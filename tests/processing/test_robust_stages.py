@@ -284,9 +284,35 @@ def test_fast_flow_first_pass_starts_from_the_first_look():
     assert search > 32 and abs(np.median(np.abs(wide.u[okw])) - np.median(np.abs(res.u[ok]))) * dt < 0.05
     with pytest.raises(Exception, match="piv.search_px"):  # the GPU engine cannot move its windows
         piv.analyze(iter(frames), params, backend="gpu", first_guess=plan.guess)
-    # flow beyond GUESS_MAX_FRACTION of the window: the search area is widened instead
-    plan2, _ = planning.first_look(iter(_stream(24, 14.0, np.random.default_rng(9))), params)
-    assert plan2.guess is None and (plan2.search_px or 0) > 32
+
+
+@pytest.mark.parametrize("shift", [14.0, 30.0, 45.0])
+def test_flow_beyond_the_first_looks_windows_is_planned_by_the_wide_look(shift):
+    """A first look with 32 px windows sees displacements up to 16 px; 14 px is beyond what it trusts
+    (GUESS_MAX_FRACTION), 30 and 45 px wrap around its windows (fast water at a low frame rate). The wide look
+    (frames reduced by 2, the same windows' footprint searched 2 windows around) reads them, and the first pass
+    started from its field reads the flow to 0.05 px."""
+    frames = _stream(24, shift, np.random.default_rng(9), w=384)
+    params = replace_params(passes=2, window_px=16, overlap_px=8)
+    first = planning._look_at(frames[:9], params, None, None, 1, False, wide=False)
+    assert first is None or first[1] < planning.GUESS_MIN_VALID or first[0].fast_px_per_frame > 0.4 * 32
+    plan, replay = planning.first_look(iter(frames), params)
+    assert plan.reduced == 2 and plan.as_dict()["look_reduced"] == 2 and plan.frame_gap == 1
+    assert plan.guess is not None and float(np.median(plan.guess[2])) == pytest.approx(shift, abs=0.3)
+    assert plan.fast_px_per_frame == pytest.approx(shift, abs=0.3)
+    res = piv.analyze(replay, params, first_guess=plan.guess)
+    ok = res.valid & ~res.replaced
+    assert ok.sum() >= 10 and float(np.median(np.abs(res.u[ok])) * np.median(res.dt_s)) == pytest.approx(
+        shift, abs=0.05
+    )
+    # frames of noise alone (nothing flows): the wide look's far peaks do not pass the validation, it does not plan
+    rng = np.random.default_rng(4)
+    noise = [(i / FPS, _texture(rng, 96, 384)) for i in range(24)]
+    assert planning._look_at(noise[:9], params, None, None, 1, False, wide=True) is None
+    assert planning.first_look(iter(noise), params)[0].reduced == 1
+    # within what the first look trusts, it plans alone (the wide look is not asked)
+    slow, _ = planning.first_look(iter(_stream(24, 5.0, np.random.default_rng(9))), params)
+    assert slow.reduced == 1 and slow.guess is None and slow.fast_px_per_frame == pytest.approx(5.0, abs=0.3)
 
 
 def test_first_look_at_denoised_frames_pairs_them_beyond_the_averaging_window():
