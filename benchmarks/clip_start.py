@@ -21,15 +21,13 @@ interval, pass rule), the frame step the run took, and how many first frames its
 
 from __future__ import annotations
 
-import argparse
-import json
 import shutil
 import sys
 from pathlib import Path
 
 import cv2
 import numpy as np
-from unseen_scenes import HEAD, fmt, row, run_cli
+from unseen_scenes import HEAD, derived, derived_args, fmt, row, run_cli
 
 KINDS = ("identity", "exposure", "focus", "black")
 
@@ -65,31 +63,18 @@ def make(src: Path, dst: Path, kind: str) -> None:
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--scenes", default="oblique_s0_d6,nadir_s0_d6,far_bank_s0_d6")
-    ap.add_argument("--unseen", default="/tmp/unseen_scenes", help="unseen_scenes.py's workdir")
-    ap.add_argument("--workdir", default="/tmp/clip_start")
-    ap.add_argument("--results", default="results")
+    ap = derived_args(__doc__, "oblique_s0_d6,nadir_s0_d6,far_bank_s0_d6", "/tmp/clip_start")
     a = ap.parse_args()
     print(HEAD + f" {'step':>4} {'skipped':>7}", flush=True)
     rows = []
-    for name in a.scenes.split(","):
-        src = Path(a.unseen) / name
-        if not (src / "river.mp4").exists():
-            print(f"{src}: not rendered; run unseen_scenes.py first", file=sys.stderr)
-            return 2
-        q_true = json.loads((src / "truth.json").read_text())["discharge_m3s"]
-        for kind in KINDS:
-            d = Path(a.workdir) / f"{name}_{kind}"
-            if not (d / "river.mp4").exists():
-                make(src, d, kind)
-            rc, res, dt = run_cli(d / "project.toml", d / a.results)
-            r = row(f"{name} {kind}", 0, rc, res, q_true, dt)
-            rob = (res or {}).get("robust") or {}
-            step = (rob.get("gates") or {}).get("frame_step", "-")
-            skipped = (rob.get("plan") or {}).get("frames_skipped", "-")
-            rows.append(r)
-            print(fmt(r, f" {step!s:>4} {skipped!s:>7}"), flush=True)
+    for name, kind, d, q_true in derived(a, KINDS, make, marker="river.mp4"):
+        rc, res, dt = run_cli(d / "project.toml", d / a.results)
+        r = row(f"{name} {kind}", 0, rc, res, q_true, dt)
+        rob = (res or {}).get("robust") or {}
+        step = (rob.get("gates") or {}).get("frame_step", "-")
+        skipped = (rob.get("plan") or {}).get("frames_skipped", "-")
+        rows.append(r)
+        print(fmt(r, f" {step!s:>4} {skipped!s:>7}"), flush=True)
     for kind in KINDS:
         mine = [r for r in rows if r["preset"].endswith(" " + kind)]
         errs = [abs(r["err"]) for r in mine if r["err"] is not None]

@@ -25,28 +25,13 @@ import json
 import sys
 from pathlib import Path
 
-import av
 import tomlkit
 from unseen_scenes import HEAD, fmt, row, run_cli
 
-from fieldtool.processing.frames import CAPTURE_TAG
 from fieldtool.synthetic import presets, render_scene
+from fieldtool.synthetic.retime import replayed
 
 PLAY_FPS = 30
-
-
-def replay(src: Path, dst: Path, slower: int, tag: str | None) -> None:
-    """``src``'s frames, not re-encoded, with every timestamp ``slower`` times later, and ``tag`` as the tag."""
-    with av.open(str(src)) as i, av.open(str(dst), "w", options={"movflags": "use_metadata_tags"}) as o:
-        if tag is not None:
-            o.metadata[CAPTURE_TAG] = tag
-        ist = i.streams.video[0]
-        ost = o.add_stream_from_template(ist)
-        for pk in i.demux(ist):
-            if pk.dts is None:
-                continue
-            pk.pts, pk.dts, pk.stream = pk.pts * slower, pk.dts * slower, ost
-            o.mux(pk)
 
 
 def project_for(scene: Path, name: str, video: str, capture_fps: float | None) -> Path:
@@ -78,7 +63,7 @@ def main() -> int:
             slower = fps // PLAY_FPS
             for name, tag in (("tagged", f"{fps:.6f}"), ("plain", None)):
                 if not (d / f"{name}.mp4").exists():
-                    replay(d / "river.mp4", d / f"{name}.mp4", slower, tag)
+                    replayed(d / "river.mp4", d / f"{name}.mp4", slower, tag)
             q_true = json.loads((d / "truth.json").read_text())["discharge_m3s"]
             for name, video, key in (
                 ("tagged", "tagged.mp4", None),

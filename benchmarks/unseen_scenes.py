@@ -94,6 +94,34 @@ def fmt(r: dict, extra: str = "") -> str:
 HEAD = f"{'preset':<18} {'seed':>4} {'rc':>3} {'err %':>8} {'grade':<9} {'hw %':>6} {'in CI':<6} {'plan':<10} {'':<5} {'run s':>6}"
 
 
+def derived_args(doc: str, scenes: str, workdir: str) -> argparse.ArgumentParser:
+    """The arguments of a benchmark that derives clips from this script's rendered scenes (``--scenes``,
+    ``--unseen``: this script's workdir, ``--workdir``, ``--results``)."""
+    ap = argparse.ArgumentParser(description=doc.splitlines()[0])
+    ap.add_argument("--scenes", default=scenes)
+    ap.add_argument("--unseen", default="/tmp/unseen_scenes", help="unseen_scenes.py's workdir")
+    ap.add_argument("--workdir", default=workdir)
+    ap.add_argument("--results", default="results")
+    return ap
+
+
+def derived(a: argparse.Namespace, kinds, make, marker: str = "project.toml"):
+    """(scene, kind, folder, true Q) for each of ``a.scenes`` x ``kinds``: the folder WORKDIR/<scene>_<kind>
+    made by ``make(src, folder, kind)`` unless its ``marker`` file is there. A scene not rendered yet ends the
+    benchmark (exit 2)."""
+    for name in a.scenes.split(","):
+        src = Path(a.unseen) / name
+        if not (src / "river.mp4").exists():
+            print(f"{src}: not rendered; run unseen_scenes.py first", file=sys.stderr)
+            raise SystemExit(2)
+        q_true = json.loads((src / "truth.json").read_text())["discharge_m3s"]
+        for kind in kinds:
+            d = Path(a.workdir) / f"{name}_{kind}"
+            if not (d / marker).exists():
+                make(src, d, kind)
+            yield name, kind, d, q_true
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--presets", default=",".join(presets.NEW_NAMES))

@@ -18,15 +18,13 @@ drawn profile, grade, interval, pass rule, run s), the reader (PyAV or OpenCV) a
 
 from __future__ import annotations
 
-import argparse
-import json
 import shutil
 import sys
 from pathlib import Path
 
 import av
 import cv2
-from unseen_scenes import HEAD, fmt, row, run_cli
+from unseen_scenes import HEAD, derived, derived_args, fmt, row, run_cli
 
 #: kind -> (encoder, pixel format, options, file extension)
 KINDS = {
@@ -67,28 +65,15 @@ def make(src: Path, dst: Path, kind: str) -> None:
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--scenes", default="oblique_s0_d6,nadir_s0_d6")
-    ap.add_argument("--unseen", default="/tmp/unseen_scenes", help="unseen_scenes.py's workdir")
-    ap.add_argument("--workdir", default="/tmp/video_formats")
-    ap.add_argument("--results", default="results")
+    ap = derived_args(__doc__, "oblique_s0_d6,nadir_s0_d6", "/tmp/video_formats")
     ap.add_argument("--kinds", default=",".join(KINDS))
     a = ap.parse_args()
     print(HEAD + f" {'pass s':>6}", flush=True)
-    for name in a.scenes.split(","):
-        src = Path(a.unseen) / name
-        if not (src / "river.mp4").exists():
-            print(f"{src}: not rendered; run unseen_scenes.py first", file=sys.stderr)
-            return 2
-        q_true = json.loads((src / "truth.json").read_text())["discharge_m3s"]
-        for kind in a.kinds.split(","):
-            d = Path(a.workdir) / f"{name}_{kind}"
-            if not (d / "project.toml").exists():
-                make(src, d, kind)
-            rc, res, dt = run_cli(d / "project.toml", d / a.results)
-            r = row(f"{name} {kind}", 0, rc, res, q_true, dt)
-            pass_s = ((res or {}).get("timings_s") or {}).get("frames_and_piv")
-            print(fmt(r, f" {pass_s if pass_s is None else round(pass_s, 2)!s:>6}"), flush=True)
+    for name, kind, d, q_true in derived(a, a.kinds.split(","), make):
+        rc, res, dt = run_cli(d / "project.toml", d / a.results)
+        r = row(f"{name} {kind}", 0, rc, res, q_true, dt)
+        pass_s = ((res or {}).get("timings_s") or {}).get("frames_and_piv")
+        print(fmt(r, f" {pass_s if pass_s is None else round(pass_s, 2)!s:>6}"), flush=True)
     return 0
 
 

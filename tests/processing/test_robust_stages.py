@@ -305,6 +305,11 @@ def test_flow_beyond_the_first_looks_windows_is_planned_by_the_wide_look(shift):
     assert ok.sum() >= 10 and float(np.median(np.abs(res.u[ok])) * np.median(res.dt_s)) == pytest.approx(
         shift, abs=0.05
     )
+    # with a ROI and a mask (both reduced with the frames)
+    mask = np.zeros(frames[0][1].shape, bool)
+    mask[:10] = True
+    boxed, _ = planning.first_look(iter(frames), params, roi=(5, 3, 383, 95), mask=mask)
+    assert boxed.reduced == 2 and boxed.fast_px_per_frame == pytest.approx(shift, abs=0.3)
     # frames of noise alone (nothing flows): the wide look's far peaks do not pass the validation, it does not plan
     rng = np.random.default_rng(4)
     noise = [(i / FPS, _texture(rng, 96, 384)) for i in range(24)]

@@ -3,29 +3,14 @@ from the phone's tag or from ``video.capture_fps``, so the river's velocity is m
 
 from __future__ import annotations
 
-import av
 import pytest
 
 from fieldtool.errors import ParameterError
-from fieldtool.processing.frames import CAPTURE_TAG, FrameSource
+from fieldtool.processing.frames import FrameSource
 from fieldtool.project.model import load_project
 from fieldtool.project.validation import validate
 from fieldtool.run.pipeline import run_project
-
-
-def _replayed(src, dst, slower: int, tag: str | None = None) -> None:
-    """``src``'s frames, not re-encoded, in ``dst`` with every timestamp ``slower`` times later (the file plays
-    ``slower`` times slower than it was filmed), and ``tag`` as the phone's :data:`CAPTURE_TAG`."""
-    with av.open(str(src)) as i, av.open(str(dst), "w", options={"movflags": "use_metadata_tags"}) as o:
-        if tag is not None:
-            o.metadata[CAPTURE_TAG] = tag
-        ist = i.streams.video[0]
-        ost = o.add_stream_from_template(ist)
-        for pk in i.demux(ist):
-            if pk.dts is None:
-                continue
-            pk.pts, pk.dts, pk.stream = pk.pts * slower, pk.dts * slower, ost
-            o.mux(pk)
+from fieldtool.synthetic.retime import replayed
 
 
 def _q(scene, video: str, **video_keys):
@@ -41,8 +26,8 @@ def test_a_slow_motion_clip_measures_the_river_at_the_rate_it_was_filmed(scene):
     """The scene's frames played at half their rate: with the phone's tag, or the key, the same discharge as the
     clip at its own rate, and the reason said; without either, half of it (what the file's own clock gives)."""
     q0, _ = _q(scene, "river.mp4")
-    _replayed(scene / "river.mp4", scene / "tagged.mp4", 2, "30.000000")
-    _replayed(scene / "river.mp4", scene / "plain.mp4", 2)
+    replayed(scene / "river.mp4", scene / "tagged.mp4", 2, "30.000000")
+    replayed(scene / "river.mp4", scene / "plain.mp4", 2)
     src = FrameSource(scene / "tagged.mp4")
     assert src.time_scale == 0.5 and src.info.fps == 30
     q_tag, said = _q(scene, "tagged.mp4")
@@ -59,12 +44,12 @@ def test_a_slow_motion_clip_measures_the_river_at_the_rate_it_was_filmed(scene):
 def test_the_filming_clock_sets_the_range_and_refuses_what_it_cannot_apply(scene):
     """``start_s`` and ``end_s`` are the filming's seconds; a tag within 1 % of the file's rate is the file's own
     rate; an image sequence's clock is its frame interval."""
-    _replayed(scene / "river.mp4", scene / "tagged.mp4", 4, "30.000000")
+    replayed(scene / "river.mp4", scene / "tagged.mp4", 4, "30.000000")
     whole = FrameSource(scene / "tagged.mp4")
     assert whole.info.duration_s == pytest.approx(1.2, abs=0.05)  # 4.8 s of playback
     part = list(FrameSource(scene / "tagged.mp4", start_s=0.5, end_s=1.0))
     assert part[0].t_s == pytest.approx(0.5, abs=1 / 30) and part[-1].t_s == pytest.approx(1.0, abs=1 / 30)
-    _replayed(scene / "river.mp4", scene / "same.mp4", 1, "29.97")
+    replayed(scene / "river.mp4", scene / "same.mp4", 1, "29.97")
     assert FrameSource(scene / "same.mp4").time_scale == 1.0
     (scene / "frames").mkdir()
     with pytest.raises(ParameterError, match="video.capture_fps"):
