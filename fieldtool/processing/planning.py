@@ -47,7 +47,7 @@ GUESS_MAX_FRACTION = 0.4  # fast nodes beyond this share of the first-pass windo
 WIDE_REDUCE = 2  # (a far bank's tracers are lost at 4)
 WIDE_REACH = 2.0
 WIDE_NODES = 400  # more windows than this at half overlap (a 4K clip's box): they do not overlap
-WIDE_MIN_VALID = 0.3
+WIDE_MIN_VALID = 0.3  # share of its nodes with a vector to plan (near the box's edges the pattern leaves it)
 
 
 @dataclass
@@ -243,7 +243,8 @@ def _look_at(
         res = piv.analyze(head, look, roi=roi, mask=mask)
     except Exception:  # noqa: BLE001 (a first look that fails leaves the defaults; the run reports its own error)
         return None
-    dt = f * float(np.median(res.dt_s)) / gap if res.dt_s is not None and len(res.dt_s) else 0.0  # s per frame
+    # from the look's px/s (reduced px) to full-frame px per frame
+    dt = f * float(np.median(res.dt_s)) / gap if res.dt_s is not None and len(res.dt_s) else 0.0
     d = (
         np.hypot(res.u, res.v)[res.valid & ~res.replaced] * dt
         if res.replaced is not None
