@@ -62,6 +62,10 @@ class Plan:
     pairs_looked: int = 0
     frames_skipped: int = 0  # frames before the look that planned: earlier looks found too few vectors
     reduced: int = 1  # the wide look planned: frames reduced by this factor (the first could not see that far)
+    #: the wide look saw its fast nodes beyond the first look's reach but found too few vectors to plan: their
+    #: displacement (px per frame) and the share of its nodes with a vector (NaN: no such look)
+    unplanned_fast_px: float = float("nan")
+    unplanned_valid: float = float("nan")
     #: (xc, yc, dx, dy): the look's displacement per frame (px) on its grid, when the first pass can start from it
     #: (then ``search_px`` is the wider search area that would serve instead: another engine, the user's choice)
     guess: tuple | None = None
@@ -79,6 +83,7 @@ class Plan:
             "pairs_looked": self.pairs_looked,
             "frames_skipped": self.frames_skipped,
             "look_reduced": self.reduced,
+            "wide_look_unplanned_fast_px": f(self.unplanned_fast_px),
             "first_guess": self.guess is not None,
         }
 
@@ -188,14 +193,15 @@ def _look(head: list, params: piv.PivParams, roi, mask, gap: int, weak: bool) ->
     ):
         return looked[0]
     wide = _look_at(head, params, roi, mask, gap, weak, wide=True)
-    if (
-        wide is not None
-        and wide[1] >= WIDE_MIN_VALID
-        and wide[0].guess is not None
-        and wide[0].fast_px_per_frame * gap > GUESS_MAX_FRACTION * w0
-    ):
+    if wide is None or wide[0].fast_px_per_frame * gap <= GUESS_MAX_FRACTION * w0:
+        return None if looked is None else looked[0]  # no wide look, or one that saw nothing the first could not
+    if wide[1] >= WIDE_MIN_VALID and wide[0].guess is not None:
         return wide[0]
-    return None if looked is None else looked[0]
+    # it saw the water move further, too seldom to plan from: the first look's plan (or none) stands, and the run
+    # says so
+    plan = looked[0] if looked is not None else Plan(1, None, "auto", pairs_looked=wide[0].pairs_looked)
+    plan.unplanned_fast_px, plan.unplanned_valid = wide[0].fast_px_per_frame, wide[1]
+    return plan
 
 
 def _reduced(head: list, roi, mask, f: int) -> tuple[list, tuple | None, np.ndarray | None]:

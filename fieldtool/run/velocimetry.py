@@ -358,6 +358,14 @@ class _Streams:
                     )
                     + "; set piv.frame_gap (and piv.search_px) to choose yourself"
                 )
+            if np.isfinite(plan.unplanned_fast_px):
+                w0 = params.window_px * 2 ** (params.passes - 1)
+                self.warnings.append(
+                    f"piv: the water may move about {plan.unplanned_fast_px:.0f} px a frame, beyond the {w0 // 2} px "
+                    f"the first look's windows see; a wider look found vectors at only {plan.unplanned_valid:.0%} "
+                    "of its nodes, too few to plan from (the pattern leaves the region within a frame or two): film "
+                    "at a higher frame rate or from further away"
+                )
         else:
             plan = planning.Plan(frame_gap=int(project.piv.frame_gap), search_px=params.search_px, chosen="user")
         self.plan = plan

@@ -99,7 +99,9 @@ def test_a_flood_at_a_low_frame_rate_is_planned_by_the_wide_look(tmp_path, monke
     assert plan["look_reduced"] == 2 and plan["first_guess"] and plan["fast_px_per_frame"] > 40
     assert abs(_err(res, truth)) < 0.03 and res.quality.grade != "unusable"
     assert any("looked at the frames reduced by 2" in w for w in res.warnings)
-    monkeypatch.setattr(planning, "WIDE_MIN_VALID", 1.01)  # the wide look never plans: the first look's plan
+    # the wide look never plans: the first look's plan, and a warning that says how far the wide look saw
+    monkeypatch.setattr(planning, "WIDE_MIN_VALID", 1.01)
     first = run_project(proj, None)
-    assert first.robust["plan"]["look_reduced"] == 1
+    assert first.robust["plan"]["look_reduced"] == 1 and first.robust["plan"]["wide_look_unplanned_fast_px"] > 40
+    assert any(w.startswith("piv: the water may move about") and "higher frame rate" in w for w in first.warnings)
     assert first.quality.grade == "unusable" or abs(_err(first, truth)) > 0.05

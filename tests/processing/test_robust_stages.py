@@ -316,8 +316,22 @@ def test_flow_beyond_the_first_looks_windows_is_planned_by_the_wide_look(shift):
     assert planning._look_at(noise[:9], params, None, None, 1, False, wide=True) is None
     assert planning.first_look(iter(noise), params)[0].reduced == 1
     # within what the first look trusts, it plans alone (the wide look is not asked)
+    assert math.isnan(plan.unplanned_fast_px) and plan.as_dict()["wide_look_unplanned_fast_px"] is None
     slow, _ = planning.first_look(iter(_stream(24, 5.0, np.random.default_rng(9))), params)
     assert slow.reduced == 1 and slow.guess is None and slow.fast_px_per_frame == pytest.approx(5.0, abs=0.3)
+
+
+def test_a_wide_look_with_too_few_vectors_does_not_plan_but_says_how_far_it_saw():
+    """70 px a frame across frames 256 px wide: the pattern leaves them within a few frames, and the wide look finds
+    a vector at about a tenth of its nodes, too few to plan from. The plan stays the first look's (here: none, the
+    defaults), and says how far the wide look saw, for the run's warning (film at a higher frame rate)."""
+    frames = _stream(24, 70.0, np.random.default_rng(9), w=256)
+    params = replace_params(passes=2, window_px=16, overlap_px=8)
+    plan, replay = planning.first_look(iter(frames), params)
+    assert plan.reduced == 1 and plan.guess is None and plan.frame_gap == 1 and plan.search_px is None
+    assert plan.unplanned_fast_px == pytest.approx(70.0, abs=1.0) and plan.unplanned_valid < planning.WIDE_MIN_VALID
+    assert plan.as_dict()["wide_look_unplanned_fast_px"] == pytest.approx(70.0, abs=1.0)
+    assert len(list(replay)) == 24
 
 
 def test_first_look_at_denoised_frames_pairs_them_beyond_the_averaging_window():
