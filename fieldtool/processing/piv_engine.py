@@ -123,6 +123,11 @@ class PivParams:
         False  # ensemble, passes > 1: drop a peak at absolute zero where the node moves (piv_peaks)
     )
 
+    @property
+    def first_window_px(self) -> int:
+        """The first pass' window side (px): ``window_px`` doubled ``passes - 1`` times."""
+        return self.window_px * 2 ** (self.passes - 1)
+
 
 # --------------------------------------------------------------------------------------------- geometry
 
@@ -200,7 +205,7 @@ def _levels(shape: tuple[int, int], params: PivParams, roi) -> tuple[list[_Level
     x0, y0, x1, y1 = _roi_box(shape, roi)
     rw, rh = x1 - x0, y1 - y0
     where = "the ROI" if roi is not None else "the image"
-    w0 = p.window_px * 2 ** (p.passes - 1)
+    w0 = p.first_window_px
     if w0 > min(rw, rh):
         if p.passes > 1:
             raise ParameterError(

@@ -184,7 +184,7 @@ def _look(head: list, params: piv.PivParams, roi, mask, gap: int, weak: bool) ->
     footprint searched :data:`WIDE_REACH` windows around: a wide look that is trusted and sees its fast nodes
     beyond what the first look can see plans instead, and its field (in full-frame px) is the first pass' first
     guess."""
-    w0 = params.window_px * 2 ** (params.passes - 1)
+    w0 = params.first_window_px
     looked = _look_at(head, params, roi, mask, gap, weak, wide=False)
     if (
         looked is not None
@@ -224,20 +224,20 @@ def _look_at(
 ) -> tuple[Plan, float] | None:
     """One look at ``head`` (``wide``: the wide look of :func:`_look`): the plan in full-frame px and the share
     of its nodes with a vector; None as :func:`_look`."""
-    w0 = params.window_px * 2 ** (params.passes - 1)
+    w0 = params.first_window_px
     plan = Plan(frame_gap=1, search_px=None, chosen="auto", pairs_looked=max(len(head) - gap, 0))
     if len(head) < gap + 2:
         return None
-    f, w, search, reach = 1, w0, None, w0 / 2  # reduction, window and search side (reduced px), reach (full px)
+    # reduction, window, overlap and search side (reduced px), reach (full px)
+    f, w, overlap, search, reach = 1, w0, w0 // 2, None, w0 / 2
     if wide:
         f = WIDE_REDUCE
         w = max(w0 // f, 8)
+        overlap = w // 2
         search = fft_side(w + 2 * math.ceil(WIDE_REACH * w))
         reach = f * (search - w) / 2
         head, roi, mask = _reduced(head, roi, mask, f)
         plan.reduced = f
-    overlap = w // 2
-    if wide:
         h, wd = head[0][1].shape[:2]
         x0, y0, x1, y1 = (0, 0, wd, h) if roi is None else roi
         if ((x1 - x0) // overlap) * ((y1 - y0) // overlap) > WIDE_NODES:

@@ -61,7 +61,7 @@ def piv_region(project: Project, inputs: Inputs, params, roi, segments) -> tuple
     if region == "roi":
         return roi
     margin = piv_fast.band_margin_px(params.window_px, params.overlap_px, params.passes, params.search_px)
-    w0 = params.window_px * 2 ** (params.passes - 1)
+    w0 = params.first_window_px
     side = max(w0, int(params.search_px or 0)) + 2 * (params.window_px - params.overlap_px) * 2 ** (params.passes - 1)
     return piv_fast.section_band(inputs.shape, segments, margin, roi, min_side_px=side)
 
@@ -359,12 +359,11 @@ class _Streams:
                     + "; set piv.frame_gap (and piv.search_px) to choose yourself"
                 )
             if np.isfinite(plan.unplanned_fast_px):
-                w0 = params.window_px * 2 ** (params.passes - 1)
                 self.warnings.append(
-                    f"piv: the water may move about {plan.unplanned_fast_px:.0f} px a frame, beyond the {w0 // 2} px "
-                    f"the first look's windows see; a wider look found vectors at only {plan.unplanned_valid:.0%} "
-                    "of its nodes, too few to plan from (the pattern leaves the region within a frame or two): film "
-                    "at a higher frame rate or from further away"
+                    f"piv: the water may move about {plan.unplanned_fast_px:.0f} px a frame, beyond the "
+                    f"{params.first_window_px // 2} px the first look's windows see; a wider look found vectors at "
+                    f"only {plan.unplanned_valid:.0%} of its nodes, too few to plan from (the pattern leaves the "
+                    "region within a frame or two): film at a higher frame rate or from further away"
                 )
         else:
             plan = planning.Plan(frame_gap=int(project.piv.frame_gap), search_px=params.search_px, chosen="user")
