@@ -1,6 +1,6 @@
 """The real Geul clip (../shared/data/real) through the pipeline, as tests/accuracy/test_real_data.py sets it up:
 prints the discharge, the grade and the PIV's valid fraction over the correlated nodes (issue 23's check that
-the real clip still gives a field).
+the real clip still gives a field), and the velocities behind Q with PIV's, STIV's and the combined discharge.
 
     .venv/bin/python benchmarks/geul_field.py
 """
@@ -44,6 +44,11 @@ def main() -> int:
         vf = r.piv.valid_fraction
         print(f"Geul: Q {r.discharge.discharge_m3s:.3f} m3/s, grade {r.quality.grade}, "
               f"valid fraction {np.nanmean(vf):.3f} over {int(np.isfinite(vf).sum())} correlated nodes")
+        st = r.stiv or {}
+        if st:  # the velocities behind Q (section.velocity_source) and each method's own discharge
+            print(f"velocities {st.get('velocity_source_used')}: PIV {st.get('discharge_piv_m3s')}, STIV "
+                  f"{st.get('discharge_m3s')}, combined {st.get('discharge_combined_m3s')}; "
+                  f"disagreement {(st.get('disagreement_reason') or {}).get('message', 'none')}")
     return 0
 
 

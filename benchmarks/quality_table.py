@@ -90,8 +90,8 @@ def main() -> None:
             def e(x):
                 return "n/a" if x is None else f"{100 * (x - qt) / qt:+.1f} %"
 
-            src = (s.get("stiv") or {}).get("velocity_source", "piv")
-            q_piv = q if src == "piv" else None
+            src = st.get("velocity_source_used", st.get("velocity_source", "piv"))
+            q_piv = st.get("discharge_piv_m3s", q if src == "piv" else None)
             print(f"| {label} | {seed} | {qt:.3f} | {q:.3f} | {err:+.1f} % | {grade} | {lo:.3f} – {hi:.3f} | "
                   f"±{50 * (hi - lo) / abs(q):.1f} | {'yes' if inside else 'NO'} | {codes} | {e(q_piv)} | "
                   f"{e(st.get('discharge_m3s'))} | {e(st.get('discharge_combined_m3s'))} | "

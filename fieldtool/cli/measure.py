@@ -23,6 +23,7 @@ from fieldtool.project.model import atomic_write_bytes, load_project
 from fieldtool.project.sync import ProjectSync
 from fieldtool.project.validation import check, path_problem
 from fieldtool.records.history import record_run
+from fieldtool.records.report_content import velocities_text
 from fieldtool.run.frames import working_frames
 from fieldtool.run.geometry import roi_and_mask
 from fieldtool.run.inputs import load_inputs
@@ -76,6 +77,8 @@ def run(args: argparse.Namespace) -> int:
     )
     print(f"wetted area   {s['wetted_area_m2']:.3f} m2   width {s['wetted_width_m']:.3f} m")
     print(f"mean velocity {s['mean_velocity_ms']:.4f} m/s  (alpha {s['alpha']:.2f})")
+    if s.get("stiv"):
+        print(f"velocities    {velocities_text(s, 'm3/s')}")
     for w in s["warnings"]:
         print(f"warning: {w}")
     if result.piv_reused:

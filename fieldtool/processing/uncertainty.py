@@ -344,7 +344,13 @@ def _active_sources(sig: McSigmas, model: McModel, drawer: _Draw) -> list[str]:
 
 
 def monte_carlo_discharge(
-    model: McModel, sigmas: McSigmas, discharge_m3s: float, n_draws: int = 400, n_draws_source: int = 100, seed: int = 0
+    model: McModel,
+    sigmas: McSigmas,
+    discharge_m3s: float,
+    n_draws: int = 400,
+    n_draws_source: int = 100,
+    seed: int = 0,
+    field_discharge_m3s: float | None = None,
 ) -> McResult:
     """95 % interval of the discharge and each source's share, by Monte Carlo.
 
@@ -367,12 +373,20 @@ def monte_carlo_discharge(
         Draws of the joint distribution, and per source for the budget.
     seed : int
         Seed, so that a run is reproducible.
+    field_discharge_m3s : float, optional
+        The discharge (m³/s) of the PIV field the draws perturb, where the run reports another one
+        (``section.velocity_source``: STIV's or the combined velocities): every draw is scaled by
+        ``discharge_m3s / field_discharge_m3s``, so the interval keeps its relative width around the
+        reported discharge.
 
     Returns
     -------
     McResult
     """
     rng = np.random.default_rng(seed)
+    scale = 1.0
+    if field_discharge_m3s is not None and np.isfinite(field_discharge_m3s) and field_discharge_m3s != 0:
+        scale = float(discharge_m3s) / float(field_discharge_m3s)
     drawer = _Draw(model, sigmas)
     active = _active_sources(sigmas, model, drawer)
     failed = 0
@@ -381,7 +395,7 @@ def monte_carlo_discharge(
         nonlocal failed
         q, q_base, n_failed = drawer.draws(act, n, rng)
         failed += n_failed
-        return q[np.isfinite(q)], q_base[np.isfinite(q_base)]
+        return scale * q[np.isfinite(q)], scale * q_base[np.isfinite(q_base)]
 
     q_all, q_base = draws(frozenset(active), n_draws)
     if len(q_all) < 10:

@@ -184,7 +184,7 @@ class SectionCfg:
     alpha: float | None = key(None, gt=0.0, le=1.5)  # velocity index; None = 0.8 if mean depth < 2 m else 0.9
     min_length_fraction: float = key(0.5, ge=0.0, le=1.0)  # a section shorter than this fraction of the wetted width is refused
     edge_tolerance_m: float | None = key(None, unit="m", ge=0.0, le=1e4)  # largest distance of the section's ends from the water edges (m); None = 10 % of the wetted width, at least 0.3 m
-    velocity_source: str = key("piv", choices=("piv", "stiv", "combined"))  # piv | stiv | combined (confidence-weighted per subsection); see [stiv]
+    velocity_source: str = key("auto", choices=("auto", "piv", "stiv", "combined"))  # auto (combined where PIV and STIV agree, else PIV) | piv | stiv | combined (confidence-weighted per subsection); see [stiv]
 
 
 @dataclass

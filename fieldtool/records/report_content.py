@@ -274,6 +274,24 @@ def parameter_rows(inputs: dict) -> list[tuple[str, str, str]]:
     return rows
 
 
+def velocities_text(summary: dict, q_unit: str = "m³/s") -> str:
+    """Which velocities the discharge is of (``stiv.velocity_source_used``), with PIV's and STIV's own discharges
+    (in ``q_unit``, its name: the terminal's is "m3/s") beside where the two were combined."""
+    st = summary.get("stiv") or {}
+    used = st.get("velocity_source_used")
+    if used is None:
+        return "PIV"
+    text = {"piv": "PIV", "stiv": "STIV", "combined": "PIV and STIV combined per subsection"}[used]
+    if used == "combined":
+        text += (
+            f" (PIV alone {_num(st.get('discharge_piv_m3s'), '.3f', q_unit)}, STIV alone "
+            f"{_num(st.get('discharge_m3s'), '.3f', q_unit)})"
+        )
+    elif used == "piv" and st.get("velocity_source") == "auto" and st.get("disagreement_reason"):
+        text += " (STIV disagrees: not combined)"
+    return text
+
+
 def result_rows(summary: dict) -> list[tuple[str, str]]:
     """(label, value) rows of the report's result table (HTML and PDF): level, area, width, velocity, α,
     section length, frame pairs, valid fraction, filled subsections, GCP residual."""
@@ -288,6 +306,7 @@ def result_rows(summary: dict) -> list[tuple[str, str]]:
         ("Wetted area", _num(summary.get("wetted_area_m2"), ".3f", "m²")),
         ("Wetted width", _num(summary.get("wetted_width_m"), ".3f", "m")),
         ("Mean velocity", _num(summary.get("mean_velocity_ms"), ".3f", "m/s")),
+        ("Surface velocities", velocities_text(summary)),
         ("Velocity index α", alpha + (" (default for the mean depth)" if summary.get("alpha_default") else " (given)")),
         ("Section length", _num(summary.get("section_length_m"), ".3f", "m")),
         ("Frame pairs", str(summary.get("n_pairs", "–"))),

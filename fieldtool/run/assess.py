@@ -150,9 +150,25 @@ def underread_bound(project, doubts: list[ql.Reason], stiv_block: dict | None) -
     return float(frac), block
 
 
-def assess_run(project, inputs, level, mapping, geom, res, U, V, dres, q_pairs, frame_stats: dict, stiv_block=None):
+def assess_run(
+    project,
+    inputs,
+    level,
+    mapping,
+    geom,
+    res,
+    U,
+    V,
+    dres,
+    q_pairs,
+    frame_stats: dict,
+    stiv_block=None,
+    piv_discharge_m3s: float | None = None,
+):
     """(McResult, Quality) of a finished run; never raises for a draw that fails (it is counted). ``stiv_block``
-    is the run's ``"stiv"`` block (run/stiv_stage.py), None without STIV: it bounds a doubted under-read."""
+    is the run's ``"stiv"`` block (run/stiv_stage.py), None without STIV: it bounds a doubted under-read.
+    ``piv_discharge_m3s``: PIV's discharge where ``dres`` is of other velocities (``section.velocity_source``):
+    the Monte Carlo's draws of the PIV field are scaled to ``dres``'s."""
     sig = sigmas(project, level)
     th = thresholds(project)
     suspect, upper = _suspect(dres, th)
@@ -232,7 +248,13 @@ def assess_run(project, inputs, level, mapping, geom, res, U, V, dres, q_pairs, 
     model.underread_max, underread = underread_bound(project, doubts, stiv_block)
     u = project.uncertainty
     mc = un.monte_carlo_discharge(
-        model, sig, dres.discharge_m3s, n_draws=u.n_draws, n_draws_source=max(u.n_draws // 4, 20), seed=u.seed
+        model,
+        sig,
+        dres.discharge_m3s,
+        n_draws=u.n_draws,
+        n_draws_source=max(u.n_draws // 4, 20),
+        seed=u.seed,
+        field_discharge_m3s=piv_discharge_m3s,
     )
     if blocks is not None:
         mc.notes["pairs"] = blocks

@@ -64,6 +64,7 @@ class Discharge:
     stiv: dict | None
     robust: dict
     unmeasured: Quality | None = None  # unusable when nothing was measured on the section
+    piv_discharge_m3s: float | None = None  # PIV's, where ``result`` is of other velocities (velocity_source)
 
 
 def compute_discharge(
@@ -127,10 +128,13 @@ def add_stiv(
     is the PIV's for "piv"), and the filled subsections' facts (``q.robust``)."""
     if q.unmeasured is not None:
         return q
+    piv_result = q.result
     q.stiv, q.result = stiv_stage.finish(
         setup.stiv_run, project, q.geom, inputs.cross_section, level_m, q.result, vel.piv, q.world_u, q.world_v
     )
     dres = q.result
+    if dres is not piv_result:
+        q.piv_discharge_m3s = piv_result.discharge_m3s
     q.robust["filled_subsections"] = [int(i) for i in np.flatnonzero(dres.velocity_filled)]
     q.robust["filled_width_share"] = robust.width_share(dres.station_from, dres.station_to, dres.velocity_filled)
     return q

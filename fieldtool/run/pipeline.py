@@ -125,8 +125,9 @@ def _run_project(
     obs("stage", "discharge")
     q = discharge.compute_discharge(project, inputs, level.level_m, mapping, placed.geom, setup, vel, pairs, warnings)
     # the velocity figures are drawn during STIV's analysis (they show the PIV's field and discharge) and the
-    # Monte Carlo; after STIV where the discharge is STIV's or the combined one
-    piv_q = project.section.velocity_source == "piv"
+    # Monte Carlo; after STIV where the discharge may be STIV's or the combined one (velocity_source "auto":
+    # combined where the two agree, which STIV's analysis tells)
+    piv_q = project.section.velocity_source == "piv" or setup.stiv_run is None
     if piv_q:
         outputs.prerender_velocity(prerendered, inputs, mapping, vel, q)
     q = discharge.add_stiv(q, project, inputs, level.level_m, setup, vel)

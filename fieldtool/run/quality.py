@@ -67,6 +67,7 @@ def assess(
             q.q_pairs,
             vel.frame_stats,
             stiv_block=q.stiv,
+            piv_discharge_m3s=q.piv_discharge_m3s,
         )
     except Exception as e:  # noqa: BLE001 - the discharge is kept; the missing verdict is said
         unc = qual = None

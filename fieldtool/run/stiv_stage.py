@@ -1,6 +1,15 @@
 """STIV inside a run: search lines from the project, sampled during the PIV's frame stream, then
 per-subsection STIV velocities, the STIV discharge, the PIV/STIV disagreement and the velocity source
-the user chose (``[section] velocity_source`` = piv | stiv | combined).
+the user chose (``[section] velocity_source`` = auto | piv | stiv | combined).
+
+``auto`` (the default) reports the combined velocities (PIV's and STIV's, weighted per subsection by their
+confidences) where the two methods agree, and PIV's where they disagree or STIV measured nothing. They agree
+when :func:`fieldtool.processing.stiv.disagreement_reason` finds no reason: their discharges within 5 % and the
+subsections that differ by over 15 % carrying under 20 % of it. The two fail differently: PIV's windows read
+too fast near the banks, where they span the steep part of the velocity profile (far_bank at 0.15 m/s: +10 to
++48 % in the outer three subsections), while STIV's narrow lines read the profile there; STIV is misled by
+ripples and waves that travel at their own speed, which PIV's tracers are not (then they disagree, and PIV is
+kept).
 
 The science is in :mod:`fieldtool.processing.stiv`; this module only reads the Project and shapes the
 ``"stiv"`` block of ``result.json``.
@@ -20,7 +29,7 @@ from fieldtool.processing import stiv
 from fieldtool.processing.quality import Reason
 from fieldtool.project.model import Project
 
-SOURCES = ("piv", "stiv", "combined")
+SOURCES = ("auto", "piv", "stiv", "combined")
 
 
 @dataclass
@@ -59,7 +68,7 @@ def start(
             f"section.velocity_source: {project.section.velocity_source!r} is not one of {', '.join(SOURCES)}"
         )
     if not s.enabled:
-        if project.section.velocity_source != "piv":
+        if project.section.velocity_source not in ("piv", "auto"):
             raise ParameterError(
                 f"section.velocity_source = {project.section.velocity_source!r} needs STIV: "
                 'set [stiv] enabled = true or velocity_source = "piv"'
@@ -192,11 +201,15 @@ def finish(
         if np.any(np.isfinite(v)):
             out[name] = dq.compute_discharge(geom, cs, level_m, v, alpha)
     block["discharge_m3s"] = out["stiv"].discharge_m3s if "stiv" in out else None
+    block["discharge_piv_m3s"] = dres.discharge_m3s
     block["discharge_combined_m3s"] = out["combined"].discharge_m3s if "combined" in out else None
     block["subsections_filled"] = int(out["stiv"].velocity_filled.sum()) if "stiv" in out else run.n_sub
     run.seconds += time.perf_counter() - t0
     block["seconds"] = round(run.seconds, 3)
     src = project.section.velocity_source
+    if src == "auto":  # the combined velocities where the two agree, else PIV's (module docstring)
+        src = "combined" if block["disagreement_reason"] is None and "combined" in out else "piv"
+    block["velocity_source_used"] = src
     if src == "piv":
         return block, dres
     if src not in out:
@@ -205,7 +218,8 @@ def finish(
             '(check the search lines lie on textured water, or use velocity_source = "piv")'
         )
     chosen = out[src]
-    chosen.warnings.insert(0, f"discharge from the {src} velocities (section.velocity_source)")
+    if project.section.velocity_source != "auto":  # auto's choice is said in the block, not as a warning
+        chosen.warnings.insert(0, f"discharge from the {src} velocities (section.velocity_source)")
     return block, chosen
 
 

@@ -252,6 +252,21 @@ def test_monte_carlo_budget_shares_sum_to_one_and_level_sigma_widens_it():
     assert d["method"] == "monte_carlo" and d["n_draws"] == 300 and json.dumps(d)
 
 
+def test_monte_carlo_interval_follows_a_discharge_of_other_velocities():
+    """velocity_source auto/stiv/combined: the draws perturb the PIV field, whose own discharge is q0; the run
+    reports 3 % more (the combined velocities). The interval keeps PIV's relative width around the reported Q
+    instead of being stretched from PIV's interval to reach it."""
+    m = _model()
+    q0 = 0.85 * 1.0 * 10.5
+    sig = un.McSigmas(level_m=0.05)
+    piv = un.monte_carlo_discharge(m, sig, q0, n_draws=300, n_draws_source=80)
+    other = un.monte_carlo_discharge(m, sig, 1.03 * q0, n_draws=300, n_draws_source=80, field_discharge_m3s=q0)
+    assert other.ci95_m3s == pytest.approx(tuple(1.03 * c for c in piv.ci95_m3s), rel=1e-9)
+    assert other.relative_u95 == pytest.approx(piv.relative_u95, rel=1e-9)
+    stretched = un.monte_carlo_discharge(m, sig, 1.2 * q0, n_draws=300, n_draws_source=80)
+    assert stretched.ci95_m3s[1] == pytest.approx(1.2 * q0)  # without it: only stretched to reach Q
+
+
 def test_monte_carlo_without_sources_reproduces_q():
     m = _model()
     sig = un.McSigmas(level_m=0, gcp_px=0, gcp_ref_m=0, alpha=0, bed_m=0, filled_rel=0, piv_rel=0, sampling=False)

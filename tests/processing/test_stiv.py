@@ -192,8 +192,13 @@ def test_run_reports_stiv_beside_piv(nadir_scene, tmp_path):
     summary = json.loads((tmp_path / "out" / "result.json").read_text())
     st = summary["stiv"]
     assert abs(st["discharge_m3s"] / q_true - 1) < 0.05
-    assert summary["discharge_m3s"] == pytest.approx(res.discharge.discharge_m3s)  # default source: PIV
-    assert st["velocity_source"] == "piv" and len(st["velocity_ms"]) == 15
+    # the default source, "auto": PIV and STIV agree on this scene, so the combined velocities give Q
+    assert st["velocity_source"] == "auto" and st["velocity_source_used"] == "combined"
+    assert st["disagreement_reason"] is None and len(st["velocity_ms"]) == 15
+    assert summary["discharge_m3s"] == pytest.approx(st["discharge_combined_m3s"])
+    assert summary["discharge_m3s"] == pytest.approx(res.discharge.discharge_m3s)
+    assert abs(summary["discharge_m3s"] / q_true - 1) < 0.03
+    assert not any("velocity_source" in w for w in summary["warnings"])
     assert st["disagreement"]["n_compared"] >= 13
     header, *rows = (tmp_path / "out" / "subsections.csv").read_text().splitlines()
     assert header.split(",")[-1] == "stiv_velocity_ms"
@@ -213,8 +218,34 @@ def test_velocity_source_and_switch_off(nadir_scene):
     res = run_project(proj, None)
     assert res.discharge.discharge_m3s == pytest.approx(res.stiv["discharge_combined_m3s"])
     proj.section.velocity_source = "piv"
+    piv = run_project(proj, None)
+    assert piv.stiv["velocity_source_used"] == "piv" and piv.discharge.discharge_m3s != pytest.approx(
+        piv.stiv["discharge_combined_m3s"], rel=1e-6
+    )
     proj.stiv.enabled = False
     assert run_project(proj, None).stiv is None
+    proj.section.velocity_source = "auto"  # STIV off: auto is PIV's, no error
+    res = run_project(proj, None)
+    assert res.stiv is None and res.discharge.discharge_m3s == pytest.approx(piv.discharge.discharge_m3s)
+
+
+def test_auto_keeps_piv_where_the_two_disagree(nadir_scene, monkeypatch):
+    """velocity_source auto: where STIV disagrees with PIV (ripples travelling at their own speed), Q is PIV's;
+    the disagreement is forced here on a scene where they agree, so both branches run on the same field."""
+    from fieldtool.project.model import load_project
+    from fieldtool.run import stiv_stage
+    from fieldtool.run.pipeline import run_project
+
+    proj = load_project(nadir_scene.project_path)
+    proj.section.velocity_source = "piv"
+    piv = run_project(proj, None)
+    proj.section.velocity_source = "auto"
+    reason = {"code": "piv_stiv_disagree", "severity": "doubtful", "message": "forced", "value": 1, "threshold": 0}
+    monkeypatch.setattr(stiv_stage.stiv, "disagreement_reason", lambda dis: reason)
+    res = run_project(proj, None)
+    assert res.stiv["velocity_source_used"] == "piv"
+    assert res.discharge.discharge_m3s == pytest.approx(piv.discharge.discharge_m3s, rel=1e-12)
+    assert res.quality.grade == "doubtful"
 
 
 def test_disagreement_and_its_reason():

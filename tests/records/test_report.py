@@ -122,10 +122,14 @@ def test_report_of_a_real_run(short_scene, tmp_path):
     profile = (tmp_path / "out" / "section_profile.csv").read_text().splitlines()
     assert len(profile) == 1 + len(r.discharge.area_m2)
     rows = [[float(x) if x else float("nan") for x in line.split(",")[:5]] for line in profile[1:]]
-    measured = [r for r in rows if not r[2]]  # a filled subsection (e.g. at an edge) has no band of its own
-    assert len(measured) >= len(rows) - 2 and all(np.isfinite(r[3]) for r in measured)
+    # a subsection PIV did not measure (filled, or at an edge STIV's alone) has no band of its own
+    measured = [r for r in rows if not r[2] and np.isfinite(r[3])]
+    assert len(measured) >= len(rows) - 2
     assert all(lo <= v <= hi for _, v, _, lo, hi in measured if v > 0.3)  # the mean lies in the pairs' band
     assert html.count("<tr>") >= len(r.discharge.area_m2)
+    used = (r.stiv or {}).get("velocity_source_used", "piv")  # which velocities Q is of, said beside Q
+    said = {"piv": "<td>PIV", "combined": "<td>PIV and STIV combined per subsection (PIV alone "}[used]
+    assert "Surface velocities" in html and said in html
 
 
 def test_report_embeds_only_images_inside_the_result_folder(tmp_path):

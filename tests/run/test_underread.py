@@ -121,16 +121,19 @@ def test_inflation_keeps_the_mean_and_ignores_nan():
 
 
 def test_the_quality_stage_hands_the_runs_stiv_block_to_the_interval(monkeypatch):
-    """run/quality.assess passes the discharge stage's STIV block on, so a doubted run's bound can use it."""
+    """run/quality.assess passes the discharge stage's STIV block on, so a doubted run's bound can use it, and
+    PIV's own discharge where Q is of other velocities (the interval's draws are scaled to it)."""
     seen = {}
 
-    def fake_assess_run(*args, stiv_block=None):
-        seen["stiv"] = stiv_block
+    def fake_assess_run(*args, stiv_block=None, piv_discharge_m3s=None):
+        seen["stiv"], seen["piv_q"] = stiv_block, piv_discharge_m3s
         return None, ql.Quality("good")
 
     monkeypatch.setattr(stage, "assess_run", fake_assess_run)
     block = {"disagreement": _dis([0.1, 0.1, 0.1])}
-    q = SimpleNamespace(result=None, geom=None, world_u=None, world_v=None, q_pairs=None, stiv=block, robust={})
+    q = SimpleNamespace(
+        result=None, geom=None, world_u=None, world_v=None, q_pairs=None, stiv=block, robust={}, piv_discharge_m3s=1.5
+    )
     vel = SimpleNamespace(piv=None, frame_stats={})
     stage.assess(Project(), None, None, None, vel, q, None, [], [])
-    assert seen["stiv"] is block
+    assert seen["stiv"] is block and seen["piv_q"] == 1.5
