@@ -14,6 +14,10 @@ The discharge of each tree's last run is printed too (the same when a change kee
 a setting of the environment changed (stop 37: fieldtool/__init__.py's OpenCV pool defaults,
 ``--before-env OPENCV_THREAD_POOL_ACTIVE_WAIT_WORKER=2000 --before-env OPENCV_THREAD_POOL_ACTIVE_WAIT_MAIN=10000``,
 OpenCV's own defaults).
+``--before-set SECTION.KEY=VALUE`` (repeatable, VALUE in TOML) runs the "before" tree on a copy of each project with
+those keys set, written beside it as ``<name>_before.toml``: a tree whose default changed, against the one before
+with the old default said (stop 52: ``--before-set 'section.velocity_source="piv"'``, a key value the tree before
+did not know).
 """
 
 from __future__ import annotations
@@ -62,6 +66,23 @@ def run(tree: Path, project: Path, extra_env: dict[str, str] | None = None) -> d
     }
 
 
+def with_keys(project: Path, sets: list[str]) -> Path:
+    """``project`` with the keys of ``sets`` ("section.key=<TOML value>") set, as ``<name>_before.toml`` beside it."""
+    import tomlkit
+
+    doc = tomlkit.parse(project.read_text())
+    for kv in sets:
+        path, value = kv.split("=", 1)
+        *tables, key = path.split(".")
+        node = doc
+        for t in tables:
+            node = node.setdefault(t, tomlkit.table())
+        node[key] = tomlkit.parse(f"v = {value}")["v"]
+    out = project.with_name(f"{project.stem}_before.toml")
+    out.write_text(tomlkit.dumps(doc))
+    return out
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("projects", nargs="+", type=Path)
@@ -69,6 +90,7 @@ def main() -> int:
     ap.add_argument("--after", type=Path, default=Path("."), help="the tree after (default: this one)")
     ap.add_argument("--runs", type=int, default=5)
     ap.add_argument("--before-env", action="append", default=[], metavar="KEY=VALUE", help="for the before runs")
+    ap.add_argument("--before-set", action="append", default=[], metavar="KEY=VALUE", help="project keys, before")
     a = ap.parse_args()
     envs = {"before": dict(kv.split("=", 1) for kv in a.before_env), "after": {}}
     trees = {"before": a.before.resolve(), "after": a.after.resolve()}
@@ -77,9 +99,12 @@ def main() -> int:
     for project in a.projects:
         load0 = os.getloadavg()[0]
         got: dict[str, list] = {k: [] for k in trees}
+        projects = {"before": project.resolve(), "after": project.resolve()}
+        if a.before_set:
+            projects["before"] = with_keys(project.resolve(), a.before_set)
         for _ in range(a.runs):
             for name, tree in trees.items():
-                got[name].append(run(tree, project.resolve(), envs[name]))
+                got[name].append(run(tree, projects[name], envs[name]))
         print(
             f"\n== {project} ({a.runs} alternating runs; load average {load0:.2f} before, "
             f"{os.getloadavg()[0]:.2f} after)"
@@ -94,7 +119,7 @@ def main() -> int:
             st = [r["stiv_s"] for r in rs if r["stiv_s"] is not None]
             stiv_s = f"  STIV {float(np.median(st)):.3f} s" if st else ""
             print(f"{name:7s} wall {med[name]:6.2f} s ({walls})  CPU {cpu:6.2f} s  peak {peak:5.0f} MiB{stiv_s}  Q {q}")
-        note = f" (before with {' '.join(a.before_env)})" if a.before_env else ""
+        note = f" (before with {' '.join(a.before_env + a.before_set)})" if a.before_env or a.before_set else ""
         print(f"after / before: {med['after'] / med['before']:.3f} in wall time{note}")
     return 0
 
