@@ -550,6 +550,7 @@ def subsection_velocity(
 DISAGREE_REL = 0.15  # a subsection disagrees when |v_stiv - v_piv| exceeds this share of its reference speed
 DISAGREE_Q = 0.05  # ... the discharges when they differ by more than this share (the 5 % accuracy aimed at)
 DISAGREE_SHARE = 0.2  # ... or when disagreeing subsections carry more than this share of the discharge
+MIN_COMPARED = 3  # fewer subsections measured by both cannot show that the two agree (nor bound an under-read)
 
 
 def disagreement(
@@ -590,6 +591,12 @@ def disagreement(
     }
 
 
+def agree(dis: dict) -> bool:
+    """PIV and STIV agree: :data:`MIN_COMPARED` subsections or more measured by both, and no
+    :func:`disagreement_reason`."""
+    return dis.get("n_compared", 0) >= MIN_COMPARED and disagreement_reason(dis) is None
+
+
 def disagreement_reason(
     dis: dict, q_threshold: float = DISAGREE_Q, share_threshold: float = DISAGREE_SHARE
 ) -> dict | None:
@@ -623,7 +630,7 @@ def disagreement_reason(
     }
 
 
-def implied_underread(dis: dict | None, z: float = 2.0, min_compared: int = 3) -> dict | None:
+def implied_underread(dis: dict | None, z: float = 2.0, min_compared: int = MIN_COMPARED) -> dict | None:
     """The under-read of the PIV velocities that the independent STIV supports, at about 95 % (one-sided).
 
     ``dis`` is :func:`disagreement`'s block. Where STIV reads faster than PIV by ``d`` (its

@@ -3,13 +3,13 @@ per-subsection STIV velocities, the STIV discharge, the PIV/STIV disagreement an
 the user chose (``[section] velocity_source`` = auto | piv | stiv | combined).
 
 ``auto`` (the default) reports the combined velocities (PIV's and STIV's, weighted per subsection by their
-confidences) where the two methods agree, and PIV's where they disagree or STIV measured nothing. They agree
-when :func:`fieldtool.processing.stiv.disagreement_reason` finds no reason: their discharges within 5 % and the
-subsections that differ by over 15 % carrying under 20 % of it. The two fail differently: PIV's windows read
-too fast near the banks, where they span the steep part of the velocity profile (far_bank at 0.15 m/s: +10 to
-+48 % in the outer three subsections), while STIV's narrow lines read the profile there; STIV is misled by
-ripples and waves that travel at their own speed, which PIV's tracers are not (then they disagree, and PIV is
-kept).
+confidences) where the two methods agree, and PIV's where they disagree or STIV measured too little. They agree
+(:func:`fieldtool.processing.stiv.agree`) when both measured 3 subsections or more and
+:func:`fieldtool.processing.stiv.disagreement_reason` finds no reason: their discharges within 5 %, and the
+subsections that differ by over 15 % carrying under 20 % of it. The two fail differently: PIV's windows read too
+fast near the banks, where they span the steep part of the velocity profile (far_bank at 0.15 m/s: +10 to +48 %
+in the outer three subsections), while STIV's narrow lines read the profile there; STIV is misled by ripples and
+waves that travel at their own speed, which PIV's tracers are not (then they disagree, and PIV is kept).
 
 The science is in :mod:`fieldtool.processing.stiv`; this module only reads the Project and shapes the
 ``"stiv"`` block of ``result.json``.
@@ -208,7 +208,7 @@ def finish(
     block["seconds"] = round(run.seconds, 3)
     src = project.section.velocity_source
     if src == "auto":  # the combined velocities where the two agree, else PIV's (module docstring)
-        src = "combined" if block["disagreement_reason"] is None and "combined" in out else "piv"
+        src = "combined" if stiv.agree(block["disagreement"]) and "combined" in out else "piv"
     block["velocity_source_used"] = src
     if src == "piv":
         return block, dres

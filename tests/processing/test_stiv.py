@@ -263,6 +263,11 @@ def test_disagreement_and_its_reason():
     r = stiv.disagreement_reason(d)
     assert r["severity"] == "doubtful" and "3, 4" in r["message"] and "30 %" in r["message"]
     assert json.dumps(d) and "nan" not in json.dumps(d).lower()
+    assert stiv.agree(same) and not stiv.agree(d)
+    few = stiv.disagreement(v_piv, np.where(np.arange(6) < 2, v_piv, np.nan), w)  # STIV on 2 subsections only
+    assert stiv.disagreement_reason(few) is None and not stiv.agree(few)  # too few to show they agree
+    none = stiv.disagreement(v_piv, np.full(6, np.nan), w)  # STIV measured nothing (glare on its lines)
+    assert none["n_compared"] == 0 and not stiv.agree(none)
 
 
 def test_swapped_section_points_keep_stiv_downstream(nadir_scene):
