@@ -274,14 +274,17 @@ def parameter_rows(inputs: dict) -> list[tuple[str, str, str]]:
     return rows
 
 
-def velocities_text(summary: dict, q_unit: str = "m³/s") -> str:
+def velocities_text(summary: dict, q_unit: str = "m³/s", short: bool = False) -> str:
     """Which velocities the discharge is of (``stiv.velocity_source_used``), with PIV's and STIV's own discharges
-    (in ``q_unit``, its name: the terminal's is "m3/s") beside where the two were combined."""
+    (in ``q_unit``, its name: the terminal's is "m3/s") beside where the two were combined; ``short``: the
+    source's name alone ("PIV", "STIV", "PIV+STIV"), for a line that has no room."""
     st = summary.get("stiv") or {}
     used = st.get("velocity_source_used")
     if used is None:
         return "PIV"
     text = {"piv": "PIV", "stiv": "STIV", "combined": "PIV and STIV combined per subsection"}[used]
+    if short:
+        return {"combined": "PIV+STIV"}.get(used, text)
     if used == "combined":
         text += (
             f" (PIV alone {_num(st.get('discharge_piv_m3s'), '.3f', q_unit)}, STIV alone "

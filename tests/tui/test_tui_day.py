@@ -65,6 +65,7 @@ def test_run_warnings_are_next_to_q_on_the_first_screen(tmp_path):
     rj = tmp_path / "m" / "out" / "result.json"
     s = json.loads(rj.read_text())
     s["warnings"] = ["level is 3 cm above the survey's highest point", "second warning"]
+    s["stiv"] = {"velocity_source": "auto", "velocity_source_used": "combined", "discharge_piv_m3s": 1.25}
     rj.write_text(json.dumps(s))
 
     async def go():
@@ -74,6 +75,7 @@ def test_run_warnings_are_next_to_q_on_the_first_screen(tmp_path):
             text = " ".join(ln[24:].strip() for ln in screen_lines(app))
             assert "2 warnings (in full below the table): level is" in text, text
             assert "discharge      1.2345 m³/s" in text
+            assert "alpha 0.80 default from PIV+STIV" in " ".join(text.split()), text
 
     run(go())
 

@@ -11,6 +11,7 @@ from textual.widgets import DataTable, Static
 from fieldtool.errors import FieldToolError
 from fieldtool.project.model import atomic_write_bytes
 from fieldtool.records.report import load_result, render_html, render_pdf
+from fieldtool.records.report_content import velocities_text
 from fieldtool.tui import jobs, keys
 from fieldtool.tui.screens.base import StepScreen, fieldtool_app
 from fieldtool.tui.steps import MEASUREMENT
@@ -172,6 +173,7 @@ class ResultsScreen(StepScreen):
         unc = s.get("water_level_uncertainty_m")
         unc_t = f" ± {unc:.3f}" if unc else ""
         alpha_t = " default" if s.get("alpha_default") else ""
+        src_t = f"    from {escape(velocities_text(s, short=True))}" if s.get("stiv") else ""  # the velocities of Q
         warnings = [str(w) for w in s.get("warnings") or []]
         warn_head = []
         if warnings:  # next to Q, on the first screen: one line, the first warning cut to fit, how many and where
@@ -187,7 +189,7 @@ class ResultsScreen(StepScreen):
                     *warn_head,
                     f"water level    {s['water_level_m']:.3f}{unc_t} m ({s.get('water_level_method', '')})",
                     f"wetted area    {s['wetted_area_m2']:.3f} m²    width {s['wetted_width_m']:.3f} m",
-                    f"mean velocity  {s['mean_velocity_ms']:.4f} m/s    alpha {s['alpha']:.2f}{alpha_t}",
+                    f"mean velocity  {s['mean_velocity_ms']:.4f} m/s    alpha {s['alpha']:.2f}{alpha_t}{src_t}",
                 ]
             )
         )
