@@ -46,9 +46,10 @@ def write_profile(out: Path, result) -> tuple[str, str]:
             color="tab:blue",
             alpha=0.2,
             lw=0,
-            label="2.5–97.5 % of the frame-pair fields",
+            label="2.5–97.5 % of the frame-pair fields (PIV)",
         )
-    ax.plot(s, v, "-", color="tab:blue", lw=1.5, label="mean field")
+    whose = {"stiv": "STIV", "combined": "PIV and STIV combined"}.get(getattr(result.discharge, "velocities", "piv"))
+    ax.plot(s, v, "-", color="tab:blue", lw=1.5, label=whose or "mean field")
     meas = ~b["filled"]
     ax.plot(s[meas], v[meas], "o", color="tab:blue", ms=5, label="measured subsection")
     if b["filled"].any():

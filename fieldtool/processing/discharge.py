@@ -222,6 +222,7 @@ class DischargeResult:
     velocity_filled: np.ndarray  # True where the velocity came from a neighbour
     sub_discharge_m3s: np.ndarray
     warnings: list[str] = field(default_factory=list)
+    velocities: str = "piv"  # whose surface velocities: piv | stiv | combined (section.velocity_source)
 
 
 def subsection_velocity(geom: SectionGeometry, x, y, U, V) -> np.ndarray:

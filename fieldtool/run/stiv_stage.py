@@ -218,6 +218,7 @@ def finish(
             '(check the search lines lie on textured water, or use velocity_source = "piv")'
         )
     chosen = out[src]
+    chosen.velocities = src
     if project.section.velocity_source != "auto":  # auto's choice is said in the block, not as a warning
         chosen.warnings.insert(0, f"discharge from the {src} velocities (section.velocity_source)")
     return block, chosen
