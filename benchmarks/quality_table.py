@@ -12,7 +12,8 @@ grazing, compressed, skewed, dropped_frames; those missing are skipped). Each pr
 generator wrote it (what a user would run first), with the default [quality] and [uncertainty] keys.
 
 Each row also gives the errors of the three velocity sources one run computes (``section.velocity_source``:
-piv, the default and the headline; stiv; combined, from ``result.json`` "stiv"), STIV's own time per clip
+piv, the default up to stop 51; stiv; combined, from ``result.json`` "stiv"; the headline is the default's, auto
+since stop 52), STIV's own time per clip
 (line sampling + analysis, wall s) and the run's CPU s. ``--seeds 0,1,2`` renders every scene with each seed.
 
 The rule checked: no scene is graded ``good`` with |error| > 5 %, and a scene with |error| > 5 % has the
