@@ -34,6 +34,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import tomlkit
 
 
 def run(tree: Path, project: Path, extra_env: dict[str, str] | None = None) -> dict:
@@ -68,8 +69,6 @@ def run(tree: Path, project: Path, extra_env: dict[str, str] | None = None) -> d
 
 def with_keys(project: Path, sets: list[str]) -> Path:
     """``project`` with the keys of ``sets`` ("section.key=<TOML value>") set, as ``<name>_before.toml`` beside it."""
-    import tomlkit
-
     doc = tomlkit.parse(project.read_text())
     for kv in sets:
         path, value = kv.split("=", 1)

@@ -197,7 +197,7 @@ def assess_run(
     )
     dt = float(np.median(res.dt_s)) if res.dt_s is not None and len(res.dt_s) else 1.0
     p = res.params
-    first = p.window_px * 2 ** (max(p.passes, 1) - 1)
+    first = p.first_window_px  # the engine refuses passes < 1, so a result's params have 1 or more
     v_meas = np.where(dres.velocity_filled, np.nan, dres.surface_velocity_ms)
     ev = ql.Evidence(
         subsection_width_m=np.diff(geom.station_edges),
