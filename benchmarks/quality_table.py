@@ -31,6 +31,7 @@ from pathlib import Path
 
 from fieldtool.errors import FieldToolError
 from fieldtool.run import outputs
+from fieldtool.records.report_content import velocities_used
 from fieldtool.run.pipeline import run_project
 from fieldtool.project.model import load_project
 from fieldtool.synthetic import presets, render_scene
@@ -91,7 +92,7 @@ def main() -> None:
             def e(x):
                 return "n/a" if x is None else f"{100 * (x - qt) / qt:+.1f} %"
 
-            src = st.get("velocity_source_used", st.get("velocity_source", "piv"))
+            src = velocities_used(st)
             q_piv = st.get("discharge_piv_m3s", q if src == "piv" else None)
             print(f"| {label} | {seed} | {qt:.3f} | {q:.3f} | {err:+.1f} % | {grade} | {lo:.3f} – {hi:.3f} | "
                   f"±{50 * (hi - lo) / abs(q):.1f} | {'yes' if inside else 'NO'} | {codes} | {e(q_piv)} | "

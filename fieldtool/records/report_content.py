@@ -274,14 +274,19 @@ def parameter_rows(inputs: dict) -> list[tuple[str, str, str]]:
     return rows
 
 
+def velocities_used(stiv_block: dict | None) -> str:
+    """Whose velocities a result's discharge is of: piv | stiv | combined, from its ``"stiv"`` block. A result
+    written before ``velocity_source_used`` existed (stop 51 and earlier) had no "auto": its key was the source."""
+    st = stiv_block or {}
+    return st.get("velocity_source_used", st.get("velocity_source", "piv"))
+
+
 def velocities_text(summary: dict, q_unit: str = "m³/s", short: bool = False) -> str:
     """Which velocities the discharge is of (``stiv.velocity_source_used``), with PIV's and STIV's own discharges
     (in ``q_unit``, its name: the terminal's is "m3/s") beside where the two were combined; ``short``: the
     source's name alone ("PIV", "STIV", "PIV+STIV"), for a line that has no room."""
     st = summary.get("stiv") or {}
-    used = st.get("velocity_source_used")
-    if used is None:
-        return "PIV"
+    used = velocities_used(st)
     text = {"piv": "PIV", "stiv": "STIV", "combined": "PIV and STIV combined per subsection"}[used]
     if short:
         return {"combined": "PIV+STIV"}.get(used, text)

@@ -313,3 +313,26 @@ def test_pdf_carries_what_the_html_has(tmp_path):
     assert data[0][-1] == "–" and data[1][-1] == "0.98765"
     head = next(i for i, ln in enumerate(lines) if "from" in ln and "to" in ln and "area" in ln)
     assert all(len(w) < 14 for w in lines[head].split()), lines[head]  # no two headers run together
+
+
+def test_velocities_said_for_new_old_and_stiv_less_results():
+    """The velocities line (report, terminal, TUI) reads result.json's stiv block: velocity_source_used since the
+    auto default; a result written before it (no "auto" then) had the source in velocity_source itself."""
+    from fieldtool.records.report_content import velocities_text, velocities_used
+
+    new = {
+        "velocity_source": "auto",
+        "velocity_source_used": "combined",
+        "discharge_piv_m3s": 1.25,
+        "discharge_m3s": 1.2,
+    }
+    assert (
+        velocities_text({"stiv": new})
+        == "PIV and STIV combined per subsection (PIV alone 1.250 m³/s, STIV alone 1.200 m³/s)"
+    )
+    assert velocities_text({"stiv": new}, short=True) == "PIV+STIV"
+    disagree = {"velocity_source": "auto", "velocity_source_used": "piv", "disagreement_reason": {"code": "x"}}
+    assert velocities_text({"stiv": disagree}) == "PIV (STIV disagrees: not combined)"
+    assert velocities_used({"velocity_source": "stiv"}) == "stiv"  # stop 51's result.json
+    assert velocities_text({"stiv": {"velocity_source": "combined"}}).startswith("PIV and STIV combined")
+    assert velocities_used(None) == "piv" and velocities_text({"stiv": None}) == "PIV"
