@@ -160,8 +160,9 @@ def main() -> int:
              or (r["grade"] == "doubtful" and r["inside"] is False and abs(r["err"] or 0.0) > 5.0)]
     errs = [abs(r["err"]) for r in rows if r["err"] is not None and r["grade"] in ("good", "doubtful")]
     n_fail = sum(not r["pass"] for r in rows)
+    unusable = sum(r["grade"] == "unusable" for r in rows)
     print(f"{len(rows) - n_fail}/{len(rows)} pass; confidently wrong {len(wrong)} "
-          f"({', '.join(r['preset'] for r in wrong) or 'none'}); unusable {sum(r['grade'] == 'unusable' for r in rows)}; "
+          f"({', '.join(r['preset'] for r in wrong) or 'none'}); unusable {unusable}; "
           f"exit 2 in {sum(r['rc'] == 2 for r in rows)}; median |error| of the good and doubtful "
           f"{np.median(errs) if errs else float('nan'):.2f} %")
     return 1 if n_fail else 0
