@@ -5,7 +5,8 @@ each at a random strength. Error, grade and interval per scene, default settings
         [--workdir /tmp/combo_scenes] [--results results]
 
 Scene k is drawn from a generator seeded with k (the same k gives the same scene on every machine) and rendered
-once into WORKDIR/c<k>/ (kept: a second call reuses it; ``draw.json`` there says what was drawn). Each runs
+once into WORKDIR/c<k>/ (``--geometry``: WORKDIR/g<k>/, the river 6-30 m wide and the camera scaled with it, the
+image 640x480 to 1920x1080) (kept: a second call reuses it; ``draw.json`` there says what was drawn). Each runs
 through ``fieldtool run`` in a subprocess. The truth is the generator's, integrated from the drawn profile. The
 row's rule is unseen_scenes.py's: it passes when the exit code is not 2 and either |error| <= 5 %, or the grade
 is not good, the truth lies in the 95 % interval and its half-width is <= 25 %; a good grade with |error| > 5 %
@@ -115,8 +116,35 @@ NUISANCES = (_low_light, _rain, _shadows, _exposure, _debris, _standing, _glitte
              _section_glints, _patchy, _jpeg)
 
 
-def draw(k: int, duration: float):
-    """Scene ``k``: (SceneSpec, the words that say what was drawn)."""
+RESOLUTIONS = ((640, 480), (960, 540), (1280, 720), (1920, 1080))
+
+
+def _other_river(k: int, s, words: list[str]):
+    """``s`` with its river, banks, camera, targets and survey scaled by a factor drawn in 0.5-2.5 (a brook to a
+    30 m river, the particles as they were) and the camera's image size drawn from :data:`RESOLUTIONS`."""
+    rng = np.random.default_rng(5000 + k)
+    f = float(rng.uniform(0.5, 2.5))
+    w, h = RESOLUTIONS[int(rng.integers(len(RESOLUTIONS)))]
+    r, c, lv = s.river, s.camera, s.river.level_m
+
+    def at(p):
+        return (p[0] * f, p[1] * f, lv + (p[2] - lv) * f)
+
+    river = replace(r, width_m=r.width_m * f, depth_m=r.depth_m * f, left_bank_m=r.left_bank_m * f,
+                    right_bank_m=r.right_bank_m * f, left_bank_height_m=r.left_bank_height_m * f,
+                    right_bank_height_m=r.right_bank_height_m * f,
+                    island_m=None if r.island_m is None else (r.island_m[0] * f, r.island_m[1] * f))
+    cam = replace(c, position_m=at(c.position_m), target_m=at(c.target_m), width_px=w, height_px=h)
+    words.insert(1, f"{river.width_m:.0f} m wide, {w}x{h}")
+    return replace(s, river=river, camera=cam, gcp_offset_m=s.gcp_offset_m * f, gcp_half_dx_m=s.gcp_half_dx_m * f,
+                   gcp_size_m=s.gcp_size_m * f, survey_spacing_m=s.survey_spacing_m * f,
+                   roi_half_length_m=s.roi_half_length_m * f, max_extent_m=s.max_extent_m * f,
+                   texture_res_m=s.texture_res_m * min(f, 1.0) * (0.75 if w > 1280 else 1.0))
+
+
+def draw(k: int, duration: float, geometry: bool = False):
+    """Scene ``k``: (SceneSpec, the words that say what was drawn); ``geometry``: another river and camera
+    (:func:`_other_river`)."""
     rng = np.random.default_rng(1000 + k)
     base = BASES[int(rng.integers(len(BASES)))]
     s = presets.get(base, seed=k)
@@ -127,6 +155,8 @@ def draw(k: int, duration: float):
     s = replace(s, name=f"c{k}", seed=k, duration_s=duration, fps=fps, river=replace(s.river, u_max_ms=u),
                 particle_density_m2=dens, particle_brightness=bright, noise_sigma=float(rng.uniform(1.0, 5.0)))
     words = [base, f"u {u:.2f} m/s", f"{fps:g} fps", f"seeding {dens:.0f}/m2 at {bright:.2f}"]
+    if geometry:
+        s = _other_river(k, s, words)
     n = Nuisances()
     for f in rng.choice(len(NUISANCES), size=int(rng.integers(1, 4)), replace=False):
         s, n, said = NUISANCES[int(f)](rng, s, n)
@@ -141,18 +171,21 @@ def main() -> int:
     ap.add_argument("--duration", type=float, default=5.0)
     ap.add_argument("--workdir", default="/tmp/combo_scenes")
     ap.add_argument("--results", default="results", help="results folder inside each scene's (keep before/after)")
+    ap.add_argument("--geometry", action="store_true",
+                    help="other rivers and cameras: width 6-30 m, image 640x480 to 1920x1080 (scenes g<k>)")
     a = ap.parse_args()
     rows, said = [], {}
     print(us.HEAD + "  what was drawn", flush=True)
     for k in range(a.first, a.first + a.n):
-        spec, words = draw(k, a.duration)
-        d = Path(a.workdir) / f"c{k:03d}"
+        spec, words = draw(k, a.duration, a.geometry)
+        name = f"{'g' if a.geometry else 'c'}{k:03d}"
+        d = Path(a.workdir) / name
         if not (d / "truth.json").exists():
             render_scene(spec, d)
             (d / "draw.json").write_text(json.dumps({"words": words, "spec": asdict(spec)}, default=str, indent=1))
         q_true = json.loads((d / "truth.json").read_text())["discharge_m3s"]
         rc, res, dt = us.run_cli(d / "project.toml", d / a.results)
-        r = us.row(f"c{k:03d}", k, rc, res, q_true, dt)
+        r = us.row(name, k, rc, res, q_true, dt)
         rows.append(r)
         said[id(r)] = ", ".join(words)
         print(us.fmt(r, "  " + said[id(r)]), flush=True)

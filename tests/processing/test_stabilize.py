@@ -149,3 +149,17 @@ def test_bad_setup():
     with pytest.raises(ParameterError, match="differs from frame 0"):
         st.register(np.zeros((H + 2, W), np.uint8))
     assert st.report()["frames"] == 0
+
+
+def test_exposure_that_pumps_keeps_the_features_and_the_drift_check():
+    """A phone's auto-exposure: the gain swings by +-35 % while the camera drifts. The features are followed on
+    the frames with their local mean and contrast out, and the whole-picture check matches the gain first."""
+    frames, _, maps = _scene(n=40, flow=5, shake=2.0, drift=(1.5, 0.8))
+    gain = 1.0 + 0.35 * np.sin(np.arange(len(frames)) / 3.0)
+    frames = [np.clip(f * g + 10.0 * (g - 1.0), 0, 255).astype(np.uint8) for f, g in zip(frames, gain, strict=True)]
+    st = Stabilizer(frames[0], regions_px=BANKS)
+    corners = np.array([[[0.0, 0.0]], [[W - 1.0, H - 1.0]]])
+    for f, M in zip(frames, maps, strict=True):
+        st.register(f)
+        assert np.abs(cv2.perspectiveTransform(corners, st.transform @ M) - corners).max() < 0.5
+    assert st.report()["max_shift_px"] > 2 * st.max_drift_px
