@@ -6,8 +6,8 @@ being stable. Corners found there on the reference frame (``cv2.goodFeaturesToTr
 into each frame with pyramidal Lucas-Kanade (``cv2.calcOpticalFlowPyrLK``), always from the
 reference frame so errors do not accumulate, starting from the previous frame's registration, and
 kept only when tracking back lands on the start (forward-backward check). Both frames are followed with their
-local mean and contrast taken out (:func:`_flat`), so that a change of exposure does not lose the features. A RANSAC homography (or
-affine map) from the frame to the reference then warps the frame onto the reference. Frames keep
+local mean and contrast taken out (:func:`_flat`), so that a change of exposure does not lose the features.
+A RANSAC homography (or affine map) from the frame to the reference then warps the frame onto the reference. Frames keep
 their timestamps: registration changes pixels, never timing.
 
 Stable regions that lie on water show in three ways, each raised as GeometryError: the features
