@@ -137,11 +137,13 @@ def combine(
     other, and the 0-based subsections where STIV's velocity was left out.
 
     A subsection only STIV measured has no PIV velocity to agree with (:func:`fieldtool.processing.stiv.agree`
-    compares the subsections both measured): its STIV velocity is taken only where it agrees, as a compared
-    subsection must (within ``stiv.DISAGREE_REL`` of the reference speed), with ``v_fill``, the PIV discharge's
-    velocity there (filled from the neighbours along the local Manning law); elsewhere ``v_fill`` stands. A
-    search line on the bank, a floating branch or the rings of rain read 8.7 m/s beside 0.2 m/s (+9 % of Q,
-    graded good). ``v_fill`` None: STIV's alone is taken."""
+    compares the subsections both measured): its STIV velocity is left out, and ``v_fill`` (the PIV discharge's
+    velocity there, filled from the neighbours along the local Manning law) stands, where it is faster than
+    ``v_fill`` by more than ``stiv.DISAGREE_REL`` of the reference speed, or upstream. A search line on the bank,
+    a floating branch or the rings of rain read 8.7 m/s beside 0.2 m/s (+9 % of Q, graded good). A slower one
+    is taken: STIV's narrow lines read the slow water at a bank, which the Manning law from a deeper neighbour
+    over-reads (the slow far-bank scenes: +0.6 pp of Q when those were left out too). ``v_fill`` None: STIV's
+    alone is taken."""
     vp = np.where(np.isfinite(v_piv) & (w_piv > 0), v_piv, np.nan)
     vs = np.where(np.isfinite(v_stiv) & (w_stiv > 0), v_stiv, np.nan)
     both = np.isfinite(vp) & np.isfinite(vs)
@@ -152,7 +154,7 @@ def combine(
         top = float(np.nanmax(np.abs(vp))) if np.isfinite(vp).any() else 0.0
         ref = np.maximum(np.abs(np.nan_to_num(fill)), 0.1 * top)
         with np.errstate(invalid="ignore"):
-            far = alone & (np.abs(vs - fill) > stiv.DISAGREE_REL * ref)
+            far = alone & ((vs - fill > stiv.DISAGREE_REL * ref) | (vs < 0))
         left_out = [int(i) for i in np.nonzero(far)[0]]
         vp = np.where(far, fill, vp)
         both &= ~far
@@ -212,7 +214,7 @@ def finish(
         "piv_velocity_ms": _clean(v_piv_raw),
         "piv_confidence": _clean(w_piv),
         "combined_velocity_ms": _clean(v_comb),
-        # 1-based: measured by STIV alone, too far from the PIV's filled velocity to be combined (:func:`combine`)
+        # 1-based: measured by STIV alone, faster than the PIV's filled velocity or upstream: not combined (combine)
         "combined_left_out": [i + 1 for i in left_out],
         "disagreement": stiv.disagreement(v_piv_raw, v_st, q_w),
         "velocity_source": project.section.velocity_source,

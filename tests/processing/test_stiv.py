@@ -355,20 +355,21 @@ def test_line_mean_in_float16_is_numpys_to_the_bit(k):
 
 
 def test_combine_keeps_a_stiv_alone_velocity_only_where_it_agrees_with_the_filled_one():
-    """A subsection only STIV measured: its velocity enters the combined ones where it lies within
-    DISAGREE_REL of the PIV discharge's filled velocity there; a search line on the bank reading 8.7 m/s
-    beside 0.2 m/s does not (the filled velocity stands, and the subsection is said)."""
+    """A subsection only STIV measured: its velocity enters the combined ones unless it is faster than the PIV
+    discharge's filled velocity there by more than DISAGREE_REL, or upstream; a search line on the bank reading
+    8.7 m/s beside 0.2 m/s does not (the filled velocity stands, and the subsection is said), a slower one at a
+    bank does."""
     from fieldtool.run.stiv_stage import combine
 
-    v_piv = np.array([np.nan, 0.28, 0.40, 0.50, np.nan])
-    w_piv = np.array([0.0, 0.5, 0.6, 0.6, 0.0])
-    v_st = np.array([8.67, 0.26, 0.40, 0.52, 0.31])
-    w_st = np.array([0.3, 0.4, 0.5, 0.5, 0.4])
-    fill = np.array([0.18, 0.28, 0.40, 0.50, 0.30])  # the neighbours' along the Manning law
+    v_piv = np.array([np.nan, 0.28, 0.40, 0.50, np.nan, np.nan])
+    w_piv = np.array([0.0, 0.5, 0.6, 0.6, 0.0, 0.0])
+    v_st = np.array([8.67, 0.26, 0.40, 0.52, 0.20, -0.1])
+    w_st = np.array([0.3, 0.4, 0.5, 0.5, 0.4, 0.4])
+    fill = np.array([0.18, 0.28, 0.40, 0.50, 0.30, 0.2])  # the neighbours' along the Manning law
     v, out = combine(v_piv, w_piv, v_st, w_st, fill)
-    assert out == [0]
-    assert v[0] == pytest.approx(0.18)  # left out: the filled velocity
-    assert v[4] == pytest.approx(0.31)  # within 15 % of 0.30: STIV's
+    assert out == [0, 5]
+    assert v[0] == pytest.approx(0.18) and v[5] == pytest.approx(0.2)  # left out: the filled velocity
+    assert v[4] == pytest.approx(0.20)  # slower than the fill: STIV's
     assert v[1] == pytest.approx((0.5 * 0.28 + 0.4 * 0.26) / 0.9)  # both measured: weighted by confidence
     v_all, none = combine(v_piv, w_piv, v_st, w_st)  # no filled velocities given: STIV's alone is taken
     assert none == [] and v_all[0] == pytest.approx(8.67)
