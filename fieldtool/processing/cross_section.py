@@ -151,6 +151,7 @@ def from_shape(
         pts = np.asarray(points or [], dtype=float)
         if pts.ndim != 2 or pts.shape[1] != 2:
             raise GeometryError("cross_section.points: give [[station_m, elevation_m], ...] for a free shape")
+        pts, _ = _walls(pts, list(range(len(pts))))  # as a file's rows: a repeat dropped, a wall's points apart
         return CrossSection(pts[:, 0], pts[:, 1])
     if shape not in SHAPES:
         raise ParameterError(f"cross_section.shape: {shape!r} is not one of {', '.join(SHAPES)}")
@@ -313,12 +314,31 @@ def parse_rows(rows: list[tuple[int, list[str]]], source: str, comma_decimal: bo
         raise InputFileError(
             f"{source}: {len(pts)} data row(s); a cross-section needs at least 2 rows of 'station, elevation' in metres"
         )
-    arr = np.asarray(pts)
+    arr, lines = _walls(np.asarray(pts), lines)
     _check_relief(arr, lines, source)
     try:
         return CrossSection(arr[:, 0], arr[:, 1])
     except GeometryError as e:
         raise InputFileError(f"{source}: {e}") from e
+
+
+#: m: the points of a vertical face (a wall, an abutment: rows at one station) are set this far apart, in the order
+#: given (the area this moves is this times the face's height: 1 mm x 2 m = 0.002 m²)
+WALL_STEP_M = 0.001
+
+
+def _walls(arr: np.ndarray, lines: list[int]) -> tuple[np.ndarray, list[int]]:
+    """A survey's repeated rows and vertical faces, as the section needs them (station increasing): a row that
+    repeats the one above (same station and elevation, a point read twice) is dropped; rows at the station of
+    the row above with another elevation (down a wall on the left bank, up one on the right) are moved
+    :data:`WALL_STEP_M` apart each, in their order."""
+    keep = [0] + [i for i in range(1, len(arr)) if not np.array_equal(arr[i], arr[i - 1])]
+    arr, lines = arr[keep].copy(), [lines[i] for i in keep]
+    given = arr[:, 0].copy()
+    for i in range(1, len(arr)):
+        if given[i] == given[i - 1]:
+            arr[i, 0] = arr[i - 1, 0] + WALL_STEP_M
+    return arr, lines
 
 
 def _check_relief(arr: np.ndarray, lines: list[int], source: str) -> None:

@@ -642,8 +642,11 @@ def implied_underread(dis: dict | None, z: float = 2.0, min_compared: int = MIN_
     noise, it supports no under-read (0).
 
     Returns ``{"fraction", "stiv_relative", "se", "n_compared", "n_eff"}`` (fractions of Q), or None when STIV
-    compared fewer than ``min_compared`` subsections (the run then keeps the project's prior, the keys
-    ``uncertainty.underread_doubtful`` / ``underread_unusable``).
+    compared fewer than ``min_compared`` subsections, or where its discharge over them is zero or upstream
+    (``d <= -1``) while PIV's goes downstream: STIV then measured something else than the river (ripples or
+    waves travelling against it read -325 % of PIV's Q on a drawn scene, and bounded the under-read to 0 where
+    PIV read -66 %). The run then keeps the project's prior, the keys ``uncertainty.underread_doubtful`` /
+    ``underread_unusable``.
     """
     if not dis or dis.get("discharge_relative") is None:
         return None
@@ -651,7 +654,7 @@ def implied_underread(dis: dict | None, z: float = 2.0, min_compared: int = MIN_
     rel = rel[np.isfinite(rel)]
     n = len(rel)
     d = float(dis["discharge_relative"])
-    if n < max(min_compared, 2) or not np.isfinite(d):
+    if n < max(min_compared, 2) or not np.isfinite(d) or d <= -1.0:
         return None
     r = 0.0
     if n >= 3:

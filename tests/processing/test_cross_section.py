@@ -49,6 +49,22 @@ def test_parse_separators_and_header():
     np.testing.assert_allclose(back.station, cs.station, atol=1e-4)
 
 
+def test_a_point_read_twice_and_vertical_walls_are_taken():
+    """A concrete channel surveyed down its left wall and up its right one (two rows at each wall's station), and a
+    point read twice: the repeat is dropped, a wall's rows are set WALL_STEP_M apart; the wetted area is the
+    rectangle's to within that step times the walls' height. A station that goes back is still refused."""
+    from fieldtool.processing.cross_section import WALL_STEP_M
+
+    cs = parse_xy_text("0,10\n0,8\n2.5,8\n2.5,8\n5,8\n5,10\n", "channel.csv")
+    assert len(cs.station) == 5 and np.all(np.diff(cs.station) > 0)
+    assert cs.station[1] == pytest.approx(WALL_STEP_M) and cs.station[-1] == pytest.approx(5 + WALL_STEP_M)
+    assert cs.wetted_area(9.0) == pytest.approx(5.0, abs=2 * WALL_STEP_M)
+    with pytest.raises(InputFileError, match="station must increase"):
+        parse_xy_text("0,10\n0,8\n-0.5,8\n5,10\n", "channel.csv")
+    free = from_shape("free", points=[[0, 10], [0, 8], [5, 8], [5, 10]])  # the project's own points, the same
+    assert free.wetted_area(9.0) == pytest.approx(5.0, abs=2 * WALL_STEP_M)
+
+
 def test_bad_sections():
     with pytest.raises(InputFileError, match="at least 2 rows"):
         parse_xy_text("0,1\n", "bed.csv")

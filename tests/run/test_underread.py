@@ -44,6 +44,14 @@ def test_stiv_slower_than_piv_supports_no_under_read():
     assert stiv.implied_underread(_dis(rel))["fraction"] == 0.0
 
 
+def test_stiv_that_reads_the_river_upstream_is_no_evidence_and_leaves_the_prior():
+    """STIV's discharge over the compared subsections upstream (d <= -1) while PIV's goes downstream: its lines
+    followed something else than the river (ripples travelling against it); it bounds nothing."""
+    rel = [-0.9, -1.8, -3.5, -3.4, 0.3, 0.3, -3.4, 0.1, 0.1, 17.5, 0.2, -0.1, 0.0, -0.3, -3.4]
+    assert stiv.implied_underread(_dis(rel, d=-3.26)) is None
+    assert stiv.implied_underread(_dis(rel, d=-0.9)) is not None  # slower, still downstream: evidence
+
+
 def test_too_few_compared_subsections_leave_the_prior():
     assert stiv.implied_underread(_dis([0.2, None, 0.25, None])) is None
     assert stiv.implied_underread(None) is None
