@@ -145,3 +145,20 @@ def test_the_quality_stage_hands_the_runs_stiv_block_to_the_interval(monkeypatch
     vel = SimpleNamespace(piv=None, frame_stats={})
     stage.assess(Project(), None, None, None, vel, q, None, [], [])
     assert seen["stiv"] is block and seen["piv_q"] == 1.5
+
+
+def test_stiv_disagreeing_by_reading_faster_is_a_doubt_that_stiv_bounds():
+    """PIV and STIV disagree and STIV's discharge is the faster: the interval allows PIV's under-read by what STIV
+    supports (a wide river read -7.5 % by PIV, +0.3 % by STIV, with an interval of +-7 % that missed). Slower:
+    no doubt from it."""
+    from fieldtool.run.assess import _stiv_faster
+
+    why = {"code": "piv_stiv_disagree", "severity": "doubtful", "message": "disagree", "value": 0.13, "threshold": 0.05}
+    faster = {"disagreement": _dis([0.15, 0.18, 0.12, 0.10, 0.13]), "disagreement_reason": why}
+    doubts = _stiv_faster(faster)
+    assert [r.code for r in doubts] == ["piv_stiv_disagree"]
+    frac, block = underread_bound(Project(), doubts, faster)
+    assert block["source"] == "stiv" and 0.13 / 1.13 < frac < 0.5
+    slower = {"disagreement": _dis([-0.15, -0.18, -0.12]), "disagreement_reason": why}
+    assert _stiv_faster(slower) == [] and _stiv_faster({"disagreement": faster["disagreement"]}) == []
+    assert _stiv_faster(None) == []
