@@ -15,9 +15,11 @@ clip instead (issue 23). All from a few dozen frames inside the region PIV reads
 - **cnr**: contrast / noise (dimensionless).
 - **texture** (grey levels): the windows' rms of the smoothed residual (median reported).
 - **glare_fraction**: share of box pixels that are bright (above their median by more than
-  ``GLARE_K`` noise and twice the tracer contrast) in a few of the frames only: specular flicker. Where it is
-  set, ``median`` is the glints' background, the median of the frames in which the pixel does not shine
-  (:func:`background`): the per-frame mask (processing/lowlight.py) puts it where a glint shines.
+  ``GLARE_K`` noise and twice the tracer contrast) in a few of the frames only, in the glare windows (those whose
+  bright events the flow does not carry: bright tracers flicker at a pixel too, but move on): specular flicker.
+  Where it is set, ``median`` is the glints' background, the median of the frames in which the pixel does not
+  shine (:func:`background`): the per-frame mask (processing/lowlight.py) puts it where a glint shines, in the
+  glare windows only (``glare_windows``).
 
 :func:`gates` turns them into the standardisation's soft threshold and the PIV texture gate, and a plan name.
 Pure numpy: no file, no print.
@@ -51,6 +53,9 @@ GLARE_ON = 0.005
 GLARE_CARRIED = 0.35
 #: px: the farthest a bright event is looked for in the next frame (half a window of the estimates)
 CARRY_REACH = 32
+#: a window's carried share is judged from at least this many bright events (its sampling error about 0.2): a
+#: window with fewer neither sets the glare nor has glints masked
+GLARE_MIN_EVENTS = 25
 #: percentile of a window's smoothed residual that is its contrast: a window whose bright events are fewer than
 #: (100 - this) % of its pixel-frames cannot set it, and is not judged
 CONTRAST_PCT = 99.0
@@ -73,6 +78,9 @@ class ClipStats:
     contrast_spread: tuple[float, float] = field(default=(0.0, 0.0))  # 10th, 90th percentile of window contrast
     median: np.ndarray | None = field(default=None, repr=False)  # per-pixel temporal median of the box (grey levels)
     box: tuple[int, int, int, int] | None = None  # (x0, y0, x1, y1) px the estimates cover
+    #: the box's pixels (its shape, bool) in windows whose bright events the flow does not carry: where glints are
+    #: masked (processing/lowlight.py); None: no such window
+    glare_windows: np.ndarray | None = field(default=None, repr=False)
     #: how many frames the pattern takes to change at a pixel (processing/decorrelation.py), None: unknown
     decorrelation: decorrelation.Decorrelation | None = None
 
@@ -82,7 +90,7 @@ class ClipStats:
         return glint_threshold(self.noise, self.contrast)
 
     def to_dict(self) -> dict:
-        d = {k: v for k, v in asdict(self).items() if k not in ("median", "box", "decorrelation")}
+        d = {k: v for k, v in asdict(self).items() if k not in ("median", "box", "decorrelation", "glare_windows")}
         d["contrast_spread"] = list(self.contrast_spread)
         return {k: (round(v, 4) if isinstance(v, float) else v) for k, v in d.items()}
 
@@ -159,15 +167,17 @@ def estimate(frames, box: tuple[int, int, int, int] | None = None, *, win: int =
         if sm[:, r0 : r0 + win, c0 : c0 + win].size
     ]
 
-    def windows(lo: int, hi: int) -> list[tuple[float, float, float | None]]:
+    def windows(lo: int, hi: int) -> list[tuple[float, float, float | None, bool]]:
         out = []
         for r0, c0 in corners[lo:hi]:
             blk = sm[:, r0 : r0 + win, c0 : c0 + win]
+            ev = flick[: n - 1 : 2, r0 : r0 + win, c0 : c0 + win]  # the events carried_share weighs
             out.append(
                 (
                     max(float(np.percentile(blk, CONTRAST_PCT)) - 2.33 * sig_s, 0.0),
                     float(np.sqrt(np.mean(blk * blk))),
-                    carried_share(flick, (r0, c0, win), CARRY_REACH),
+                    carried_share(flick, (r0, c0, win), CARRY_REACH, GLARE_MIN_EVENTS),
+                    np.count_nonzero(ev) > (1.0 - CONTRAST_PCT / 100.0) * ev.size,  # enough to set the contrast
                 )
             )
         return out
@@ -176,11 +186,19 @@ def estimate(frames, box: tuple[int, int, int, int] | None = None, *, win: int =
     per = [v for part in _in_bands(len(corners), windows) for v in part]
     cons = [v[0] for v in per]
     texs = [v[1] for v in per]
-    carried = [v[2] for v in per]
+    shares = [v[2] for v in per]  # every window with GLARE_MIN_EVENTS: where glints are masked
+    carried = [v[2] if v[3] else None for v in per]  # the windows whose events can set their contrast
     cons_a = np.asarray(cons) if cons else np.zeros(1)
     clean = np.asarray([c is None or c >= GLARE_CARRIED for c in carried] or [True])
     contrast = float(np.median(cons_a[clean] if clean.any() else cons_a))
-    bright = resid > glint_threshold(noise, contrast)
+    # the glare windows: where the bright events are not carried by the flow. Bright tracers (a bright seeding, or
+    # one brighter than twice the windows' typical contrast) flicker at a pixel as glints do, but move on
+    glare_win = np.zeros((hh, ww), bool)
+    m = win // 4  # and a quarter window around them: a glint at a window's edge spills into its neighbour
+    for (r0, c0), c in zip(corners, shares, strict=True):
+        if c is not None and c < GLARE_CARRIED:
+            glare_win[max(r0 - m, 0) : r0 + win + m, max(c0 - m, 0) : c0 + win + m] = True
+    bright = (resid > glint_threshold(noise, contrast)) & glare_win
     share = bright.mean(axis=0)
     glare = float(np.mean((share > 0) & (share <= GLARE_DUTY)))
     if glare > GLARE_ON:  # the glints' background: the median of the frames in which the pixel does not shine
@@ -197,6 +215,7 @@ def estimate(frames, box: tuple[int, int, int, int] | None = None, *, win: int =
         contrast_spread=(float(np.percentile(cons_a, 10)), float(np.percentile(cons_a, 90))),
         median=med,
         box=(x0, y0, x1, y1),
+        glare_windows=glare_win if glare_win.any() else None,
         # on the smoothed frames (the smoothed residual and the smoothed median): sensor noise, white in time,
         # weighs less there (a dusk clip's share of persistent variance 0.12 -> 0.5); whole, so that the fit takes
         # out an exposure's or a fade's change of every pixel's gain; every 4th pixel each way (more apart in a box
@@ -212,7 +231,9 @@ def _every(pixels: int, most: int = 65536) -> int:
     return max(4, int(np.ceil(np.sqrt(pixels / most))))
 
 
-def carried_share(events: np.ndarray, window: tuple[int, int, int], reach: int) -> float | None:
+def carried_share(
+    events: np.ndarray, window: tuple[int, int, int], reach: int, min_events: int | None = None
+) -> float | None:
     """Share of a window's bright events that the flow carries: ``events`` (n >= 3, h, w) bool, ``window`` (row,
     col, size) px, ``reach`` px. The events of every other frame t (t < n - 1) inside the window are correlated
     with those of frame t + 1 at every displacement within ``reach`` (summed over t), and with those of frames
@@ -220,14 +241,14 @@ def carried_share(events: np.ndarray, window: tuple[int, int, int], reach: int) 
     glints that flicker in place or in a band). At the displacement where the next frame beats the far ones
     most, the excess over the far frames' hits, divided by what it could be (the events that land inside the
     frame there, less the far frames' hits): about 1 for tracers the flow carries (a sub-pixel shift and noise
-    at the threshold lose some), about 0 for glints. None where the events are fewer than
-    (100 - ``CONTRAST_PCT``) % of the window's pixel-frames (they do not set its contrast)."""
+    at the threshold lose some), about 0 for glints. None where the events are fewer than ``min_events``
+    (None: (100 - ``CONTRAST_PCT``) % of the window's pixel-frames, below which they do not set its contrast)."""
     n, h, w = events.shape
     r0, c0, win = window
     t = np.arange(0, n - 1, 2)  # every other pair: half the transforms, and the far frames are the near ones
     a = events[t, r0 : r0 + win, c0 : c0 + win]
     e = float(np.count_nonzero(a))
-    if n < 3 or e <= (1.0 - CONTRAST_PCT / 100.0) * a.size:
+    if n < 3 or e <= ((1.0 - CONTRAST_PCT / 100.0) * a.size if min_events is None else min_events):
         return None
     wh, ww = a.shape[1:]
     s0, s1 = wh + 2 * reach, ww + 2 * reach
@@ -378,7 +399,8 @@ def gates(
     why = (
         [
             f"{100 * stats.glare_fraction:.1f} % of the pixels flicker brighter than {stats.glint_threshold:.0f} grey "
-            "levels above their median in a few frames only: masked per frame"
+            "levels above their median in a few frames only, where the flow does not carry them: masked per frame "
+            "there"
             + (
                 ", no soft threshold, and a node is judged by its ensemble peak, not by its share of valid single "
                 "pairs (a glint hides part of each window in every frame)"

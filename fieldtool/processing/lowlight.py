@@ -61,10 +61,13 @@ def mask_glints(
     median: np.ndarray,
     box: tuple[int, int, int, int],
     threshold: float,
+    where: np.ndarray | None = None,
 ) -> Iterator[tuple[float, np.ndarray | None]]:
     """Per frame, pixels of ``box`` (x0, y0, x1, y1 px) brighter than their temporal ``median`` (grey levels, the
     box's shape) by more than ``threshold`` grey levels are set to that median: short-lived specular glints are
-    removed where and when they shine, the tracers between them stay."""
+    removed where and when they shine, the tracers between them stay. ``where`` (the box's shape, bool): only
+    there (the glare windows of processing/clip_stats.py: bright tracers elsewhere are left alone); None: the
+    whole box."""
     x0, y0, x1, y1 = box
     med = np.asarray(median, np.float32)
     for t, img in frames:
@@ -73,6 +76,8 @@ def mask_glints(
             continue
         crop = img[y0:y1, x0:x1]
         hot = crop.astype(np.float32) - med > threshold
+        if where is not None:
+            hot &= where
         if hot.any():
             img = img.copy()
             crop = img[y0:y1, x0:x1]

@@ -50,7 +50,7 @@ class ClipCheck:
         s = self.stats
         if not self.gates.mask_glints or s is None or s.median is None:
             return frames
-        return lowlight.mask_glints(frames, s.median, s.box, s.glint_threshold)
+        return lowlight.mask_glints(frames, s.median, s.box, s.glint_threshold, s.glare_windows)
 
     def std_want(self, want):
         """The standardisation builds every frame when the denoising averages them."""

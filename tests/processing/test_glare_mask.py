@@ -21,7 +21,7 @@ SPEED = 2.0  # tracers' displacement (px/frame, +x)
 LEVEL, AMP, NOISE = 100.0, 8.0, 1.5
 
 
-def _stack(n=24, glints_per_frame=60, seed=0):
+def _stack(n=24, glints_per_frame=60, seed=0, amp=AMP):
     """(frames, glint cores): tracers (sigma 1.5 px, peak AMP) moving SPEED px/frame over LEVEL, white noise of
     NOISE, and in COL one-frame glints (sigma 2.2 x 1 px, 150-400 grey levels, clipped at 255) at new places
     in each frame; ``cores[i]``: where frame i's glints add more than 30 grey levels."""
@@ -36,7 +36,7 @@ def _stack(n=24, glints_per_frame=60, seed=0):
         r = np.minimum(y0.astype(int), H - 1)
         np.add.at(dots, (r, c), 1 - fx)
         np.add.at(dots, (r, c + 1), fx)
-        img = LEVEL + AMP * 2 * np.pi * 1.5**2 * cv2.GaussianBlur(dots, (0, 0), 1.5)
+        img = LEVEL + amp * 2 * np.pi * 1.5**2 * cv2.GaussianBlur(dots, (0, 0), 1.5)
         imp = np.zeros((H, W), np.float32)
         gy, gx = rng.integers(0, H, glints_per_frame), rng.integers(*COL, glints_per_frame)
         np.add.at(imp, (gy, gx), rng.uniform(150, 400, glints_per_frame) * 2 * np.pi * 2.2)
@@ -45,6 +45,13 @@ def _stack(n=24, glints_per_frame=60, seed=0):
         frames.append(np.clip(img, 0, 255).astype(np.uint8))
         cores.append(glint > 30.0)
     return frames, cores
+
+
+def _masked(frames, s):
+    assert s.median is not None and s.box is not None
+    return [
+        f for _, f in lowlight.mask_glints(list(enumerate(frames)), s.median, s.box, s.glint_threshold, s.glare_windows)
+    ]
 
 
 def _gates(stats):
@@ -71,7 +78,7 @@ def test_mask_takes_the_glints_and_leaves_the_tracers():
     frames, cores = _stack()
     s = cs.estimate(frames)
     assert s.median is not None and s.box is not None
-    out = [f for _, f in lowlight.mask_glints(list(enumerate(frames)), s.median, s.box, s.glint_threshold)]
+    out = _masked(frames, s)
     hit = np.stack([o != f for o, f in zip(out, frames, strict=True)])
     core = np.stack(cores)
     assert hit[core].mean() > 0.95  # the glints' cores, frame by frame
@@ -85,7 +92,7 @@ def test_piv_reads_the_tracers_between_the_masked_glints():
     s = cs.estimate(frames)
     g = _gates(s)
     assert s.median is not None and s.box is not None and g.min_valid_fraction is not None
-    masked = [f for _, f in lowlight.mask_glints(list(enumerate(frames)), s.median, s.box, s.glint_threshold)]
+    masked = _masked(frames, s)
     prm = PivParams(window_px=32, overlap_px=16, passes=1, min_valid_fraction=g.min_valid_fraction)
     read = {}
     for name, src in (("masked", masked), ("raw", frames)):
@@ -95,3 +102,16 @@ def test_piv_reads_the_tracers_between_the_masked_glints():
         read[name] = (res.valid[col].mean(), float(np.median(u)) if u.size else np.nan)
     assert read["masked"][0] >= 0.8 and read["masked"][1] == pytest.approx(SPEED, rel=0.05)
     assert read["raw"][0] < 0.5  # the glints unmasked: most of the column is lost
+
+
+def test_bright_tracers_the_flow_carries_are_not_glints():
+    """Tracers 120 grey levels bright, some twice their typical contrast: at a pixel they flicker as glints do, but
+    the flow carries them. No glare without glints; with a dense column of glints, only the column is masked."""
+    bright, _ = _stack(glints_per_frame=0, amp=120.0)
+    s = cs.estimate(bright)
+    assert s.glare_windows is None and s.glare_fraction <= cs.GLARE_ON
+    frames, _ = _stack(glints_per_frame=200, amp=120.0)
+    s = cs.estimate(frames)
+    assert s.glare_windows is not None and s.glare_windows[:, COL[0] : COL[1]].all()
+    hit = np.stack([o != f for o, f in zip(_masked(frames, s), frames, strict=True)])
+    assert not hit[:, :, : COL[0] - 32].any() and not hit[:, :, COL[1] + 32 :].any()
