@@ -243,3 +243,17 @@ def test_median0_is_numpys_median_over_the_first_axis():
         stack[:, 0, 0] = 7.0  # ties
         got, want = cs.median0(stack), np.median(stack, axis=0)
         assert got.dtype == want.dtype and np.array_equal(got, want)
+
+
+def test_the_self_check_runs_where_either_plan_may_fit():
+    """Under half CNR_WEAK: the weak plan; from half to CNR_WEAK: either; above it, the standard gates unless the
+    clip has glare (up to twice CNR_WEAK): their looser gates alone would raise the weak plan's valid share."""
+
+    def stats(cnr, glare=0.0):
+        return cs.ClipStats(
+            frames=20, noise=2.0, contrast=2.0 * cnr, cnr=cnr, texture=5.0, level=80.0, glare_fraction=glare, windows=12
+        )
+
+    assert not cs.ambiguous(stats(2.0)) and cs.ambiguous(stats(4.0)) and cs.ambiguous(stats(5.9))
+    assert not cs.ambiguous(stats(8.0)) and cs.ambiguous(stats(8.0, glare=2 * cs.GLARE_ON))
+    assert not cs.ambiguous(stats(13.0, glare=2 * cs.GLARE_ON))
