@@ -83,14 +83,6 @@ class ClipStats:
     glare_windows: np.ndarray | None = field(default=None, repr=False)
     #: how many frames the pattern takes to change at a pixel (processing/decorrelation.py), None: unknown
     decorrelation: decorrelation.Decorrelation | None = None
-    #: the exposure's gain over the frames: max - min of each frame's median ratio to ``median`` (dimensionless)
-    exposure_swing: float = 0.0
-
-    @property
-    def exposure_varies(self) -> bool:
-        """The exposure's swing moves the water's level by more than the temporal noise: it is taken out of every
-        frame (processing/lowlight.py even_exposure)."""
-        return self.exposure_swing * self.level > self.noise
 
     @property
     def glint_threshold(self) -> float:
@@ -99,7 +91,6 @@ class ClipStats:
 
     def to_dict(self) -> dict:
         d = {k: v for k, v in asdict(self).items() if k not in ("median", "box", "decorrelation", "glare_windows")}
-        d["exposure_varies"] = self.exposure_varies
         d["contrast_spread"] = list(self.contrast_spread)
         return {k: (round(v, 4) if isinstance(v, float) else v) for k, v in d.items()}
 
@@ -212,8 +203,6 @@ def estimate(frames, box: tuple[int, int, int, int] | None = None, *, win: int =
     glare = float(np.mean((share > 0) & (share <= GLARE_DUTY)))
     if glare > GLARE_ON:  # the glints' background: the median of the frames in which the pixel does not shine
         med = background(st, bright)
-    ref = np.maximum(med[::4, ::4], 1.0)
-    gains = [float(np.median(f[::4, ::4] / ref)) for f in st]  # each frame's exposure against the median's
     return ClipStats(
         frames=n,
         noise=noise,
@@ -227,7 +216,6 @@ def estimate(frames, box: tuple[int, int, int, int] | None = None, *, win: int =
         median=med,
         box=(x0, y0, x1, y1),
         glare_windows=glare_win if glare_win.any() else None,
-        exposure_swing=float(max(gains) - min(gains)),
         # on the smoothed frames (the smoothed residual and the smoothed median): sensor noise, white in time,
         # weighs less there (a dusk clip's share of persistent variance 0.12 -> 0.5); whole, so that the fit takes
         # out an exposure's or a fade's change of every pixel's gain; every 4th pixel each way (more apart in a box

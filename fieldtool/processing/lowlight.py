@@ -83,22 +83,3 @@ def mask_glints(
             crop = img[y0:y1, x0:x1]
             crop[hot] = med[hot].astype(crop.dtype)
         yield t, img
-
-
-def even_exposure(
-    frames: Iterable[tuple[float, np.ndarray | None]], reference: np.ndarray, box: tuple[int, int, int, int]
-) -> Iterator[tuple[float, np.ndarray | None]]:
-    """Per frame, the exposure's gain taken out: the frame (float32) divided by ``g``, the median over ``box``
-    (x0, y0, x1, y1 px; every 4th pixel each way) of its ratio to ``reference`` (grey levels, the box's shape: the
-    clip check's temporal median). A phone's auto-exposure or a passing cloud scales every pixel by one gain; the
-    standardisation's window of frames would read it as texture that flickers in place. The median ignores the
-    tracers that moved."""
-    x0, y0, x1, y1 = box
-    ref = np.maximum(np.asarray(reference, np.float32)[::4, ::4], 1.0)
-    for t, img in frames:
-        if img is None:
-            yield t, img
-            continue
-        a = np.asarray(img)
-        g = float(np.median(a[y0:y1:4, x0:x1:4] / ref))
-        yield t, a.astype(np.float32) * np.float32(1.0 / g) if g > 0 else a

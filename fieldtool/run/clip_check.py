@@ -46,16 +46,11 @@ class ClipCheck:
         return replace(params, min_texture=g.min_texture, min_valid_fraction=mvf)
 
     def before(self, frames):
-        """Raw frames -> frames with the short-lived glints masked (weak clips with glare only) and the exposure's
-        gain taken out (where it swings by more than the noise: ``ClipStats.exposure_varies``)."""
+        """Raw frames -> frames with the short-lived glints masked (weak clips with glare only)."""
         s = self.stats
-        if s is None or s.median is None or s.box is None:
+        if not self.gates.mask_glints or s is None or s.median is None:
             return frames
-        if self.gates.mask_glints:
-            frames = lowlight.mask_glints(frames, s.median, s.box, s.glint_threshold, s.glare_windows)
-        if s.exposure_varies:
-            frames = lowlight.even_exposure(frames, s.median, s.box)
-        return frames
+        return lowlight.mask_glints(frames, s.median, s.box, s.glint_threshold, s.glare_windows)
 
     def std_want(self, want):
         """The standardisation builds every frame when the denoising averages them."""
@@ -105,8 +100,6 @@ class ClipCheck:
                 "glare_fraction": s.glare_fraction,
                 "glint_threshold_gray": s.glint_threshold,  # max(GLARE_K x noise, 2 x contrast): masked above it
                 "window_contrast_p10_p90": list(s.contrast_spread),
-                "exposure_swing": s.exposure_swing,  # max - min of the frames' gain against their median
-                "exposure_evened": s.exposure_varies,  # the gain taken out of every frame (swing x level > noise)
             },
             "gates": self.gates.to_dict(),
         }

@@ -257,22 +257,3 @@ def test_the_self_check_runs_where_either_plan_may_fit():
     assert not cs.ambiguous(stats(2.0)) and cs.ambiguous(stats(4.0)) and cs.ambiguous(stats(5.9))
     assert not cs.ambiguous(stats(8.0)) and cs.ambiguous(stats(8.0, glare=2 * cs.GLARE_ON))
     assert not cs.ambiguous(stats(13.0, glare=2 * cs.GLARE_ON))
-
-
-def test_an_exposure_that_swings_is_measured_and_taken_out():
-    """Every pixel scaled by one gain per frame (a phone's auto-exposure, +-20 %): the clip check reads the swing,
-    finds it above the noise, and even_exposure brings each frame back to the median's exposure; a steady clip
-    reads no swing, and its frames are left as they are."""
-    from fieldtool.processing import lowlight
-
-    steady = _clip(noise=2.0)
-    gains = 1.0 + 0.2 * np.sin(np.arange(len(steady)) / 2.0)
-    pumped = [np.clip(f * g, 0, 255) for f, g in zip(steady, gains, strict=True)]
-    s0, s = cs.estimate(steady), cs.estimate(pumped)
-    assert s0.exposure_swing < 0.01 and not s0.exposure_varies
-    assert s.exposure_swing == pytest.approx(gains.max() - gains.min(), rel=0.15) and s.exposure_varies
-    assert s.median is not None and s.box is not None
-    evened = [f for _, f in lowlight.even_exposure(list(enumerate(pumped)), s.median, s.box)]
-    level = [float(np.median(f)) for f in evened]
-    before = [float(np.median(f)) for f in pumped]
-    assert max(level) - min(level) < 0.1 * (max(before) - min(before))  # one exposure again, to the noise
