@@ -171,13 +171,13 @@ def estimate(frames, box: tuple[int, int, int, int] | None = None, *, win: int =
         out = []
         for r0, c0 in corners[lo:hi]:
             blk = sm[:, r0 : r0 + win, c0 : c0 + win]
-            ev = flick[: n - 1 : 2, r0 : r0 + win, c0 : c0 + win]  # the events carried_share weighs
+            ev = _window_events(flick, (r0, c0, win))  # the events carried_share weighs
             out.append(
                 (
                     max(float(np.percentile(blk, CONTRAST_PCT)) - 2.33 * sig_s, 0.0),
                     float(np.sqrt(np.mean(blk * blk))),
                     carried_share(flick, (r0, c0, win), CARRY_REACH, GLARE_MIN_EVENTS),
-                    np.count_nonzero(ev) > (1.0 - CONTRAST_PCT / 100.0) * ev.size,  # enough to set the contrast
+                    np.count_nonzero(ev) > _contrast_floor(ev.size),  # enough to set the contrast
                 )
             )
         return out
@@ -231,6 +231,18 @@ def _every(pixels: int, most: int = 65536) -> int:
     return max(4, int(np.ceil(np.sqrt(pixels / most))))
 
 
+def _contrast_floor(pixel_frames: int) -> float:
+    """Fewest bright events that can set a window's contrast: (100 - ``CONTRAST_PCT``) % of its pixel-frames."""
+    return (1.0 - CONTRAST_PCT / 100.0) * pixel_frames
+
+
+def _window_events(events: np.ndarray, window: tuple[int, int, int]) -> np.ndarray:
+    """The events of ``window`` (row, col, size px) that :func:`carried_share` follows: those of every other frame
+    t < n - 1 (every other pair: half the transforms, and the far frames are the near ones)."""
+    r0, c0, win = window
+    return events[: len(events) - 1 : 2, r0 : r0 + win, c0 : c0 + win]
+
+
 def carried_share(
     events: np.ndarray, window: tuple[int, int, int], reach: int, min_events: int | None = None
 ) -> float | None:
@@ -245,10 +257,10 @@ def carried_share(
     (None: (100 - ``CONTRAST_PCT``) % of the window's pixel-frames, below which they do not set its contrast)."""
     n, h, w = events.shape
     r0, c0, win = window
-    t = np.arange(0, n - 1, 2)  # every other pair: half the transforms, and the far frames are the near ones
-    a = events[t, r0 : r0 + win, c0 : c0 + win]
+    t = np.arange(0, n - 1, 2)  # the frames of _window_events
+    a = _window_events(events, window)
     e = float(np.count_nonzero(a))
-    if n < 3 or e <= ((1.0 - CONTRAST_PCT / 100.0) * a.size if min_events is None else min_events):
+    if n < 3 or e <= (_contrast_floor(a.size) if min_events is None else min_events):
         return None
     wh, ww = a.shape[1:]
     s0, s1 = wh + 2 * reach, ww + 2 * reach

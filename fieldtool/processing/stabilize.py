@@ -143,7 +143,6 @@ class Stabilizer:
             )
         self.ref_pts = np.concatenate(found).reshape(-1, 1, 2).astype(np.float32)
         self.pt_region = np.concatenate(owner)
-        self._ref = ref
         self._ref_flat = _flat(ref)  # the features are followed on frames with their local mean and contrast out
         self._H = np.eye(3)
         self.max_drift_px = (

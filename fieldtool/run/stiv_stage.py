@@ -156,8 +156,7 @@ def combine(
         with np.errstate(invalid="ignore"):
             far = alone & ((vs - fill > stiv.DISAGREE_REL * ref) | (vs < 0))
         left_out = [int(i) for i in np.nonzero(far)[0]]
-        vp = np.where(far, fill, vp)
-        both &= ~far
+        vp = np.where(far, fill, vp)  # where STIV alone measured: ``both`` is false there already
     out = np.where(np.isfinite(vp), vp, vs)
     wsum = np.where(both, w_piv + w_stiv, 1.0)
     return np.where(both, (w_piv * np.nan_to_num(vp) + w_stiv * np.nan_to_num(vs)) / wsum, out), left_out
