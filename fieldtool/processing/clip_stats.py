@@ -177,7 +177,7 @@ def estimate(frames, box: tuple[int, int, int, int] | None = None, *, win: int =
                     max(float(np.percentile(blk, CONTRAST_PCT)) - 2.33 * sig_s, 0.0),
                     float(np.sqrt(np.mean(blk * blk))),
                     carried_share(flick, (r0, c0, win), CARRY_REACH, GLARE_MIN_EVENTS),
-                    np.count_nonzero(ev) > _contrast_floor(ev.size),  # enough to set the contrast
+                    bool(np.count_nonzero(ev) > _contrast_floor(ev.size)),  # enough to set the contrast
                 )
             )
         return out
