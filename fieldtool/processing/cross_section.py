@@ -331,10 +331,13 @@ def _walls(arr: np.ndarray, lines: list[int]) -> tuple[np.ndarray, list[int]]:
     """A survey's repeated rows and vertical faces, as the section needs them (station increasing): a row that
     repeats the one above (same station and elevation, a point read twice) is dropped; rows at the station of
     the row above with another elevation (down a wall on the left bank, up one on the right) are moved
-    :data:`WALL_STEP_M` apart each, in their order."""
+    :data:`WALL_STEP_M` apart each, in their order. Every row at one station is no section: left as given, and
+    refused (a bed that high over a 0 m wide section, as before walls were taken)."""
     keep = [0] + [i for i in range(1, len(arr)) if not np.array_equal(arr[i], arr[i - 1])]
     arr, lines = arr[keep].copy(), [lines[i] for i in keep]
     given = arr[:, 0].copy()
+    if given.min() == given.max():
+        return arr, lines
     for i in range(1, len(arr)):
         if given[i] == given[i - 1]:
             arr[i, 0] = arr[i - 1, 0] + WALL_STEP_M

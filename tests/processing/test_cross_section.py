@@ -61,6 +61,8 @@ def test_a_point_read_twice_and_vertical_walls_are_taken():
     assert cs.wetted_area(9.0) == pytest.approx(5.0, abs=2 * WALL_STEP_M)
     with pytest.raises(InputFileError, match="station must increase"):
         parse_xy_text("0,10\n0,8\n-0.5,8\n5,10\n", "channel.csv")
+    with pytest.raises(InputFileError, match="line 2: .* over a 0 m wide section"):  # every row at one station
+        parse_xy_text("0,10\n0,8\n0,10\n", "channel.csv")
     free = from_shape("free", points=[[0, 10], [0, 8], [5, 8], [5, 10]])  # the project's own points, the same
     assert free.wetted_area(9.0) == pytest.approx(5.0, abs=2 * WALL_STEP_M)
 
