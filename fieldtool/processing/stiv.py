@@ -31,6 +31,7 @@ Velocities along a line are signed: positive in the line's direction.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import cv2
@@ -487,6 +488,190 @@ def line_velocities(
     # on the engine's threads (the FFTs, sorts and filters release the GIL): a long clip's lines at the run's end
     piv_engine.chunked(len(todo), max(1, -(-len(todo) // 2)), lines)
     return v, c
+
+
+# ---------------------------------------------------------------------------------------------
+# wind ripples: the velocity from the waves' dispersion
+
+G_MS2 = 9.81  # gravity (m/s²)
+SIGMA_RHO = 0.074 / 1000.0  # surface tension over density of clean water (m³/s²)
+#: longest wave fitted (m): in water deeper than half of it (0.25 m) a wave is a deep-water wave, tanh(kh) > 0.996
+WAVE_LAMBDA_MAX_M = 0.5
+WAVE_BAND = 1  # spectral cells each side of a model's curve counted as on it (the spectrum's own resolution)
+
+
+def wave_omega(k: np.ndarray) -> np.ndarray:
+    """Angular frequency (rad/s) of deep-water gravity-capillary waves of wavenumber ``k`` (rad/m) in still
+    water: ω² = g|k| + (σ/ρ)|k|³."""
+    k = np.abs(np.asarray(k, float))
+    return np.sqrt(G_MS2 * k + SIGMA_RHO * k**3)
+
+
+@dataclass
+class WaveFit:
+    """One STI's spectrum against three models of what draws it (the shares of its energy in each model's cells at
+    ``velocity_ms``, the flicker's at its best frequency, net of what a flat spectrum puts there, 0..1):
+
+    * ``line``: a pattern carried by the flow, energy on ω = -kU (tracers, foam, turbulence);
+    * ``waves``: waves on the water carried by it, on ω = -kU ± ω_w(k) (wind ripples, read at the joint U);
+    * ``flicker``: brightness that changes in place at one frequency whatever the wavenumber (glints, rain, a
+      pumping exposure), on ω = ±ω0.
+
+    ``velocity_ms`` is the U (m/s along the line) at which the carried pattern and the waves together explain the
+    most energy; ``waves_lead`` says that there the waves carry more of it than the pattern and more than any
+    flicker explains."""
+
+    velocity_ms: float
+    line: float
+    waves: float
+    flicker: float
+    waves_lead: bool
+    joint: float  # the share the pattern and the waves explain together at ``velocity_ms``, net (0..1)
+
+
+def _band_sums(P: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
+    """For the columns of ``P`` (T, n): the energy within WAVE_BAND cells of row ``j`` (.., n) of each, rows
+    wrapped (aliasing), from one cumulative sum."""
+    T, n = P.shape
+    b = WAVE_BAND
+    ext = np.concatenate([P[T - b :], P, P[:b]], axis=0)
+    C = np.concatenate([np.zeros((1, n)), np.cumsum(ext, axis=0)], axis=0)
+    cols = np.arange(n)
+
+    def band(j: np.ndarray) -> np.ndarray:
+        jj = np.mod(j, T)
+        return C[jj + 2 * b + 1, cols] - C[jj, cols]
+
+    return band
+
+
+def wave_fit(sti: np.ndarray, dt: float, ds_m: float) -> WaveFit | None:
+    """The waves' dispersion against a carried pattern on one prepared, uniform-time STI (T, S) with rows ``dt``
+    s and samples ``ds_m`` m apart; None where the line resolves too few wavenumbers (under 4 columns between
+    2π/WAVE_LAMBDA_MAX_M and 0.8 of Nyquist) or the STI is flat.
+
+    Wind ripples travel on the water at their own phase speed c(k) = ω_w(k)/k (0.23 m/s and up, 0.36 m/s at 8 cm,
+    0.88 m/s at 50 cm): a line model reads them as a pattern at U - c, too slow, and since c changes with k their
+    energy lies on a curve, not a line. Both models are fitted over U on the Hann-windowed power spectrum (a grid
+    4 cells of the finest velocity resolution apart, then that resolution around the best); the share of each is
+    counted in the cells within WAVE_BAND of its curves, net of the share a flat spectrum would put there."""
+    T, S = sti.shape
+    P = np.abs(sfft.fft2(sti * (np.hanning(T)[:, None] * np.hanning(S)[None, :]))) ** 2
+    k = sfft.fftfreq(S, ds_m) * 2 * np.pi
+    cols = np.nonzero((np.abs(k) >= 2 * np.pi / WAVE_LAMBDA_MAX_M) & (np.abs(k) <= 0.8 * np.pi / ds_m))[0]
+    if len(cols) < 4 or T < 8:
+        return None
+    P, k = P[:, cols], k[cols]
+    tot = float(P.sum())
+    if not tot > 0:
+        return None
+    band = _band_sums(P)
+    dw = 2 * np.pi / (T * dt)
+    om = np.sign(k) * wave_omega(k)
+
+    def net(share, n_curves: int):
+        f = min(1.0, n_curves * (2 * WAVE_BAND + 1) / T)
+        return (share - f) / (1 - f) if f < 1 else share * 0.0
+
+    def shares(U: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # (line, waves) at each U
+        w = -k[None, :] * U[:, None]
+        line = band(np.rint(w / dw).astype(int)).sum(axis=1) / tot
+        waves = (band(np.rint((w - om) / dw).astype(int)) + band(np.rint((w + om) / dw).astype(int))).sum(axis=1)
+        return line, waves / tot
+
+    step = max(dw / (2 * float(np.abs(k).max())), 0.005)
+    u_max = min(10.0, np.pi / dt / float(np.abs(k).min()))  # the fastest pattern whose slowest wave is not aliased
+    coarse = np.arange(-u_max, u_max + step, 4 * step)
+    line, waves = shares(coarse)
+    m = int(np.argmax(line + waves))
+    U = coarse[m] + step * np.arange(-8, 9)
+    line, waves = shares(U)
+    joint = line + waves
+    m = int(np.argmax(joint))
+    u = float(U[m])
+    if 0 < m < len(U) - 1:
+        y0, y1, y2 = joint[m - 1 : m + 2]
+        den = y0 - 2 * y1 + y2
+        if den < 0:
+            u += float(np.clip(0.5 * (y0 - y2) / den, -0.5, 0.5)) * step
+    w0 = np.rint(np.arange(T // 2 + 1)[:, None] * np.ones((1, len(k)))).astype(int)
+    flicker = float(np.max(net((band(w0) + band(-w0)).sum(axis=1) / tot, 2)))
+    nw = float(net(waves[m], 2))
+    return WaveFit(
+        u,
+        float(net(line[m], 1)),
+        nw,
+        flicker,
+        bool(waves[m] > line[m] and nw > flicker),
+        float(np.clip(net(joint[m], 3), 0.0, 1.0)),
+    )
+
+
+@dataclass
+class Ripples:
+    """The clip's lines against wind ripples (:func:`wave_fit` on each line analysed). ``dominated``: the waves lead
+    on more than half of the lines fitted; then ``velocity_ms`` (per line, m/s, NaN where not fitted) replaces the
+    lines' velocities, with ``confidence`` (the share of the line's spectrum the waves and the carried pattern
+    explain together, net of a flat spectrum's, 0..1)."""
+
+    velocity_ms: np.ndarray
+    confidence: np.ndarray
+    n_fitted: int
+    n_waves: int
+
+    @property
+    def dominated(self) -> bool:
+        return self.n_fitted > 0 and 2 * self.n_waves > self.n_fitted
+
+    def to_dict(self) -> dict:
+        return {"lines_fitted": self.n_fitted, "lines_led_by_waves": self.n_waves, "dominated": self.dominated}
+
+
+def ripples(acc: StiAccumulator, only: np.ndarray | None = None) -> Ripples:
+    """:func:`wave_fit` on the lines of ``acc`` (those where ``only`` is True), on the engine's threads."""
+    u = np.full(len(acc.lines), np.nan)
+    conf = np.zeros(len(acc.lines))
+    lead = np.zeros(len(acc.lines), bool)
+    fitted = np.zeros(len(acc.lines), bool)
+    if len(acc.rows) < 8:
+        return Ripples(u, conf, 0, 0)
+    todo = [k for k in range(len(acc.lines)) if only is None or only[k]]
+
+    def lines(lo: int, hi: int) -> None:
+        for k in todo[lo:hi]:
+            sti, t = acc.sti(k)
+            a, dt = uniform_time(sti, t)
+            fit = wave_fit(_prepare(a, int(round(HIGHPASS_S / dt))), dt, acc.lines[k].ds_m)
+            if fit is not None:
+                u[k], conf[k], lead[k], fitted[k] = fit.velocity_ms, fit.joint, fit.waves_lead, True
+
+    piv_engine.chunked(len(todo), max(1, -(-len(todo) // 2)), lines)
+    return Ripples(u, conf, int(fitted.sum()), int(lead.sum()))
+
+
+def along_fastest(
+    lines: list[StivLine], v_line: np.ndarray, n_sub: int, reversed_order: bool = False
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per subsection, the lines of the angle along which the median velocity (m/s, downstream positive) is the
+    fastest: a flow at ``phi`` reads ``U cos(angle - phi)`` along a line, so the fastest angle is the flow's.
+    For a clip led by ripples, whose pattern turns PIV's flow directions too. Returns (which lines, bool per line;
+    the flow direction per subsection of the geometry, (n_sub, 2) world unit vectors, NaN rows where no line
+    measured)."""
+    use = np.zeros(len(lines), bool)
+    flow = np.full((n_sub, 2), np.nan)
+    subs = np.array([ln.sub for ln in lines], int)
+    angles = np.array([ln.angle_deg for ln in lines])
+    v = np.asarray(v_line, float)
+    for i in range(n_sub):
+        src = n_sub - 1 - i if reversed_order else i
+        cand = [a for a in np.unique(angles[subs == src]) if np.isfinite(v[(subs == src) & (angles == a)]).any()]
+        if not cand:
+            continue
+        best = max(cand, key=lambda a: float(np.nanmedian(v[(subs == src) & (angles == a)])))
+        pick = (subs == src) & (angles == best)
+        use |= pick
+        flow[i] = lines[int(np.nonzero(pick)[0][0])].direction
+    return use, flow
 
 
 def subsection_velocity(

@@ -128,6 +128,8 @@ def _stiv_faster(stiv_block: dict | None) -> list[ql.Reason]:
     supports no under-read, and adds no doubt here. A drawn scene (a wide river at 1080p, rain, glitter and a
     shadow band) read -7.5 % by PIV, +0.3 % by STIV, with an interval of +-7 % that missed the truth."""
     block = stiv_block or {}
+    if block.get("velocity_source_used") == "stiv":  # Q is STIV's own: PIV's under-read is not in it
+        return []
     why, d = block.get("disagreement_reason"), (block.get("disagreement") or {}).get("discharge_relative")
     return [ql.Reason(**why)] if why and d is not None and d > 0 else []
 

@@ -186,6 +186,14 @@ def finish(
         flow = stiv.guide_directions(_flow_dir(geom, piv_res.x, piv_res.y, U, V), geom.normal, w_piv)
     only = stiv.select_lines(run.acc.lines, run.n_sub, flow, reversed_order=swapped)
     v_line, c_line = stiv.line_velocities(run.acc, s.method, only=only)
+    rip = stiv.ripples(run.acc, only)  # on the lines PIV's flow directions chose
+    if rip.dominated:  # wind ripples lead on most lines: each line's velocity from their dispersion
+        fits = rip
+        if len(set(s.angles_deg)) > 1:  # every angle, the fastest the flow's: PIV's directions follow the ripples
+            fits = stiv.ripples(run.acc)
+            only, flow = stiv.along_fastest(run.acc.lines, fits.velocity_ms, run.n_sub, reversed_order=swapped)
+        fit = only & np.isfinite(fits.velocity_ms)
+        v_line, c_line = np.where(fit, fits.velocity_ms, np.nan), np.where(fit, fits.confidence, 0.0)
     v_st, c_st, ang = stiv.subsection_velocity(
         run.acc.lines,
         v_line,
@@ -217,6 +225,7 @@ def finish(
         "combined_left_out": [i + 1 for i in left_out],
         "disagreement": stiv.disagreement(v_piv_raw, v_st, q_w),
         "velocity_source": project.section.velocity_source,
+        "ripples": rip.to_dict(),
     }
     block["disagreement_reason"] = stiv.disagreement_reason(block["disagreement"])
     alpha = project.section.alpha
@@ -231,7 +240,9 @@ def finish(
     run.seconds += time.perf_counter() - t0
     block["seconds"] = round(run.seconds, 3)
     src = project.section.velocity_source
-    if src == "auto":  # the combined velocities where the two agree, else PIV's (module docstring)
+    if src == "auto" and rip.dominated and "stiv" in out:  # PIV reads the ripples' pattern, STIV their dispersion
+        src = "stiv"
+    elif src == "auto":  # the combined velocities where the two agree, else PIV's (module docstring)
         src = "combined" if stiv.agree(block["disagreement"]) and "combined" in out else "piv"
     block["velocity_source_used"] = src
     if src == "piv":
@@ -259,9 +270,29 @@ def stiv_column(block: dict | None, n: int) -> list[str]:
 
 
 def add_reason(quality, block: dict | None) -> None:
-    """Add the PIV/STIV disagreement to the quality verdict (doubtful; a good grade becomes doubtful)."""
-    if quality is None or not block or not block.get("disagreement_reason"):
+    """Add the PIV/STIV disagreement and the wind ripples that led the lines to the quality verdict (doubtful; a
+    good grade becomes doubtful)."""
+    if quality is None or not block:
         return
-    quality.reasons.append(Reason(**block["disagreement_reason"]))
-    if quality.grade == "good":
+    why = [Reason(**block["disagreement_reason"])] if block.get("disagreement_reason") else []
+    rip = block.get("ripples") or {}
+    if rip.get("dominated"):
+        share = rip["lines_led_by_waves"] / rip["lines_fitted"]
+        why.append(
+            Reason(
+                "ripples",
+                "doubtful",
+                f"wind ripples lead the texture on {rip['lines_led_by_waves']} of {rip['lines_fitted']} STIV lines: "
+                "they travel on the water at their own speed, which PIV reads as the flow's; "
+                + (
+                    "the velocities are read from their dispersion (STIV)"
+                    if block.get("velocity_source_used") == "stiv"
+                    else 'section.velocity_source = "auto" or "stiv" reads the velocities from their dispersion'
+                ),
+                float(share),
+                0.5,
+            )
+        )
+    quality.reasons.extend(why)
+    if why and quality.grade == "good":
         quality.grade = "doubtful"
