@@ -547,8 +547,8 @@ def _band_sums(P: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
 
 def wave_fit(sti: np.ndarray, dt: float, ds_m: float) -> WaveFit | None:
     """The waves' dispersion against a carried pattern on one prepared, uniform-time STI (T, S) with rows ``dt``
-    s and samples ``ds_m`` m apart; None where the line resolves too few wavenumbers (under 4 columns between
-    2π/WAVE_LAMBDA_MAX_M and 0.8 of Nyquist) or the STI is flat.
+    s and samples ``ds_m`` m apart; None where the line resolves fewer than 2 wavenumbers between
+    2π/WAVE_LAMBDA_MAX_M and 0.8 of Nyquist, or the STI is flat.
 
     Wind ripples travel on the water at their own phase speed c(k) = ω_w(k)/k (0.23 m/s and up, 0.36 m/s at 8 cm,
     0.88 m/s at 50 cm): a line model reads them as a pattern at U - c, too slow, and since c changes with k their
@@ -556,10 +556,11 @@ def wave_fit(sti: np.ndarray, dt: float, ds_m: float) -> WaveFit | None:
     4 cells of the finest velocity resolution apart, then that resolution around the best); the share of each is
     counted in the cells within WAVE_BAND of its curves, net of the share a flat spectrum would put there."""
     T, S = sti.shape
-    P = np.abs(sfft.fft2(sti * (np.hanning(T)[:, None] * np.hanning(S)[None, :]))) ** 2
-    k = sfft.fftfreq(S, ds_m) * 2 * np.pi
-    cols = np.nonzero((np.abs(k) >= 2 * np.pi / WAVE_LAMBDA_MAX_M) & (np.abs(k) <= 0.8 * np.pi / ds_m))[0]
-    if len(cols) < 4 or T < 8:
+    # k >= 0 only: a real STI's spectrum is symmetric, P(-k, -ω) = P(k, ω), and so is every model's curve
+    P = np.abs(sfft.rfft2(sti * (np.hanning(T)[:, None] * np.hanning(S)[None, :]))) ** 2
+    k = sfft.rfftfreq(S, ds_m) * 2 * np.pi
+    cols = np.nonzero((k >= 2 * np.pi / WAVE_LAMBDA_MAX_M) & (k <= 0.8 * np.pi / ds_m))[0]
+    if len(cols) < 2 or T < 8:
         return None
     P, k = P[:, cols], k[cols]
     tot = float(P.sum())

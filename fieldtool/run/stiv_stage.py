@@ -8,8 +8,10 @@ confidences) where the two methods agree, and PIV's where they disagree or STIV 
 :func:`fieldtool.processing.stiv.disagreement_reason` finds no reason: their discharges within 5 %, and the
 subsections that differ by over 15 % carrying under 20 % of it. The two fail differently: PIV's windows read too
 fast near the banks, where they span the steep part of the velocity profile (far_bank at 0.15 m/s: +10 to +48 %
-in the outer three subsections), while STIV's narrow lines read the profile there; STIV is misled by ripples and
-waves that travel at their own speed, which PIV's tracers are not (then they disagree, and PIV is kept).
+in the outer three subsections), while STIV's narrow lines read the profile there; STIV's streak angle is misled by
+waves that travel at their own speed, which PIV's tracers are not (then they disagree, and PIV is kept). Where wind
+ripples lead the texture on most lines (:func:`fieldtool.processing.stiv.ripples`), PIV reads their pattern too, and
+``auto`` reports STIV's velocities, read from the ripples' dispersion.
 
 The science is in :mod:`fieldtool.processing.stiv`; this module only reads the Project and shapes the
 ``"stiv"`` block of ``result.json``.
