@@ -82,6 +82,7 @@ class Stabilizer:
         ransac_px: float = 2.0,
         min_inliers: int = 12,
         max_drift_px: float | None = None,
+        water_box_px: tuple[int, int, int, int] | None = None,
     ) -> None:
         if reference.ndim != 2:
             raise ParameterError(f"stabilize: expected a gray frame (H x W), got shape {reference.shape}")
@@ -158,6 +159,14 @@ class Stabilizer:
         outside = cv2.resize((labels == 0).astype(np.uint8), small, interpolation=cv2.INTER_NEAREST)
         b = 3
         outside[:b], outside[-b:], outside[:, :b], outside[:, -b:] = 0, 0, 0, 0
+        if water_box_px is not None:  # the water testifies nothing: it moves by itself, and sun glitter and the
+            # sky's reflection stay in the picture when the camera moves (a drifting drone over a glitter column
+            # was refused, exit 2, the water's votes outnumbering the banks')
+            x0, y0, x1, y1 = (int(round(v / self._small_f)) for v in water_box_px)
+            dry = outside.copy()
+            dry[max(y0, 0) : max(y1, 0), max(x0, 0) : max(x1, 0)] = 0
+            if dry.sum() >= 0.05 * outside.size:  # enough fixed ground left to vote
+                outside = dry
         self._outside_small = outside.astype(bool)
         self._next_scene_check = 0
         self._region_tracked = np.zeros(self.n_regions)

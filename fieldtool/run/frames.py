@@ -36,12 +36,19 @@ def in_region_ok(project: Project, inputs: Inputs, observer: Guarded | None) -> 
 
 def make_stabilizer(project: Project, inputs: Inputs, reference) -> Stabilizer:
     """The registration of ``[stabilize]`` on its first working frame ``reference`` (undistorted): the regions and
-    the water polygon, picked on raw frames, moved onto the working image."""
+    the water polygon, picked on raw frames, moved onto the working image; the ROI (working image) as the water that
+    the drift check's vote leaves out."""
     st = project.stabilize
     regions = [inputs.to_working([[r[0], r[1]], [r[2], r[3]]]).ravel().tolist() for r in st.regions_px]
     poly = inputs.to_working(st.water_polygon_px).tolist() if st.water_polygon_px else None
+    roi, _ = roi_and_mask(project, inputs)  # the PIV's region: water, left out of the drift check's vote
     return Stabilizer(
-        reference, regions_px=regions or None, water_polygon_px=poly, model=st.model, max_drift_px=st.max_drift_px
+        reference,
+        regions_px=regions or None,
+        water_polygon_px=poly,
+        model=st.model,
+        max_drift_px=st.max_drift_px,
+        water_box_px=roi,
     )
 
 

@@ -96,9 +96,11 @@ def test_water_polygon_instead_of_regions():
         assert np.abs(cv2.perspectiveTransform(corners, st.transform @ M) - corners).max() < 0.1
 
 
-def test_regions_on_moving_water_drift_error():
+@pytest.mark.parametrize("water_box", [None, (0, BAND[0] - 5, W, BAND[1] + 5)])
+def test_regions_on_moving_water_drift_error(water_box):
+    """Also where the vote leaves the water's box out: the banks that stayed put still testify."""
     frames, _, _ = _scene(n=40, flow=5, shake=3.0)
-    st = Stabilizer(frames[0], regions_px=ON_WATER)
+    st = Stabilizer(frames[0], regions_px=ON_WATER, water_box_px=water_box)
     with pytest.raises(GeometryError, match="drifted .* steadily .* rest of the picture stayed put"):
         for f in frames:
             st.register(f)
@@ -113,6 +115,27 @@ def test_drifting_camera_is_not_taken_for_water():
         st.register(f)
         assert np.abs(cv2.perspectiveTransform(corners, st.transform @ M) - corners).max() < 0.5
     assert st.report()["max_shift_px"] > 2 * st.max_drift_px  # the check ran, and let it pass
+
+
+def test_glitter_that_stays_in_the_picture_is_not_taken_for_fixed_ground():
+    """Sun glitter (and the sky's reflection) stays where it is in the picture when the camera moves: over a
+    drifting camera's water band it outvotes the banks, as if the regions had drifted on water; the water's box
+    (the run passes the PIV's ROI) is left out of the vote, and the drift is followed."""
+    frames, _, maps = _scene(n=40, flow=5, shake=2.0, drift=(1.5, 0.8))
+    glitter = np.zeros((H, W), np.float32)
+    glitter[BAND[0] : BAND[1]] = np.where(np.random.default_rng(7).random((BAND[1] - BAND[0], W)) > 0.7, 120, 0)
+    glitter = cv2.GaussianBlur(glitter, (0, 0), 1.0)
+    frames = [np.clip(f + glitter, 0, 255).astype(np.uint8) for f in frames]
+    with pytest.raises(GeometryError, match="drifted .* steadily"):
+        st = Stabilizer(frames[0], regions_px=BANKS)
+        for f in frames:
+            st.register(f)
+    st = Stabilizer(frames[0], regions_px=BANKS, water_box_px=(0, BAND[0], W, BAND[1]))
+    corners = np.array([[[0.0, 0.0]], [[W - 1.0, H - 1.0]]])
+    for f, M in zip(frames, maps, strict=True):
+        st.register(f)
+        assert np.abs(cv2.perspectiveTransform(corners, st.transform @ M) - corners).max() < 0.5
+    assert st.report()["max_shift_px"] > 2 * st.max_drift_px
 
 
 def test_regions_on_changing_water_lost_error():
