@@ -58,7 +58,10 @@ def run_scene(project: Path, out: Path) -> int:
     cmd = [sys.executable, "-m", "fieldtool.cli", "run", str(project), "--out", str(out)]
     # run from the output folder: ``python -m`` puts the current folder first on sys.path, so the fieldtool
     # measured is the one PYTHONPATH (or the environment) gives, not a checkout the script was started in
-    r = subprocess.run(cmd, capture_output=True, text=True, env=os.environ.copy(), cwd=out.parent)
+    env = os.environ.copy()  # PYTHONPATH absolute: ``PYTHONPATH=.`` would name the output's folder
+    if env.get("PYTHONPATH"):
+        env["PYTHONPATH"] = os.pathsep.join(str(Path(p).resolve()) for p in env["PYTHONPATH"].split(os.pathsep) if p)
+    r = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=out.parent)
     if r.returncode not in (0, 3):
         sys.stderr.write(r.stdout + r.stderr)
     return r.returncode

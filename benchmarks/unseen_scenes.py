@@ -50,6 +50,16 @@ def render(label: str, seed: int, duration: float, d: Path) -> None:
                        stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, check=True)
 
 
+def absolute_pythonpath() -> dict:
+    """This process' environment with PYTHONPATH's entries made absolute: the runs start in the scene's folder,
+    where ``PYTHONPATH=.`` would name that folder, and the installed (editable) fieldtool would run instead of the
+    tree this benchmark was started from (a worktree's results were the live tree's)."""
+    env = os.environ.copy()
+    if env.get("PYTHONPATH"):
+        env["PYTHONPATH"] = os.pathsep.join(str(Path(p).resolve()) for p in env["PYTHONPATH"].split(os.pathsep) if p)
+    return env
+
+
 def run_cli(project: Path, out: Path) -> tuple[int, dict | None, float]:
     shutil.rmtree(out, ignore_errors=True)  # never reuse a PIV cache written by other code
     t0 = time.perf_counter()
@@ -57,7 +67,7 @@ def run_cli(project: Path, out: Path) -> tuple[int, dict | None, float]:
     # tree would take that tree's fieldtool over PYTHONPATH's (the tree a before/after comparison names)
     p = subprocess.run([sys.executable, "-m", "fieldtool.cli", "run", str(project.resolve()), "--out",
                         str(out.resolve())], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                       env=os.environ.copy(), cwd=project.resolve().parent)
+                       env=absolute_pythonpath(), cwd=project.resolve().parent)
     dt = time.perf_counter() - t0
     rj = out / "result.json"
     return p.returncode, (json.loads(rj.read_text()) if rj.exists() and p.returncode != 2 else None), dt
