@@ -498,6 +498,7 @@ SIGMA_RHO = 0.074 / 1000.0  # surface tension over density of clean water (m³/s
 #: longest wave fitted (m): in water deeper than half of it (0.25 m) a wave is a deep-water wave, tanh(kh) > 0.996
 WAVE_LAMBDA_MAX_M = 0.5
 WAVE_BAND = 1  # spectral cells each side of a model's curve counted as on it (the spectrum's own resolution)
+RIPPLES_LEAD_SHARE = 0.5  # a clip is led by ripples where they lead on more than this share of the lines fitted
 
 
 def wave_omega(k: np.ndarray) -> np.ndarray:
@@ -569,7 +570,7 @@ def wave_fit(sti: np.ndarray, dt: float, ds_m: float) -> WaveFit | None:
         return None
     band = _band_sums(P)
     dw = 2 * np.pi / (T * dt)
-    om = np.sign(k) * wave_omega(k)
+    om = wave_omega(k)
 
     def net(share, n_curves: int):
         f = min(1.0, n_curves * (2 * WAVE_BAND + 1) / T)
@@ -581,8 +582,8 @@ def wave_fit(sti: np.ndarray, dt: float, ds_m: float) -> WaveFit | None:
         waves = (band(np.rint((w - om) / dw).astype(int)) + band(np.rint((w + om) / dw).astype(int))).sum(axis=1)
         return line, waves / tot
 
-    step = max(dw / (2 * float(np.abs(k).max())), 0.005)
-    u_max = min(10.0, np.pi / dt / float(np.abs(k).min()))  # the fastest pattern whose slowest wave is not aliased
+    step = max(dw / (2 * float(k.max())), 0.005)
+    u_max = min(10.0, np.pi / dt / float(k.min()))  # the fastest pattern whose slowest wave is not aliased
     coarse = np.arange(-u_max, u_max + step, 4 * step)
     line, waves = shares(coarse)
     line_best = float(np.max(net(line, 1)))  # the best carried pattern alone (the coarse grid's)
@@ -597,7 +598,7 @@ def wave_fit(sti: np.ndarray, dt: float, ds_m: float) -> WaveFit | None:
         den = y0 - 2 * y1 + y2
         if den < 0:
             u += float(np.clip(0.5 * (y0 - y2) / den, -0.5, 0.5)) * step
-    w0 = np.rint(np.arange(T // 2 + 1)[:, None] * np.ones((1, len(k)))).astype(int)
+    w0 = np.arange(T // 2 + 1)[:, None]  # every frequency cell, the same in every column
     flicker = float(np.max(net((band(w0) + band(-w0)).sum(axis=1) / tot, 2)))
     nw = float(net(waves[m], 2))
     return WaveFit(
@@ -613,9 +614,9 @@ def wave_fit(sti: np.ndarray, dt: float, ds_m: float) -> WaveFit | None:
 @dataclass
 class Ripples:
     """The clip's lines against wind ripples (:func:`wave_fit` on each line analysed). ``dominated``: the waves lead
-    on more than half of the lines fitted; then ``velocity_ms`` (per line, m/s, NaN where not fitted) replaces the
-    lines' velocities, with ``confidence`` (the share of the line's spectrum the waves and the carried pattern
-    explain together, net of a flat spectrum's, 0..1)."""
+    on more than :data:`RIPPLES_LEAD_SHARE` of the lines fitted; then ``velocity_ms`` (per line, m/s, NaN where not
+    fitted) replaces the lines' velocities, with ``confidence`` (the share of the line's spectrum the waves and the
+    carried pattern explain together, net of a flat spectrum's, 0..1)."""
 
     velocity_ms: np.ndarray
     confidence: np.ndarray
@@ -624,7 +625,7 @@ class Ripples:
 
     @property
     def dominated(self) -> bool:
-        return self.n_fitted > 0 and 2 * self.n_waves > self.n_fitted
+        return self.n_fitted > 0 and self.n_waves > RIPPLES_LEAD_SHARE * self.n_fitted
 
     def to_dict(self) -> dict:
         return {"lines_fitted": self.n_fitted, "lines_led_by_waves": self.n_waves, "dominated": self.dominated}

@@ -292,7 +292,7 @@ def add_reason(quality, block: dict | None) -> None:
                     else 'section.velocity_source = "auto" or "stiv" reads the velocities from their dispersion'
                 ),
                 float(share),
-                0.5,
+                stiv.RIPPLES_LEAD_SHARE,
             )
         )
     quality.reasons.extend(why)
