@@ -7,10 +7,12 @@ while the run starts (imports, inputs, mapping). So the figures are drawn in a p
 * :func:`start` forks it (only where ``os.fork`` exists). ``fieldtool run`` calls it before it imports the
   pipeline, so matplotlib is imported on the idle core while the run starts; ``pipeline.run_project`` calls it
   too (it takes the waiting process, or forks one then).
-* :class:`Prerender` gives it two jobs:
+* :class:`Prerender` gives it three jobs:
   - the input figures (``gcp.png``, ``water_level.png``) as soon as the mapping and the level exist;
-  - the velocity figures (``vectors.png``, ``rectified.png``, ``section.png``, ``profile.png`` with
-    ``section_profile.csv``) when the discharge is known, drawn while the parent runs the Monte Carlo.
+  - the field's figure (``rectified.png``: the PIV's field on the water plane, no discharge in it) as soon as
+    the field is on the water plane, drawn while the parent runs STIV's analysis;
+  - the discharge's figures (``vectors.png``, ``section.png``, ``profile.png`` with ``section_profile.csv``)
+    when the discharge is known, drawn while the parent runs the Monte Carlo.
 * Between the two, a third job imports the modules whose classes the velocity figures' job holds (the PIV's
   result, the discharge's), so that unpickling it at the run's end imports nothing (0.14 s at 720p, measured).
 * A job's arguments go to the process as a pickle in a private temporary folder. The process writes its files
@@ -38,9 +40,10 @@ from types import SimpleNamespace
 
 #: the longest the parent waits for a job's answer before it draws the files itself (s)
 TIMEOUT_S = 30.0
-#: files of the input job and of the results job
+#: files of the input job, the field's job and the results job
 INPUT_FILES = ("gcp.png", "water_level.png")
-RESULT_FILES = ("vectors.png", "rectified.png", "section.png", "profile.png", "section_profile.csv")
+FIELD_FILES = ("rectified.png",)
+RESULT_FILES = ("vectors.png", "section.png", "profile.png", "section_profile.csv")
 
 _waiting: _Process | None = None  # forked by start(), not yet taken by a Prerender
 
@@ -215,19 +218,24 @@ def _serve(jobs_fd: int, answers_fd: int, folder: Path) -> None:
                         partial(water_level.plot_level, out / "water_level.png", inputs.cross_section, level),
                     ),
                 )
+            elif kind == "field":
+                inputs, result = args
+                draws = (
+                    (
+                        "rectified.png",
+                        partial(discharge.plot_rectified, out / "rectified.png", inputs.first_color, result, inputs),
+                    ),
+                )
             else:
                 inputs, result, cross_section = args
-                # in two halves of about equal time (720p: 0.37 + 0.11 s and 0.27 + 0.20 s): the run waits for both
+                # in two halves of about equal time (720p: vectors 0.19-0.3 s; profile and section 0.1-0.15 s each):
+                # the run waits for both
                 draws = (
                     (
                         "vectors.png",
                         partial(discharge.plot_vectors, out / "vectors.png", inputs.first_color, result, inputs),
                     ),
                     ("profile.png", partial(report_figures.write_profile, out, result)),
-                    (
-                        "rectified.png",
-                        partial(discharge.plot_rectified, out / "rectified.png", inputs.first_color, result, inputs),
-                    ),
                     ("section.png", partial(discharge.plot_section, out / "section.png", cross_section, result)),
                 )
             status = _draw_in_two(draws, out)
@@ -297,6 +305,13 @@ class Prerender:
         k = self._proc.submit(kind, args) if self._proc is not None else None
         if k is not None:
             self._jobs.update(dict.fromkeys(names, k))
+
+    def field(self, inputs, piv, world_u, world_v, section, mapping) -> None:
+        """Start drawing :data:`FIELD_FILES` (the PIV's field, ``world_u``/``world_v`` m/s on the water plane,
+        and the section: nothing of the discharge, which STIV's analysis may still change)."""
+        if self.active:
+            result = SimpleNamespace(piv=piv, world_u=world_u, world_v=world_v, section=section, mapping=mapping)
+            self._submit("field", (inputs, result), FIELD_FILES)
 
     def results(self, inputs, discharge, piv, world_u, world_v, section, mapping, cross_section) -> None:
         """Start drawing :data:`RESULT_FILES` (they depend on the field and the discharge, not on the Monte

@@ -23,7 +23,6 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-import scipy.fft
 
 from fieldtool.errors import Cancelled, ParameterError
 from fieldtool.processing import piv_peaks
@@ -55,6 +54,15 @@ def _tune_allocator() -> None:
 
 if sys.platform.startswith("linux"):
     _tune_allocator()
+
+
+def _sfft():
+    """scipy.fft, imported on first use: a process that only unpickles a PIV result (the figure process,
+    plots/prerender.py) does not pay its import (0.25 s of CPU: scipy.special and SciPy's array-API layer)."""
+    import scipy.fft
+
+    return scipy.fft
+
 
 _POOL: ThreadPoolExecutor | None = None
 #: bytes of correlation planes per chunk of nodes (:func:`chunked`): a chunk's planes stay in the core's cache
@@ -308,7 +316,7 @@ def _stack_spectra(view: np.ndarray, n: int, lv: _Level, size: int) -> tuple[np.
     """:func:`_window_spectra` of windows (n, 1, size, size) or a strided view (ny, nx, size, size)."""
     s = lv.s
     if size == s:
-        spec = scipy.fft.rfft2(view, axes=(2, 3), workers=_WORKERS).reshape(n, s, s // 2 + 1)
+        spec = _sfft().rfft2(view, axes=(2, 3), workers=_WORKERS).reshape(n, s, s // 2 + 1)
         spec[:, 0, 0] = 0.0  # zero mean
         fv = spec.view(np.float32)  # (n, s, 2 * (s // 2 + 1)): re, im interleaved
         # Parseval for the half spectrum: each column stands for two columns of the full spectrum, except column 0
@@ -324,7 +332,7 @@ def _stack_spectra(view: np.ndarray, n: int, lv: _Level, size: int) -> tuple[np.
         win = view.reshape(n, size, size)  # copy
         win -= win.mean(axis=(1, 2), dtype=np.float32)[:, None, None]
         energy = np.einsum("nij,nij->n", win, win)
-        spec = scipy.fft.rfft2(win, s=(s, s), axes=(1, 2), workers=_WORKERS)
+        spec = _sfft().rfft2(win, s=(s, s), axes=(1, 2), workers=_WORKERS)
     with np.errstate(divide="ignore"):
         scale = np.where(energy > 1e-6, 1.0 / np.sqrt(np.maximum(energy, 1e-12)), 0.0).astype(np.float32)
     return spec, scale
@@ -337,8 +345,9 @@ def _irfft2(spec: np.ndarray, s: int, workers: int | None = None) -> np.ndarray:
     than ``irfft2`` on many small planes with SciPy's pocketfft.
     """
     nw = _WORKERS if workers is None else workers
-    tmp = scipy.fft.ifft(spec, axis=1, workers=nw, overwrite_x=True)
-    return scipy.fft.irfft(tmp, n=s, axis=2, workers=nw, overwrite_x=True)
+    fft = _sfft()
+    tmp = fft.ifft(spec, axis=1, workers=nw, overwrite_x=True)
+    return fft.irfft(tmp, n=s, axis=2, workers=nw, overwrite_x=True)
 
 
 def _gauss3(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:

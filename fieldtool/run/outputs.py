@@ -169,6 +169,14 @@ def start_prerender(project: Project, inputs: Inputs, level, mapping, out_dir, e
     return prerendered
 
 
+def prerender_field(prerendered, inputs: Inputs, mapping, vel: Velocimetry, q: Discharge) -> None:
+    """Hand the field's figure (the PIV's velocities, m/s on the water plane) to the figure process as soon as
+    they are on the water plane, drawn there during STIV's analysis; nothing when nothing was measured or no folder
+    is written."""
+    if q.unmeasured is None and prerendered is not None:
+        prerendered.field(inputs, vel.piv, q.world_u, q.world_v, q.geom, mapping)
+
+
 def prerender_velocity(prerendered, inputs: Inputs, mapping, vel: Velocimetry, q: Discharge) -> None:
     """Hand the velocity figures (m/s on the water plane, the section's discharge in m³/s) to the figure
     process, drawn there while the Monte Carlo runs; nothing when nothing was measured or no folder is written."""

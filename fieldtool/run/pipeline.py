@@ -124,9 +124,10 @@ def _run_project(
 
     obs("stage", "discharge")
     q = discharge.compute_discharge(project, inputs, level.level_m, mapping, placed.geom, setup, vel, pairs, warnings)
-    # the velocity figures are drawn during STIV's analysis (they show the PIV's field and discharge) and the
-    # Monte Carlo; after STIV where the discharge may be STIV's or the combined one (velocity_source "auto":
-    # combined where the two agree, which STIV's analysis tells)
+    # the field's figure is drawn during STIV's analysis; the discharge's figures too where the discharge is the
+    # PIV's, else during the Monte Carlo, after STIV's analysis has said whether it is STIV's or the combined one
+    # (velocity_source "auto": combined where the two agree)
+    outputs.prerender_field(prerendered, inputs, mapping, vel, q)
     piv_q = project.section.velocity_source == "piv" or setup.stiv_run is None
     if piv_q:
         outputs.prerender_velocity(prerendered, inputs, mapping, vel, q)
