@@ -258,3 +258,20 @@ def test_the_run_process_never_imports_matplotlib(scene):
     assert r.stdout.strip().splitlines()[-1] == "False 0", r.stdout + r.stderr
     for name in FIGURES:
         assert (scene / "out" / name).read_bytes().startswith(PNG)
+
+
+def test_the_figure_process_unpickles_the_results_without_scipy():
+    """The figure process imports the modules whose classes the velocity figures' jobs hold (the warm job) and the
+    plotting modules; none of them imports SciPy (0.25 s of CPU there: piv_engine imports scipy.fft on first use)."""
+    import subprocess
+    import sys
+
+    from fieldtool.processing.discharge import DischargeResult
+    from fieldtool.processing.piv import PivResult
+    from fieldtool.processing.piv_engine import PivParams
+
+    modules = sorted({c.__module__ for c in (PivResult, DischargeResult, PivParams)})
+    modules += ["fieldtool.plots.discharge", "fieldtool.plots.report_figures", "fieldtool.plots.water_level"]
+    code = "import importlib, sys; [importlib.import_module(m) for m in sys.argv[1:]]; print('scipy' in sys.modules)"
+    r = subprocess.run([sys.executable, "-c", code, *modules], capture_output=True, text=True, timeout=120)
+    assert r.stdout.strip() == "False", r.stdout + r.stderr
