@@ -1,7 +1,8 @@
 """The weak-signal plan's temporal mean, on and off: what it does to a drawn scene's PIV (stop 55's g079 lead).
 
     PYTHONPATH=. .venv/bin/python benchmarks/temporal_mean_probe.py /tmp/combo_scenes/g079 [--gaps 3,6,9]
-    PYTHONPATH=. .venv/bin/python benchmarks/temporal_mean_probe.py --selfcheck /tmp/combo_scenes/g079 /tmp/combo_scenes/c230
+    PYTHONPATH=. .venv/bin/python benchmarks/temporal_mean_probe.py --selfcheck /tmp/combo_scenes/g079 \
+        /tmp/combo_scenes/c230
 
 Each scene folder is one of benchmarks/combo_scenes.py's (project.toml, truth.json). Where the clip check's plan
 averages frames in time (processing/lowlight.py ``temporal_mean``, ``gates.denoise_half``), the scene runs with the
