@@ -13,8 +13,9 @@ while the run starts (imports, inputs, mapping). So the figures are drawn in a p
     the field is on the water plane, drawn while the parent runs STIV's analysis;
   - the discharge's figures (``vectors.png``, ``section.png``, ``profile.png`` with ``section_profile.csv``)
     when the discharge is known, drawn while the parent runs the Monte Carlo.
-* Between the two, a third job imports the modules whose classes the velocity figures' job holds (the PIV's
-  result, the discharge's), so that unpickling it at the run's end imports nothing (0.14 s at 720p, measured).
+* After the input figures, a warm job imports the modules whose classes the field's and the discharge's jobs
+  hold (the PIV's result, the discharge's), so that unpickling them later imports nothing (0.14 s at 720p,
+  measured). None of those modules imports SciPy (``piv_engine`` imports ``scipy.fft`` on first use).
 * A job's arguments go to the process as a pickle in a private temporary folder. The process writes its files
   there and answers each job on a pipe with what it wrote.
 
