@@ -824,18 +824,46 @@ def implied_underread(dis: dict | None, z: float = 2.0, min_compared: int = MIN_
 
     ``dis`` is :func:`disagreement`'s block. Where STIV reads faster than PIV by ``d`` (its
     ``discharge_relative``), the PIV may under-read by the fraction ``d / (1 + d)`` (``Q / (1 - u)`` then
-    equals STIV's discharge). ``d`` is uncertain itself: its standard error is the spread of the per-subsection
-    differences over ``sqrt(n_eff)``, with ``n_eff = n (1 - r) / (1 + r)`` for the lag-1 autocorrelation ``r >= 0``
-    of those differences along the section (neighbouring subsections share texture, lines and errors: AR(1)
-    effective sample size). The bound is ``d + z * se``; where STIV reads slower than PIV by more than its
-    noise, it supports no under-read (0).
+    equals STIV's discharge). ``d`` is uncertain itself (:func:`_stiv_difference`: its standard error ``se``).
+    The bound is ``d + z * se``; where STIV reads slower than PIV by more than its noise, it supports no
+    under-read (0).
 
-    Returns ``{"fraction", "stiv_relative", "se", "n_compared", "n_eff"}`` (fractions of Q), or None when STIV
-    compared fewer than ``min_compared`` subsections, or where its discharge over them is zero or upstream
-    (``d <= -1``) while PIV's goes downstream: STIV then measured something else than the river (ripples or
-    waves travelling against it read -325 % of PIV's Q on a drawn scene, and bounded the under-read to 0 where
-    PIV read -66 %). The run then keeps the project's prior, the keys ``uncertainty.underread_doubtful`` /
-    ``underread_unusable``.
+    Returns ``{"fraction", "stiv_relative", "se", "n_compared", "n_eff"}`` (fractions of Q), or None where
+    :func:`_stiv_difference` finds no evidence: the run then keeps the project's prior, the keys
+    ``uncertainty.underread_doubtful`` / ``underread_unusable``.
+    """
+    diff = _stiv_difference(dis, min_compared)
+    if diff is None:
+        return None
+    hi = diff["stiv_relative"] + z * diff["se"]
+    return {"fraction": float(hi / (1.0 + hi) if hi > 0 else 0.0), **diff}
+
+
+def implied_overread(dis: dict | None, z: float = 2.0, min_compared: int = MIN_COMPARED) -> dict | None:
+    """The over-read of the PIV velocities that the independent STIV supports, at about 95 % (one-sided): the
+    mirror of :func:`implied_underread`. Where STIV reads slower than PIV by ``-d``, the PIV may over-read by the
+    fraction ``-d`` (``Q (1 - o)`` then equals STIV's discharge), bounded at ``-(d - z * se)``; where STIV reads
+    faster than PIV by more than its noise, it supports no over-read (0). Same returns as
+    :func:`implied_underread` (None: no evidence; an over-read then has no bound from STIV, nor any other)."""
+    diff = _stiv_difference(dis, min_compared)
+    if diff is None:
+        return None
+    lo = diff["stiv_relative"] - z * diff["se"]
+    return {"fraction": float(-lo if lo < 0 else 0.0), **diff}
+
+
+def _stiv_difference(dis: dict | None, min_compared: int = MIN_COMPARED) -> dict | None:
+    """STIV's discharge relative to PIV's over the subsections both measured, ``d``, and its standard error.
+
+    ``d`` is :func:`disagreement`'s ``discharge_relative``; its standard error is the spread of the
+    per-subsection differences over ``sqrt(n_eff)``, with ``n_eff = n (1 - r) / (1 + r)`` for the lag-1
+    autocorrelation ``r >= 0`` of those differences along the section (neighbouring subsections share texture,
+    lines and errors: AR(1) effective sample size).
+
+    Returns ``{"stiv_relative", "se", "n_compared", "n_eff"}``, or None when STIV compared fewer than
+    ``min_compared`` subsections, or where its discharge over them is zero or upstream (``d <= -1``) while
+    PIV's goes downstream: STIV then measured something else than the river (ripples or waves travelling
+    against it read -325 % of PIV's Q on a drawn scene, and bounded the under-read to 0 where PIV read -66 %).
     """
     if not dis or dis.get("discharge_relative") is None:
         return None
@@ -852,6 +880,4 @@ def implied_underread(dis: dict | None, z: float = 2.0, min_compared: int = MIN_
         r = float(np.clip(np.sum(a * b) / den, 0.0, 0.95)) if den > 0 else 0.0
     n_eff = float(np.clip(n * (1.0 - r) / (1.0 + r), 1.0, n))
     se = float(np.std(rel, ddof=1) / np.sqrt(n_eff))
-    hi = d + z * se
-    frac = hi / (1.0 + hi) if hi > 0 else 0.0
-    return {"fraction": float(frac), "stiv_relative": d, "se": se, "n_compared": n, "n_eff": n_eff}
+    return {"stiv_relative": d, "se": se, "n_compared": n, "n_eff": n_eff}

@@ -145,6 +145,7 @@ class McModel:
     suspect: np.ndarray | None = None  # (n_sub,) bool: measured velocities in doubt (e.g. stalled by glints)
     suspect_upper_ms: np.ndarray | None = None  # (n_sub,) what a suspect's velocity may reach (m/s); None = neighbours'
     underread_max: float = 0.0  # the verdict doubts the velocities: they may be under-read by up to this fraction
+    overread_max: float = 0.0  # STIV reads slower and disagrees: the velocities may be over-read by up to this fraction
     trusted: np.ndarray | None = None  # (n_sub, k) the run's samples whose window lies on water (None = all)
 
 
@@ -269,10 +270,13 @@ class _Draw:
         bed = bed_draws(cs.station, elev, levels, m.n_sub, edges)
         return bed.area_m2, bed.law, vn, sec.ok & bed.ok
 
-    def draws(self, active: frozenset[str], n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, int]:
+    def draws(
+        self, active: frozenset[str], n: int, rng: np.random.Generator
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
         """Q (m³/s) of ``n`` draws with the sources ``active`` perturbed, the same without the under-read
-        factor (NaN where a draw gave none), and how many draws failed (a level that leaves the section, a
-        geometry that degenerates)."""
+        factor, the same without it and with the over-read factor (the draws of the interval's lower bound; NaN
+        where a draw gave none), and how many draws failed (a level that leaves the section, a geometry that
+        degenerates)."""
         m, sig = self.m, self.sig
         if active & self.GEOMETRY:
             area, law, vn, ok = self._geometry(active, n, rng)
@@ -297,6 +301,9 @@ class _Draw:
         if sampling and m.underread_max > 0:
             underread = rng.uniform(0.0, min(m.underread_max, 0.95), n)
             vs = vs / (1.0 - underread)[:, None]  # Q scales by the same factor (it is linear in vs)
+        overread = None
+        if sampling and m.overread_max > 0:
+            overread = rng.uniform(0.0, min(m.overread_max, 0.95), n)
         ok &= np.isfinite(vs).any(axis=1)
         suspect = m.suspect if m.suspect is not None and "filled_subsections" in active else None
         if suspect is not None and suspect.any():
@@ -314,7 +321,8 @@ class _Draw:
             alpha = m.alpha + sig.alpha * rng.standard_normal(n)
         with np.errstate(all="ignore"):
             q = np.where(ok, alpha * np.sum(area * vf, axis=1), np.nan)
-        return q, q * (1.0 - underread), n_failed
+        q_base = q * (1.0 - underread)
+        return q, q_base, q_base if overread is None else q_base * (1.0 - overread), n_failed
 
 
 def _nanmean(a: np.ndarray, axis: int) -> np.ndarray:
@@ -336,7 +344,7 @@ def _active_sources(sig: McSigmas, model: McModel, drawer: _Draw) -> list[str]:
         "gcp_pixels": sig.gcp_px > 0 and drawer.n_px > 0,
         "gcp_distances": sig.gcp_ref_m > 0 and drawer.n_ref > 0,
         "velocity_index": sig.alpha > 0,
-        "velocity_sampling": bool(sig.sampling) or sig.piv_rel > 0 or model.underread_max > 0,
+        "velocity_sampling": bool(sig.sampling) or sig.piv_rel > 0 or model.underread_max > 0 or model.overread_max > 0,
         "filled_subsections": sig.filled_rel > 0 or (model.suspect is not None and bool(np.any(model.suspect))),
         "cross_section": sig.bed_m > 0,
     }
@@ -389,25 +397,26 @@ def monte_carlo_discharge(
     active = _active_sources(sigmas, model, drawer)
     failed = 0
 
-    def draws(act: frozenset[str], n: int) -> tuple[np.ndarray, np.ndarray]:
+    def draws(act: frozenset[str], n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         nonlocal failed
-        q, q_base, n_failed = drawer.draws(act, n, rng)
+        q, q_base, q_low, n_failed = drawer.draws(act, n, rng)
         failed += n_failed
-        return scale * q[np.isfinite(q)], scale * q_base[np.isfinite(q_base)]
+        return scale * q[np.isfinite(q)], scale * q_base[np.isfinite(q_base)], scale * q_low[np.isfinite(q_low)]
 
-    q_all, q_base = draws(frozenset(active), n_draws)
+    q_all, q_base, q_low = draws(frozenset(active), n_draws)
     if field_discharge_m3s is not None and np.isfinite(field_discharge_m3s) and field_discharge_m3s != 0:
         # centred on the reported discharge by the draws' own median: where ripples lead, PIV's pairs scatter
         # and their draws centred 14 % below the field's discharge (drawn scene g024), the interval then missed
         # STIV's Q
         mid = float(np.median(q_base)) if len(q_base) else float("nan")
         scale = float(discharge_m3s) / (mid if np.isfinite(mid) and mid != 0 else float(field_discharge_m3s))
-        q_all, q_base = scale * q_all, scale * q_base
+        q_all, q_base, q_low = scale * q_all, scale * q_base, scale * q_low
     if len(q_all) < 10:
         lo = hi = float("nan")
     else:
-        # an under-read only raises Q: the lower bound comes from the draws without it
-        lo = float(np.quantile(q_base, 0.025))
+        # an under-read only raises Q: the lower bound comes from the draws without it; an over-read only
+        # lowers it: the lower bound comes from the draws with it, the upper from those without
+        lo = float(np.quantile(q_low, 0.025))
         hi = float(np.quantile(q_all, 0.975))
         lo, hi = min(lo, discharge_m3s), max(hi, discharge_m3s)
     u = {}
@@ -415,7 +424,9 @@ def monte_carlo_discharge(
         if src not in active:
             u[src] = 0.0
             continue
-        q, _ = draws(frozenset([src]), n_draws_source)
+        q, _, q_low = draws(frozenset([src]), n_draws_source)
+        if model.overread_max > 0 and model.underread_max <= 0:  # the over-read's spread is in the lower draws
+            q = q_low
         sd = float(np.std(q, ddof=1)) if len(q) > 2 else 0.0
         u[src] = sd if sd > 1e-9 * max(abs(discharge_m3s), 1e-12) else 0.0
     total = sum(v * v for v in u.values())

@@ -125,13 +125,29 @@ def _pair_blocks(res, q_pairs):
 def _stiv_faster(stiv_block: dict | None) -> list[ql.Reason]:
     """PIV and STIV disagree and STIV reads the faster discharge: a doubt that PIV under-reads (its reason, as
     the verdict adds it), which :func:`underread_bound` bounds by what STIV supports. Where STIV reads slower it
-    supports no under-read, and adds no doubt here. A drawn scene (a wide river at 1080p, rain, glitter and a
-    shadow band) read -7.5 % by PIV, +0.3 % by STIV, with an interval of +-7 % that missed the truth."""
+    supports no under-read, and adds no doubt here (:func:`_stiv_slower`). A drawn scene (a wide river at 1080p,
+    rain, glitter and a shadow band) read -7.5 % by PIV, +0.3 % by STIV, with an interval of +-7 % that missed
+    the truth."""
+    return _stiv_disagrees(stiv_block, faster=True)
+
+
+def _stiv_slower(stiv_block: dict | None) -> list[ql.Reason]:
+    """PIV and STIV disagree and STIV reads the slower discharge: a doubt that PIV over-reads, which
+    :func:`overread_bound` bounds by what STIV supports. A drawn scene (haze at 640x480, the weak-signal plan's
+    temporal mean) read +27.1 % by PIV, +0.1 % by STIV, with an interval of -11 to +10 % that missed the truth."""
+    return _stiv_disagrees(stiv_block, faster=False)
+
+
+def _stiv_disagrees(stiv_block: dict | None, faster: bool) -> list[ql.Reason]:
+    """The verdict's reason that PIV and STIV disagree, where STIV reads the faster (``faster``) or the slower
+    discharge and the reported Q holds PIV's velocities; none otherwise."""
     block = stiv_block or {}
-    if block.get("velocity_source_used") == "stiv":  # Q is STIV's own: PIV's under-read is not in it
+    if block.get("velocity_source_used") == "stiv":  # Q is STIV's own: PIV's error is not in it
         return []
     why, d = block.get("disagreement_reason"), (block.get("disagreement") or {}).get("discharge_relative")
-    return [ql.Reason(**why)] if why and d is not None and d > 0 else []
+    if not why or d is None:
+        return []
+    return [ql.Reason(**why)] if (d > 0 if faster else d < 0) else []
 
 
 def underread_bound(project, doubts: list[ql.Reason], stiv_block: dict | None) -> tuple[float, dict | None]:
@@ -155,6 +171,32 @@ def underread_bound(project, doubts: list[ql.Reason], stiv_block: dict | None) -
     block = {
         "max_fraction": float(frac),
         "source": "prior" if implied is None or implied["fraction"] >= prior else "stiv",
+        "prior": float(prior),
+        "reasons": sorted({r.code for r in doubts}),
+        "stiv": implied,
+    }
+    return float(frac), block
+
+
+def overread_bound(project, stiv_block: dict | None) -> tuple[float, dict | None]:
+    """How far the velocities may be over-read (fraction) when PIV and STIV disagree and STIV reads slower, and
+    what says so.
+
+    LSPIV's usual failure is an under-read (:func:`underread_bound`), so without evidence nothing bounds an
+    over-read. STIV is that evidence: where it disagrees with PIV by reading slower, the over-read it supports
+    (:func:`stiv.implied_overread`, its difference from PIV plus twice its standard error) widens the interval
+    downward, never beyond the prior ``uncertainty.underread_doubtful``. Without a usable STIV difference
+    (fewer subsections compared, or STIV upstream) nothing is added.
+    Returns (fraction, the ``uncertainty.overread`` block of result.json, None without the doubt)."""
+    doubts = _stiv_slower(stiv_block)
+    implied = stiv.implied_overread((stiv_block or {}).get("disagreement")) if doubts else None
+    if implied is None or implied["fraction"] <= 0:
+        return 0.0, None
+    prior = project.uncertainty.underread_doubtful
+    frac = min(prior, implied["fraction"])
+    block = {
+        "max_fraction": float(frac),
+        "source": "stiv" if implied["fraction"] < prior else "prior",
         "prior": float(prior),
         "reasons": sorted({r.code for r in doubts}),
         "stiv": implied,
@@ -258,6 +300,7 @@ def assess_run(
     first_verdict = ql.assess(ev, th, extra)
     doubts = [r for r in first_verdict.reasons if r.code in ql.VELOCITY_DOUBTS] + _stiv_faster(stiv_block)
     model.underread_max, underread = underread_bound(project, doubts, stiv_block)
+    model.overread_max, overread = overread_bound(project, stiv_block)
     u = project.uncertainty
     mc = un.monte_carlo_discharge(
         model,
@@ -272,5 +315,7 @@ def assess_run(
         mc.notes["pairs"] = blocks
     if underread is not None:
         mc.notes["underread"] = underread
+    if overread is not None:
+        mc.notes["overread"] = overread
     ev.relative_u95 = mc.relative_u95
     return mc, ql.assess(ev, th, extra)

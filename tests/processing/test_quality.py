@@ -353,6 +353,22 @@ def test_doubted_velocities_widen_the_interval_upward_only():
     assert {b["source"]: b["share"] for b in r.budget}["velocity_sampling"] == pytest.approx(1.0)
 
 
+def test_an_over_read_widens_the_interval_downward_only():
+    """STIV reads slower and disagrees: the velocities may be over-read by up to ``overread_max``; the lower
+    bound comes from the draws with it, the upper from those without, and the budget shows it."""
+    m = _model()
+    sig = un.McSigmas(level_m=0, gcp_px=0, gcp_ref_m=0, alpha=0, bed_m=0, filled_rel=0, piv_rel=0, sampling=False)
+    plain = un.monte_carlo_discharge(m, sig, 8.925, n_draws=400, n_draws_source=50)
+    m.overread_max = 0.4
+    r = un.monte_carlo_discharge(m, sig, 8.925, n_draws=400, n_draws_source=50)
+    lo, hi = r.ci95_m3s
+    assert lo == pytest.approx(8.925 * (1 - 0.975 * 0.4), rel=0.02) and hi == pytest.approx(plain.ci95_m3s[1])
+    assert {b["source"]: b["share"] for b in r.budget}["velocity_sampling"] == pytest.approx(1.0)
+    m.underread_max = 0.5  # both: each widens its own side
+    lo2, hi2 = un.monte_carlo_discharge(m, sig, 8.925, n_draws=400, n_draws_source=50).ci95_m3s
+    assert lo2 == pytest.approx(lo, rel=0.03) and hi2 == pytest.approx(2 * 8.925, rel=0.05)
+
+
 def test_few_valid_single_pairs_are_only_doubtful_where_the_nodes_were_judged_by_their_ensemble():
     """The faint-glare plan (min_valid_fraction 0) expects few valid single pairs: alone they make the run
     doubtful, not unusable; elsewhere the same fraction is unusable."""

@@ -1,5 +1,7 @@
 """The under-read a doubted run's interval allows: measured from STIV's disagreement with PIV where STIV compared
-enough subsections, the project's prior otherwise (run/assess.underread_bound, processing/stiv.implied_underread)."""
+enough subsections, the project's prior otherwise (run/assess.underread_bound, processing/stiv.implied_underread);
+and the over-read where STIV reads slower and disagrees, measured the same way, nothing without that evidence
+(run/assess.overread_bound, processing/stiv.implied_overread)."""
 
 from types import SimpleNamespace
 
@@ -11,7 +13,7 @@ from fieldtool.processing import stiv
 from fieldtool.processing import uncertainty as un
 from fieldtool.project.model import Project
 from fieldtool.run import quality as stage
-from fieldtool.run.assess import underread_bound
+from fieldtool.run.assess import overread_bound, underread_bound
 
 
 def _dis(rel, d=None):
@@ -162,3 +164,37 @@ def test_stiv_disagreeing_by_reading_faster_is_a_doubt_that_stiv_bounds():
     slower = {"disagreement": _dis([-0.15, -0.18, -0.12]), "disagreement_reason": why}
     assert _stiv_faster(slower) == [] and _stiv_faster({"disagreement": faster["disagreement"]}) == []
     assert _stiv_faster(None) == []
+
+
+def test_stiv_slower_than_piv_bounds_the_over_read_by_its_difference_and_noise():
+    rng = np.random.default_rng(3)
+    rel = -0.12 + rng.normal(0.0, 0.03, 10)
+    out = stiv.implied_overread(_dis(rel))
+    d = float(np.mean(rel))
+    # Q (1 - o) reaches STIV's discharge and a little beyond: its own standard error, twice
+    assert out["stiv_relative"] == pytest.approx(d) and -d < out["fraction"] < 0.25
+    assert out["fraction"] == pytest.approx(-d + 2 * out["se"])
+    assert stiv.implied_overread(_dis([0.15, 0.18, 0.12, 0.16, 0.14]))["fraction"] == 0.0  # faster: none
+    assert stiv.implied_overread(_dis([-0.9, -1.8, -3.5, -3.4], d=-2.4)) is None  # upstream: no evidence
+
+
+def test_stiv_disagreeing_by_reading_slower_is_a_doubt_that_stiv_bounds():
+    """PIV and STIV disagree and STIV's discharge is the slower (a hazy 640x480 scene read +27.1 % by PIV,
+    +0.1 % by STIV, with an interval of -11 to +10 % that missed): the interval allows PIV's over-read by what
+    STIV supports, never beyond the prior; nothing where Q is STIV's own, where STIV reads faster, or where
+    the reason is missing."""
+    from fieldtool.run.assess import _stiv_slower
+
+    why = {"code": "piv_stiv_disagree", "severity": "doubtful", "message": "disagree", "value": 0.19, "threshold": 0.05}
+    slower = {"disagreement": _dis([-0.15, -0.22, -0.18, -0.20, -0.17]), "disagreement_reason": why}
+    assert [r.code for r in _stiv_slower(slower)] == ["piv_stiv_disagree"]
+    frac, block = overread_bound(Project(), slower)
+    assert block["source"] == "stiv" and block["reasons"] == ["piv_stiv_disagree"] and 0.18 < frac < 0.3
+    assert block["stiv"]["fraction"] == frac and block["prior"] == 0.5
+    far = {"disagreement": _dis([-0.7, -0.8, -0.75, -0.72]), "disagreement_reason": why}
+    assert overread_bound(Project(), far)[0] == 0.5 and overread_bound(Project(), far)[1]["source"] == "prior"
+    assert overread_bound(Project(), {**slower, "velocity_source_used": "stiv"}) == (0.0, None)
+    assert overread_bound(Project(), {"disagreement": slower["disagreement"]}) == (0.0, None)
+    faster = {"disagreement": _dis([0.15, 0.18, 0.12]), "disagreement_reason": why}
+    assert _stiv_slower(faster) == [] and overread_bound(Project(), faster) == (0.0, None)
+    assert overread_bound(Project(), None) == (0.0, None)
