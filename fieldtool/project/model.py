@@ -236,7 +236,7 @@ class UncertaintyCfg:
     alpha_sigma: float | None = key(None, ge=0.0, le=1.0)  # velocity index; None = 0.05 for the rule of thumb, 0.03 for a typed section.alpha
     filled_rel_sigma: float = key(0.25, ge=0.0, le=10.0)  # velocity of a subsection filled from a neighbour (relative)
     piv_rel_sigma: float = key(0.01, ge=0.0, le=1.0)  # systematic error of the PIV surface velocity (relative): sub-pixel bias, window averaging
-    underread_doubtful: float = key(0.5, ge=0.0, le=0.95)  # quality doubts the velocities (stalled, deficit, valid fraction, spread, peaks, displacement, STIV faster and disagreeing): they may be under-read by up to this fraction (a prior: STIV's disagreement with PIV narrows it where measured)
+    underread_doubtful: float = key(0.5, ge=0.0, le=0.95)  # quality doubts the velocities (stalled, deficit, valid fraction, spread, peaks, displacement, STIV faster and disagreeing): they may be under-read by up to this fraction (a prior: STIV's disagreement with PIV narrows it where measured; it also caps the over-read STIV supports where it reads slower)
     underread_unusable: float = key(0.8, ge=0.0, le=0.95)  # ... and when those reasons make it unusable
     n_draws: int = key(400, ge=20, le=100000)  # Monte Carlo draws of Q (each source's share: a quarter of that each)
     seed: int = key(0, ge=0, le=2**31)  # seed of the draws (same inputs, same interval)
