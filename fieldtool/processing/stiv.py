@@ -852,7 +852,7 @@ def implied_overread(dis: dict | None, z: float = 2.0, min_compared: int = MIN_C
     (``n_eff`` as in :func:`_stiv_difference`). Returns the keys of :func:`implied_underread` (``stiv_relative``
     the median), or None where :func:`_stiv_difference` finds no evidence: nothing else bounds an over-read."""
     diff = _stiv_difference(dis, min_compared)
-    if diff is None:
+    if diff is None or dis is None:  # no difference without a block
         return None
     rel = _compared(dis)
     med = float(np.median(rel))
