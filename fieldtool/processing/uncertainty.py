@@ -366,8 +366,10 @@ def monte_carlo_discharge(
     geometry, the subsection areas on the cross-section, the rectified velocities and the discharge
     (the PIV itself is not redone: its sampling error comes from the bootstrap over frame pairs and
     over the sample points of each subsection). The interval is the 2.5-97.5 % quantiles of
-    ``n_draws`` draws with every source perturbed. Each source's ``u_m3s`` is the standard deviation
-    of ``n_draws_source`` draws with that source alone; ``share`` is its variance over the sum.
+    ``n_draws`` draws with every source perturbed; a doubted under-read (``model.underread_max``) widens only
+    its upper bound, an over-read STIV supports (``model.overread_max``) only its lower bound. Each source's
+    ``u_m3s`` is the standard deviation of ``n_draws_source`` draws with that source alone (the over-read's
+    where it is the only one); ``share`` is its variance over the sum.
 
     Parameters
     ----------
