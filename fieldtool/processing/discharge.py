@@ -422,14 +422,12 @@ def profile_band(d, piv, section, mapping) -> dict[str, np.ndarray]:
         U, V = mapping.rectify_velocity(piv.x, piv.y, piv.u_pairs[k], piv.v_pairs[k])
         per_pair.append(subsection_velocity(section, piv.x, piv.y, U, V))
     vp = np.array(per_pair) if per_pair else np.full((0, len(d.area_m2)), np.nan)
-    with np.errstate(all="ignore"):
-        n = np.sum(np.isfinite(vp), axis=0)
-        lo = np.where(
-            n >= 3, np.nanpercentile(np.where(np.isfinite(vp), vp, np.nan), 2.5, axis=0) if len(vp) else np.nan, np.nan
-        )
-        hi = np.where(
-            n >= 3, np.nanpercentile(np.where(np.isfinite(vp), vp, np.nan), 97.5, axis=0) if len(vp) else np.nan, np.nan
-        )
+    n = np.sum(np.isfinite(vp), axis=0)
+    lo, hi = np.full(vp.shape[1], np.nan), np.full(vp.shape[1], np.nan)
+    some = n >= 3  # only those: a subsection no pair measured has no percentile (and NumPy would warn of it)
+    if some.any():
+        measured = np.where(np.isfinite(vp[:, some]), vp[:, some], np.nan)
+        lo[some], hi[some] = np.nanpercentile(measured, [2.5, 97.5], axis=0)
     return {
         "station_m": 0.5 * (d.station_from + d.station_to),
         "velocity_ms": np.asarray(d.surface_velocity_ms),

@@ -1,5 +1,8 @@
 """Discharge on analytic sections with analytic velocity fields."""
 
+import warnings
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 
@@ -122,3 +125,26 @@ def test_a_narrow_stream_under_large_windows_keeps_every_sample_and_says_so():
     m, cs, level, pts = _triangle_setup()
     geom = dq.section_geometry(pts, m, cs, level, 10, footprint_px=150)  # 3 m reach on an 8 m stream
     assert geom.trusted.all() and "all samples kept" in geom.edge_note
+
+
+def test_profile_band_gives_no_percentile_where_no_pair_measured_and_no_warning(monkeypatch):
+    """A subsection that no pair measured (or fewer than 3) has NaN for its band, computed without NumPy's
+    All-NaN warning; the others have their pairs' percentiles."""
+    rows = iter([np.array([1.0, np.nan, 0.5]), np.array([1.2, np.nan, np.nan]), np.array([0.9, np.nan, 0.6])])
+    monkeypatch.setattr(dq, "subsection_velocity", lambda *a: next(rows))
+    mapping = SimpleNamespace(rectify_velocity=lambda x, y, u, v: (u, v))
+    piv = SimpleNamespace(x=None, y=None, u_pairs=[0, 1, 2], v_pairs=[0, 1, 2])
+    d = SimpleNamespace(
+        area_m2=np.ones(3),
+        station_from=np.array([0.0, 1.0, 2.0]),
+        station_to=np.array([1.0, 2.0, 3.0]),
+        surface_velocity_ms=np.array([1.0, 1.0, 0.5]),
+        velocity_filled=np.array([False, True, False]),
+    )
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        b = dq.profile_band(d, piv, None, mapping)
+    assert b["p025_ms"][0] == pytest.approx(np.percentile([1.0, 1.2, 0.9], 2.5))
+    assert b["p975_ms"][0] == pytest.approx(np.percentile([1.0, 1.2, 0.9], 97.5))
+    assert np.isnan(b["p025_ms"][1:]).all() and np.isnan(b["p975_ms"][1:]).all()
+    assert list(b["n_pairs"]) == [3, 0, 2]
