@@ -173,29 +173,23 @@ def main() -> None:
         "  CPU s " + " ".join(f"{totals[r]:7.2f}" for r in roles) + f" {sum(totals.values()):6.2f}"
         " (threads and processes that ended between two samples lose their last interval)"
     )
-    # each thread of the run's process by its name (Python's, or the kernel's for a thread Python did not start),
-    # the CPU s it used and the span it lived: the frames role is several threads of a pipeline
+    # each thread of the run's process by its Python name (its kernel id for a thread Python did not start: the
+    # process has ended, so /proc no longer names it), the CPU s it used and the span it was sampled in: the
+    # frames role is several threads of a pipeline
     first: dict[tuple[int, int], float] = {}
+    last: dict[tuple[int, int], float] = {}
     for t, snap in samples:
         for key in snap:
             first.setdefault(key, t)
+            last[key] = t
     print("\n| thread | role | CPU s | from s | to s |\n|---|---|---|---|---|")
     for key in sorted(prev, key=lambda k: -prev[k]):
         if key[0] != p.pid or prev[key] < 0.05:
             continue
-        seen = [t for t, snap in samples if key in snap]
         print(
-            f"| {names.get(key[1], _kernel_name(*key))} | {role(*key, p.pid, names)} | {prev[key]:.2f} | "
-            f"{first[key]:.2f} | {seen[-1]:.2f} |"
+            f"| {names.get(key[1], f'thread {key[1]}')} | {role(*key, p.pid, names)} | {prev[key]:.2f} | "
+            f"{first[key]:.2f} | {last[key]:.2f} |"
         )
-
-
-def _kernel_name(pid: int, tid: int) -> str:
-    """The kernel's name of a thread (gone: its id)."""
-    try:
-        return Path(f"/proc/{pid}/task/{tid}/comm").read_text().strip()
-    except OSError:
-        return f"thread {tid}"
 
 
 if __name__ == "__main__":

@@ -824,19 +824,21 @@ def implied_underread(dis: dict | None, z: float = 2.0, min_compared: int = MIN_
 
     ``dis`` is :func:`disagreement`'s block. Where STIV reads faster than PIV by ``d`` (its
     ``discharge_relative``), the PIV may under-read by the fraction ``d / (1 + d)`` (``Q / (1 - u)`` then
-    equals STIV's discharge). ``d`` is uncertain itself (:func:`_stiv_difference`: its standard error ``se``).
-    The bound is ``d + z * se``; where STIV reads slower than PIV by more than its noise, it supports no
-    under-read (0).
+    equals STIV's discharge). ``d`` is uncertain itself: its standard error is the spread of the per-subsection
+    differences over ``sqrt(n_eff)`` (:func:`_evidence`). The bound is ``d + z * se``; where STIV reads slower
+    than PIV by more than its noise, it supports no under-read (0).
 
     Returns ``{"fraction", "stiv_relative", "se", "n_compared", "n_eff"}`` (fractions of Q), or None where
-    :func:`_stiv_difference` finds no evidence: the run then keeps the project's prior, the keys
+    :func:`_evidence` finds none: the run then keeps the project's prior, the keys
     ``uncertainty.underread_doubtful`` / ``underread_unusable``.
     """
-    diff = _stiv_difference(dis, min_compared)
-    if diff is None:
+    ev = _evidence(dis, min_compared)
+    if ev is None:
         return None
-    hi = diff["stiv_relative"] + z * diff["se"]
-    return {"fraction": float(hi / (1.0 + hi) if hi > 0 else 0.0), **diff}
+    d, rel, n_eff = ev
+    se = float(np.std(rel, ddof=1) / np.sqrt(n_eff))
+    hi = d + z * se
+    return _implied(hi / (1.0 + hi) if hi > 0 else 0.0, d, se, rel, n_eff)
 
 
 def implied_overread(dis: dict | None, z: float = 2.0, min_compared: int = MIN_COMPARED) -> dict | None:
@@ -849,40 +851,40 @@ def implied_overread(dis: dict | None, z: float = 2.0, min_compared: int = MIN_C
     reading near zero or upstream (ripples and waves against the flow: -88 % to -685 % of PIV in single
     subsections of drawn scenes whose PIV was right), which only ever reads as an over-read of PIV, so a few such
     subsections must not make one. Its standard error is the median's, ``1.2533 * 1.4826 * MAD / sqrt(n_eff)``
-    (``n_eff`` as in :func:`_stiv_difference`). Returns the keys of :func:`implied_underread` (``stiv_relative``
-    the median), or None where :func:`_stiv_difference` finds no evidence: nothing else bounds an over-read."""
-    diff = _stiv_difference(dis, min_compared)
-    if diff is None or dis is None:  # no difference without a block
+    (``n_eff`` as in :func:`_evidence`). Returns the keys of :func:`implied_underread` (``stiv_relative`` the
+    median), or None where :func:`_evidence` finds none: nothing else bounds an over-read."""
+    ev = _evidence(dis, min_compared)
+    if ev is None:
         return None
-    rel = _compared(dis)
+    _, rel, n_eff = ev
     med = float(np.median(rel))
-    se = float(1.2533 * 1.4826 * np.median(np.abs(rel - med)) / np.sqrt(diff["n_eff"]))
+    se = float(1.2533 * 1.4826 * np.median(np.abs(rel - med)) / np.sqrt(n_eff))
     lo = med - z * se
-    return {"fraction": float(-lo if lo < 0 else 0.0), **diff, "stiv_relative": med, "se": se}
+    return _implied(-lo if lo < 0 else 0.0, med, se, rel, n_eff)
 
 
-def _compared(dis: dict) -> np.ndarray:
-    """The finite per-subsection differences of :func:`disagreement`'s block (STIV's over PIV's, minus 1)."""
-    rel = np.asarray([r for r in dis.get("subsections_relative") or [] if r is not None], float)
-    return rel[np.isfinite(rel)]
+def _implied(fraction: float, relative: float, se: float, rel: np.ndarray, n_eff: float) -> dict:
+    """The block :func:`implied_underread` and :func:`implied_overread` return."""
+    return {"fraction": float(fraction), "stiv_relative": relative, "se": se, "n_compared": len(rel), "n_eff": n_eff}
 
 
-def _stiv_difference(dis: dict | None, min_compared: int = MIN_COMPARED) -> dict | None:
-    """STIV's discharge relative to PIV's over the subsections both measured, ``d``, and its standard error.
+def _evidence(dis: dict | None, min_compared: int = MIN_COMPARED) -> tuple[float, np.ndarray, float] | None:
+    """What STIV's disagreement with PIV says: (``d``, the per-subsection differences, ``n_eff``).
 
-    ``d`` is :func:`disagreement`'s ``discharge_relative``; its standard error is the spread of the
-    per-subsection differences over ``sqrt(n_eff)``, with ``n_eff = n (1 - r) / (1 + r)`` for the lag-1
-    autocorrelation ``r >= 0`` of those differences along the section (neighbouring subsections share texture,
-    lines and errors: AR(1) effective sample size).
+    ``d`` is :func:`disagreement`'s ``discharge_relative`` (STIV's discharge over PIV's, minus 1, over the
+    subsections both measured); the differences are its finite ``subsections_relative``; ``n_eff = n (1 - r) /
+    (1 + r)`` for the lag-1 autocorrelation ``r >= 0`` of those differences along the section (neighbouring
+    subsections share texture, lines and errors: AR(1) effective sample size).
 
-    Returns ``{"stiv_relative", "se", "n_compared", "n_eff"}``, or None when STIV compared fewer than
-    ``min_compared`` subsections, or where its discharge over them is zero or upstream (``d <= -1``) while
-    PIV's goes downstream: STIV then measured something else than the river (ripples or waves travelling
-    against it read -325 % of PIV's Q on a drawn scene, and bounded the under-read to 0 where PIV read -66 %).
+    None when STIV compared fewer than ``min_compared`` subsections, or where its discharge over them is zero or
+    upstream (``d <= -1``) while PIV's goes downstream: STIV then measured something else than the river (ripples
+    or waves travelling against it read -325 % of PIV's Q on a drawn scene, and bounded the under-read to 0 where
+    PIV read -66 %).
     """
     if not dis or dis.get("discharge_relative") is None:
         return None
-    rel = _compared(dis)
+    rel = np.asarray([r for r in dis.get("subsections_relative") or [] if r is not None], float)
+    rel = rel[np.isfinite(rel)]
     n = len(rel)
     d = float(dis["discharge_relative"])
     if n < max(min_compared, 2) or not np.isfinite(d) or d <= -1.0:
@@ -892,6 +894,4 @@ def _stiv_difference(dis: dict | None, min_compared: int = MIN_COMPARED) -> dict
         a, b = rel[:-1] - rel.mean(), rel[1:] - rel.mean()
         den = float(np.sum((rel - rel.mean()) ** 2))
         r = float(np.clip(np.sum(a * b) / den, 0.0, 0.95)) if den > 0 else 0.0
-    n_eff = float(np.clip(n * (1.0 - r) / (1.0 + r), 1.0, n))
-    se = float(np.std(rel, ddof=1) / np.sqrt(n_eff))
-    return {"stiv_relative": d, "se": se, "n_compared": n, "n_eff": n_eff}
+    return d, rel, float(np.clip(n * (1.0 - r) / (1.0 + r), 1.0, n))

@@ -167,15 +167,7 @@ def underread_bound(project, doubts: list[ql.Reason], stiv_block: dict | None) -
     unusable = any(r.severity == "unusable" for r in doubts)
     prior = u.underread_unusable if unusable else u.underread_doubtful
     implied = None if unusable else stiv.implied_underread((stiv_block or {}).get("disagreement"))
-    frac = prior if implied is None else min(prior, implied["fraction"])
-    block = {
-        "max_fraction": float(frac),
-        "source": "prior" if implied is None or implied["fraction"] >= prior else "stiv",
-        "prior": float(prior),
-        "reasons": sorted({r.code for r in doubts}),
-        "stiv": implied,
-    }
-    return float(frac), block
+    return _read_bound(prior, implied, doubts)
 
 
 def overread_bound(project, stiv_block: dict | None) -> tuple[float, dict | None]:
@@ -184,19 +176,24 @@ def overread_bound(project, stiv_block: dict | None) -> tuple[float, dict | None
 
     LSPIV's usual failure is an under-read (:func:`underread_bound`), so without evidence nothing bounds an
     over-read. STIV is that evidence: where it disagrees with PIV by reading slower, the over-read it supports
-    (:func:`stiv.implied_overread`, its difference from PIV plus twice its standard error) widens the interval
-    downward, never beyond the prior ``uncertainty.underread_doubtful``. Without a usable STIV difference
-    (fewer subsections compared, or STIV upstream) nothing is added.
+    (:func:`stiv.implied_overread`, its median difference from PIV plus twice that median's standard error) widens
+    the interval downward, never beyond the prior ``uncertainty.underread_doubtful``. Without a usable STIV
+    difference (fewer subsections compared, or STIV upstream) nothing is added.
     Returns (fraction, the ``uncertainty.overread`` block of result.json, None without the doubt)."""
     doubts = _stiv_slower(stiv_block)
     implied = stiv.implied_overread((stiv_block or {}).get("disagreement")) if doubts else None
     if implied is None or implied["fraction"] <= 0:
         return 0.0, None
-    prior = project.uncertainty.underread_doubtful
-    frac = min(prior, implied["fraction"])
+    return _read_bound(project.uncertainty.underread_doubtful, implied, doubts)
+
+
+def _read_bound(prior: float, implied: dict | None, doubts: list[ql.Reason]) -> tuple[float, dict]:
+    """(fraction, block) of a doubted read: STIV's bound ``implied`` (None: none), never beyond ``prior``; the
+    ``uncertainty.underread`` / ``overread`` block of result.json says which one holds and the doubts."""
+    frac = prior if implied is None else min(prior, implied["fraction"])
     block = {
         "max_fraction": float(frac),
-        "source": "stiv" if implied["fraction"] < prior else "prior",
+        "source": "prior" if implied is None or implied["fraction"] >= prior else "stiv",
         "prior": float(prior),
         "reasons": sorted({r.code for r in doubts}),
         "stiv": implied,
